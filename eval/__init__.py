@@ -1,0 +1,1 @@
+"""Measuring: the survey simulator, colour and depth metrics, diagnosis and reports."""

@@ -1,0 +1,1 @@
+"""Stages that turn a survey into corrected images, 3D products and reports."""

@@ -1,0 +1,117 @@
+"""The base class of every image-formation effect.
+
+An effect is a small ``torch.nn.Module``: a pure, differentiable function carries the equation
+(module-level, docstring with units), the class declares its bounded parameters once, and
+``forward(state) -> state`` reads the inputs it needs from the state and returns a new state.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+from .params import Param, ParameterError, as_tensor, to_json_value
+from .state import FormationState
+
+# Where an effect sits in the chain from scene to sensor; the simulator orders hidden effects by it.
+RANK_ILLUMINATION = 10   # light reaching the scene (artificial light, caustics, ambient)
+RANK_WATER = 20          # attenuation along the scene-to-camera path
+RANK_SCATTER = 30        # light added by the water (backscatter, marine snow)
+RANK_BLUR = 40           # forward scatter
+RANK_OPTICS = 50         # lens (vignetting)
+RANK_SENSOR = 60         # sensor gain and response
+
+
+class Effect(nn.Module):
+    """Base class. Subclasses set the class attributes and implement :meth:`forward`.
+
+    name:        registered name (snake case), used in JSON stacks and on the command line.
+    summary:     one line: what the effect does physically.
+    signature:   one line: the residual it explains (by image position, range, intensity,
+                 light distance, height, spatial frequency, frame).
+    axis:        the residual axis of that signature, one of AXES (the diagnosis bins along it).
+    params:      the bounded parameters.
+    neutral:     parameter values that make the effect the identity (tests rely on it).
+    rank:        position in the scene-to-sensor chain (see RANK_*).
+    needs_image: True when the effect acts on neighbourhoods of whole images (blur, learned masks),
+                 so it cannot act on per-point observation columns.
+    """
+
+    AXES: ClassVar[tuple[str, ...]] = (
+        "image_position", "range", "intensity", "light_distance", "height", "spatial_frequency", "frame",
+    )
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+    signature: ClassVar[str] = ""
+    axis: ClassVar[str] = ""
+    params: ClassVar[tuple[Param, ...]] = ()
+    neutral: ClassVar[dict[str, object]] = {}
+    rank: ClassVar[int] = RANK_WATER
+    needs_image: ClassVar[bool] = False
+
+    def __init__(self, **values) -> None:
+        super().__init__()
+        unknown = set(values) - {p.name for p in self.params}
+        if unknown:
+            known = ", ".join(p.name for p in self.params) or "none"
+            raise ParameterError(f"effect '{self.name}' has no parameter {sorted(unknown)}; it has: {known}")
+        self.raw = nn.ParameterDict()
+        for p in self.params:
+            value = as_tensor(values.get(p.name, p.init))
+            p.check_shape(value, self.name)
+            p.check(value, self.name)
+            self.raw[p.name] = nn.Parameter(p.to_raw(value), requires_grad=p.learnable)
+
+    def param(self, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
+        """The physical value of a parameter, cast to ``like``'s dtype and device when given."""
+        spec = self._spec(name)
+        value = spec.to_value(self.raw[name])
+        return value.to(dtype=like.dtype, device=like.device) if like is not None else value
+
+    def _spec(self, name: str) -> Param:
+        for p in self.params:
+            if p.name == name:
+                return p
+        raise ParameterError(f"effect '{self.name}' has no parameter '{name}'")
+
+    def values(self) -> dict[str, torch.Tensor]:
+        """Every parameter's physical value (float64, detached)."""
+        return {p.name: self.param(p.name).detach() for p in self.params}
+
+    def set_values(self, **values) -> None:
+        """Set physical values (checked against the bounds) without changing shapes."""
+        for name, value in values.items():
+            spec = self._spec(name)
+            t = as_tensor(value)
+            spec.check_shape(t, self.name)
+            spec.check(t, self.name)
+            with torch.no_grad():
+                self.raw[name] = nn.Parameter(spec.to_raw(t).to(self.raw[name].device),
+                                              requires_grad=spec.learnable)
+
+    def make_neutral(self) -> None:
+        """Set the effect to the identity (its ``neutral`` values; learned layers override this)."""
+        self.set_values(**self.neutral)
+
+    def to_config(self) -> dict:
+        """``{"name": ..., "params": {...}}`` with JSON-ready physical values."""
+        return {"name": self.name, "params": {k: to_json_value(v) for k, v in self.values().items()}}
+
+    def forward(self, state: FormationState) -> FormationState:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @classmethod
+    def describe(cls) -> str:
+        """Human-readable block for ``watergan effects``."""
+        lines = [f"{cls.name}: {cls.summary}", f"    explains: {cls.signature}"]
+        for p in cls.params:
+            hi = "inf" if not p.bounded_above else f"{p.upper:g}"
+            fixed = "" if p.learnable else " (fixed setting)"
+            lines.append(f"    - {p.name} = {p.init} in [{p.lower:g}, {hi}] {p.units}{fixed}  {p.doc}".rstrip())
+        return "\n".join(lines)
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={to_json_value(v)}" for k, v in self.values().items())

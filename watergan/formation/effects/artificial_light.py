@@ -1,0 +1,78 @@
+"""Artificial lights mounted beside the camera (strobes, LED panels)."""
+
+from __future__ import annotations
+
+import torch
+
+from ..effect import RANK_ILLUMINATION, Effect
+from ..params import Param
+from ..registry import register
+
+
+def beam_axes(tilt_deg: torch.Tensor) -> torch.Tensor:
+    """(L,3) unit beam axes in the camera frame from (L,2) tilts (towards +x, towards +y), degrees."""
+    tx, ty = torch.deg2rad(tilt_deg[:, 0]), torch.deg2rad(tilt_deg[:, 1])
+    return torch.stack([torch.sin(tx) * torch.cos(ty), torch.sin(ty), torch.cos(tx) * torch.cos(ty)], dim=1)
+
+
+def light_irradiance(points_cam: torch.Tensor, normals_cam: torch.Tensor, offset_m: torch.Tensor,
+                     tilt_deg: torch.Tensor, beam_deg: torch.Tensor, power: torch.Tensor,
+                     eta_per_m: torch.Tensor, ambient: torch.Tensor) -> torch.Tensor:
+    """E_c(X) = ambient + sum_l P_l exp(-theta_l^2 / (2 sigma_l^2)) max(0, n . s_l / d_l) exp(-eta_c d_l) / d_l^2.
+
+    For each light l at ``offset_m`` (camera frame, metres) with beam axis a_l (``tilt_deg``):
+    s_l = L_l - X points from the scene point X to the light, d_l = |s_l| metres, theta_l the angle
+    between a_l and X - L_l, sigma_l = ``beam_deg`` (Gaussian beam pattern), P_l the radiant
+    intensity (irradiance at 1 m on axis at normal incidence, relative to the in-air light),
+    eta_c (1/m) the attenuation on the light-to-scene path (the scene-to-camera path is the
+    ``attenuation`` effect's). Returns the (B,3,H,W) irradiance factor that multiplies J.
+    """
+    axes = beam_axes(tilt_deg)
+    total = ambient.reshape(1, 1, 1, 1).expand(points_cam.shape[0], 3, *points_cam.shape[2:])
+    for l in range(offset_m.shape[0]):
+        to_light = offset_m[l].view(1, 3, 1, 1) - points_cam
+        d2 = (to_light * to_light).sum(1, keepdim=True).clamp_min(1e-6)
+        d = torch.sqrt(d2)
+        cos_incidence = ((normals_cam * to_light).sum(1, keepdim=True) / d).clamp_min(0.0)
+        along = -(axes[l].view(1, 3, 1, 1) * to_light).sum(1, keepdim=True)
+        across = torch.sqrt((torch.linalg.cross(-to_light, axes[l].view(1, 3, 1, 1).expand_as(to_light), dim=1)
+                             ** 2).sum(1, keepdim=True) + 1e-12)
+        theta = torch.atan2(across, along)
+        sigma = torch.deg2rad(beam_deg[l])
+        beam = torch.exp(-0.5 * (theta / sigma) ** 2)
+        path = torch.exp(-eta_per_m.view(1, 3, 1, 1) * d)
+        total = total + power[l] * beam * cos_incidence * path / d2
+    return total
+
+
+@register
+class ArtificialLight(Effect):
+    name = "artificial_light"
+    summary = "lights offset from the camera: beam pattern, inverse square, cosine incidence, path attenuation"
+    signature = "light distance: brightness falls with distance from the light and off its beam axis"
+    axis = "light_distance"
+    rank = RANK_ILLUMINATION
+    params = (
+        Param("offset_m", ((0.4, 0.0, 0.0),), -3.0, 3.0, "m", "light positions in the camera frame",
+              shapes=((-1, 3),)),
+        Param("tilt_deg", ((0.0, 0.0),), -60.0, 60.0, "deg", "beam axis tilt towards +x and +y",
+              shapes=((-1, 2),)),
+        Param("beam_deg", (35.0,), 5.0, 90.0, "deg", "Gaussian beam width (sigma) per light", shapes=((-1,),)),
+        Param("power", (4.0,), 0.0, 100.0, "", "on-axis irradiance at 1 m per light", shapes=((-1,),)),
+        Param("eta_per_m", (0.34, 0.24, 0.33), 0.0, 5.0, "1/m", "attenuation on the light-to-scene path"),
+        Param("ambient", 0.0, 0.0, 10.0, "", "irradiance from other (natural) light"),
+    )
+    neutral = {"power": (0.0,), "ambient": 1.0}
+
+    def __init__(self, **values) -> None:
+        super().__init__(**values)
+        counts = {n: self.raw[n].shape[0] for n in ("offset_m", "tilt_deg", "beam_deg", "power")}
+        if len(set(counts.values())) != 1:
+            raise ValueError(f"artificial_light: every per-light parameter needs one row per light, got {counts}")
+
+    def forward(self, state):
+        like = state.direct
+        e = light_irradiance(state.need("points_cam", self.name), state.need("normals_cam", self.name),
+                             *(self.param(n, like) for n in ("offset_m", "tilt_deg", "beam_deg", "power",
+                                                              "eta_per_m", "ambient")))
+        return state.replace(direct=state.direct * e)

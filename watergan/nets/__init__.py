@@ -1,0 +1,1 @@
+"""Networks: the WaterGAN generator and discriminator, and the restorer nets."""
