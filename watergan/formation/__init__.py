@@ -1,10 +1,8 @@
 """The image-formation physics library shared by the simulator, WaterGAN and the diagnosis."""
 
-from .effect import (RANK_BLUR, RANK_ILLUMINATION, RANK_OPTICS, RANK_SCATTER, RANK_SENSOR, RANK_WATER,
-                     Effect)
+from .effect import RANK_BLUR, RANK_ILLUMINATION, RANK_OPTICS, RANK_SCATTER, RANK_SENSOR, RANK_WATER, Effect
 from .params import Param, ParameterError
-from .registry import (ENTRY_POINT_GROUP, PluginError, UnknownEffectError, available, get, load_plugin,
-                       register)
+from .registry import ENTRY_POINT_GROUP, PluginError, UnknownEffectError, available, get, load_plugin, register
 from .stack import Stack
 from .state import FormationState, MissingInputError, normalised_radius, pixel_grid, state_from_rgbd
 

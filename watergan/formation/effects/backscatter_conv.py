@@ -18,7 +18,8 @@ def conv_backscatter(z: torch.Tensor, range_m: torch.Tensor, depth_scale_m: floa
     z (B,Z) noise; M(z) = reshape(project(z)) a one-channel (h,w) mask; r / r_max the range
     normalised by ``depth_scale_m`` (the survey's maximum altitude), resized to (h,w); three
     independent 5x5 convolutions, one per output channel. Returns the (B,3,h,w) backscatter mask
-    in linear radiance; the caller adds it to the image (upsampled bicubically when larger).
+    in linear radiance; the caller adds it to the image (upsampled bicubically when larger). As in
+    the paper, the leaky ReLU lets the mask dip slightly below zero; the generator clamps its output.
     """
     h, w = mask_hw
     mask = project(z).view(-1, 1, h, w)

@@ -1,0 +1,309 @@
+"""The effect library: every registered effect, the registry, stacks and physics sanity."""
+
+import json
+import math
+import textwrap
+
+import pytest
+import torch
+from conftest import make_state
+from torch.func import functional_call
+
+from watergan.formation import (
+    Effect,
+    MissingInputError,
+    ParameterError,
+    PluginError,
+    Stack,
+    UnknownEffectError,
+    available,
+    get,
+    load_plugin,
+)
+from watergan.formation.water import EFFECTIVE_RGB_ATTENUATION_PER_M
+
+BUILTINS = [
+    "attenuation", "backscatter_conv", "backscatter", "vignetting", "gain",
+    "vignetting_offcentre", "artificial_light", "sensor_response", "forward_scatter",
+    "backscatter_coefficient", "wideband_attenuation", "caustics", "ambient_depth", "marine_snow",
+]
+
+
+def run(effect: Effect, state):
+    """Run an effect the way a stack does: `backscatter_coefficient` relates to `attenuation`'s beta_D."""
+    if effect.name == "backscatter_coefficient":
+        state = get("attenuation")()(state)
+    return effect(state)
+
+
+def test_all_fourteen_builtins_registered():
+    names = available()
+    assert set(BUILTINS) <= set(names)
+    assert len(BUILTINS) == 14
+    for name in BUILTINS:
+        cls = names[name]
+        assert cls.summary and cls.signature, name
+        assert cls.axis in Effect.AXES, name
+        # the equation lives in a module-level pure function with a docstring stating it
+        module = __import__(cls.__module__, fromlist=["_"])
+        funcs = [f for f in vars(module).values() if callable(f) and getattr(f, "__module__", "") == module.__name__
+                 and not isinstance(f, type)]
+        assert any(f.__doc__ and "=" in f.__doc__ for f in funcs), f"{name}: no pure function stating its equation"
+
+
+@pytest.mark.parametrize("name", BUILTINS)
+def test_smoke_and_shapes(name):
+    state = make_state(dtype=torch.float32)
+    effect = get(name)()
+    out = run(effect, state)
+    assert out.direct.shape == state.direct.shape
+    assert out.backscatter.shape == state.direct.shape
+    assert torch.isfinite(out.image).all()
+    if name != "backscatter_conv":  # the paper's leaky ReLU lets the learned mask dip below zero
+        assert (out.image >= 0).all(), "a physical image is non-negative"
+    assert out.direct.dtype == torch.float32
+    # geometry passes through untouched: stages change colour and intensity only
+    assert out.range_m is state.range_m and out.pixel_uv is state.pixel_uv
+
+
+@pytest.mark.parametrize("name", BUILTINS)
+def test_identity_at_neutral(name):
+    state = make_state()
+    effect = get(name)().double()
+    effect.make_neutral()
+    before = get("attenuation")()(state) if name == "backscatter_coefficient" else state
+    out = effect(before)
+    assert torch.allclose(out.image, before.image, atol=1e-6), name
+
+
+@pytest.mark.parametrize("name", [n for n in BUILTINS if n != "gain"])  # gain starts at k = 1, the identity
+def test_not_identity_at_initial_values(name):
+    """The converse of the identity test: at its initial values every effect changes the image."""
+    state = make_state()
+    effect = get(name)().double()
+    before = get("attenuation")()(state) if name == "backscatter_conv" or name == "backscatter_coefficient" \
+        else state
+    out = effect(before)
+    assert (out.image - before.image).abs().max() > 1e-3, name
+
+
+@pytest.mark.parametrize("name", BUILTINS)
+def test_gradcheck_float64(name):
+    torch.manual_seed(0)
+    state = make_state(batch=2, height=5, width=6)
+    effect = get(name)().double()
+    if name == "backscatter_conv":
+        # the learned layers: check through the noise vector and the convolutions (the 100 -> 3072
+        # projection is an ordinary Linear layer)
+        targets = {k: v for k, v in effect.named_parameters() if k.startswith("convs.0")}
+        extra = {"z": state.z.clone().requires_grad_()}
+    else:
+        targets = {k: v for k, v in effect.named_parameters() if v.requires_grad}
+        extra = {}
+    names = list(targets)
+    # marine snow samples its particles' distances: they are drawn, not differentiable in range
+    differentiable_range = name != "marine_snow"
+
+    def f(direct, range_m, *values):
+        params = dict(zip(names, values, strict=True))
+        z = params.pop("z", state.z) if "z" in params else state.z
+        s = state.replace(direct=direct, range_m=range_m if differentiable_range else state.range_m, z=z)
+        return run_functional(effect, params, s).image
+
+    def run_functional(module, params, s):
+        if module.name == "backscatter_coefficient":
+            s = get("attenuation")().double()(s)
+        return functional_call(module, params, (s,), strict=False)
+
+    inputs = [state.direct.clone().requires_grad_(), state.range_m.clone().requires_grad_()]
+    inputs += [targets[k].detach().clone().requires_grad_() for k in names]
+    if extra:
+        names.append("z")
+        inputs.append(extra["z"])
+    assert torch.autograd.gradcheck(f, tuple(inputs), eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+@pytest.mark.parametrize("name", BUILTINS)
+def test_bounds_hold_for_random_raw_parameters(name):
+    g = torch.Generator().manual_seed(1)
+    effect = get(name)()
+    for _ in range(20):
+        with torch.no_grad():
+            for raw in effect.raw.values():
+                if raw.requires_grad:
+                    raw.copy_(torch.randn(raw.shape, generator=g, dtype=raw.dtype) * 30)
+        for p in effect.params:
+            value = effect.param(p.name)
+            assert (value >= p.lower).all() and (value <= p.upper).all(), (name, p.name, value)
+
+
+@pytest.mark.parametrize("name", ["vignetting", "vignetting_offcentre"])
+def test_vignetting_constraint_holds_for_random_raw_parameters(name):
+    """c >= 0 and 4b^2 - 12ac < 0 for raw values spanning the sigmoids' useful range (|raw| <~ 9;
+    beyond it c underflows towards 0 and the discriminant cancels to rounding noise in float64)."""
+    g = torch.Generator().manual_seed(2)
+    effect = get(name)()
+    for _ in range(200):
+        with torch.no_grad():
+            for raw in effect.raw.values():
+                raw.copy_(torch.randn(raw.shape, generator=g, dtype=raw.dtype) * 3)
+        a_margin, b, c = (effect.param(n) for n in ("a_margin", "b", "c"))
+        a = b * b / (3 * c) + a_margin
+        assert c >= 0 and 4 * b * b - 12 * a * c < 0
+
+
+def test_vignetting_is_monotonic_and_constrained():
+    from watergan.formation.effects.vignetting import vignetting_coefficients, vignetting_falloff
+
+    r = torch.linspace(0, 1, 201, dtype=torch.float64)
+    for b in (-3.0, -0.5, 0.0, 2.0):
+        a, b_, c = vignetting_coefficients(torch.tensor(0.05), torch.tensor(b), torch.tensor(0.4))
+        assert 4 * b_ ** 2 - 12 * a * c < 0
+        v = 1 + vignetting_falloff(r, a, b_, c)
+        assert (v[1:] > v[:-1]).all(), "V must rise monotonically from the centre"
+
+
+def test_stack_json_round_trip_every_effect():
+    stack = Stack.from_names(BUILTINS)
+    config = stack.to_config()
+    text = json.dumps(config)
+    again = Stack.from_config(json.loads(text)).to_config()
+    assert again == config
+    assert [c["name"] for c in again] == BUILTINS
+
+
+def test_user_config_round_trips_unchanged():
+    config = [
+        {"name": "attenuation", "params": {"eta_per_m": [0.21, 0.06, 0.025]}},
+        {"name": "backscatter", "params": {"b_inf": [0.02, 0.15, 0.21], "beta_per_m": [0.5, 0.35, 0.3]}},
+        {"name": "vignetting_offcentre", "params": {"centre_uv": [0.61, 0.44], "a_margin": 0.7, "b": -0.25,
+                                                    "c": 0.125, "strength": [1.0, 0.9, 0.8]}},
+        {"name": "artificial_light", "params": {"offset_m": [[0.4, 0.0, 0.1], [-0.4, 0.0, 0.1]],
+                                                "tilt_deg": [[-10.0, 0.0], [10.0, 0.0]], "beam_deg": [30.0, 45.0],
+                                                "power": [2.5, 3.0], "eta_per_m": [0.3, 0.2, 0.3],
+                                                "ambient": 0.1}},
+        {"name": "gain", "params": {"k": [1.7]}},
+    ]
+    assert Stack.from_config(json.dumps(config)).to_config() == config
+
+
+def test_gain_accepts_one_value_or_per_channel():
+    state = make_state()
+    one = get("gain")(k=[2.0]).double()(state)
+    three = get("gain")(k=[2.0, 2.0, 2.0]).double()(state)
+    assert torch.allclose(one.image, three.image)
+    with pytest.raises(ParameterError, match="shape"):
+        get("gain")(k=[1.0, 2.0])
+
+
+def test_long_range_tends_to_b_inf_and_zero_range_to_j():
+    b_inf = [0.03, 0.16, 0.24]
+    eta = [0.34, 0.24, 0.33]
+    stack = Stack.from_config([{"name": "attenuation", "params": {"eta_per_m": eta}},
+                               {"name": "backscatter", "params": {"b_inf": b_inf, "beta_per_m": eta}}]).double()
+    far = make_state(range_m=300.0)
+    assert torch.allclose(stack.render(far), torch.tensor(b_inf, dtype=torch.float64).view(1, 3, 1, 1)
+                          .expand_as(far.direct), atol=1e-9)
+    near = make_state(range_m=0.0)
+    assert torch.allclose(stack.render(near), near.direct, atol=1e-12)
+    # with beta_B = beta_D the image in between is the blend t J + (1 - t) B_inf, t = exp(-eta r)
+    t = torch.exp(-torch.tensor(eta, dtype=torch.float64) * 3.0).view(1, 3, 1, 1)
+    mid = stack.render(make_state(range_m=3.0))
+    b = torch.tensor(b_inf, dtype=torch.float64).view(1, 3, 1, 1)
+    assert torch.allclose(mid, t * near.direct + (1 - t) * b, atol=1e-12)
+
+
+def test_red_decays_fastest_in_ocean_water():
+    eta = EFFECTIVE_RGB_ATTENUATION_PER_M["I"]
+    effect = get("attenuation")(eta_per_m=eta).double()
+    white = make_state(range_m=5.0).replace(direct=torch.ones(2, 3, 6, 8, dtype=torch.float64))
+    out = effect(white).image.mean(dim=(0, 2, 3))
+    assert out[0] < out[1] < out[2]
+    assert math.isclose(out[0].item(), math.exp(-eta[0] * 5.0), rel_tol=1e-9)
+
+
+def test_artificial_light_falls_with_distance_and_off_axis():
+    light = get("artificial_light")(offset_m=[[0.0, 0.0, 0.0]], power=[1.0], eta_per_m=[0.0, 0.0, 0.0]).double()
+    s = make_state(range_m=2.0)
+    flat = s.replace(direct=torch.ones_like(s.direct), normals_cam=-s.points_cam / s.range_m)
+    near = light(flat.replace(points_cam=flat.points_cam / 2)).image
+    far = light(flat).image
+    # inverse square: half the distance, four times the irradiance (same angles, normal incidence)
+    assert torch.allclose(near, 4 * far, rtol=1e-6)
+    centre = far[0, 0, 2:4, 3:5].mean()
+    corner = far[0, 0, 0, 0]
+    assert corner < centre
+
+
+def test_backscatter_coefficient_needs_attenuation_first():
+    with pytest.raises(MissingInputError, match="beta_d_per_m"):
+        get("backscatter_coefficient")().double()(make_state())
+
+
+def test_effect_needing_missing_field_says_which():
+    s = make_state().replace(water_depth_m=None)
+    with pytest.raises(MissingInputError, match="ambient_depth.*water_depth_m"):
+        get("ambient_depth")().double()(s)
+
+
+def test_unknown_effect_is_a_clear_error():
+    with pytest.raises(UnknownEffectError, match="unknown effect 'vignetting_offcenter'.*vignetting_offcentre"):
+        Stack.from_names(["attenuation", "vignetting_offcenter"])
+
+
+@pytest.mark.parametrize("params, match", [
+    ({"eta_per_m": [0.3, -0.1, 0.2]}, r"attenuation.eta_per_m .* out of its bounds \[0.0, 5.0\] 1/m"),
+    ({"eta_per_m": [0.3, float("nan"), 0.2]}, "not finite"),
+    ({"eta_per_m": [0.3, 0.2]}, "shape"),
+    ({"eta": [0.3, 0.2, 0.1]}, "has no parameter"),
+])
+def test_bad_parameter_is_a_clear_error(params, match):
+    with pytest.raises(ParameterError, match=match):
+        Stack.from_config([{"name": "attenuation", "params": params}])
+
+
+def test_repeated_effect_is_refused():
+    with pytest.raises(ParameterError, match="repeated"):
+        Stack.from_names(["gain", "gain"])
+
+
+def test_plugin_registers_a_user_effect(tmp_path):
+    plugin = tmp_path / "my_haze.py"
+    plugin.write_text(textwrap.dedent('''
+        import torch
+        from watergan.formation import Effect, Param, register
+
+        def haze(direct, strength):
+            """D = J + s: a flat haze (units of J)."""
+            return direct + strength
+
+        @register
+        class TestHaze(Effect):
+            name = "test_haze_plugin"
+            summary = "flat haze"
+            signature = "intensity: constant offset"
+            axis = "intensity"
+            params = (Param("strength", 0.1, 0.0, 1.0, ""),)
+            neutral = {"strength": 0.0}
+
+            def forward(self, state):
+                return state.replace(direct=haze(state.direct, self.param("strength", state.direct)))
+    '''))
+    assert load_plugin(plugin) == ["test_haze_plugin"]
+    stack = Stack.from_names(["attenuation", "test_haze_plugin"]).double()
+    s = make_state(range_m=0.0)
+    assert torch.allclose(stack.render(s), s.direct + 0.1)
+    assert Stack.from_config(stack.to_config()).to_config() == stack.to_config()
+
+
+def test_plugin_with_errors_is_reported(tmp_path):
+    broken = tmp_path / "broken.py"
+    broken.write_text("import torch\ndef oops(:\n    pass\n")
+    with pytest.raises(PluginError, match="broken.py failed to import: SyntaxError"):
+        load_plugin(broken)
+    empty = tmp_path / "empty.py"
+    empty.write_text("x = 1\n")
+    with pytest.raises(PluginError, match="registered no effect"):
+        load_plugin(empty)
+    with pytest.raises(PluginError, match="does not exist"):
+        load_plugin(tmp_path / "missing.py")
