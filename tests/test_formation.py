@@ -307,3 +307,21 @@ def test_plugin_with_errors_is_reported(tmp_path):
         load_plugin(empty)
     with pytest.raises(PluginError, match="does not exist"):
         load_plugin(tmp_path / "missing.py")
+
+
+def test_state_from_rgbd_geometry_of_a_tilted_plane():
+    """Points, range and normals from depth: a plane z = 2 + 0.5 x (camera frame) has the normal
+    (0.5, 0, -1)/|.| facing the camera everywhere, and range = |points|."""
+    from watergan.formation import state_from_rgbd
+
+    h, w, f = 12, 16, 20.0
+    xs = (torch.arange(w, dtype=torch.float64) - 7.5) / f
+    # on the plane z = 2 + 0.5 x with x = z * xs: z = 2 / (1 - 0.5 xs)
+    depth = (2.0 / (1 - 0.5 * xs)).expand(h, w)[None, None].clone()
+    s = state_from_rgbd(torch.ones(1, 3, h, w, dtype=torch.float64), depth, f, f, 7.5, 5.5)
+    expected = torch.tensor([0.5, 0.0, -1.0], dtype=torch.float64) / math.sqrt(1.25)
+    assert torch.allclose(s.normals_cam[0, :, 1:-1, 1:-1], expected.view(3, 1, 1).expand(3, h - 2, w - 2), atol=1e-9)
+    assert torch.allclose(s.range_m, s.points_cam.norm(dim=1, keepdim=True))
+    assert torch.allclose(s.points_cam[:, 2:3], depth)
+    with pytest.raises(ValueError, match="NaN"):
+        state_from_rgbd(torch.ones(1, 3, h, w), depth.float() * float("nan"), f, f, 7.5, 5.5)

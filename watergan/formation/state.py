@@ -140,7 +140,7 @@ def state_from_rgbd(rgb_linear: torch.Tensor, depth_m: torch.Tensor, fx: float, 
                             indexing="ij")
     ray = torch.stack([(xs - cx) / fx, (ys - cy) / fy, torch.ones_like(xs)])[None]
     points = depth_m * ray
-    du = torch.nn.functional.pad(points[..., :, 2:] - points[..., :, :-2], (1, 1), mode="replicate")
+    du = torch.nn.functional.pad(points[..., :, 2:] - points[..., :, :-2], (1, 1, 0, 0), mode="replicate")
     dv = torch.nn.functional.pad(points[..., 2:, :] - points[..., :-2, :], (0, 0, 1, 1), mode="replicate")
     normals = torch.linalg.cross(dv, du, dim=1)
     normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
