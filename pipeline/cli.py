@@ -96,8 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from eval.synth import SimulationError
-    from watergan.formation import ParameterError, PluginError, UnknownEffectError, load_plugin
+    from watergan.errors import UserInputError
+    from watergan.formation import UnknownEffectError, load_plugin
 
     args = build_parser().parse_args(argv)
     try:
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
             names = load_plugin(path)
             print(f"plugin {path}: registered {', '.join(names)}", file=sys.stderr)
         return args.func(args)
-    except (UnknownEffectError, ParameterError, PluginError, SimulationError) as exc:
+    except (UserInputError, UnknownEffectError) as exc:
         print(f"watergan: error: {exc}", file=sys.stderr)
         return 2
 

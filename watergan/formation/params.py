@@ -19,12 +19,14 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from ..errors import UserInputError
+
 # Distance kept from a bound when a value on the bound itself is requested (sigmoid/softplus never
 # reach their limits). It is far below any physical resolution of these parameters.
 _EDGE = 1e-9
 
 
-class ParameterError(ValueError):
+class ParameterError(UserInputError):
     """A parameter value that is unknown, non-finite, of the wrong shape or out of its bounds."""
 
 

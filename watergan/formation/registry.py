@@ -14,6 +14,7 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from ..errors import UserInputError
 from .effect import Effect
 
 ENTRY_POINT_GROUP = "watergan.effects"
@@ -29,7 +30,7 @@ class UnknownEffectError(KeyError):
         return self.args[0]
 
 
-class PluginError(RuntimeError):
+class PluginError(UserInputError):
     """A plugin file or entry point that could not be loaded."""
 
 

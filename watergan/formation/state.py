@@ -18,8 +18,10 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import UserInputError
 
-class MissingInputError(ValueError):
+
+class MissingInputError(UserInputError):
     """An effect needs a field of the state that the data in hand does not provide."""
 
 
