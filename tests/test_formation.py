@@ -325,3 +325,36 @@ def test_state_from_rgbd_geometry_of_a_tilted_plane():
     assert torch.allclose(s.points_cam[:, 2:3], depth)
     with pytest.raises(ValueError, match="NaN"):
         state_from_rgbd(torch.ones(1, 3, h, w), depth.float() * float("nan"), f, f, 7.5, 5.5)
+
+
+def test_entry_point_group_registers_a_packaged_effect(tmp_path, monkeypatch):
+    """A package that declares an effect in the `watergan.effects` entry-point group is found."""
+    from watergan.formation import registry
+
+    (tmp_path / "ep_effect_pkg.py").write_text(textwrap.dedent('''
+        from watergan.formation import Effect, Param
+
+        def dim(direct, f):
+            """D = f J (unitless f)."""
+            return direct * f
+
+        class Dim(Effect):
+            name = "test_dim_entry_point"
+            summary = "dims"
+            signature = "intensity: uniform"
+            axis = "intensity"
+            params = (Param("f", 0.5, 0.0, 1.0, ""),)
+            neutral = {"f": 1.0}
+
+            def forward(self, state):
+                return state.replace(direct=dim(state.direct, self.param("f", state.direct)))
+    '''))
+    dist = tmp_path / "ep_effect_pkg-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: ep-effect-pkg\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(f"[{registry.ENTRY_POINT_GROUP}]\ndim = ep_effect_pkg:Dim\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(registry, "_entry_points_loaded", False)
+    assert "test_dim_entry_point" in available()
+    s = make_state()
+    assert torch.allclose(Stack.from_names(["test_dim_entry_point"]).double().render(s), 0.5 * s.direct)
