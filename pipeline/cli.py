@@ -14,11 +14,14 @@ import sys
 import time
 from pathlib import Path
 
+PLUGIN_HELP = "a Python file that registers effects with @watergan.formation.register (repeatable)"
+
 
 def _plugin_parent() -> argparse.ArgumentParser:
+    """``--plugin`` for every subcommand (the top-level one has its own destination: argparse lets a
+    subparser's default overwrite a value given before the subcommand)."""
     parent = argparse.ArgumentParser(add_help=False)
-    parent.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
-                        help="a Python file that registers effects with @watergan.formation.register")
+    parent.add_argument("--plugin", action="append", default=[], metavar="FILE.py", help=PLUGIN_HELP)
     return parent
 
 
@@ -70,8 +73,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     plugin = _plugin_parent()
-    parser = argparse.ArgumentParser(prog="watergan", parents=[plugin],
+    parser = argparse.ArgumentParser(prog="watergan",
                                      description="Underwater survey colour correction, 3D and physics diagnosis.")
+    parser.add_argument("--plugin", dest="plugin_first", action="append", default=[], metavar="FILE.py",
+                        help=PLUGIN_HELP)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("effects", parents=[plugin], help="list registered effects")
@@ -101,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     try:
-        for path in args.plugin:
+        for path in args.plugin_first + args.plugin:
             names = load_plugin(path)
             print(f"plugin {path}: registered {', '.join(names)}", file=sys.stderr)
         return args.func(args)

@@ -92,7 +92,7 @@ def load_plugin(path: str | Path) -> list[str]:
     """Import a user's Python file; return the names of the effects it registered."""
     path = Path(path)
     if not path.is_file():
-        raise PluginError(f"plugin file {path} does not exist")
+        raise PluginError(f"plugin file {path} does not exist or is not a file")
     before = set(available())
     module_name = f"watergan_plugin_{path.stem}"
     spec = importlib.util.spec_from_file_location(module_name, path)
