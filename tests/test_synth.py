@@ -224,3 +224,26 @@ def test_demo_preset_has_enough_frames_and_sees_the_board():
     uv = np.array([project(board_centre, p, intr)[0] for p in trajectory.world_from_cam])
     in_view = (uv[:, 0] > 0) & (uv[:, 0] < intr.width - 1) & (uv[:, 1] > 0) & (uv[:, 1] < intr.height - 1)
     assert in_view.sum() >= 5
+
+
+@pytest.fixture(scope="module")
+def no_hidden(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("none") / "survey"
+    simulate_survey(out, replace(make_config("tiny", seed=1), rgbd=SMALL_RGBD), progress=False)
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(HIDDEN_DEFAULTS))
+def test_every_candidate_effect_can_be_hidden(name, no_hidden, tmp_path):
+    """Each candidate renders as a hidden effect and changes the images it is hidden in."""
+    simulate_survey(tmp_path / name, replace(make_config("tiny", hidden=[name], seed=1), rgbd=SMALL_RGBD),
+                    progress=False)
+    frames = sorted(p.name for p in (no_hidden / "images").iterdir())
+    diff = np.mean([np.abs(read_png(tmp_path / name / "images" / f).astype(float)
+                           - read_png(no_hidden / "images" / f)).mean() for f in frames])
+    assert diff > 0.1, f"hidden {name} left the images unchanged (mean |diff| {diff:.3f} of 255)"
+
+
+def test_learned_effect_cannot_be_hidden():
+    with pytest.raises(SimulationError, match="backscatter_conv.*learned"):
+        make_config("tiny", hidden=["backscatter_conv"])
