@@ -3,6 +3,7 @@
     watergan effects                      list every registered effect, its parameters and signature
     watergan simulate --out DIR [--preset demo|tiny] [--hidden NAME[,NAME]] [--seed N] [--force]
     watergan demo [--out DIR]             the main job on the built-in default survey
+    watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
 
 Every command takes ``--plugin FILE.py`` (repeatable) to register a user's own effects first.
 """
@@ -97,6 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="redo finished stages")
     p.set_defaults(func=cmd_demo)
+
+    from . import cli_gan
+
+    cli_gan.add_commands(sub, [plugin])
     return parser
 
 

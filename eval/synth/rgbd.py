@@ -23,8 +23,9 @@ from .trajectory import CAM_IN_BODY, body_rotation
 #: Photographs whose texture reads as sediment (the colour ones serve as overlays only).
 GREY_TEXTURES = ("gravel", "grass", "brick")
 
-#: Sediment tints (linear albedo) the random scenes choose from: sand, mud, shell grit, algal film.
-TINTS = ((0.42, 0.35, 0.24), (0.22, 0.19, 0.15), (0.5, 0.47, 0.4), (0.2, 0.26, 0.14))
+#: Sediment tints (linear albedo) the random scenes choose from: sand, darker sand, shell grit, algal
+#: film. Close to the survey site's brightness, as an in-air set chosen for a survey would be.
+TINTS = ((0.42, 0.35, 0.24), (0.34, 0.29, 0.21), (0.5, 0.47, 0.4), (0.3, 0.34, 0.22))
 
 
 @dataclass(frozen=True)
@@ -41,9 +42,9 @@ class RGBDConfig:
     """Image height, pixels."""
     hfov_deg: float = 70.0
     """Horizontal field of view, degrees."""
-    altitude_m: tuple[float, float] = (1.0, 4.0)
+    altitude_m: tuple[float, float] = (1.5, 3.5)
     """Range of camera heights above the scene datum, metres."""
-    max_tilt_deg: float = 35.0
+    max_tilt_deg: float = 25.0
     """Largest tilt of the optical axis from nadir, degrees (uniform in 0..this)."""
     scene_size_m: float = 16.0
     """Side of each square scene, metres."""

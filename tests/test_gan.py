@@ -1,0 +1,231 @@
+"""WaterGAN: generator structure and alignment, discriminator, training steps, checkpoints, resume,
+full-resolution generation and the CLI commands."""
+
+import argparse
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from watergan.data import PinholeIntrinsics, read_depth, write_depth_mm, write_srgb8
+from watergan.errors import UserInputError
+from watergan.formation import Effect, Param, Stack, register
+from watergan.formation.effects.vignetting import vignetting_coefficients
+from watergan.generate import GenerateConfig, generate, load_generator
+from watergan.nets.discriminator import Discriminator
+from watergan.nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config
+from watergan.train import GanConfig, generator_param_groups, load_checkpoint, train_gan
+
+HW = (24, 32)
+TRUTH = [{"name": "attenuation", "params": {"eta_per_m": [0.5, 0.15, 0.2]}},
+         {"name": "backscatter", "params": {"b_inf": [0.03, 0.15, 0.2]}},
+         {"name": "vignetting", "params": {"a_margin": 0.35}},
+         {"name": "gain", "params": {"k": [1.4, 1.4, 1.4]}}]
+
+
+@register
+class UserTint(Effect):
+    """A user's own effect (as a plugin file would register it): a per-channel offset."""
+
+    name = "test_gan_tint"
+    summary = "adds a constant colour"
+    signature = "intensity: a constant offset"
+    axis = "intensity"
+    params = (Param("offset", (0.0, 0.0, 0.0), -0.5, 0.5, "linear radiance", "added colour"),)
+    neutral = {"offset": (0.0, 0.0, 0.0)}
+    rank = 55
+
+    def forward(self, state):
+        return state.replace(direct=state.direct + self.param("offset", state.direct).view(1, 3, 1, 1))
+
+
+def blocks(seed: int, h: int, w: int) -> np.ndarray:
+    """A structured in-air image: random colour blocks (strong edges), linear 0.05..0.95."""
+    rng = np.random.default_rng(seed)
+    return (0.05 + 0.9 * rng.random((6, 8, 3))).repeat(h // 6, 0).repeat(w // 8, 1)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    """8 in-air RGB-D frames (48x64) and 8 underwater frames rendered with the known TRUTH stack."""
+    root = tmp_path_factory.mktemp("gan_data")
+    for sub in ("rgbd/rgb", "rgbd/depth", "water"):
+        (root / sub).mkdir(parents=True)
+    truth = Stack.from_config(TRUTH)
+    for i in range(8):
+        rgb = blocks(i, 48, 64)
+        depth = 1.0 + 3.0 * np.linspace(0, 1, 64)[None, :].repeat(48, 0) + 0.5 * (i % 3)
+        write_srgb8(root / "rgbd" / "rgb" / f"{i:03d}.png", rgb)
+        write_depth_mm(root / "rgbd" / "depth" / f"{i:03d}.png", depth)
+        generator = WaterGenerator(truth)
+        with torch.no_grad():
+            water = generator(torch.from_numpy(blocks(i + 100, 48, 64).transpose(2, 0, 1)).float()[None],
+                              torch.from_numpy(depth).float()[None, None], torch.zeros(1, 100))
+        write_srgb8(root / "water" / f"{i:03d}.png", water[0].numpy().transpose(1, 2, 0))
+    return root
+
+
+def small_config(data_dir, out, **changes) -> GanConfig:
+    base = dict(rgbd_dir=data_dir / "rgbd", underwater_dir=data_dir / "water", out_dir=out, image_hw=HW,
+                batch_size=8, disc_width=8, iterations=2, budget_min=None, progress=False, checkpoint_every=1)
+    base.update(changes)
+    return GanConfig(**base)
+
+
+def sobel_magnitude(image: torch.Tensor) -> np.ndarray:
+    grey = image.mean(dim=1)[0].detach().numpy().astype(np.float64)
+    return np.hypot(cv2.Sobel(grey, cv2.CV_64F, 1, 0), cv2.Sobel(grey, cv2.CV_64F, 0, 1))
+
+
+# --------------------------------------------------------------------------------------------- generator
+def test_generator_stack_default_and_ranked_additions():
+    assert WaterGenerator.build().stack.names == list(DEFAULT_EFFECTS)
+    names = [c["name"] for c in generator_stack_config(["gain", "vignetting", "attenuation", "backscatter_conv",
+                                                        "test_gan_tint", "backscatter"])]
+    assert names == ["attenuation", "backscatter_conv", "backscatter", "vignetting", "test_gan_tint", "gain"]
+    conv = WaterGenerator.build(depth_scale_m=7.5, mask_hw=HW).stack["backscatter_conv"]
+    assert conv.param("depth_scale_m").item() == pytest.approx(7.5) and conv.mask_hw == HW
+
+
+def test_generator_bounded_and_aligned_with_input():
+    torch.manual_seed(0)
+    generator = WaterGenerator.build(depth_scale_m=5.0)
+    rgb = torch.from_numpy(blocks(1, 48, 64).transpose(2, 0, 1)).float()[None].repeat(4, 1, 1, 1)
+    depth = torch.linspace(1.0, 4.5, 64).view(1, 1, 1, 64).expand(4, 1, 48, 64).contiguous()
+    out = generator(rgb, depth, torch.rand(4, 100) * 2 - 1)
+    assert out.shape == rgb.shape and out.min() >= 0 and out.max() <= 1
+    for k in range(4):
+        corr = np.corrcoef(sobel_magnitude(rgb[k:k + 1]).ravel(), sobel_magnitude(out[k:k + 1]).ravel())[0, 1]
+        assert corr > 0.9, corr
+    # the water changes colour: red falls most with range
+    assert (out[:, 0] / rgb[:, 0]).mean() < (out[:, 1] / rgb[:, 1]).mean()
+
+
+def test_generator_with_intrinsics_uses_ray_range():
+    generator = WaterGenerator.build(["attenuation"])
+    rgb, depth = torch.full((1, 3, 48, 64), 0.5), torch.full((1, 1, 48, 64), 2.0)
+    k = PinholeIntrinsics(40.0, 40.0, 31.5, 23.5, 64, 48).as_tuple()
+    plain, rays = generator(rgb, depth, torch.zeros(1, 100)), generator(rgb, depth, torch.zeros(1, 100), k)
+    assert torch.allclose(plain[..., 24, 32], rays[..., 24, 32], atol=2e-3)
+    assert (rays[..., 0, 0] < plain[..., 0, 0]).all()  # corners: longer ray, more attenuation
+
+
+def test_discriminator_shape_and_layers():
+    d = Discriminator(width=8)
+    convs = [m for m in d.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [8, 16, 32, 64] and all(c.kernel_size == (5, 5) for c in convs)
+    assert all(c.stride == (2, 2) for c in convs)
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in d.modules()) == 3
+    assert d(torch.rand(5, 3, 48, 64)).shape == (5,)
+    assert Discriminator().logit.in_features == 512 * 3 * 4
+
+
+# ---------------------------------------------------------------------------------------------- training
+def test_two_steps_change_params_files_and_constraint(data_dir, tmp_path):
+    result = train_gan(small_config(data_dir, tmp_path, effects=DEFAULT_EFFECTS + ("test_gan_tint",)))
+    assert result.steps == 2 and result.stopped_by == "iterations"
+    initial = WaterGenerator.build(DEFAULT_EFFECTS + ("test_gan_tint",)).physical_values()
+    for name, value in result.params.items():
+        assert not np.allclose(value, initial[name].numpy()), name  # every learned parameter moved
+    assert "test_gan_tint.offset" in result.params  # a user's effect is trained
+    for name in ("checkpoint.pt", "stack.json", "train_log.jsonl", "training.png", "result.json",
+                 "samples/step_000002.png"):
+        assert (tmp_path / name).is_file(), name
+    rows = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2]
+    assert set(rows[0]["params"]) == set(result.params) and all(np.isfinite(r["d_loss"]) for r in rows)
+    stack = Stack.load(tmp_path / "stack.json")
+    a, b, c = vignetting_coefficients(*(stack["vignetting"].param(n) for n in ("a_margin", "b", "c")))
+    assert c >= 0 and 4 * b * b - 12 * a * c < 0
+    assert list(tmp_path.glob(".*tmp*")) == []
+
+
+def test_param_groups_fast_physics():
+    generator = WaterGenerator.build()
+    fast, slow = generator_param_groups(generator, 2e-4, 1e-2)
+    assert fast["lr"] == 1e-2 and slow["lr"] == 2e-4
+    assert len(fast["params"]) == 5  # eta, a_margin, b, c, k
+    assert sum(p.numel() for p in slow["params"]) > 100 * 48 * 64  # z projection and convolutions
+
+
+def test_checkpoint_round_trip(data_dir, tmp_path):
+    train_gan(small_config(data_dir, tmp_path, iterations=1))
+    checkpoint = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert checkpoint["step"] == 1 and checkpoint["stack"] == json.loads((tmp_path / "stack.json").read_text())
+    loaded = load_generator(tmp_path)
+    again = WaterGenerator.from_config(checkpoint["stack"])
+    again.load_state_dict(checkpoint["generator"])
+    rgb, depth, z = torch.rand(2, 3, *HW), 1 + torch.rand(2, 1, *HW), torch.rand(2, 100) * 2 - 1
+    with torch.no_grad():
+        assert torch.equal(loaded(rgb, depth, z), again.eval()(rgb, depth, z))
+    disc = Discriminator(8, HW)
+    disc.load_state_dict(checkpoint["discriminator"])
+    assert {"opt_g", "opt_d", "rng", "depth_scale_m", "config"} <= set(checkpoint)
+
+
+def test_resume_continues_the_same_run(data_dir, tmp_path):
+    whole = train_gan(small_config(data_dir, tmp_path / "whole", iterations=4, checkpoint_every=2))
+    train_gan(small_config(data_dir, tmp_path / "parts", iterations=2, checkpoint_every=2))
+    resumed = train_gan(small_config(data_dir, tmp_path / "parts", iterations=4, checkpoint_every=2, resume=True))
+    assert resumed.steps == 4
+
+    def rows(folder):
+        return [{k: v for k, v in json.loads(line).items() if k != "seconds"}
+                for line in (folder / "train_log.jsonl").read_text().splitlines()]
+
+    assert rows(tmp_path / "whole") == rows(tmp_path / "parts")
+    assert whole.params == resumed.params
+    a, b = load_checkpoint(tmp_path / "whole" / "checkpoint.pt"), load_checkpoint(tmp_path / "parts" / "checkpoint.pt")
+    for key in ("generator", "discriminator"):
+        assert all(torch.equal(a[key][n], b[key][n]) for n in a[key])
+    assert torch.equal(a["rng"], b["rng"])
+
+
+def test_training_config_errors(data_dir, tmp_path):
+    with pytest.raises(UserInputError, match="limit"):
+        train_gan(small_config(data_dir, tmp_path, iterations=None))
+    with pytest.raises(UserInputError, match="at least 1"):
+        train_gan(small_config(data_dir, tmp_path, batch_size=0))
+    train_gan(small_config(data_dir, tmp_path, iterations=1))
+    with pytest.raises(UserInputError, match="same effects"):
+        train_gan(small_config(data_dir, tmp_path, iterations=2, resume=True, effects=("attenuation", "gain")))
+
+
+# -------------------------------------------------------------------------------------- generation and CLI
+def test_generate_full_resolution_paired_dataset(data_dir, tmp_path):
+    train_gan(small_config(data_dir, tmp_path / "model", iterations=1))
+    result = generate(GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=data_dir / "rgbd",
+                                     out_dir=tmp_path / "gen", size_hw=(96, 128), progress=False))
+    assert result.count == 8 and result.skipped == []
+    manifest = json.loads((tmp_path / "gen" / "manifest.json").read_text())
+    assert manifest["count"] == 8 and [s["name"] for s in manifest["stack"]] == list(DEFAULT_EFFECTS)
+    item = manifest["items"][0]
+    underwater = cv2.imread(str(tmp_path / "gen" / item["underwater"]), cv2.IMREAD_UNCHANGED)
+    inair = cv2.imread(str(tmp_path / "gen" / item["inair"]), cv2.IMREAD_UNCHANGED)
+    assert underwater.shape == inair.shape == (96, 128, 3) and underwater.dtype == np.uint8
+    depth = read_depth(tmp_path / "gen" / item["depth"])
+    assert depth.shape == (96, 128) and 1.0 <= depth.min() and depth.max() <= 5.0
+    grey = [cv2.cvtColor(x, cv2.COLOR_BGR2GRAY).astype(np.float64) for x in (inair, underwater)]
+    edges = [np.hypot(cv2.Sobel(g, cv2.CV_64F, 1, 0), cv2.Sobel(g, cv2.CV_64F, 0, 1)).ravel() for g in grey]
+    assert np.corrcoef(*edges)[0, 1] > 0.9
+    assert list((tmp_path / "gen").rglob(".*tmp*")) == []
+
+
+def test_cli_train_and_generate(data_dir, tmp_path):
+    from pipeline.cli_gan import add_commands
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command", required=True), [])
+    args = parser.parse_args(["train-gan", "--rgbd", str(data_dir / "rgbd"), "--underwater", str(data_dir / "water"),
+                              "--out", str(tmp_path / "m"), "--iterations", "1", "--batch-size", "4",
+                              "--disc-width", "4", "--add", "test_gan_tint"])
+    assert args.func(args) == 0
+    assert "test_gan_tint" in (tmp_path / "m" / "stack.json").read_text()
+    args = parser.parse_args(["generate", "--model", str(tmp_path / "m"), "--rgbd", str(data_dir / "rgbd"),
+                              "--out", str(tmp_path / "g"), "--size", "30x40"])
+    assert args.func(args) == 0
+    assert cv2.imread(str(tmp_path / "g" / "underwater" / "000.png")).shape == (30, 40, 3)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["generate", "--model", "m", "--rgbd", "r", "--out", "o", "--size", "big"])

@@ -1,0 +1,383 @@
+"""RGB-D and underwater image datasets read from folders.
+
+In-air RGB-D (what the generator turns into underwater images)::
+
+    DIR/rgb/<stem>.png|.jpg|.jpeg|.tif|.tiff     colour, 8 or 16 bit, sRGB-encoded by default
+    DIR/depth/<stem>.png                         16-bit PNG, millimetres (0 = no value)
+    DIR/depth/<stem>.npy                         float array, metres
+    DIR/depth/<stem>.mat                         MATLAB file with the key ``depth``, metres
+
+paired by file stem (``color/`` is accepted for ``rgb/``; a folder holding ``rgbd/rgb`` and
+``rgbd/depth``, such as a simulated survey, works too). Pinhole intrinsics are read from a
+``camera.json`` (keys fx, fy, cx, cy, width, height; OpenCV pixel centres) in DIR or its parent
+when there is one; without it range is taken as the depth.
+
+Underwater images: every PNG, JPEG or TIFF (8 or 16 bit, any size) directly in a folder.
+
+Images are resized to the training size with area interpolation and decoded from sRGB to linear
+radiance (an option: ``encoding="linear"`` for images that already are). A bad file (unreadable,
+truncated, NaN or negative depth, rgb/depth size mismatch, an rgb without a depth or vice versa)
+raises :class:`DataError` naming it; with ``skip_bad=True`` it is skipped and listed in ``skipped``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .errors import UserInputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+DEPTH_SUFFIXES = (".png", ".npy", ".mat")
+ENCODINGS = ("srgb", "linear")
+RGB_FOLDER_NAMES = ("rgb", "color")
+#: Training size of WaterGAN (height, width), pixels.
+TRAIN_HW = (48, 64)
+
+
+class DataError(UserInputError):
+    """A dataset folder or file that cannot be used; the message names it."""
+
+
+@dataclass(frozen=True)
+class PinholeIntrinsics:
+    """Pinhole intrinsics in pixels of a ``width`` x ``height`` image (OpenCV: pixel (i, j) centre at (i, j))."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def resized(self, height: int, width: int) -> PinholeIntrinsics:
+        """The same camera for the image resized to ``height`` x ``width``:
+        f' = f s, c' = (c + 0.5) s - 0.5 with s = new size / old size per axis."""
+        sx, sy = width / self.width, height / self.height
+        return PinholeIntrinsics(self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5,
+                                 (self.cy + 0.5) * sy - 0.5, width, height)
+
+    def as_tuple(self) -> tuple[float, float, float, float]:
+        return (self.fx, self.fy, self.cx, self.cy)
+
+
+@dataclass(frozen=True)
+class RgbdPair:
+    """One in-air frame's files."""
+
+    stem: str
+    rgb: Path
+    depth: Path
+
+
+@dataclass(frozen=True)
+class RgbdSet:
+    """In-air RGB-D frames in memory.
+
+    rgb:        (N,3,H,W) float32 linear radiance, 0..1.
+    depth_m:    (N,1,H,W) float32 z-depth, metres (0 = no value).
+    stems:      file stem of each frame.
+    intrinsics: the camera at (H,W), or None (then range = depth).
+    skipped:    "path: reason" for each pair left out with ``skip_bad``.
+    """
+
+    rgb: torch.Tensor
+    depth_m: torch.Tensor
+    stems: list[str]
+    intrinsics: PinholeIntrinsics | None = None
+    skipped: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ImageSet:
+    """Underwater images in memory: images (N,3,H,W) float32 linear 0..1, their paths, skipped files."""
+
+    images: torch.Tensor
+    paths: list[Path]
+    skipped: list[str] = field(default_factory=list)
+
+
+def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 decoding: L = V / 12.92 for V <= 0.04045, else ((V + 0.055) / 1.055)^2.4."""
+    v = np.clip(v, 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 encoding: V = 12.92 L for L <= 0.0031308, else 1.055 L^(1/2.4) - 0.055."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def _check_encoding(encoding: str) -> None:
+    if encoding not in ENCODINGS:
+        raise DataError(f"image encoding must be one of {ENCODINGS}, got {encoding!r}")
+
+
+def _is_complete(path: Path, data: bytes) -> bool:
+    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker (truncated)."""
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        return data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82")
+    if suffix in (".jpg", ".jpeg"):
+        return data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9")
+    return True
+
+
+def read_image(path: Path, encoding: str = "srgb") -> np.ndarray:
+    """An RGB image file (8- or 16-bit PNG, JPEG or TIFF) as (H,W,3) float64 linear radiance 0..1."""
+    _check_encoding(encoding)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"cannot read image {path}: {exc}") from exc
+    if not _is_complete(path, data):
+        raise DataError(f"image {path} is truncated (no end marker); re-export or remove it")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DataError(f"image {path} is not a readable PNG, JPEG or TIFF file")
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise DataError(f"image {path} has shape {image.shape}; expected a colour (RGB) image")
+    if image.dtype == np.uint8:
+        scale = 255.0
+    elif image.dtype == np.uint16:
+        scale = 65535.0
+    else:
+        raise DataError(f"image {path} has sample type {image.dtype}; expected 8- or 16-bit integers")
+    rgb = image[..., 2::-1].astype(np.float64) / scale  # BGR(A) -> RGB
+    return srgb_to_linear(rgb) if encoding == "srgb" else rgb
+
+
+def read_depth(path: Path) -> np.ndarray:
+    """A depth file as (H,W) float64 metres: 16-bit PNG in millimetres, ``.npy`` in metres or ``.mat``
+    with the key ``depth`` in metres. 0 marks pixels without a value; NaN or negative values are errors."""
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".png":
+            data = path.read_bytes()
+            if not _is_complete(path, data):
+                raise DataError(f"depth {path} is truncated (no PNG end chunk)")
+            raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            if raw is None:
+                raise DataError(f"depth {path} is not a readable PNG")
+            if raw.dtype != np.uint16 or raw.ndim != 2:
+                raise DataError(f"depth {path} is a {raw.dtype} PNG of shape {raw.shape}; expected a "
+                                f"single-channel 16-bit PNG in millimetres")
+            depth = raw.astype(np.float64) / 1000.0
+        elif suffix == ".npy":
+            depth = np.load(path, allow_pickle=False)
+        elif suffix == ".mat":
+            import scipy.io
+
+            mat = scipy.io.loadmat(path)
+            if "depth" not in mat:
+                keys = sorted(k for k in mat if not k.startswith("__"))
+                raise DataError(f"depth {path} has no key 'depth' (keys: {keys})")
+            depth = mat["depth"]
+        else:
+            raise DataError(f"depth {path}: unsupported format {suffix} (use {', '.join(DEPTH_SUFFIXES)})")
+    except DataError:
+        raise
+    except (OSError, ValueError, NotImplementedError, TypeError) as exc:
+        raise DataError(f"cannot read depth {path}: {type(exc).__name__}: {exc}") from exc
+    depth = np.asarray(depth)
+    if depth.ndim == 3 and depth.shape[2] == 1:
+        depth = depth[..., 0]
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+        raise DataError(f"depth {path} has shape {depth.shape} and type {depth.dtype}; expected an (H,W) number array")
+    depth = depth.astype(np.float64)
+    if not np.isfinite(depth).all():
+        raise DataError(f"depth {path} contains NaN or infinite values; use 0 for pixels without depth")
+    if (depth < 0).any():
+        raise DataError(f"depth {path} contains negative values (min {depth.min():.3g} m)")
+    return depth
+
+
+def resize_image(image: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """(H,W,3) resized to ``size_hw`` with area interpolation (bicubic when enlarging)."""
+    h, w = size_hw
+    if image.shape[:2] == (h, w):
+        return image
+    enlarge = h > image.shape[0] or w > image.shape[1]
+    return cv2.resize(image, (w, h), interpolation=cv2.INTER_CUBIC if enlarge else cv2.INTER_AREA)
+
+
+def resize_depth(depth_m: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """(H,W) depth resized to ``size_hw``, averaging valid (> 0) pixels only, so holes do not pull
+    values towards 0: d' = area(d) / area(d > 0). Enlarging uses nearest neighbours (no invented depth)."""
+    h, w = size_hw
+    if depth_m.shape == (h, w):
+        return depth_m
+    if h > depth_m.shape[0] or w > depth_m.shape[1]:
+        return cv2.resize(depth_m, (w, h), interpolation=cv2.INTER_NEAREST)
+    valid = (depth_m > 0).astype(np.float64)
+    total = cv2.resize(depth_m * valid, (w, h), interpolation=cv2.INTER_AREA)
+    weight = cv2.resize(valid, (w, h), interpolation=cv2.INTER_AREA)
+    return np.where(weight > 1e-6, total / np.maximum(weight, 1e-6), 0.0)
+
+
+def _files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+
+
+def _by_stem(files: list[Path], kind: str) -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for p in files:
+        if p.stem in out:
+            raise DataError(f"two {kind} files share the stem '{p.stem}': {out[p.stem].name} and {p.name}; "
+                            f"pairing by stem needs one each")
+        out[p.stem] = p
+    return out
+
+
+def rgbd_folders(folder: str | Path) -> tuple[Path, Path]:
+    """The (rgb, depth) subfolders of an RGB-D folder (``DIR/rgb`` + ``DIR/depth``, or ``DIR/rgbd/...``)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"RGB-D folder {folder} does not exist")
+    for base in (folder, folder / "rgbd"):
+        depth = base / "depth"
+        for name in RGB_FOLDER_NAMES:
+            if (base / name).is_dir() and depth.is_dir():
+                return base / name, depth
+    raise DataError(f"RGB-D folder {folder} needs subfolders rgb/ and depth/ (files paired by stem)")
+
+
+def find_rgbd_pairs(folder: str | Path, skip_bad: bool = False) -> tuple[list[RgbdPair], list[str]]:
+    """The frames of an RGB-D folder paired by stem, and the unpaired files skipped (``skip_bad``).
+
+    An rgb without a depth file (or a depth without an rgb) is an error naming it, unless ``skip_bad``.
+    """
+    rgb_dir, depth_dir = rgbd_folders(folder)
+    rgbs = _by_stem(_files(rgb_dir, IMAGE_SUFFIXES), "rgb")
+    depths = _by_stem(_files(depth_dir, DEPTH_SUFFIXES), "depth")
+    unpaired = [f"{rgbs[s]}: no depth file with stem '{s}' in {depth_dir}" for s in sorted(set(rgbs) - set(depths))]
+    unpaired += [f"{depths[s]}: no rgb file with stem '{s}' in {rgb_dir}" for s in sorted(set(depths) - set(rgbs))]
+    if unpaired and not skip_bad:
+        more = f" (and {len(unpaired) - 1} more)" if len(unpaired) > 1 else ""
+        raise DataError(f"unpaired RGB-D file {unpaired[0]}{more}; fix the folder or pass skip_bad")
+    pairs = [RgbdPair(s, rgbs[s], depths[s]) for s in sorted(set(rgbs) & set(depths))]
+    if not pairs:
+        raise DataError(f"RGB-D folder {folder} has no rgb/depth pairs ({len(rgbs)} rgb, {len(depths)} depth files)")
+    return pairs, unpaired
+
+
+def read_pair(pair: RgbdPair, encoding: str = "srgb") -> tuple[np.ndarray, np.ndarray]:
+    """One frame at its native size: (H,W,3) linear rgb and (H,W) depth in metres, sizes checked."""
+    rgb = read_image(pair.rgb, encoding)
+    depth = read_depth(pair.depth)
+    if rgb.shape[:2] != depth.shape:
+        raise DataError(f"size mismatch: rgb {pair.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but depth "
+                        f"{pair.depth} is {depth.shape[1]}x{depth.shape[0]} (width x height)")
+    return rgb, depth
+
+
+def read_intrinsics(folder: str | Path) -> PinholeIntrinsics | None:
+    """Intrinsics from ``camera.json`` in the RGB-D folder or its parent, or None when there is none."""
+    folder = Path(folder)
+    for path in (folder / "camera.json", folder.parent / "camera.json"):
+        if path.is_file():
+            try:
+                d = json.loads(path.read_text())
+                return PinholeIntrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
+                                         int(d["width"]), int(d["height"]))
+            except (ValueError, KeyError, TypeError) as exc:
+                raise DataError(f"camera file {path} needs numbers fx, fy, cx, cy, width, height: {exc}") from exc
+    return None
+
+
+def _to_tensor(images: list[np.ndarray]) -> torch.Tensor:
+    array = np.stack([im if im.ndim == 3 else im[..., None] for im in images]).transpose(0, 3, 1, 2)
+    return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+
+
+def load_rgbd(folder: str | Path, size_hw: tuple[int, int] = TRAIN_HW, encoding: str = "srgb",
+              skip_bad: bool = False) -> RgbdSet:
+    """Every RGB-D frame of ``folder`` resized to ``size_hw``, in memory (see the module docstring)."""
+    _check_encoding(encoding)
+    pairs, skipped = find_rgbd_pairs(folder, skip_bad)
+    rgbs, depths, stems, native_hw = [], [], [], set()
+    for pair in pairs:
+        try:
+            rgb, depth = read_pair(pair, encoding)
+        except DataError as exc:
+            if not skip_bad:
+                raise
+            skipped.append(str(exc))
+            continue
+        native_hw.add(depth.shape)
+        rgbs.append(resize_image(rgb, size_hw))
+        depths.append(resize_depth(depth, size_hw))
+        stems.append(pair.stem)
+    if not stems:
+        raise DataError(f"RGB-D folder {folder}: every pair was bad ({len(skipped)} skipped): {skipped[:3]}")
+    intrinsics = read_intrinsics(folder)
+    if intrinsics is not None:
+        if {(intrinsics.height, intrinsics.width)} != native_hw:
+            raise DataError(f"camera.json describes {intrinsics.width}x{intrinsics.height} images but the "
+                            f"RGB-D frames in {folder} are {sorted(native_hw)} (height, width)")
+        intrinsics = intrinsics.resized(*size_hw)
+    return RgbdSet(_to_tensor(rgbs), _to_tensor(depths), stems, intrinsics, skipped)
+
+
+def load_underwater(folder: str | Path, size_hw: tuple[int, int] = TRAIN_HW, encoding: str = "srgb",
+                    skip_bad: bool = False) -> ImageSet:
+    """Every image directly in ``folder`` resized to ``size_hw`` (area interpolation), linear, in memory."""
+    _check_encoding(encoding)
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"underwater image folder {folder} does not exist")
+    files = _files(folder, IMAGE_SUFFIXES)
+    if not files:
+        subfolders = sorted(p.name for p in folder.iterdir() if p.is_dir())
+        hint = f" (it has subfolders {subfolders}: pass one of them)" if subfolders else ""
+        raise DataError(f"underwater image folder {folder} holds no PNG, JPEG or TIFF images{hint}")
+    images, paths, skipped = [], [], []
+    for path in files:
+        try:
+            images.append(resize_image(read_image(path, encoding), size_hw))
+            paths.append(path)
+        except DataError as exc:
+            if not skip_bad:
+                raise
+            skipped.append(str(exc))
+    if not images:
+        raise DataError(f"underwater image folder {folder}: every image was bad ({len(skipped)} skipped)")
+    return ImageSet(_to_tensor(images), paths, skipped)
+
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write a file so that readers see the old or the new content, never a partial one
+    (a temporary file in the same folder, then ``os.replace``)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an (H,W) or (H,W,3) RGB uint8/uint16 array."""
+    data = image[..., ::-1] if image.ndim == 3 else image
+    ok, buffer = cv2.imencode(".png", np.ascontiguousarray(data))
+    if not ok:
+        raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as PNG")
+    return buffer.tobytes()
+
+
+def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
+    """Linear (H,W,3) 0..1 as an 8-bit sRGB PNG, atomically."""
+    atomic_write_bytes(path, encode_png(np.rint(linear_to_srgb(linear_rgb) * 255.0).astype(np.uint8)))
+
+
+def write_depth_mm(path: str | Path, depth_m: np.ndarray) -> None:
+    """(H,W) metres as a 16-bit PNG of millimetres (0 = no value; at most 65.535 m), atomically."""
+    if depth_m.max(initial=0.0) > 65.535:
+        raise DataError(f"depth above 65.535 m cannot be stored in the 16-bit millimetre PNG {path}")
+    atomic_write_bytes(path, encode_png(np.rint(depth_m * 1000.0).astype(np.uint16)))

@@ -1,0 +1,449 @@
+"""Training: the WaterGAN (``train_gan``); the restorer's training goes beside it.
+
+WaterGAN (Li et al. 2017) learns a site's water without labels: the generator G (a formation stack,
+see :mod:`watergan.nets.generator`) turns in-air RGB-D into underwater images and the discriminator
+D (DCGAN) tells them from the survey's real frames. Per iteration, with BCE on logits::
+
+    L_D = BCE(D(x + n), 1) + BCE(D(G(J, d, z) + n'), 0)              one Adam step on D
+    L_G = BCE(D(G(J, d, z) + n'), 1)                                 ``gen_steps_per_disc_step`` steps on G
+
+with instance noise n, n' ~ N(0, instance_noise_std^2). Adam (lr 2e-4, beta1 0.5) for the nets; the
+generator's few physical parameters use ``physics_lr`` (see :class:`GanConfig`).
+
+Files written to ``out_dir``: ``checkpoint.pt`` (states of both nets and optimisers, step, stack
+configuration, RNG state; atomic), ``stack.json`` (the learned stack), ``train_log.jsonl`` (one line
+per iteration: losses and every learned physical parameter), ``samples/step_NNNNNN.png`` (in-air,
+generated and real rows), ``training.png`` (parameters over training, colour histograms) and
+``result.json``. A run resumed from its checkpoint continues exactly as if uninterrupted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from .data import (
+    TRAIN_HW,
+    DataError,
+    atomic_write_bytes,
+    encode_png,
+    linear_to_srgb,
+    load_rgbd,
+    load_underwater,
+)
+from .errors import UserInputError
+from .nets.discriminator import Discriminator
+from .nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config
+
+CHECKPOINT = "checkpoint.pt"
+STACK_JSON = "stack.json"
+TRAIN_LOG = "train_log.jsonl"
+PLOT = "training.png"
+SAMPLES = "samples"
+RESULT_JSON = "result.json"
+SAMPLE_COUNT = 8
+
+
+# ----------------------------------------------------------------------------------------------- GAN
+@dataclass(frozen=True)
+class GanConfig:
+    """Options of ``train_gan`` (and of ``watergan train-gan``)."""
+
+    rgbd_dir: Path
+    """In-air RGB-D folder (``rgb/`` + ``depth/``, see :mod:`watergan.data`)."""
+    underwater_dir: Path
+    """Folder of the survey's underwater images (PNG, JPEG or TIFF)."""
+    out_dir: Path
+    """Model folder: checkpoint, stack.json, log, samples and plots go here."""
+    effects: tuple[str, ...] = DEFAULT_EFFECTS
+    """Registered effects in the generator's stack (placed by class rank)."""
+    depth_scale_m: float | None = None
+    """Range normaliser of backscatter_conv, metres (the survey's maximum altitude); None: the
+    largest depth in the RGB-D data."""
+    image_hw: tuple[int, int] = TRAIN_HW
+    """Training image size (height, width), pixels; the discriminator is built for it."""
+    batch_size: int = 64
+    """Images per batch (drawn with replacement, so small datasets work)."""
+    z_dim: int = 100
+    """Length of the noise vector z, uniform in [-1, 1]."""
+    lr: float = 2e-4
+    """Adam learning rate of both nets."""
+    beta1: float = 0.5
+    """Adam beta1 of both nets."""
+    physics_lr: float = 1e-2
+    """Adam learning rate of every effect's bounded physical parameters (eta, vignetting, gain...).
+    At 2e-4 these few parameters move too slowly for a minutes-long CPU run; the learned layers
+    (backscatter_conv) keep ``lr``, since a fast rate on them grows the z mask into texture. Set it
+    to ``lr`` for the paper's single rate."""
+    gen_steps_per_disc_step: int = 2
+    """Generator updates per discriminator update (2 in the original code)."""
+    instance_noise_std: float = 0.05
+    """Standard deviation of Gaussian noise added to every discriminator input (real and generated,
+    linear units). It hides fine texture that tells the in-air dataset from the survey apart, so the
+    discriminator judges colour and brightness, which the physical stack can match; 0 turns it off."""
+    disc_width: int = 32
+    """Channels of the discriminator's first convolution (the paper: 64; 32 keeps CPU training fast)."""
+    iterations: int | None = None
+    """Stop after this many iterations (one discriminator update each), counted from the start of
+    training, so a resumed run stops at the same place."""
+    epochs: int | None = None
+    """Stop after this many epochs of max(1, min(N_rgbd, N_underwater) // batch_size) iterations."""
+    budget_min: float | None = 5.0
+    """Stop after this many minutes of this run's wall-clock time (None: no time limit)."""
+    seed: int = 0
+    """Seed of initialisation, batch sampling and noise (same seed, same run on the same device)."""
+    encoding: str = "srgb"
+    """Encoding of the image files: "srgb" (decoded to linear) or "linear"."""
+    skip_bad: bool = False
+    """Skip (and report) unreadable or unpaired files instead of stopping with an error."""
+    use_intrinsics: bool = True
+    """Use camera.json beside the RGB-D data when present (range from the rays); else range = depth."""
+    checkpoint_every: int = 100
+    """Iterations between checkpoints (one is always written at the end)."""
+    sample_every: int = 250
+    """Iterations between sample grids (one is always written at the end)."""
+    resume: bool = False
+    """Continue from ``out_dir/checkpoint.pt`` when it exists."""
+    device: str = "auto"
+    """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+@dataclass
+class GanResult:
+    """What ``train_gan`` produced (paths are inside ``out_dir``)."""
+
+    out_dir: Path
+    steps: int
+    """Iterations done in total (including those before a resume)."""
+    seconds: float
+    """Wall-clock time of this run, seconds."""
+    iterations_per_s: float
+    """Iterations per second of this run."""
+    stopped_by: str
+    """"iterations", "epochs" or "budget"."""
+    d_loss: float
+    g_loss: float
+    params: dict[str, list | float]
+    """Learned physical parameters, ``{"effect.param": value}``."""
+    colour_mean: dict[str, list[float]]
+    """Per-channel mean of the generated ("generated") and real ("real") training images, linear."""
+    colour_std: dict[str, list[float]]
+    """Per-channel standard deviation of the same, linear."""
+    skipped: list[str] = field(default_factory=list)
+    """Files left out with ``skip_bad``."""
+    checkpoint: str = CHECKPOINT
+    stack_json: str = STACK_JSON
+    log: str = TRAIN_LOG
+    plot: str = PLOT
+    samples: str = SAMPLES
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["out_dir"] = str(self.out_dir)
+        return d
+
+
+def _check_config(config: GanConfig) -> None:
+    if config.iterations is None and config.epochs is None and config.budget_min is None:
+        raise UserInputError("train_gan needs a limit: iterations, epochs or budget_min")
+    if config.instance_noise_std < 0:
+        raise UserInputError(f"GanConfig.instance_noise_std must be >= 0, got {config.instance_noise_std}")
+    if not (config.lr > 0 and config.physics_lr > 0):
+        raise UserInputError(f"learning rates must be positive, got lr={config.lr}, physics_lr={config.physics_lr}")
+    for name in ("iterations", "epochs", "batch_size", "gen_steps_per_disc_step", "disc_width", "z_dim",
+                 "checkpoint_every", "sample_every"):
+        value = getattr(config, name)
+        if value is not None and value < 1:
+            raise UserInputError(f"GanConfig.{name} must be at least 1, got {value}")
+    if config.budget_min is not None and not config.budget_min > 0:
+        raise UserInputError(f"GanConfig.budget_min must be positive, got {config.budget_min}")
+    if config.depth_scale_m is not None and not config.depth_scale_m > 0:
+        raise UserInputError(f"GanConfig.depth_scale_m must be positive, got {config.depth_scale_m}")
+
+
+def pick_device(name: str) -> torch.device:
+    """"auto": CUDA when available, else CPU; "cpu" or "cuda" as asked."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise UserInputError("device 'cuda' requested but CUDA is not available")
+    if name not in ("cpu", "cuda"):
+        raise UserInputError(f"device must be auto, cpu or cuda, got {name!r}")
+    return torch.device(name)
+
+
+def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: float) -> list[dict]:
+    """Optimiser groups: each effect's bounded physical (``raw``) parameters at ``physics_lr``, the
+    learned layers at ``lr``. Fixed settings (``learnable=False``) are left out."""
+    fast_ids = {id(p) for effect in generator.stack.effects for p in effect.raw.parameters()}
+    trainable = [p for p in generator.parameters() if p.requires_grad]
+    return [{"params": [p for p in trainable if id(p) in fast_ids], "lr": physics_lr},
+            {"params": [p for p in trainable if id(p) not in fast_ids], "lr": lr}]
+
+
+def _json_ready(values: dict[str, torch.Tensor]) -> dict[str, list | float]:
+    return {k: (v.item() if v.ndim == 0 else v.tolist()) for k, v in values.items()}
+
+
+def _config_json(config: GanConfig) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
+
+
+def _save_checkpoint(path: Path, step: int, generator, discriminator, opt_g, opt_d, rng: torch.Generator,
+                     config: GanConfig, depth_scale_m: float) -> None:
+    buffer = io.BytesIO()
+    torch.save({
+        "step": step,
+        "generator": generator.state_dict(),
+        "discriminator": discriminator.state_dict(),
+        "opt_g": opt_g.state_dict(),
+        "opt_d": opt_d.state_dict(),
+        "stack": generator.to_config(),
+        "rng": rng.get_state(),
+        "depth_scale_m": depth_scale_m,
+        "config": _config_json(config),
+    }, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """A checkpoint written by ``train_gan`` (tensors on the CPU)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserInputError(f"no checkpoint at {path}: train a WaterGAN first (watergan train-gan)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # a torn or foreign file: say which
+        raise UserInputError(f"checkpoint {path} cannot be read ({type(exc).__name__}: {exc})") from exc
+
+
+def _srgb8(linear: torch.Tensor) -> np.ndarray:
+    """(B,3,H,W) linear -> (B,H,W,3) uint8 sRGB."""
+    array = linear.detach().cpu().double().numpy().transpose(0, 2, 3, 1)
+    return np.rint(linear_to_srgb(array) * 255.0).astype(np.uint8)
+
+
+def _sample_grid(rows: list[torch.Tensor]) -> np.ndarray:
+    """Rows of (B,3,H,W) images tiled into one uint8 sRGB picture with 2-pixel gaps."""
+    tiles = [_srgb8(r) for r in rows]
+    n, h, w = max(t.shape[0] for t in tiles), tiles[0].shape[1], tiles[0].shape[2]
+    grid = np.full((len(tiles) * (h + 2), n * (w + 2), 3), 255, np.uint8)
+    for i, row in enumerate(tiles):
+        for j, image in enumerate(row):
+            grid[i * (h + 2):i * (h + 2) + h, j * (w + 2):j * (w + 2) + w] = image
+    return grid
+
+
+def _render_eval(generator: WaterGenerator, rgb, depth, z, intrinsics) -> torch.Tensor:
+    """Generator output in inference mode (batch norm from running statistics), state untouched."""
+    was_training = generator.training
+    generator.eval()
+    with torch.no_grad():
+        out = generator(rgb, depth, z, intrinsics)
+    generator.train(was_training)
+    return out
+
+
+def plot_training(log_path: Path, generated: torch.Tensor, real: torch.Tensor, out_path: Path) -> None:
+    """One figure: losses and every learned parameter over training, and per-channel histograms of
+    generated vs real images (sRGB-encoded values, as viewed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    names = list(rows[0]["params"]) if rows else []
+    panels = 2 + len(names)
+    cols = 3
+    fig, axes = plt.subplots(math.ceil(panels / cols), cols, figsize=(4.2 * cols, 3.0 * math.ceil(panels / cols)),
+                             squeeze=False)
+    axes = axes.ravel()
+    steps = [r["step"] for r in rows]
+    axes[0].plot(steps, [r["d_loss"] for r in rows], label="discriminator")
+    axes[0].plot(steps, [r["g_loss"] for r in rows], label="generator")
+    axes[0].set(title="losses", xlabel="iteration")
+    axes[0].legend()
+    for ax, name in zip(axes[1:], names, strict=False):
+        values = np.array([r["params"][name] for r in rows], dtype=float).reshape(len(rows), -1)
+        labels = ["R", "G", "B"] if values.shape[1] == 3 else [name.split(".")[-1]] * values.shape[1]
+        colours = ["tab:red", "tab:green", "tab:blue"] if values.shape[1] == 3 else [None] * values.shape[1]
+        for k in range(values.shape[1]):
+            ax.plot(steps, values[:, k], label=labels[k], color=colours[k])
+        ax.set(title=name, xlabel="iteration")
+        if values.shape[1] == 3:
+            ax.legend()
+    ax = axes[1 + len(names)]
+    bins = np.linspace(0, 1, 51)
+    for k, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
+        g = linear_to_srgb(generated[:, k].detach().cpu().double().numpy().ravel())
+        r = linear_to_srgb(real[:, k].detach().cpu().double().numpy().ravel())
+        ax.hist(r, bins, histtype="stepfilled", alpha=0.25, color=colour, density=True)
+        ax.hist(g, bins, histtype="step", color=colour, density=True)
+    ax.set(title="colour histograms: real (filled), generated (line)", xlabel="sRGB value")
+    for extra in axes[2 + len(names):]:
+        extra.axis("off")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=90)
+    plt.close(fig)
+    atomic_write_bytes(out_path, buffer.getvalue())
+
+
+def _log_lines_up_to(path: Path, step: int) -> str:
+    """The log's lines for iterations 1..step (a resumed run drops what came after its checkpoint)."""
+    if not path.is_file():
+        return ""
+    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
+    return "".join(line + "\n" for line in keep)
+
+
+def train_gan(config: GanConfig) -> GanResult:
+    """Train a WaterGAN on in-air RGB-D and underwater images (see the module docstring)."""
+    _check_config(config)
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / SAMPLES).mkdir(exist_ok=True)
+    device = pick_device(config.device)
+
+    rgbd = load_rgbd(config.rgbd_dir, config.image_hw, config.encoding, config.skip_bad)
+    water = load_underwater(config.underwater_dir, config.image_hw, config.encoding, config.skip_bad)
+    skipped = rgbd.skipped + water.skipped
+    if skipped:
+        print(f"train-gan: skipped {len(skipped)} bad file(s):\n  " + "\n  ".join(skipped), file=sys.stderr)
+    intrinsics = rgbd.intrinsics.as_tuple() if (config.use_intrinsics and rgbd.intrinsics) else None
+
+    ckpt_path = out / CHECKPOINT
+    checkpoint = load_checkpoint(ckpt_path) if config.resume and ckpt_path.is_file() else None
+    if config.resume and checkpoint is None:
+        print(f"train-gan: no checkpoint in {out}, starting from iteration 0", file=sys.stderr)
+    torch.manual_seed(config.seed)
+    if checkpoint is not None:
+        generator = WaterGenerator.from_config(checkpoint["stack"])
+        if generator.stack.names != [c["name"] for c in generator_stack_config(config.effects)]:
+            raise UserInputError(f"checkpoint {ckpt_path} holds effects {generator.stack.names}, not "
+                                 f"{list(config.effects)}: resume with the same effects or use a new --out")
+        depth_scale_m = float(checkpoint["depth_scale_m"])
+    else:
+        depth_scale_m = config.depth_scale_m or float(rgbd.depth_m.max())
+        if not depth_scale_m > 0:
+            raise DataError(f"every depth in {config.rgbd_dir} is 0: no depth to learn the water from")
+        generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw)
+    discriminator = Discriminator(config.disc_width, config.image_hw)
+    generator.to(device).train()
+    discriminator.to(device).train()
+    betas = (config.beta1, 0.999)
+    opt_g = torch.optim.Adam(generator_param_groups(generator, config.lr, config.physics_lr), config.lr, betas)
+    opt_d = torch.optim.Adam(discriminator.parameters(), config.lr, betas)
+    rng = torch.Generator().manual_seed(config.seed)
+    start = 0
+    if checkpoint is not None:
+        generator.load_state_dict(checkpoint["generator"])
+        discriminator.load_state_dict(checkpoint["discriminator"])
+        opt_g.load_state_dict(checkpoint["opt_g"])
+        opt_d.load_state_dict(checkpoint["opt_d"])
+        rng.set_state(checkpoint["rng"])
+        start = int(checkpoint["step"])
+
+    air, depth, real_all = rgbd.rgb.to(device), rgbd.depth_m.to(device), water.images.to(device)
+    n_air, n_water, batch = air.shape[0], real_all.shape[0], config.batch_size
+    iters_per_epoch = max(1, min(n_air, n_water) // batch)
+    limits = {"iterations": config.iterations,
+              "epochs": None if config.epochs is None else config.epochs * iters_per_epoch}
+    target = min((v for v in limits.values() if v is not None), default=None)
+    stopped_by = min((k for k, v in limits.items() if v is not None), key=lambda k: limits[k], default="budget")
+    budget_s = None if config.budget_min is None else 60.0 * config.budget_min
+
+    sample_z = torch.rand(SAMPLE_COUNT, generator.z_dim, generator=torch.Generator().manual_seed(config.seed + 1))
+    sample_z = sample_z.mul(2).sub(1).to(device)
+    sample_air, sample_depth = air[:SAMPLE_COUNT], depth[:SAMPLE_COUNT]
+    sample_real = real_all[:SAMPLE_COUNT]
+
+    def write_samples(step: int) -> None:
+        fake = _render_eval(generator, sample_air, sample_depth, sample_z[:sample_air.shape[0]], intrinsics)
+        atomic_write_bytes(out / SAMPLES / f"step_{step:06d}.png",
+                           encode_png(_sample_grid([sample_air, fake, sample_real])))
+
+    log_path = out / TRAIN_LOG
+    atomic_write_bytes(log_path, _log_lines_up_to(log_path, start).encode() if checkpoint is not None else b"")
+    ones, zeros = torch.ones(batch, device=device), torch.zeros(batch, device=device)
+    bce = F.binary_cross_entropy_with_logits
+    began = time.perf_counter()
+    step, d_loss, g_loss = start, float("nan"), float("nan")
+    bar = tqdm(total=target, initial=start, disable=not config.progress, desc="train-gan", unit="it")
+    with log_path.open("a") as log:
+        while target is None or step < target:
+            if budget_s is not None and time.perf_counter() - began >= budget_s:
+                stopped_by = "budget"
+                break
+            i_air = torch.randint(n_air, (batch,), generator=rng).to(device)
+            i_water = torch.randint(n_water, (batch,), generator=rng).to(device)
+            z = (torch.rand(batch, generator.z_dim, generator=rng) * 2 - 1).to(device)
+            rgb_b, depth_b, real_b = air[i_air], depth[i_air], real_all[i_water]
+            noise_real, noise_fake = (config.instance_noise_std * torch.randn(2, *real_b.shape, generator=rng)
+                                      ).to(device)
+
+            fake = generator(rgb_b, depth_b, z, intrinsics)
+            d_real, d_fake = discriminator(real_b + noise_real), discriminator(fake.detach() + noise_fake)
+            loss_d = bce(d_real, ones) + bce(d_fake, zeros)
+            opt_d.zero_grad(set_to_none=True)
+            loss_d.backward()
+            opt_d.step()
+
+            discriminator.requires_grad_(False)
+            for _ in range(config.gen_steps_per_disc_step):
+                loss_g = bce(discriminator(generator(rgb_b, depth_b, z, intrinsics) + noise_fake), ones)
+                opt_g.zero_grad(set_to_none=True)
+                loss_g.backward()
+                opt_g.step()
+            discriminator.requires_grad_(True)
+
+            step += 1
+            d_loss, g_loss = loss_d.item(), loss_g.item()
+            log.write(json.dumps({"step": step, "d_loss": d_loss, "g_loss": g_loss,
+                                  "d_real": torch.sigmoid(d_real).mean().item(),
+                                  "d_fake": torch.sigmoid(d_fake).mean().item(),
+                                  "seconds": round(time.perf_counter() - began, 3),
+                                  "params": _json_ready(generator.physical_values())}) + "\n")
+            bar.update(1)
+            bar.set_postfix(d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
+            if step % config.checkpoint_every == 0:
+                log.flush()
+                _save_checkpoint(ckpt_path, step, generator, discriminator, opt_g, opt_d, rng, config, depth_scale_m)
+            if step % config.sample_every == 0:
+                write_samples(step)
+    bar.close()
+    seconds = time.perf_counter() - began
+
+    _save_checkpoint(ckpt_path, step, generator, discriminator, opt_g, opt_d, rng, config, depth_scale_m)
+    atomic_write_bytes(out / STACK_JSON, (generator.stack.to_json() + "\n").encode())
+    write_samples(step)
+    stats_z = torch.rand(n_air, generator.z_dim, generator=torch.Generator().manual_seed(config.seed + 2))
+    generated = _render_eval(generator, air, depth, stats_z.mul(2).sub(1).to(device), intrinsics)
+    plot_training(log_path, generated, real_all, out / PLOT)
+    result = GanResult(
+        out_dir=out, steps=step, seconds=seconds, iterations_per_s=(step - start) / max(seconds, 1e-9),
+        stopped_by=stopped_by, d_loss=d_loss, g_loss=g_loss, params=_json_ready(generator.physical_values()),
+        colour_mean={
+            "generated": generated.mean(dim=(0, 2, 3)).tolist(),
+            "real": real_all.mean(dim=(0, 2, 3)).tolist()},
+        colour_std={
+            "generated": generated.std(dim=(0, 2, 3)).tolist(),
+            "real": real_all.std(dim=(0, 2, 3)).tolist()},
+        skipped=skipped,
+    )
+    atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
+    return result
