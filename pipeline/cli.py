@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+from .cliargs import name_list
+
 PLUGIN_HELP = "a Python file that registers effects with @watergan.formation.register (repeatable)"
 
 
@@ -24,10 +26,6 @@ def _plugin_parent() -> argparse.ArgumentParser:
     parent = argparse.ArgumentParser(add_help=False)
     parent.add_argument("--plugin", action="append", default=[], metavar="FILE.py", help=PLUGIN_HELP)
     return parent
-
-
-def _hidden_list(text: str) -> list[str]:
-    return [name.strip() for name in text.split(",") if name.strip()]
 
 
 def cmd_effects(args: argparse.Namespace) -> int:
@@ -59,7 +57,7 @@ def _simulate(out: Path, preset: str, hidden: list[str], seed: int, force: bool)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    return _simulate(Path(args.out), args.preset, _hidden_list(args.hidden), args.seed, args.force)
+    return _simulate(Path(args.out), args.preset, name_list(args.hidden), args.seed, args.force)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -14,9 +14,7 @@ from pathlib import Path
 
 from watergan.errors import UserInputError
 
-
-def _names(text: str) -> list[str]:
-    return [name.strip() for name in text.split(",") if name.strip()]
+from .cliargs import name_list
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -34,7 +32,7 @@ def cmd_train_gan(args: argparse.Namespace) -> int:
     from watergan.nets.generator import DEFAULT_EFFECTS
     from watergan.train import GanConfig, train_gan
 
-    effects = _names(args.effects) if args.effects else list(DEFAULT_EFFECTS)
+    effects = name_list(args.effects) if args.effects else list(DEFAULT_EFFECTS)
     effects += [name for name in args.add if name not in effects]
     for name in effects:
         get(name)  # unknown names fail before any data is read
