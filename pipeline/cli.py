@@ -4,6 +4,7 @@
     watergan simulate --out DIR [--preset demo|tiny] [--hidden NAME[,NAME]] [--seed N] [--force]
     watergan demo [--out DIR]             the main job on the built-in default survey
     watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
+    watergan sfm / dense / consistency / depth-compare / texture / mosaic   3D (see pipeline/cli_3d.py)
 
 Every command takes ``--plugin FILE.py`` (repeatable) to register a user's own effects first.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import zlib  # noqa: F401  load before pycolmap: importing pycolmap first makes Python's zlib corrupt the heap
 from pathlib import Path
 
 from .cliargs import name_list
@@ -97,9 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="redo finished stages")
     p.set_defaults(func=cmd_demo)
 
-    from . import cli_gan
+    from . import cli_3d, cli_gan
 
     cli_gan.add_commands(sub, [plugin])
+    cli_3d.add_commands(sub, [plugin])
     return parser
 
 

@@ -1,5 +1,6 @@
 import os
 import tempfile
+import zlib  # noqa: F401  load before pycolmap (pycolmap first makes zlib corrupt the heap)
 
 import pytest
 import torch

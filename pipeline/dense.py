@@ -1,0 +1,296 @@
+"""Dense depth per image from rectified pairs (OpenCV SGBM), then TSDF fusion (open3d).
+
+Pairs: the stereo rig's left/right frames when the survey has them (right pose = left pose moved
+``baseline_m`` along the left camera's x; the SfM frame must be metric), else for each image the
+registered neighbour whose baseline b to it is closest to ``target_baseline_ratio`` x the median
+sparse depth (and within ``[min_baseline_ratio, max_baseline_ratio]``).
+
+Rectification (works for any baseline direction, e.g. along-track neighbours whose baseline
+runs along the image's y): a common rectified frame with x along the baseline (left centre to
+right centre), z the mean optical axis made orthogonal to x, y = z x x; each image is warped with
+the homography H = K' R_rect R_wc K^-1 (R_wc: camera-to-world rotation, K' = K shifted to frame the
+warped left image). Disparity d = x_l - x_r gives the rectified depth z_rect = f b / d, and for
+the original pixel with ray r = K^-1 (u, v, 1), camera depth z = z_rect / (R_rect R_wc r)_z.
+
+SGBM's disparity range comes from the image's sparse depths (z in [z_min, z_max], widened by
+``depth_margin``): d in [f b / z_max, f b / z_min]. A left-right check (disparity of the right
+image computed on the mirrored pair) keeps pixels with |d_l(x) - d_r(x - d_l(x))| <= ``lr_max_px``.
+
+pycolmap's patch-match MVS needs CUDA; this CPU path is used whenever ``pycolmap.has_cuda`` is
+false (this stage never calls patch-match).
+
+Outputs (``05_dense/``): ``depth/<stem>.png`` 16-bit millimetres (0 = invalid) in the survey frame's
+units, ``fused_points.ply`` and ``fused_mesh.ply`` (TSDF fusion with the tensor VoxelBlockGrid).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from watergan.errors import UserInputError
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Dense depth and fusion options."""
+
+    images_dir: str = ""
+    """Images to match (raw or corrected; same names as SfM's); empty: ``00_survey/images``."""
+    right_dir: str = ""
+    """The stereo rig's right frames; empty: ``right`` beside the images folder when it exists."""
+    pairs: str = "auto"
+    """'rig' (stereo rig pairs), 'neighbours' (SfM neighbours) or 'auto' (rig when present)."""
+    target_baseline_ratio: float = 0.12
+    """Neighbour pairs: preferred baseline / median sparse depth."""
+    min_baseline_ratio: float = 0.03
+    """Neighbour pairs: smallest usable baseline / median depth."""
+    max_baseline_ratio: float = 0.35
+    """Neighbour pairs: largest usable baseline / median depth."""
+    depth_margin: float = 0.3
+    """Sparse depth range widened by this fraction each way before it sets the disparity range."""
+    block_size: int = 5
+    """SGBM matching block side, pixels (odd)."""
+    uniqueness_ratio: int = 10
+    """SGBM uniqueness margin, percent."""
+    lr_max_px: float = 1.0
+    """Left-right consistency threshold, pixels."""
+    fuse: bool = True
+    """Fuse the depth maps into a point cloud and mesh (TSDF)."""
+    voxel_m: float = 0.0
+    """TSDF voxel size in survey units (metres when scaled); 0: median depth / 100."""
+    weight_threshold: float = 1.0
+    """Fusion: voxels observed by fewer (weighted) views are not extracted."""
+
+
+@dataclass
+class DenseResult:
+    depth_dir: str
+    """Folder of 16-bit millimetre depth maps (0 = invalid)."""
+    pairs: dict[str, str]
+    """Image -> partner image name, or 'rig'."""
+    coverage: dict[str, float]
+    """Image -> fraction of pixels with a valid depth."""
+    mean_coverage: float
+    skipped: list[str] = field(default_factory=list)
+    """Registered images without a usable partner or with no valid depth."""
+    points_ply: str = ""
+    mesh_ply: str = ""
+    n_fused_points: int = 0
+    seconds: float = 0.0
+
+
+def rectifying_rotation(world_from_left: np.ndarray, world_from_right: np.ndarray) -> tuple[np.ndarray, float]:
+    """R_rect (rows: rectified axes in world) and baseline b = |C_r - C_l| (see module docstring)."""
+    base = world_from_right[:3, 3] - world_from_left[:3, 3]
+    b = float(np.linalg.norm(base))
+    if b <= 0:
+        raise ValueError("the two cameras share a centre: no stereo baseline")
+    x = base / b
+    z = world_from_left[:3, 2] + world_from_right[:3, 2]
+    z = z - (z @ x) * x
+    z /= np.linalg.norm(z)
+    y = np.cross(z, x)
+    return np.stack([x, y, z]), b
+
+
+def _corners(w: int, h: int) -> np.ndarray:
+    return np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+
+
+def rectified_pair_depth(left: np.ndarray, right: np.ndarray, K: np.ndarray, world_from_left: np.ndarray,
+                         world_from_right: np.ndarray, depth_range: tuple[float, float], cfg: DenseConfig
+                         ) -> np.ndarray:
+    """Camera-z depth (H,W) of the left image (NaN = invalid) from an arbitrary calibrated pair."""
+    import cv2
+
+    h, w = left.shape[:2]
+    R_rect, b = rectifying_rotation(world_from_left, world_from_right)
+    K_inv = np.linalg.inv(K)
+    rot_l = R_rect @ world_from_left[:3, :3]
+    rot_r = R_rect @ world_from_right[:3, :3]
+    f = float(K[0, 0])
+    H_l0 = np.diag([f, f, 1.0]) @ rot_l @ K_inv
+    warped = H_l0 @ _corners(w, h).T
+    warped = warped[:2] / warped[2]
+    lo, hi = warped.min(1), warped.max(1)
+    size = np.minimum(np.ceil(hi - lo).astype(int) + 1, [3 * w, 3 * h])
+    K_new = np.array([[f, 0, -lo[0]], [0, f, -lo[1]], [0, 0, 1.0]])
+    H_l, H_r = K_new @ rot_l @ K_inv, K_new @ rot_r @ K_inv
+    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left, right)]
+    rect_l = cv2.warpPerspective(grey[0], H_l, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR)
+    rect_r = cv2.warpPerspective(grey[1], H_r, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR)
+
+    z_lo, z_hi = depth_range
+    d_min = max(int(np.floor(f * b / (z_hi * (1 + cfg.depth_margin)))), 0)
+    d_max = int(np.ceil(f * b / max(z_lo * (1 - cfg.depth_margin), 1e-6)))
+    n_disp = max(16, int(np.ceil((d_max - d_min + 1) / 16)) * 16)
+    bs = cfg.block_size
+    sgbm = cv2.StereoSGBM_create(minDisparity=d_min, numDisparities=n_disp, blockSize=bs, P1=8 * bs * bs,
+                                 P2=32 * bs * bs, disp12MaxDiff=-1, uniquenessRatio=cfg.uniqueness_ratio,
+                                 speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    disp_l = sgbm.compute(rect_l, rect_r).astype(np.float32) / 16.0
+    disp_r = sgbm.compute(rect_r[:, ::-1].copy(), rect_l[:, ::-1].copy()).astype(np.float32)[:, ::-1] / 16.0
+    valid = disp_l >= max(d_min, 0.5)
+    ys, xs = np.nonzero(valid)
+    xr = np.rint(xs - disp_l[ys, xs]).astype(int)
+    inside = (xr >= 0) & (xr < disp_l.shape[1])
+    agree = np.zeros(len(xs), bool)
+    agree[inside] = np.abs(disp_l[ys[inside], xs[inside]] - disp_r[ys[inside], xr[inside]]) <= cfg.lr_max_px
+    valid[ys[~agree], xs[~agree]] = False
+    disp_l[~valid] = np.nan
+
+    # back to the original pixels: rectified position and ray of each pixel
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pix = np.stack([u, v, np.ones_like(u)], -1)
+    rect = pix @ H_l.T
+    map_x = (rect[..., 0] / rect[..., 2]).astype(np.float32)
+    map_y = (rect[..., 1] / rect[..., 2]).astype(np.float32)
+    d = cv2.remap(disp_l, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    ray_rect_z = (pix @ (rot_l @ K_inv).T)[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = f * b / d / ray_rect_z
+    depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
+    return depth
+
+
+def choose_neighbour(k: int, tracks, median_depth: float, cfg: DenseConfig) -> int | None:
+    """The registered image whose baseline / median depth is nearest the target (within bounds),
+    preferring images that share more sparse points with image k."""
+    reg = np.flatnonzero(tracks.registered)
+    centres = tracks.world_from_cam[:, :3, 3]
+    mine = np.zeros(len(tracks.xyz), bool)
+    mine[tracks.obs_point[tracks.obs_image == k]] = True
+    best, best_cost = None, np.inf
+    for j in reg:
+        if j == k:
+            continue
+        ratio = np.linalg.norm(centres[j] - centres[k]) / median_depth
+        if not cfg.min_baseline_ratio <= ratio <= cfg.max_baseline_ratio:
+            continue
+        shared = mine[tracks.obs_point[tracks.obs_image == j]].sum() / max(mine.sum(), 1)
+        if shared < 0.3:
+            continue
+        cost = abs(np.log(ratio / cfg.target_baseline_ratio)) - shared
+        if cost < best_cost:
+            best, best_cost = j, cost
+    return best
+
+
+def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: DenseConfig,
+                     baseline_m: float | None = None, right_dir: Path | None = None) -> DenseResult:
+    """Depth maps for the registered images of ``tracks`` and their fusion (see module docstring)."""
+    import cv2
+    from tqdm import tqdm
+
+    from eval.depth import write_depth_png
+
+    start = time.perf_counter()
+    images_dir, out_dir = Path(images_dir), Path(out_dir)
+    use_rig = cfg.pairs == "rig" or (cfg.pairs == "auto" and right_dir is not None and baseline_m)
+    if cfg.pairs not in ("auto", "rig", "neighbours"):
+        raise UserInputError(f"pairs must be 'auto', 'rig' or 'neighbours', not '{cfg.pairs}'")
+    if use_rig and (right_dir is None or not right_dir.is_dir() or not baseline_m):
+        raise UserInputError("rig pairs need a right/ folder and baseline_m in camera.json; use --pairs neighbours")
+    depth_dir = out_dir / "depth"
+    depth_dir.mkdir(parents=True, exist_ok=True)
+    obs_depth = tracks.depths()
+    median_depth = float(np.median(obs_depth))
+    pairs, coverage, skipped, depths = {}, {}, [], {}
+    for k in tqdm(np.flatnonzero(tracks.registered), desc="dense", unit="image"):
+        name = str(tracks.image_names[k])
+        left = cv2.imread(str(images_dir / name), cv2.IMREAD_COLOR)
+        if left is None:
+            raise UserInputError(f"cannot read {images_dir / name}")
+        mine = obs_depth[tracks.obs_image == k]
+        z_range = (float(np.percentile(mine, 1)), float(np.percentile(mine, 99))) if len(mine) >= 10 else \
+            (0.5 * median_depth, 2 * median_depth)
+        if use_rig:
+            right = cv2.imread(str(right_dir / name), cv2.IMREAD_COLOR)
+            if right is None:
+                skipped.append(name)
+                continue
+            offset = np.eye(4)
+            offset[0, 3] = baseline_m
+            pose_r, partner = tracks.world_from_cam[k] @ offset, "rig"
+        else:
+            j = choose_neighbour(k, tracks, median_depth, cfg)
+            if j is None:
+                skipped.append(name)
+                continue
+            partner = str(tracks.image_names[j])
+            right, pose_r = cv2.imread(str(images_dir / partner), cv2.IMREAD_COLOR), tracks.world_from_cam[j]
+        depth = rectified_pair_depth(left[..., ::-1], right[..., ::-1], tracks.K, tracks.world_from_cam[k], pose_r,
+                                     z_range, cfg)
+        cover = float(np.isfinite(depth).mean())
+        if cover == 0:
+            skipped.append(name)
+            continue
+        write_depth_png(depth_dir / f"{Path(name).stem}.png", depth)
+        pairs[name], coverage[name], depths[name] = partner, cover, depth
+    if not depths:
+        raise UserInputError("no image got a dense depth map: check the pairs (--pairs) and the SfM result")
+    result = DenseResult(depth_dir=str(depth_dir), pairs=pairs, coverage=coverage,
+                         mean_coverage=float(np.mean(list(coverage.values()))), skipped=skipped)
+    if cfg.fuse:
+        index = {str(n): i for i, n in enumerate(tracks.image_names)}
+        result.points_ply, result.mesh_ply, result.n_fused_points = fuse_depths(
+            depths, {n: tracks.world_from_cam[index[n]] for n in depths}, tracks.K, images_dir, out_dir,
+            cfg.voxel_m or median_depth / 100, cfg.weight_threshold, 2.5 * float(np.percentile(obs_depth, 99)))
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def fuse_depths(depths: dict[str, np.ndarray], poses: dict[str, np.ndarray], K: np.ndarray, images_dir: Path,
+                out_dir: Path, voxel: float, weight_threshold: float, depth_max: float) -> tuple[str, str, int]:
+    """TSDF fusion of coloured depth maps with open3d's tensor VoxelBlockGrid (truncation 4 voxels);
+    writes ``fused_points.ply`` and ``fused_mesh.ply``. Returns their paths and the point count."""
+    import cv2
+    import open3d as o3d
+
+    device = o3d.core.Device("CPU:0")
+    grid = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
+                                         attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
+                                         attr_channels=((1,), (1,), (3,)), voxel_size=voxel, block_resolution=16,
+                                         block_count=50000, device=device)
+    intrinsic = o3d.core.Tensor(K, o3d.core.float64)
+    for name, depth in depths.items():
+        depth_img = o3d.t.geometry.Image(np.nan_to_num(depth, nan=0.0).astype(np.float32))
+        colour = cv2.imread(str(images_dir / name), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+        colour_img = o3d.t.geometry.Image(np.ascontiguousarray(colour))
+        extrinsic = o3d.core.Tensor(np.linalg.inv(poses[name]), o3d.core.float64)
+        blocks = grid.compute_unique_block_coordinates(depth_img, intrinsic, extrinsic, 1.0, depth_max, 4.0)
+        grid.integrate(blocks, depth_img, colour_img, intrinsic, extrinsic, 1.0, depth_max, 4.0)
+    cloud = grid.extract_point_cloud(weight_threshold)
+    mesh = grid.extract_triangle_mesh(weight_threshold)
+    points_path, mesh_path = out_dir / "fused_points.ply", out_dir / "fused_mesh.ply"
+    if not o3d.t.io.write_point_cloud(str(points_path), cloud):
+        raise OSError(f"could not write {points_path}")
+    if not o3d.t.io.write_triangle_mesh(str(mesh_path), mesh):
+        raise OSError(f"could not write {mesh_path}")
+    return str(points_path), str(mesh_path), int(cloud.point.positions.shape[0])
+
+
+def run_dense(ws, cfg: DenseConfig) -> DenseResult:
+    """Workspace stage: tracks from ``04_sfm``; outputs in ``05_dense``."""
+    from pipeline.sfm import Tracks
+
+    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
+    sfm_result = (ws.load_result("sfm") or {}).get("result", {})
+    images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
+    right_dir = Path(cfg.right_dir) if cfg.right_dir else images_dir.parent / "right"
+    camera_path = images_dir.parent / "camera.json"
+    baseline_m = json.loads(camera_path.read_text()).get("baseline_m") if camera_path.is_file() else None
+    if baseline_m and cfg.pairs != "neighbours" and sfm_result.get("scale_method") == "none":
+        raise UserInputError("the SfM model has no metric scale, so the rig baseline cannot be placed in it: "
+                             "rerun sfm with --scale stereo/altitude or use --pairs neighbours")
+    result = run_dense_folder(tracks, images_dir, ws.stage_dir("dense"), cfg, baseline_m,
+                              right_dir if right_dir.is_dir() else None)
+    result.depth_dir = ws.relative(result.depth_dir)
+    if result.points_ply:
+        result.points_ply, result.mesh_ply = ws.relative(result.points_ply), ws.relative(result.mesh_ply)
+    return result

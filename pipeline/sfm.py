@@ -1,0 +1,456 @@
+"""Structure from motion with pycolmap: once, on the raw images; every later measurement reuses it.
+
+Steps: SIFT features -> matching (sequential with quadratic overlap for image sequences, which
+also links neighbouring survey lines, or exhaustive for small sets) -> incremental mapping
+(known PINHOLE intrinsics from ``camera.json`` held fixed, or estimated) -> the largest model is
+moved into a *survey frame* and given a metric scale:
+
+    survey frame:  origin at the median sparse point, z = normal of the plane fitted to the sparse
+                   points (oriented towards the cameras), x = main direction of camera travel;
+    p_survey = s R (p_colmap - o)
+
+with the scale ``s`` from, in order of preference (``scale="auto"``):
+
+    stereo:    a rectified stereo rig (``right/`` frames, ``baseline_m`` in camera.json). Sparse
+               observations are matched along their row in the right frame (normalised cross
+               correlation, sub-pixel peak); z_stereo = fx b / disparity; s = median(z_stereo / z_sfm).
+    altitude:  navigation altitudes (``nav_altitude_m`` in survey.json):
+               s = median(altitude_nav) / median(n . (C_i - o)), camera heights above the sparse points'
+               median height.
+    none:      COLMAP's arbitrary scale (s = 1 after the survey-frame rotation).
+
+Outputs (``04_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``tracks.npz``
+(:class:`Tracks`: points, observations, poses, intrinsics) and ``database.db``.
+
+Pixel convention everywhere outside COLMAP: OpenCV, the centre of pixel (column i, row j) is at
+(i, j). COLMAP puts it at (i + 0.5, j + 0.5); the conversion happens here, once.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+import zlib  # noqa: F401  must load before pycolmap: pycolmap first makes Python's zlib corrupt the heap
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from watergan.errors import UserInputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """Structure-from-motion options."""
+
+    images_dir: str = ""
+    """Folder of the raw images; empty: the workspace's ``00_survey/images``."""
+    camera_json: str = ""
+    """Intrinsics (fx, fy, cx, cy in OpenCV pixel convention, width, height[, baseline_m]); empty:
+    ``camera.json`` beside the images folder. Missing file: intrinsics are estimated."""
+    fix_intrinsics: bool = True
+    """Hold the known PINHOLE intrinsics fixed (True) or refine them in bundle adjustment."""
+    matching: str = "auto"
+    """'sequential' (ordered sequence, quadratic overlap), 'exhaustive' (all pairs), or 'auto':
+    exhaustive up to ``exhaustive_max_images`` images, else sequential."""
+    sequential_overlap: int = 10
+    """Sequential matching: each image is matched with the next ``overlap`` images and, with the
+    quadratic overlap, with images 2^k ahead (k < overlap), which reaches neighbouring survey lines."""
+    exhaustive_max_images: int = 40
+    """'auto' matching uses exhaustive matching up to this many images."""
+    max_features: int = 4096
+    """SIFT features per image at most."""
+    init_min_tri_angle_deg: float = 8.0
+    """Smallest triangulation angle of the initial pair, degrees (COLMAP's default 16 suits
+    wide baselines; seafloor surveys at 80 % overlap have about 10 degrees between neighbours)."""
+    min_registered_fraction: float = 0.5
+    """Fewer registered images than this fraction of all images is an error."""
+    scale: str = "auto"
+    """Metric scale from 'stereo', 'altitude' (navigation), 'none', or 'auto' (stereo, else altitude, else none)."""
+    right_dir: str = ""
+    """Folder of the stereo rig's right frames (same names); empty: ``right`` beside the images folder."""
+    survey_json: str = ""
+    """Navigation file with ``nav_altitude_m`` per frame; empty: ``survey.json`` beside the images folder."""
+    seed: int = 0
+    """Random seed of COLMAP's RANSAC and mapper."""
+
+
+@dataclass
+class SfmResult:
+    model_dir: str
+    """COLMAP binary model (cameras.bin, images.bin, points3D.bin) in the survey frame."""
+    tracks: str
+    """tracks.npz: see :class:`Tracks`."""
+    n_images: int
+    """Images in the input folder."""
+    n_registered: int
+    """Images with a pose."""
+    n_points: int
+    """Sparse 3D points."""
+    mean_track_length: float
+    """Mean number of observations per point."""
+    mean_reprojection_error_px: float
+    """Mean reprojection error of the sparse points, pixels."""
+    matching: str
+    """The matching that was used."""
+    scale_method: str
+    """'stereo', 'altitude' or 'none': where the metric scale came from."""
+    scale_factor: float
+    """s in p_survey = s R (p_colmap - o)."""
+    scale_spread: float
+    """Median absolute deviation / median of the per-sample scale estimates (0 for 'none')."""
+    seconds: float
+    """Wall time of the stage."""
+
+
+@dataclass
+class Tracks:
+    """The sparse reconstruction as arrays (the contents of ``tracks.npz``). Image index k refers to
+    ``image_names[k]``; unregistered images have ``registered[k] = False`` and a NaN pose."""
+
+    image_names: np.ndarray
+    """(N,) file names in the images folder, sorted."""
+    registered: np.ndarray
+    """(N,) bool."""
+    world_from_cam: np.ndarray
+    """(N,4,4) camera-to-world poses in the survey frame (OpenCV camera axes: x right, y down, z forward)."""
+    K: np.ndarray
+    """(3,3) pinhole intrinsics, OpenCV pixel convention."""
+    width: int
+    height: int
+    point_id: np.ndarray
+    """(P,) COLMAP point3D id."""
+    xyz: np.ndarray
+    """(P,3) point positions, survey frame (metres when scaled)."""
+    rgb: np.ndarray
+    """(P,3) uint8 colour COLMAP extracted from the raw images."""
+    obs_point: np.ndarray
+    """(M,) row of the observed point in ``xyz``."""
+    obs_image: np.ndarray
+    """(M,) index of the observing image."""
+    obs_xy: np.ndarray
+    """(M,2) pixel position of the observation (OpenCV convention), float32."""
+
+    def save(self, path: str | Path) -> None:
+        import io
+
+        from pipeline.workspace import atomic_write_bytes
+
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in self.__dict__.items()})
+        atomic_write_bytes(Path(path), buffer.getvalue())
+
+    @classmethod
+    def load(cls, path: str | Path) -> Tracks:
+        path = Path(path)
+        if not path.is_file():
+            raise UserInputError(f"no sparse tracks at {path}: run the sfm stage first")
+        with np.load(path, allow_pickle=False) as data:
+            values = {k: data[k] for k in data.files}
+        values["width"], values["height"] = int(values["width"]), int(values["height"])
+        return cls(**values)
+
+    def track_lengths(self) -> np.ndarray:
+        """(P,) observations per point."""
+        return np.bincount(self.obs_point, minlength=len(self.xyz))
+
+    def depths(self) -> np.ndarray:
+        """(M,) camera z of each observation's point in its image, p_c = R^T (p_w - t)."""
+        pose = self.world_from_cam[self.obs_image]
+        rel = self.xyz[self.obs_point] - pose[:, :3, 3]
+        return np.einsum("mi,mi->m", rel, pose[:, :3, 2])
+
+
+def image_files(folder: Path) -> list[str]:
+    """Sorted image file names in a folder (clear error when there are none)."""
+    if not folder.is_dir():
+        raise UserInputError(f"image folder {folder} does not exist")
+    names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise UserInputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+    return names
+
+
+def read_camera_json(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    cam = json.loads(path.read_text())
+    missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
+    if missing:
+        raise UserInputError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height")
+    return cam
+
+
+def _pose_matrix(image) -> np.ndarray:
+    """world_from_cam 4x4 of a pycolmap image (inverse of its cam_from_world)."""
+    pose = np.eye(4)
+    pose[:3, :] = image.cam_from_world().inverse().matrix()
+    return pose
+
+
+def survey_frame(points: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (rows: new axes in old coordinates) and origin o of the survey frame: z = the
+    normal of the points' least-squares plane (towards the cameras), x = main direction of the
+    camera centres within that plane, origin = the points' median."""
+    origin = np.median(points, axis=0)
+    _, _, vt = np.linalg.svd(points - points.mean(0), full_matrices=False)
+    normal = vt[2]
+    if np.median((centres - origin) @ normal) < 0:
+        normal = -normal
+    flat = centres - centres.mean(0)
+    flat -= np.outer(flat @ normal, normal)
+    _, _, vc = np.linalg.svd(flat, full_matrices=False) if len(flat) > 1 else (None, None, np.eye(3))
+    x_axis = vc[0] - (vc[0] @ normal) * normal
+    if np.linalg.norm(x_axis) < 1e-9:
+        x_axis = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x_axis /= np.linalg.norm(x_axis)
+    return np.stack([x_axis, np.cross(normal, x_axis), normal]), origin
+
+
+def _robust_ratio(samples: np.ndarray, what: str, minimum: int = 10) -> tuple[float, float]:
+    samples = samples[np.isfinite(samples) & (samples > 0)]
+    if samples.size < minimum:
+        raise UserInputError(f"only {samples.size} usable samples for the {what} scale (need {minimum}): "
+                             f"use another scale source (--scale)")
+    med = float(np.median(samples))
+    return med, float(np.median(np.abs(samples - med)) / med)
+
+
+def stereo_scale(tracks: Tracks, images_dir: Path, right_dir: Path, baseline_m: float,
+                 max_images: int = 12, max_obs: int = 400, patch: int = 7, min_ncc: float = 0.95
+                 ) -> tuple[float, float]:
+    """Scale from a rectified stereo rig: for each sparse observation (x, y) of a left image, the
+    patch around it is searched along row y of the right image (NCC, parabolic sub-pixel peak);
+    z_stereo = fx b / d. Returns (median of z_stereo / z_sfm, relative spread)."""
+    import cv2
+
+    fx = float(tracks.K[0, 0])
+    z_sfm_all = tracks.depths()
+    half = patch // 2
+    ratios = []
+    registered = np.flatnonzero(tracks.registered)
+    for k in registered[np.linspace(0, len(registered) - 1, min(max_images, len(registered))).astype(int)]:
+        name = str(tracks.image_names[k])
+        right_path = right_dir / name
+        left = cv2.imread(str(images_dir / name), cv2.IMREAD_GRAYSCALE)
+        right = cv2.imread(str(right_path), cv2.IMREAD_GRAYSCALE)
+        if left is None or right is None:
+            continue
+        obs = np.flatnonzero(tracks.obs_image == k)
+        obs = obs[np.linspace(0, len(obs) - 1, min(max_obs, len(obs))).astype(int)] if len(obs) else obs
+        h, w = left.shape
+        d_max = w // 3
+        for m in obs:
+            x, y = np.rint(tracks.obs_xy[m]).astype(int)
+            if not (half + d_max <= x < w - half and half <= y < h - half):
+                continue
+            template = left[y - half:y + half + 1, x - half:x + half + 1]
+            if template.std() < 2:
+                continue
+            strip = right[y - half:y + half + 1, x - half - d_max:x + half + 1]
+            score = cv2.matchTemplate(strip, template, cv2.TM_CCOEFF_NORMED)[0]
+            j = int(np.argmax(score))
+            if score[j] < min_ncc or j in (0, len(score) - 1):
+                continue
+            a, b, c = score[j - 1], score[j], score[j + 1]
+            offset = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
+            disparity = d_max - (j + offset)  # strip column j is right-image x = x - d_max + j
+            if disparity > 1.0:
+                ratios.append(fx * baseline_m / disparity / z_sfm_all[m])
+    return _robust_ratio(np.array(ratios), "stereo")
+
+
+def altitude_scale(points: np.ndarray, centres: np.ndarray, nav_altitude_m: np.ndarray) -> tuple[float, float]:
+    """s = median(nav altitude) / median(camera height above the points' median height) with the
+    heights measured along the survey frame's z (``points``/``centres`` already rotated, unscaled)."""
+    heights = centres[:, 2] - np.median(points[:, 2])
+    if np.median(heights) <= 0:
+        raise UserInputError("the cameras are not above the sparse points: cannot use the altitude scale")
+    s = float(np.median(nav_altitude_m) / np.median(heights))
+    per_image = nav_altitude_m / heights
+    spread = float(np.median(np.abs(per_image - s)) / s)
+    return s, spread
+
+
+def _build_tracks(rec, names: list[str], K: np.ndarray, width: int, height: int) -> Tracks:
+    index = {n: i for i, n in enumerate(names)}
+    poses = np.full((len(names), 4, 4), np.nan)
+    registered = np.zeros(len(names), bool)
+    colmap_to_index = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        k = index[image.name]
+        poses[k] = _pose_matrix(image)
+        registered[k] = True
+        colmap_to_index[image_id] = (k, image)
+    ids, xyz, rgb, obs_point, obs_image, obs_xy = [], [], [], [], [], []
+    for row, (pid, point) in enumerate(sorted(rec.points3D.items())):
+        ids.append(pid)
+        xyz.append(point.xyz)
+        rgb.append(point.color)
+        for el in point.track.elements:
+            k, image = colmap_to_index[el.image_id]
+            obs_point.append(row)
+            obs_image.append(k)
+            obs_xy.append(np.asarray(image.points2D[el.point2D_idx].xy) - 0.5)
+    return Tracks(image_names=np.array(names), registered=registered, world_from_cam=poses, K=K,
+                  width=width, height=height, point_id=np.array(ids, np.int64),
+                  xyz=np.array(xyz, np.float64).reshape(-1, 3), rgb=np.array(rgb, np.uint8).reshape(-1, 3),
+                  obs_point=np.array(obs_point, np.int64), obs_image=np.array(obs_image, np.int32),
+                  obs_xy=np.array(obs_xy, np.float32).reshape(-1, 2))
+
+
+def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) -> SfmResult:
+    """SfM on a folder of images; outputs in ``out_dir`` (see the module docstring)."""
+    import pycolmap
+
+    start = time.perf_counter()
+    images_dir, out_dir = Path(images_dir), Path(out_dir)
+    names = image_files(images_dir)
+    survey_root = images_dir.parent
+    cam = read_camera_json(Path(cfg.camera_json) if cfg.camera_json else survey_root / "camera.json")
+    if len(names) < 3:
+        raise UserInputError(f"{images_dir} holds {len(names)} images; SfM needs at least 3 overlapping images")
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    database = out_dir / "database.db"
+    database.unlink(missing_ok=True)
+    if cam is not None:
+        reader = pycolmap.ImageReaderOptions(
+            camera_model="PINHOLE",
+            camera_params=f"{cam['fx']},{cam['fy']},{cam['cx'] + 0.5},{cam['cy'] + 0.5}")
+    else:
+        reader = pycolmap.ImageReaderOptions(camera_model="SIMPLE_RADIAL")
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = cfg.max_features
+    pycolmap.set_random_seed(cfg.seed)
+    pycolmap.extract_features(database, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+
+    matching = cfg.matching
+    if matching == "auto":
+        matching = "exhaustive" if len(names) <= cfg.exhaustive_max_images else "sequential"
+    if matching == "exhaustive":
+        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+    elif matching == "sequential":
+        pairing = pycolmap.SequentialPairingOptions(overlap=cfg.sequential_overlap, quadratic_overlap=True)
+        pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+    else:
+        raise UserInputError(f"matching must be 'auto', 'sequential' or 'exhaustive', not '{cfg.matching}'")
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = cfg.seed
+    options.multiple_models = False
+    options.min_model_size = 3
+    options.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
+    fixed = cam is not None and cfg.fix_intrinsics
+    options.ba_refine_focal_length = not fixed
+    options.ba_refine_extra_params = not fixed
+    options.ba_refine_principal_point = False
+    options.mapper.abs_pose_refine_focal_length = not fixed
+    options.mapper.abs_pose_refine_extra_params = not fixed
+    raw_dir = out_dir / "colmap_raw"
+    shutil.rmtree(raw_dir, ignore_errors=True)
+    raw_dir.mkdir()
+    models = pycolmap.incremental_mapping(database, images_dir, raw_dir, options)
+    rec = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+    n_reg = rec.num_reg_images() if rec is not None else 0
+    if n_reg < max(3, cfg.min_registered_fraction * len(names)):
+        hint = ("try exhaustive matching (--matching exhaustive), a larger --sequential-overlap, "
+                "a lower --init-min-tri-angle-deg, more features, or images with more overlap and texture")
+        raise UserInputError(f"SfM registered only {n_reg} of {len(names)} images "
+                             f"(need {max(3, int(np.ceil(cfg.min_registered_fraction * len(names))))}): {hint}")
+
+    cam_model = rec.cameras[next(iter(rec.cameras))]
+    fx, fy, cx, cy = (cam_model.focal_length_x, cam_model.focal_length_y,
+                      cam_model.principal_point_x - 0.5, cam_model.principal_point_y - 0.5)
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    tracks = _build_tracks(rec, names, K, cam_model.width, cam_model.height)
+
+    # survey frame, unscaled; then the scale
+    centres = tracks.world_from_cam[tracks.registered, :3, 3]
+    good = tracks.track_lengths() >= 3
+    R, origin = survey_frame(tracks.xyz[good] if good.sum() >= 10 else tracks.xyz, centres)
+    rotated = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), -R @ origin)
+    rec.transform(rotated)
+    tracks = _build_tracks(rec, names, K, cam_model.width, cam_model.height)
+    method, scale, spread = _choose_scale(cfg, tracks, images_dir, cam, good)
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
+    tracks = _build_tracks(rec, names, K, cam_model.width, cam_model.height)
+
+    model_dir = out_dir / "sparse"
+    shutil.rmtree(model_dir, ignore_errors=True)
+    model_dir.mkdir()
+    rec.write_binary(str(model_dir))
+    shutil.rmtree(raw_dir, ignore_errors=True)
+    tracks.save(out_dir / "tracks.npz")
+    return SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
+                     n_registered=n_reg, n_points=len(tracks.xyz),
+                     mean_track_length=float(rec.compute_mean_track_length()),
+                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+                     matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
+                     seconds=time.perf_counter() - start)
+
+
+def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None,
+                  good: np.ndarray) -> tuple[str, float, float]:
+    """(method, s, spread) following ``cfg.scale`` (see the module docstring)."""
+    root = images_dir.parent
+    right_dir = Path(cfg.right_dir) if cfg.right_dir else root / "right"
+    survey_path = Path(cfg.survey_json) if cfg.survey_json else root / "survey.json"
+    has_stereo = cam is not None and "baseline_m" in cam and right_dir.is_dir()
+    survey = json.loads(survey_path.read_text()) if survey_path.is_file() else {}
+    has_altitude = "nav_altitude_m" in survey
+    choices = {"auto": ["stereo", "altitude", "none"], "stereo": ["stereo"], "altitude": ["altitude"],
+               "none": ["none"]}
+    if cfg.scale not in choices:
+        raise UserInputError(f"scale must be one of {', '.join(choices)}, not '{cfg.scale}'")
+    for method in choices[cfg.scale]:
+        if method == "stereo":
+            if has_stereo:
+                s, spread = stereo_scale(tracks, images_dir, right_dir, float(cam["baseline_m"]))
+                return method, s, spread
+            if cfg.scale == "stereo":
+                raise UserInputError(f"stereo scale needs right frames in {right_dir} and baseline_m in camera.json")
+        elif method == "altitude":
+            if has_altitude:
+                frames = survey.get("frames", list(tracks.image_names))
+                by_name = dict(zip(frames, survey["nav_altitude_m"], strict=False))
+                reg = [k for k in np.flatnonzero(tracks.registered) if tracks.image_names[k] in by_name]
+                if len(reg) >= 3:
+                    alt = np.array([by_name[tracks.image_names[k]] for k in reg], float)
+                    s, spread = altitude_scale(tracks.xyz[good] if good.sum() >= 10 else tracks.xyz,
+                                               tracks.world_from_cam[reg, :3, 3], alt)
+                    return method, s, spread
+            if cfg.scale == "altitude":
+                raise UserInputError(f"altitude scale needs nav_altitude_m per frame in {survey_path}")
+        else:
+            return "none", 1.0, 0.0
+    raise AssertionError("unreachable")
+
+
+def run_sfm(ws, cfg: SfmConfig) -> SfmResult:
+    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``04_sfm``."""
+    images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
+    result = run_sfm_folder(images_dir, ws.stage_dir("sfm"), cfg)
+    result.model_dir, result.tracks = ws.relative(result.model_dir), ws.relative(result.tracks)
+    return result
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama's least-squares similarity dst ~ s R src + t for point sets (N,3), N >= 3.
+    With centred sets X, Y and the SVD U D V^T of Y^T X / N: R = U S V^T (S fixes a reflection),
+    s = trace(D S) / var(X), t = mean(dst) - s R mean(src). Returns (s, R, t)."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    x, y = src - mu_s, dst - mu_d
+    u, d, vt = np.linalg.svd(y.T @ x / len(src))
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2, 2] = -1
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(d) @ sign) / (x**2).sum(1).mean())
+    return scale, rotation, mu_d - scale * rotation @ mu_s

@@ -1,0 +1,70 @@
+"""Dense SGBM depth on the simulated stereo survey: coverage and error against rendered depth."""
+
+import numpy as np
+import pytest
+from test_sfm import survey_and_sfm
+
+from eval.depth import read_depth
+from pipeline.dense import DenseConfig, rectified_pair_depth, rectifying_rotation, run_dense, run_dense_folder
+from pipeline.sfm import Tracks
+
+
+@pytest.fixture(scope="module")
+def sfm():
+    return survey_and_sfm()
+
+
+def _errors(survey, depth_dir, names):
+    coverage, errors = [], []
+    for name in names:
+        depth = read_depth(depth_dir / name)
+        true = read_depth(survey / "truth" / "depth" / name)
+        valid = np.isfinite(depth) & np.isfinite(true)
+        coverage.append(valid.mean())
+        errors.append(np.abs(depth[valid] - true[valid]) / true[valid])
+    return float(np.mean(coverage)), np.concatenate(errors)
+
+
+def test_rig_sgbm_coverage_and_error(sfm):
+    survey, ws, _ = sfm
+    record = ws.run("dense", DenseConfig(), run_dense)
+    result = record["result"]
+    assert set(result["pairs"].values()) == {"rig"} and not result["skipped"]
+    coverage, rel = _errors(survey, ws.path(result["depth_dir"]), result["pairs"])
+    assert coverage > 0.7 and result["mean_coverage"] == pytest.approx(coverage, abs=0.01)
+    assert np.median(rel) < 0.03  # about 0.15 px of disparity at 11 px
+    assert result["n_fused_points"] > 1000 and ws.path(result["mesh_ply"]).is_file()
+
+
+def test_neighbour_pairs_without_rig(sfm, tmp_path):
+    survey, ws, record = sfm
+    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    result = run_dense_folder(tracks, survey / "images", tmp_path, DenseConfig(pairs="neighbours", fuse=False))
+    assert all(partner != "rig" and partner != name for name, partner in result.pairs.items())
+    coverage, rel = _errors(survey, tmp_path / "depth", result.pairs)
+    assert coverage > 0.25 and np.median(rel) < 0.01
+
+
+def test_rectification_of_a_pure_x_baseline_is_identity():
+    left = np.eye(4)
+    right = np.eye(4)
+    right[0, 3] = 0.2
+    R, b = rectifying_rotation(left, right)
+    assert b == pytest.approx(0.2) and np.allclose(R, np.eye(3))
+
+
+def test_fronto_parallel_plane_depth():
+    rng = np.random.default_rng(0)
+    texture = (rng.random((60, 80)) * 255).astype(np.uint8)
+    import cv2
+
+    texture = cv2.resize(texture, (320, 240), interpolation=cv2.INTER_CUBIC)
+    K = np.array([[200.0, 0, 159.5], [0, 200.0, 119.5], [0, 0, 1]])
+    disparity = 16  # plane at z = f b / d = 200 * 0.2 / 16 = 2.5
+    left = texture
+    right = np.roll(texture, -disparity, axis=1)
+    pose_r = np.eye(4)
+    pose_r[0, 3] = 0.2
+    depth = rectified_pair_depth(left, right, K, np.eye(4), pose_r, (2.0, 3.0), DenseConfig())
+    inner = depth[20:-20, 40:-40]
+    assert np.isfinite(inner).mean() > 0.9 and np.nanmedian(inner) == pytest.approx(2.5, rel=0.01)

@@ -1,0 +1,89 @@
+"""2.5D mesh, texture, exports (GLB/OBJ/PLY) and the orthophoto mosaic."""
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from test_sfm import survey_and_sfm
+
+from pipeline.mesh import MeshConfig, height_mesh, render_back, run_mesh, surface_heights
+from pipeline.sfm import Tracks
+
+
+@pytest.fixture(scope="module")
+def sfm():
+    return survey_and_sfm()
+
+
+@pytest.fixture(scope="module")
+def meshed(sfm):
+    survey, ws, _ = sfm
+    return survey, ws, ws.run("mesh", MeshConfig(source="sparse"), run_mesh)["result"]
+
+
+def test_textured_glb_loads_back(meshed):
+    _, ws, result = meshed
+    scene = trimesh.load(ws.path(result["glb"]))
+    geometry = next(iter(scene.geometry.values()))
+    assert len(geometry.faces) == result["n_faces"] > 100
+    assert geometry.visual.kind == "texture" and geometry.visual.material.baseColorTexture is not None
+    assert geometry.visual.uv.min() >= 0 and geometry.visual.uv.max() <= 1
+
+
+def test_obj_ply_and_mosaic_files(meshed):
+    _, ws, result = meshed
+    obj = ws.path(result["obj"])
+    assert {p.suffix for p in obj.parent.iterdir()} >= {".obj", ".mtl", ".png"}
+    assert "mtllib mesh.mtl" in obj.read_text()
+    ply = trimesh.load(ws.path(result["ply"]))
+    assert ply.visual.kind == "vertex" and len(ply.visual.vertex_colors) == result["n_vertices"]
+    mosaic = cv2.imread(str(ws.path(result["mosaic_png"])))
+    assert mosaic is not None and result["mosaic_coverage"] > 0.2
+    world = [float(x) for x in ws.path(result["world_file"]).read_text().split()]
+    assert len(world) == 6 and world[0] == pytest.approx(result["texel_m"]) and world[3] == -world[0]
+
+
+def test_render_back_matches_an_image(meshed):
+    survey, ws, result = meshed
+    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
+    points = tracks.xyz[tracks.track_lengths() >= 3]
+    extent = float((np.percentile(points[:, :2], 99, 0) - np.percentile(points[:, :2], 1, 0)).max())
+    mesh = height_mesh(points, extent / 150)
+    texture = cv2.imread(str(ws.path(result["mosaic_png"])))[..., ::-1]
+    k = 4
+    rendered = render_back(mesh, texture, tracks.world_from_cam[k], tracks.K, tracks.width, tracks.height)
+    image = cv2.imread(str(survey / "images" / str(tracks.image_names[k])))[..., ::-1].astype(float)
+    valid = np.isfinite(rendered).all(-1) & (rendered.sum(-1) > 0)
+    assert valid.mean() > 0.2
+    psnr = 10 * np.log10(255.0**2 / np.mean((rendered[valid] - image[valid]) ** 2))
+    assert psnr > 20
+
+
+def test_height_mesh_of_a_tilted_plane():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 2, (4000, 2))
+    points = np.column_stack([xy, 0.1 * xy[:, 0] + 0.5])
+    mesh = height_mesh(points, 0.05)
+    normals = np.cross(mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
+                       mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]])
+    assert (normals[:, 2] > 0).all()
+    z = surface_heights(mesh, np.array([[1.0, 1.0], [5.0, 5.0]]))
+    assert z[0] == pytest.approx(0.6, abs=0.01) and np.isnan(z[1])
+
+
+def test_cli_commands_on_the_workspace(meshed, capsys):
+    import argparse
+
+    from pipeline.cli_3d import add_commands
+
+    survey, ws, _ = meshed
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command", required=True), [])
+    for argv in (["sfm", "--workspace", str(ws.root)],
+                 ["mosaic", "--workspace", str(ws.root), "--source", "sparse"],
+                 ["consistency", "--workspace", str(ws.root), "--folder", f"raw={survey / 'images'}",
+                  "--folder", f"inair={survey / 'truth' / 'inair'}", "--truth", str(survey)]):
+        args = parser.parse_args(argv)
+        assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "registered 10 of 10" in out and "mosaic:" in out and "CIEDE2000" in out

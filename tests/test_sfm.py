@@ -1,0 +1,125 @@
+"""SfM on a small simulated stereo survey: registration, camera centres and sparse depth vs truth.
+
+``survey_and_sfm`` is shared by the other 3D test modules (imported from here; cached, so the
+survey is rendered and reconstructed once per session)."""
+
+import functools
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, similarity_align
+from pipeline.workspace import Workspace
+from watergan.errors import UserInputError
+
+
+@functools.lru_cache(maxsize=1)
+def survey_and_sfm() -> tuple[Path, Workspace, dict]:
+    """A 10-frame 320x240 stereo survey (2 lines x 5) in a temporary workspace, with SfM run on it.
+    Returns (survey folder, workspace, sfm result record)."""
+    from eval.synth import make_config, simulate_survey
+    from eval.synth.camera import CameraConfig
+
+    base = make_config("tiny")
+    config = replace(base, camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0),
+                     trajectory=replace(base.trajectory, n_lines=2, frames_per_line=5, forward_overlap=0.75))
+    ws = Workspace(Path(tempfile.mkdtemp(prefix="watergan-3d-")) / "ws")
+    survey = ws.stage_dir("survey")
+    simulate_survey(survey, config, force=True)
+    record = ws.run("sfm", SfmConfig(), run_sfm)
+    return survey, ws, record
+
+
+@pytest.fixture(scope="module")
+def sfm():
+    return survey_and_sfm()
+
+
+def _truth_index(survey: Path) -> tuple[dict, np.ndarray]:
+    from eval.synth import load_truth
+
+    truth = load_truth(survey)
+    return truth, {name: k for k, name in enumerate(truth.frames)}
+
+
+def test_all_frames_register_with_stereo_scale(sfm):
+    _, ws, record = sfm
+    result = record["result"]
+    assert result["n_registered"] == result["n_images"] == 10
+    assert result["scale_method"] == "stereo" and result["scale_spread"] < 0.05
+    assert result["n_points"] > 500 and result["mean_track_length"] > 3
+    assert (ws.path(result["model_dir"]) / "points3D.bin").is_file()
+    tracks = Tracks.load(ws.path(result["tracks"]))
+    assert tracks.registered.all() and len(tracks.obs_xy) == len(tracks.obs_point) == len(tracks.obs_image)
+    # the stage is skipped when run again with the same configuration
+    assert ws.run("sfm", SfmConfig(), run_sfm)["result"]["seconds"] == result["seconds"]
+
+
+def test_camera_centres_match_truth_after_similarity(sfm):
+    survey, ws, record = sfm
+    truth, index = _truth_index(survey)
+    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    est = tracks.world_from_cam[:, :3, 3]
+    true = truth.world_from_cam[[index[str(n)] for n in tracks.image_names], :3, 3]
+    s, R, t = similarity_align(est, true)
+    error = np.linalg.norm(s * est @ R.T + t - true, axis=1)
+    extent = np.linalg.norm(true.max(0) - true.min(0))
+    assert error.max() < 0.01 * extent
+    assert s == pytest.approx(1.0, abs=0.02)  # metric scale from the stereo baseline
+
+
+def test_sparse_depth_matches_rendered_depth(sfm):
+    survey, ws, record = sfm
+    truth, index = _truth_index(survey)
+    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    depth = tracks.depths()
+    ratios = []
+    for k, name in enumerate(tracks.image_names):
+        true_depth = truth.depth_m(index[str(name)])
+        rows = np.flatnonzero(tracks.obs_image == k)
+        ij = np.rint(tracks.obs_xy[rows]).astype(int)
+        ratios.append(depth[rows] / true_depth[ij[:, 1], ij[:, 0]])
+    ratios = np.concatenate(ratios)
+    assert np.median(np.abs(ratios - 1)) < 0.01
+
+
+def test_altitude_scale_agrees_with_stereo_scale(sfm):
+    survey, ws, record = sfm
+    import json
+
+    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    nav = json.loads((survey / "survey.json").read_text())
+    by_name = dict(zip(nav["frames"], nav["nav_altitude_m"], strict=True))
+    altitudes = np.array([by_name[str(n)] for n in tracks.image_names])
+    s, spread = altitude_scale(tracks.xyz, tracks.world_from_cam[:, :3, 3], altitudes)
+    assert s == pytest.approx(1.0, abs=0.1) and spread < 0.1
+
+
+def test_similarity_align_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(20, 3))
+    angle = 0.7
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    s, R_est, t = similarity_align(src, 2.5 * src @ R.T + [1, 2, 3])
+    assert s == pytest.approx(2.5) and np.allclose(R_est, R) and np.allclose(t, [1, 2, 3])
+
+
+def test_too_few_registered_images_is_a_clear_error(tmp_path):
+    import cv2
+
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(1)
+    for k in range(4):  # unrelated noise images: nothing to match
+        cv2.imwrite(str(images / f"{k:06d}.png"), rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+    ws = Workspace(tmp_path / "ws")
+    with pytest.raises(UserInputError, match=r"registered only \d+ of 4 images.*exhaustive"):
+        run_sfm(ws, SfmConfig(images_dir=str(images)))
+
+
+def test_missing_images_folder_is_a_clear_error(tmp_path):
+    with pytest.raises(UserInputError, match="does not exist"):
+        run_sfm(Workspace(tmp_path / "ws"), SfmConfig(images_dir=str(tmp_path / "nope")))
