@@ -1,0 +1,158 @@
+"""Where a fitted model fails: residuals binned along every axis, structure scores, plots, a PLY.
+
+Axes (``Effect.AXES``): image_position (a 2-D grid over the pixel fraction u, v), range (metres),
+intensity (predicted grey level, mean over channels), light_distance (distance to the nearest
+declared light, metres; only when the survey declares lights), height (world z, metres),
+spatial_frequency (log10 gradient energy of the patch), frame (frame index, one bin per frame).
+
+Structure score of an axis: per channel c and bin b with at least ``min_count`` observations, the
+bin mean m_bc, its standard error se_bc = std_bc / sqrt(n_b) and the inverse-variance weighted
+mean m_c of the bin means; score = sqrt(mean_bc ((m_bc - m_c) / se_bc)^2). It is about 1 when the
+residual does not depend on the axis and grows with systematic structure. Residuals of one point
+share its fitted albedo, so the score of pure noise is somewhat below or above 1, not exactly 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .diagnose_measure import Measurements
+
+
+@dataclass(frozen=True)
+class ResidualConfig:
+    """How residuals are binned."""
+
+    n_bins: int = 10
+    """Bins of a continuous axis (quantiles of the axis values)."""
+    grid_uv: tuple[int, int] = (8, 6)
+    """Bins across (u) and down (v) the image for the image-position heat map."""
+    min_count: int = 10
+    """Observations a bin needs to count in the structure score."""
+
+
+def axis_values(meas: Measurements, predicted: np.ndarray) -> dict[str, np.ndarray]:
+    """The value of each 1-D axis per observation (image_position is handled as 2-D)."""
+    values = {
+        "range": meas.range_m,
+        "intensity": predicted.mean(1),
+        "height": meas.height_m[meas.point],
+        "spatial_frequency": np.log10(meas.grad_energy + 1e-9),
+        "frame": meas.frame.astype(np.float64),
+    }
+    if meas.light_distance_m.shape[1]:
+        values["light_distance"] = meas.light_distance_m.min(1)
+    return values
+
+
+def _bin_stats(index: np.ndarray, n_bins: int, residual: np.ndarray) -> dict:
+    """Per bin: count (B,), mean (B,3), standard error (B,3)."""
+    count = np.bincount(index, minlength=n_bins).astype(np.float64)
+    total = np.stack([np.bincount(index, residual[:, c], minlength=n_bins) for c in range(3)], 1)
+    total2 = np.stack([np.bincount(index, residual[:, c] ** 2, minlength=n_bins) for c in range(3)], 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = total / count[:, None]
+        var = np.maximum(total2 / count[:, None] - mean ** 2, 0.0) * count[:, None] / np.maximum(count[:, None] - 1, 1)
+        se = np.sqrt(var / count[:, None])
+    return {"count": count, "mean": mean, "se": se}
+
+
+def structure_score(stats: dict, min_count: int) -> float:
+    """sqrt(mean over bins and channels of ((m_bc - m_c)/se_bc)^2), m_c the weighted mean (see module)."""
+    ok = stats["count"] >= min_count
+    if ok.sum() < 2:
+        return 0.0
+    m, se = stats["mean"][ok], np.maximum(stats["se"][ok], 1e-9)
+    w = 1.0 / se ** 2
+    centre = (w * m).sum(0) / w.sum(0)
+    return float(np.sqrt(np.mean(((m - centre) / se) ** 2)))
+
+
+def analyse(meas: Measurements, predicted: np.ndarray, residual: np.ndarray,
+            config: ResidualConfig = ResidualConfig()) -> dict:
+    """{axis: {"edges" or "grid", "count", "mean", "se", "score"}} (JSON-ready lists)."""
+    out = {}
+    nu, nv = config.grid_uv
+    iu = np.clip((meas.pixel_uv[:, 0] * nu).astype(int), 0, nu - 1)
+    iv = np.clip((meas.pixel_uv[:, 1] * nv).astype(int), 0, nv - 1)
+    stats = _bin_stats(iv * nu + iu, nu * nv, residual)
+    out["image_position"] = {"grid_uv": [nu, nv], **_jsonable(stats), "score": structure_score(stats, config.min_count)}
+    for axis, values in axis_values(meas, predicted).items():
+        if axis == "frame":
+            edges = np.arange(int(values.max()) + 2) - 0.5
+        else:
+            edges = np.unique(np.quantile(values, np.linspace(0, 1, config.n_bins + 1)))
+        if len(edges) < 3:
+            continue
+        index = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
+        stats = _bin_stats(index, len(edges) - 1, residual)
+        out[axis] = {"edges": edges.tolist(), **_jsonable(stats), "score": structure_score(stats, config.min_count)}
+    return out
+
+
+def _jsonable(stats: dict) -> dict:
+    return {k: np.where(np.isfinite(v), v, np.nan).round(6).tolist() for k, v in stats.items()}
+
+
+def scores(analysis: dict) -> dict[str, float]:
+    return {axis: round(a["score"], 3) for axis, a in analysis.items()}
+
+
+AXIS_LABELS = {"range": "range (m)", "intensity": "predicted intensity (linear)", "height": "world height z (m)",
+               "spatial_frequency": "log10 gradient energy", "frame": "frame index",
+               "light_distance": "distance to nearest light (m)"}
+
+
+def plot_residuals(analysis: dict, out_dir: Path, title: str) -> list[Path]:
+    """One PNG per axis: bin means with standard errors per channel; image position as R, G, B heat maps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for axis, a in analysis.items():
+        path = out_dir / f"residual_{axis}.png"
+        mean = np.array(a["mean"], dtype=float)
+        if axis == "image_position":
+            nu, nv = a["grid_uv"]
+            lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
+            fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+            for c, (ax, name) in enumerate(zip(axes, "RGB", strict=True)):
+                im = ax.imshow(mean[:, c].reshape(nv, nu), cmap="coolwarm", vmin=-lim, vmax=lim,
+                               extent=(0, 1, 1, 0))
+                ax.set_title(f"{name} mean residual")
+                ax.set_xlabel("u (image fraction)")
+                ax.set_ylabel("v")
+            fig.colorbar(im, ax=axes, shrink=0.8, label="observed - predicted (linear)")
+        else:
+            edges = np.array(a["edges"])
+            centres = 0.5 * (edges[:-1] + edges[1:])
+            se = np.array(a["se"], dtype=float)
+            fig, ax = plt.subplots(figsize=(6, 3.6))
+            for c, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
+                ax.errorbar(centres, mean[:, c], yerr=se[:, c], color=colour, marker="o", ms=3, capsize=2)
+            ax.axhline(0.0, color="k", lw=0.8)
+            ax.set_xlabel(AXIS_LABELS.get(axis, axis))
+            ax.set_ylabel("mean residual (linear)")
+        fig.suptitle(f"{title}: {axis} (structure score {a['score']:.2f})")
+        fig.savefig(path, dpi=90, bbox_inches="tight")
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def write_residual_ply(meas: Measurements, residual: np.ndarray, path: Path) -> None:
+    """The points coloured by their mean residual (grey level, mean over views and channels) on a
+    diverging map: blue = observed darker than predicted, red = brighter; limits +-98th percentile."""
+    import matplotlib
+    import trimesh
+
+    per_point = np.bincount(meas.point, residual.mean(1), minlength=meas.n_points) / \
+        np.maximum(np.bincount(meas.point, minlength=meas.n_points), 1)
+    lim = max(float(np.quantile(np.abs(per_point), 0.98)), 1e-9)
+    rgba = matplotlib.colormaps["coolwarm"](0.5 + 0.5 * np.clip(per_point / lim, -1, 1))
+    trimesh.PointCloud(meas.points_world, colors=(rgba * 255).astype(np.uint8)).export(path)
