@@ -16,6 +16,22 @@ SGBM's disparity range comes from the image's sparse depths (z in [z_min, z_max]
 ``depth_margin``): d in [f b / z_max, f b / z_min]. A left-right check (disparity of the right
 image computed on the mirrored pair) keeps pixels with |d_l(x) - d_r(x - d_l(x))| <= ``lr_max_px``.
 
+Sub-pixel refinement: SGBM's sub-pixel estimate is locked towards integer disparities (errors of
+~0.2 px, i.e. ~2 cm at 2.5 m with a 12 cm baseline and f = 457 px). Each disparity is refined by
+Gauss-Newton (Lucas-Kanade along the epipolar line) on the colour rectified images: with the right
+image warped by the current disparity, R_w(x) = R(x - d(x)), and its x-gradient g, the update is
+
+    delta = -sum_w(r g) / sum_w(g g),   r = L - R_w,
+
+summed over the colour channels in a Gaussian window w (sigma ``subpixel_sigma``), with L, R_w and g
+made zero-mean in the same window (robust to a gain/offset between the views); a few iterations.
+The window treats the disparity as constant: d_i = sum_j w_ij (g_j^2 d_j - r_j g_j) / sum_j w_ij g_j^2
+(only SGBM-valid pixels take part). R is warped bicubically: bilinear warping blurs by an amount that
+depends on the sub-pixel phase and biases the result (0.04 px at a fractional disparity of 0.3).
+Pixels that move more than ``subpixel_max_shift_px`` from SGBM's value or have no texture are dropped.
+The refined disparity is carried back to the original pixels by (validity-normalised) bilinear
+interpolation.
+
 pycolmap's patch-match MVS needs CUDA; this CPU path is used whenever ``pycolmap.has_cuda`` is
 false (this stage never calls patch-match).
 
@@ -59,6 +75,12 @@ class DenseConfig:
     """SGBM uniqueness margin, percent."""
     lr_max_px: float = 1.0
     """Left-right consistency threshold, pixels."""
+    subpixel_sigma: float = 2.5
+    """Sub-pixel refinement of SGBM's disparity: Gaussian window sigma, pixels (0: no refinement)."""
+    subpixel_iterations: int = 3
+    """Sub-pixel refinement: Gauss-Newton iterations."""
+    subpixel_max_shift_px: float = 1.0
+    """Sub-pixel refinement: pixels whose refined disparity moved further from SGBM's are dropped."""
     fuse: bool = True
     """Fuse the depth maps into a point cloud and mesh (TSDF)."""
     voxel_m: float = 0.0
@@ -121,9 +143,12 @@ def rectified_pair_depth(left: np.ndarray, right: np.ndarray, K: np.ndarray, wor
     size = np.minimum(np.ceil(hi - lo).astype(int) + 1, [3 * w, 3 * h])
     K_new = np.array([[f, 0, -lo[0]], [0, f, -lo[1]], [0, 0, 1.0]])
     H_l, H_r = K_new @ rot_l @ K_inv, K_new @ rot_r @ K_inv
+    dsize = (int(size[0]), int(size[1]))
+    colour_l = cv2.warpPerspective(left.astype(np.float32), H_l, dsize, flags=cv2.INTER_LINEAR)
+    colour_r = cv2.warpPerspective(right.astype(np.float32), H_r, dsize, flags=cv2.INTER_LINEAR)
     grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left, right)]
-    rect_l = cv2.warpPerspective(grey[0], H_l, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR)
-    rect_r = cv2.warpPerspective(grey[1], H_r, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR)
+    rect_l = cv2.warpPerspective(grey[0], H_l, dsize, flags=cv2.INTER_LINEAR)
+    rect_r = cv2.warpPerspective(grey[1], H_r, dsize, flags=cv2.INTER_LINEAR)
 
     z_lo, z_hi = depth_range
     d_min = max(int(np.floor(f * b / (z_hi * (1 + cfg.depth_margin)))), 0)
@@ -143,6 +168,9 @@ def rectified_pair_depth(left: np.ndarray, right: np.ndarray, K: np.ndarray, wor
     agree[inside] = np.abs(disp_l[ys[inside], xs[inside]] - disp_r[ys[inside], xr[inside]]) <= cfg.lr_max_px
     valid[ys[~agree], xs[~agree]] = False
     disp_l[~valid] = np.nan
+    if cfg.subpixel_sigma > 0:
+        disp_l = refine_disparity(colour_l, colour_r, disp_l, cfg.subpixel_sigma, cfg.subpixel_iterations,
+                                  cfg.subpixel_max_shift_px)
 
     # back to the original pixels: rectified position and ray of each pixel
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
@@ -150,12 +178,64 @@ def rectified_pair_depth(left: np.ndarray, right: np.ndarray, K: np.ndarray, wor
     rect = pix @ H_l.T
     map_x = (rect[..., 0] / rect[..., 2]).astype(np.float32)
     map_y = (rect[..., 1] / rect[..., 2]).astype(np.float32)
-    d = cv2.remap(disp_l, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    d = _remap_valid(disp_l, map_x, map_y)
     ray_rect_z = (pix @ (rot_l @ K_inv).T)[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = f * b / d / ray_rect_z
     depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
     return depth
+
+
+def _remap_valid(values: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """Bilinear remap of a map with NaN holes: the interpolation weights of valid neighbours are
+    renormalised; NaN where valid neighbours carry less than half the weight."""
+    import cv2
+
+    valid = np.isfinite(values)
+    kw = dict(borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    total = cv2.remap(np.where(valid, values, 0).astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, **kw)
+    weight = cv2.remap(valid.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, **kw)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(weight > 0.5, total / weight, np.nan).astype(np.float32)
+
+
+def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, sigma: float,
+                     iterations: int = 3, max_shift_px: float = 1.0) -> np.ndarray:
+    """Sub-pixel Gauss-Newton refinement of a rectified disparity map (NaN = invalid) on float images
+    (H,W) or (H,W,C); see the module docstring. Returns the refined map (NaN = invalid)."""
+    import cv2
+
+    left = left.astype(np.float32).reshape(*left.shape[:2], -1)
+    right = right.astype(np.float32).reshape(*right.shape[:2], -1)
+    h, w = disparity.shape
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    valid = np.isfinite(disparity)
+    start = np.where(valid, disparity, 0).astype(np.float32)
+    d = start.copy()
+
+    def window(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+
+    def warp(shift: float) -> np.ndarray:
+        out = cv2.remap(right, xs - d + shift, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        return out.reshape(h, w, -1)
+
+    zero_mean_l = left - window(left).reshape(left.shape)
+    mask = valid.astype(np.float32)
+    den = np.zeros((h, w), np.float32)
+    for _ in range(iterations):
+        warped, grad = warp(0.0), warp(0.5) - warp(-0.5)
+        warped -= window(warped).reshape(warped.shape)
+        grad -= window(grad).reshape(grad.shape)
+        g2 = mask * (grad * grad).sum(-1)
+        den = window(g2)
+        # window-constant disparity: d_i = sum_j w_ij (g_j^2 d_j - r_j g_j) / sum_j w_ij g_j^2
+        num = window(g2 * d - mask * ((zero_mean_l - warped) * grad).sum(-1))
+        target = num / np.maximum(den, 1e-6)
+        d = np.where(valid, d + np.clip(target - d, -0.5, 0.5), d).astype(np.float32)
+    textured = den > 1e-3 * max(float(np.median(den[valid])) if valid.any() else 0.0, 1e-6)
+    keep = valid & textured & (np.abs(d - start) <= max_shift_px)
+    return np.where(keep, d, np.nan).astype(np.float32)
 
 
 def choose_neighbour(k: int, tracks, median_depth: float, cfg: DenseConfig) -> int | None:

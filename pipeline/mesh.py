@@ -7,7 +7,12 @@ with a 2-D Delaunay triangulation (scipy) and triangles with an edge longer than
 ``max_edge_cells`` x ``cell_m`` are dropped (holes stay holes).
 
 Texture = orthophoto: a north-up image (row 0 at the largest y) with ``texel_m`` metres per texel
-over the mesh's x-y bounding box; planar UVs u = (x - x0) / (x1 - x0), v = (y - y0) / (y1 - y0).
+over the mesh's x-y bounding box, snapped to the texel grid (texel (i, j) centred at (x0 + i t,
+y1 - j t), x1 and y0 the last texel centres); planar UVs u = (x - x0) / (x1 - x0), v = (y - y0) /
+(y1 - y0) run between the first and last texel centres (the exports shift them half a texel to the
+glTF/OBJ convention, 0 and 1 at the image edges). Each image fills only the texels in the bounding
+box of its footprint. The default texel is half the images' ground sampling: both resamplings
+(image -> texture -> rendered view) are bilinear, and a texel at the ground sampling blurs visibly.
 Each texel's surface point (x, y, z(x, y)) is projected into every registered image; its colour
 is the weighted mean over the views that see it,
 
@@ -46,8 +51,9 @@ class MeshConfig:
     max_edge_cells: float = 4.0
     """Triangles with an edge longer than this many cells are dropped."""
     texel_m: float = 0.0
-    """Texture / mosaic resolution, survey units per texel; 0: automatic (about 1500 texels across, at most
-    the images' ground sampling)."""
+    """Texture / mosaic resolution, survey units per texel; 0: automatic (half the images' ground sampling,
+    at most 3000 texels across). Texels at the ground sampling itself lose detail in the two resamplings
+    (image -> texture -> view): on the demo survey the render-back PSNR drops from ~32.6 to ~27 dB."""
     blend_power: float = 8.0
     """Exponent p of the view weight (1 - rho^2)^p."""
 
@@ -75,8 +81,21 @@ class HeightMesh:
     bounds: np.ndarray    # (2,2): [[x0, y0], [x1, y1]]
 
     def uv(self) -> np.ndarray:
-        """Planar texture coordinates (V,2)."""
+        """Planar texture coordinates (V,2): 0 and 1 at the bounds (the first and last texel centres)."""
         return (self.vertices[:, :2] - self.bounds[0]) / (self.bounds[1] - self.bounds[0])
+
+    def on_texel_grid(self, texel_m: float) -> HeightMesh:
+        """The same mesh with bounds snapped to a texel grid: x0 and y1 kept, x1 and y0 moved out to the
+        last texel centre, so that texel (column i, row j) has its centre at (x0 + i t, y1 - j t)."""
+        (x0, y0), (x1, y1) = self.bounds
+        width, height = _texel_count(x1 - x0, texel_m), _texel_count(y1 - y0, texel_m)
+        bounds = np.array([[x0, y1 - (height - 1) * texel_m], [x0 + (width - 1) * texel_m, y1]])
+        return HeightMesh(vertices=self.vertices, faces=self.faces, bounds=bounds)
+
+
+def _texel_count(length: float, texel_m: float) -> int:
+    """Texel centres needed to span ``length`` (the last centre at or beyond it)."""
+    return int(np.ceil(length / texel_m - 1e-6)) + 1
 
 
 def height_mesh(points: np.ndarray, cell_m: float, max_edge_cells: float = 4.0) -> HeightMesh:
@@ -128,6 +147,28 @@ def surface_heights(mesh: HeightMesh, xy: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(t_hit), top - t_hit, np.nan)
 
 
+def _footprint_window(world_from_cam: np.ndarray, K: np.ndarray, width: int, height: int,
+                      z_range: tuple[float, float], upper_left_xy: tuple[float, float], texel_m: float,
+                      shape: tuple[int, int]) -> tuple[slice, slice]:
+    """Rows and columns of the orthophoto grid (row 0 at y = upper_left y, column 0 at x = upper_left x)
+    that the image can see: the bounding box of its corner rays between the surface's lowest and
+    highest heights (plus a texel). The whole grid when a corner ray does not point down."""
+    full = slice(0, shape[0]), slice(0, shape[1])
+    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [width - 1, height - 1, 1], [0, height - 1, 1]], float)
+    dirs = (np.linalg.inv(K) @ corners.T).T @ world_from_cam[:3, :3].T
+    if (dirs[:, 2] >= -1e-9).any():
+        return full
+    centre = world_from_cam[:3, 3]
+    xy = np.concatenate([centre[:2] + ((z - centre[2]) / dirs[:, 2])[:, None] * dirs[:, :2] for z in z_range])
+    if not np.isfinite(xy).all():
+        return full
+    x0, y1 = upper_left_xy
+    c0, c1 = np.floor((xy[:, 0].min() - x0) / texel_m) - 1, np.ceil((xy[:, 0].max() - x0) / texel_m) + 2
+    r0, r1 = np.floor((y1 - xy[:, 1].max()) / texel_m) - 1, np.ceil((y1 - xy[:, 1].min()) / texel_m) + 2
+    return (slice(int(np.clip(r0, 0, shape[0])), int(np.clip(r1, 0, shape[0]))),
+            slice(int(np.clip(c0, 0, shape[1])), int(np.clip(c1, 0, shape[1]))))
+
+
 def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend_power: float
                ) -> tuple[np.ndarray, np.ndarray]:
     """Blended orthophoto (H,W,3) uint8 over the mesh bounds (row 0 = largest y) and its coverage
@@ -136,7 +177,7 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
     from tqdm import tqdm
 
     (x0, y0), (x1, y1) = mesh.bounds
-    width, height = int(np.ceil((x1 - x0) / texel_m)) + 1, int(np.ceil((y1 - y0) / texel_m)) + 1
+    width, height = _texel_count(x1 - x0, texel_m), _texel_count(y1 - y0, texel_m)
     xs = x0 + texel_m * np.arange(width)
     ys = y1 - texel_m * np.arange(height)
     gx, gy = np.meshgrid(xs, ys)
@@ -147,12 +188,17 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
     K = tracks.K
     half_diag = 0.5 * np.hypot(tracks.width, tracks.height)
     centre = np.array([(tracks.width - 1) / 2, (tracks.height - 1) / 2])
+    z_range = (float(np.nanmin(z)), float(np.nanmax(z))) if np.isfinite(z).any() else (0.0, 0.0)
     for k in tqdm(np.flatnonzero(tracks.registered), desc="texture", unit="image"):
+        pose = tracks.world_from_cam[k]
+        rows, cols = _footprint_window(pose, K, tracks.width, tracks.height, z_range, (x0, y1), texel_m,
+                                       (height, width))
+        if rows.start >= rows.stop or cols.start >= cols.stop:
+            continue
         image = cv2.imread(str(images_dir / str(tracks.image_names[k])), cv2.IMREAD_COLOR)
         if image is None:
             raise UserInputError(f"cannot read {images_dir / str(tracks.image_names[k])}")
-        pose = tracks.world_from_cam[k]
-        pc = (surface - pose[:3, 3]) @ pose[:3, :3]
+        pc = (surface[rows, cols] - pose[:3, 3]) @ pose[:3, :3]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[0, 0] * pc[..., 0] / pc[..., 2] + K[0, 2]
             v = K[1, 1] * pc[..., 1] / pc[..., 2] + K[1, 2]
@@ -163,8 +209,8 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
         w = np.where(seen, np.clip(1 - rho2, 0, 1) ** blend_power, 0.0)
         sample = cv2.remap(image[..., ::-1].astype(np.float32), np.nan_to_num(u).astype(np.float32),
                            np.nan_to_num(v).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        acc += w[..., None] * sample
-        weight += w
+        acc[rows, cols] += w[..., None] * sample
+        weight[rows, cols] += w
     covered = weight > 0
     mosaic = np.zeros((height, width, 3), np.uint8)
     mosaic[covered] = np.clip(np.rint(acc[covered] / weight[covered, None]), 0, 255).astype(np.uint8)
@@ -188,10 +234,13 @@ def export_mesh(mesh: HeightMesh, texture: np.ndarray, out_dir: Path) -> tuple[P
 
     image = Image.fromarray(texture)
     uv = mesh.uv()
-    # image row 0 is the largest y, and glTF/OBJ v runs upwards from the image's bottom row: v = uv_y
+    h, w = texture.shape[:2]
+    # uv 0 and 1 are the first and last texel centres, while glTF/OBJ put 0 and 1 at the image's edges;
+    # image row 0 is the largest y, and glTF/OBJ v runs upwards from the image's bottom row
+    uv_image = np.column_stack([(uv[:, 0] * (w - 1) + 0.5) / w, (uv[:, 1] * (h - 1) + 0.5) / h])
     material = trimesh.visual.material.SimpleMaterial(image=image, name="mosaic")
     textured = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces,
-                               visual=trimesh.visual.TextureVisuals(uv=uv, material=material), process=False)
+                               visual=trimesh.visual.TextureVisuals(uv=uv_image, material=material), process=False)
     glb = out_dir / "mesh.glb"
     atomic_write_bytes(glb, textured.export(file_type="glb"))
 
@@ -203,7 +252,6 @@ def export_mesh(mesh: HeightMesh, texture: np.ndarray, out_dir: Path) -> tuple[P
     for name, data in files.items():
         atomic_write_bytes(obj_dir / name, data)
 
-    h, w = texture.shape[:2]
     col = np.clip(np.rint(uv[:, 0] * (w - 1)), 0, w - 1).astype(int)
     row = np.clip(np.rint((1 - uv[:, 1]) * (h - 1)), 0, h - 1).astype(int)
     colours = np.column_stack([texture[row, col], np.full(len(uv), 255, np.uint8)])
@@ -215,8 +263,11 @@ def export_mesh(mesh: HeightMesh, texture: np.ndarray, out_dir: Path) -> tuple[P
 
 def render_back(mesh: HeightMesh, texture: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray,
                 width: int, height: int) -> np.ndarray:
-    """The textured mesh seen from a camera (H,W,3) float 0..255, NaN where no surface is hit:
-    rays are cast against the mesh (open3d) and the hit's (x, y) is looked up in the orthophoto."""
+    """The textured mesh seen from a camera (H,W,3) float 0..255, NaN where no surface is hit or the
+    texture has no colour: rays through the pixel centres (OpenCV convention) are cast against the mesh
+    (open3d) and the hit's (x, y) is looked up bilinearly in the orthophoto, whose texel centres span
+    the mesh's bounds (``mesh.on_texel_grid(texel_m)``, as the mesh stage textures it)."""
+    import cv2
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -231,11 +282,17 @@ def render_back(mesh: HeightMesh, texture: np.ndarray, world_from_cam: np.ndarra
     hit = origins + dirs * t_hit[..., None]
     th, tw = texture.shape[:2]
     (x0, y0), (x1, y1) = mesh.bounds
-    col = np.rint((hit[..., 0] - x0) / (x1 - x0) * (tw - 1))
-    row = np.rint((y1 - hit[..., 1]) / (y1 - y0) * (th - 1))
-    ok = np.isfinite(t_hit) & (col >= 0) & (col < tw) & (row >= 0) & (row < th)
+    # texel centres: column i at x0 + i (x1 - x0) / (tw - 1), row j at y1 - j (y1 - y0) / (th - 1)
+    hit_ok = np.isfinite(t_hit)
+    col = np.where(hit_ok, (hit[..., 0] - x0) / (x1 - x0) * (tw - 1), -2.0).astype(np.float32)
+    row = np.where(hit_ok, (y1 - hit[..., 1]) / (y1 - y0) * (th - 1), -2.0).astype(np.float32)
+    kw = dict(borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    colour = cv2.remap(np.ascontiguousarray(texture, np.float32), col, row, cv2.INTER_LINEAR, **kw)
+    # texels no image saw are black: keep pixels whose four bilinear neighbours were all seen
+    seen = cv2.remap((texture.reshape(th, tw, -1).max(-1) > 0).astype(np.float32), col, row, cv2.INTER_LINEAR, **kw)
+    ok = hit_ok & (seen > 0.999)
     out = np.full((height, width, 3), np.nan)
-    out[ok] = texture[row[ok].astype(int), col[ok].astype(int)]
+    out[ok] = colour.reshape(height, width, -1)[ok]
     return out
 
 
@@ -266,7 +323,8 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     mesh = height_mesh(points, cell, cfg.max_edge_cells)
     depth = float(np.median(tracks.depths()))
     ground_sampling = depth / float(tracks.K[0, 0])
-    texel = cfg.texel_m or max(extent / 1500, ground_sampling)
+    texel = cfg.texel_m or max(extent / 3000, ground_sampling / 2)
+    mesh = mesh.on_texel_grid(texel)
     mosaic, covered = orthophoto(mesh, texel, tracks, images_dir, cfg.blend_power)
     glb, obj, ply = export_mesh(mesh, mosaic, out_dir)
     ok, png = cv2.imencode(".png", np.ascontiguousarray(mosaic[..., ::-1]))
