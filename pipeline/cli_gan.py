@@ -80,6 +80,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``train-gan`` and ``generate`` to the subparsers ``sub``."""
+    from watergan.train import GanConfig  # option defaults come from the config
     p = sub.add_parser("train-gan", parents=parents, help="learn the site's water: train a WaterGAN")
     p.add_argument("--rgbd", required=True, help="in-air RGB-D folder (rgb/ + depth/, paired by file stem)")
     p.add_argument("--underwater", required=True, help="folder of the survey's underwater images")
@@ -92,9 +93,11 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
                    help="time budget in minutes (default 5 when no --iterations or --epochs is given)")
     p.add_argument("--iterations", type=int, default=None, help="stop after N iterations")
     p.add_argument("--epochs", type=int, default=None, help="stop after N epochs")
-    p.add_argument("--batch-size", type=int, default=64, help="batch size (default 64)")
-    p.add_argument("--disc-width", type=int, default=32,
-                   help="channels of the discriminator's first conv (paper 64; default 32 for CPU)")
+    p.add_argument("--batch-size", type=int, default=GanConfig.batch_size,
+                   help=f"batch size (default {GanConfig.batch_size})")
+    p.add_argument("--disc-width", type=int, default=GanConfig.disc_width,
+                   help=f"channels of the discriminator's first conv (paper 64; default {GanConfig.disc_width} "
+                        f"for the CPU)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     _common(p)
     p.set_defaults(func=cmd_train_gan)

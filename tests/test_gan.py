@@ -15,7 +15,7 @@ from watergan.formation import Effect, Param, Stack, register
 from watergan.formation.effects.vignetting import vignetting_coefficients
 from watergan.generate import GenerateConfig, generate, load_generator
 from watergan.nets.discriminator import Discriminator
-from watergan.nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config
+from watergan.nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
 from watergan.train import GanConfig, generator_param_groups, load_checkpoint, train_gan
 
 HW = (24, 32)
@@ -112,6 +112,20 @@ def test_generator_with_intrinsics_uses_ray_range():
     assert (rays[..., 0, 0] < plain[..., 0, 0]).all()  # corners: longer ray, more attenuation
 
 
+def test_selected_state_renders_like_a_fresh_one():
+    """Training builds the dataset's state once and selects batches from it: same images as the
+    state built from the batch itself."""
+    torch.manual_seed(0)
+    generator = WaterGenerator.build(depth_scale_m=5.0).eval()
+    rgb, depth = torch.rand(6, 3, 48, 64), 1 + 3 * torch.rand(6, 1, 48, 64)
+    k = PinholeIntrinsics(40.0, 40.0, 31.5, 23.5, 64, 48).as_tuple()
+    index, z = torch.tensor([4, 1, 1]), torch.rand(3, 100) * 2 - 1
+    whole = generator.state(rgb, depth, None, k)
+    with torch.no_grad():
+        assert torch.allclose(generator.render(select_state(whole, index, z=z)),
+                              generator(rgb[index], depth[index], z, k), atol=1e-6)
+
+
 def test_discriminator_shape_and_layers():
     d = Discriminator(width=8)
     convs = [m for m in d.modules() if isinstance(m, torch.nn.Conv2d)]
@@ -148,6 +162,9 @@ def test_param_groups_fast_physics():
     assert fast["lr"] == 1e-2 and slow["lr"] == 2e-4
     assert len(fast["params"]) == 5  # eta, a_margin, b, c, k
     assert sum(p.numel() for p in slow["params"]) > 100 * 48 * 64  # z projection and convolutions
+    fast, slow, veil = generator_param_groups(generator, 2e-4, 1e-2, 2e-3)
+    assert veil["lr"] == 2e-3 and sum(p.numel() for p in veil["params"]) == 6  # BN scale and shift, 3 channels
+    assert len(fast["params"]) == 5 and not {id(p) for p in veil["params"]} & {id(p) for p in slow["params"]}
 
 
 def test_checkpoint_round_trip(data_dir, tmp_path):
