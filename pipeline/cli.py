@@ -4,6 +4,7 @@
     watergan simulate --out DIR [--preset demo|tiny] [--hidden NAME[,NAME]] [--seed N] [--force]
     watergan demo [--out DIR]             the main job on the built-in default survey
     watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
+    watergan train-restorer / correct     the restorer (see pipeline/cli_restorer.py)
     watergan sfm / dense / consistency / depth-compare / texture / mosaic   3D (see pipeline/cli_3d.py)
     watergan diagnose / ledger            the discovery loop (see pipeline/cli_diagnose.py)
 
@@ -100,9 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="redo finished stages")
     p.set_defaults(func=cmd_demo)
 
-    from . import cli_3d, cli_diagnose, cli_gan
+    from . import cli_3d, cli_diagnose, cli_gan, cli_restorer
 
     cli_gan.add_commands(sub, [plugin])
+    cli_restorer.add_commands(sub, [plugin])
     cli_3d.add_commands(sub, [plugin])
     cli_diagnose.add_commands(sub, [plugin])
     return parser

@@ -1,0 +1,151 @@
+"""Correct an image sequence with a trained restorer (``watergan correct``).
+
+Every PNG, JPEG or TIFF directly in ``images_dir`` is corrected at its native size (padded to the
+restorer's multiple and cropped back) and written as::
+
+    OUT/images/<stem>.png   corrected colour, the input's bit depth (8 or 16 bit; a JPEG gives an 8-bit PNG)
+    OUT/depth/<stem>.png    relative depth, 16-bit PNG, value = d_rel * 65535 (0..1 -> 0..65535)
+    OUT/depth/<stem>.npy    relative depth, float32 (H,W), 0..1
+    OUT/summary.json        counts and the files that could not be read
+
+The restorer works on the stored (sRGB-encoded) values scaled to 0..1, so the output keeps the
+input's encoding. Images already corrected (all three outputs present) are skipped unless ``force``.
+An unreadable or truncated image is reported and skipped. Every file is written atomically; the
+output folder may not be (or contain) the input folder's files.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from watergan.data import IMAGE_SUFFIXES, DataError, atomic_write_bytes, encode_png, read_image
+from watergan.nets.restorer import restore
+from watergan.train import pick_device
+from watergan.train_restorer import load_restorer
+
+SUMMARY = "summary.json"
+
+
+@dataclass
+class CorrectResult:
+    """What ``correct_folder`` did."""
+
+    out_dir: Path
+    corrected: int
+    """Images corrected in this run."""
+    already_done: int
+    """Images skipped because their outputs existed (no ``force``)."""
+    failed: list[str] = field(default_factory=list)
+    """"path: reason" for each image that could not be read."""
+    seconds: float = 0.0
+
+
+def _bit_depth(path: Path, image: np.ndarray | None = None) -> int:
+    """8 or 16: a PNG's IHDR bit depth (byte 24), 8 for JPEG; a TIFF's from its decoded type."""
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        with path.open("rb") as f:
+            header = f.read(25)
+        return 16 if len(header) == 25 and header[24] == 16 else 8
+    if suffix in (".jpg", ".jpeg"):
+        return 8
+    import cv2
+
+    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return 16 if decoded is not None and decoded.dtype == np.uint16 else 8
+
+
+def _outputs(out: Path, stem: str) -> tuple[Path, Path, Path]:
+    return out / "images" / f"{stem}.png", out / "depth" / f"{stem}.png", out / "depth" / f"{stem}.npy"
+
+
+def _write(out: Path, stem: str, rgb: np.ndarray, depth: np.ndarray, bits: int) -> None:
+    """(H,W,3) and (H,W) 0..1 arrays to the three output files, atomically."""
+    image_path, depth_png, depth_npy = _outputs(out, stem)
+    top, dtype = (65535.0, np.uint16) if bits == 16 else (255.0, np.uint8)
+    atomic_write_bytes(image_path, encode_png(np.rint(rgb * top).astype(dtype)))
+    atomic_write_bytes(depth_png, encode_png(np.rint(depth * 65535.0).astype(np.uint16)))
+    buffer = io.BytesIO()
+    np.save(buffer, depth.astype(np.float32))
+    atomic_write_bytes(depth_npy, buffer.getvalue())
+
+
+def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
+                   batch_size: int = 4, device: str = "auto", progress: bool = True) -> CorrectResult:
+    """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
+    images of the same size are corrected together, ``batch_size`` at a time."""
+    began = time.perf_counter()
+    images_dir, out = Path(images_dir), Path(out_dir)
+    if not images_dir.is_dir():
+        raise DataError(f"image folder {images_dir} does not exist")
+    if batch_size < 1:
+        raise DataError(f"batch_size must be at least 1, got {batch_size}")
+    targets = {p.resolve() for p in (out, out / "images", out / "depth")}
+    if images_dir.resolve() in targets:
+        raise DataError(f"the output folder {out} would write into the input folder {images_dir}: choose another")
+    files = sorted(p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise DataError(f"image folder {images_dir} holds no PNG, JPEG or TIFF images")
+    stems: dict[str, Path] = {}
+    for p in files:
+        if p.stem in stems:
+            raise DataError(f"{stems[p.stem].name} and {p.name} share the stem '{p.stem}': both would be "
+                            f"written as {p.stem}.png; rename one")
+        stems[p.stem] = p
+    dev = pick_device(device)
+    model = load_restorer(model_dir).to(dev)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+
+    result = CorrectResult(out, 0, 0)
+    batch: list[tuple[str, np.ndarray, int]] = []
+
+    def flush() -> None:
+        x = torch.from_numpy(np.stack([im for _, im, _ in batch]).transpose(0, 3, 1, 2)).float().to(dev)
+        with torch.no_grad():
+            rgb, depth = restore(model, x)
+        rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
+        depth_np = depth[:, 0].cpu().double().numpy()
+        for k, (stem, _, bits) in enumerate(batch):
+            _write(out, stem, rgb_np[k], depth_np[k], bits)
+        result.corrected += len(batch)
+        bar.update(len(batch))
+        batch.clear()
+
+    bar = tqdm(total=len(files), disable=not progress, desc="correct", unit="img")
+    for path in files:
+        if not force and all(p.is_file() for p in _outputs(out, path.stem)):
+            result.already_done += 1
+            bar.update(1)
+            continue
+        try:
+            image = read_image(path, "linear")  # the stored values, 0..1
+            bits = _bit_depth(path)
+        except DataError as exc:
+            result.failed.append(str(exc))
+            tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
+            bar.update(1)
+            continue
+        if batch and batch[0][1].shape != image.shape:
+            flush()
+        batch.append((path.stem, image, bits))
+        if len(batch) == batch_size:
+            flush()
+    if batch:
+        flush()
+    bar.close()
+    result.seconds = time.perf_counter() - began
+    summary = {"images_dir": str(images_dir), "model_dir": str(model_dir), "total": len(files),
+               "corrected": result.corrected, "already_done": result.already_done,
+               "failed": len(result.failed), "failed_files": result.failed, "seconds": round(result.seconds, 3)}
+    atomic_write_bytes(out / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
+    return result

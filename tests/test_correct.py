@@ -1,0 +1,76 @@
+"""Correcting an image folder with a restorer (an untrained tiny one: only files and formats matter)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.correct import correct_folder
+from watergan.data import DataError
+from watergan.nets.restorer import Restorer, RestorerWidths
+from watergan.train_restorer import save_restorer
+
+TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
+
+
+@pytest.fixture
+def model_dir(tmp_path):
+    save_restorer(tmp_path / "model" / "restorer.pt", Restorer(TINY, depth_hw=(16, 16)).eval())
+    return tmp_path / "model"
+
+
+@pytest.fixture
+def images(tmp_path):
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "images"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a8.png"), rng.integers(0, 256, (37, 45, 3), dtype=np.uint8))
+    cv2.imwrite(str(folder / "b16.png"), rng.integers(0, 65536, (40, 48, 3), dtype=np.uint16))
+    cv2.imwrite(str(folder / "c.jpg"), rng.integers(0, 256, (37, 45, 3), dtype=np.uint8))
+    good = (folder / "a8.png").read_bytes()
+    (folder / "d_truncated.png").write_bytes(good[: len(good) // 2])
+    (folder / "e_garbage.png").write_bytes(b"not an image")
+    return folder
+
+
+def test_correct_keeps_bit_depth_and_names_and_reports_bad_files(tmp_path, model_dir, images):
+    before = sorted(p.name for p in images.iterdir())
+    out = tmp_path / "out"
+    result = correct_folder(model_dir, images, out, batch_size=2, progress=False)
+    assert result.corrected == 3 and result.already_done == 0 and len(result.failed) == 2
+    assert any("d_truncated.png" in f and "truncated" in f for f in result.failed)
+    assert any("e_garbage.png" in f for f in result.failed)
+    assert sorted(p.name for p in images.iterdir()) == before  # nothing written into the input folder
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["a8.png", "b16.png", "c.png"]
+    for stem, dtype, hw in (("a8", np.uint8, (37, 45)), ("b16", np.uint16, (40, 48)), ("c", np.uint8, (37, 45))):
+        corrected = cv2.imread(str(out / "images" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+        assert corrected.dtype == dtype and corrected.shape == (*hw, 3)
+        depth = cv2.imread(str(out / "depth" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+        assert depth.dtype == np.uint16 and depth.shape == hw
+        rel = np.load(out / "depth" / f"{stem}.npy")
+        assert rel.shape == hw and rel.dtype == np.float32 and 0 <= rel.min() and rel.max() <= 1
+    assert '"failed": 2' in (out / "summary.json").read_text()
+
+
+def test_default_skips_done_images_and_force_redoes(tmp_path, model_dir, images):
+    out = tmp_path / "out"
+    correct_folder(model_dir, images, out, progress=False)
+    target = out / "images" / "a8.png"
+    stamp = target.stat().st_mtime_ns
+    again = correct_folder(model_dir, images, out, progress=False)
+    assert again.corrected == 0 and again.already_done == 3
+    assert target.stat().st_mtime_ns == stamp
+    forced = correct_folder(model_dir, images, out, force=True, progress=False)
+    assert forced.corrected == 3 and forced.already_done == 0
+
+
+def test_refuses_to_write_into_the_input_folder(tmp_path, model_dir, images):
+    with pytest.raises(DataError, match="input folder"):
+        correct_folder(model_dir, images, images, progress=False)
+    with pytest.raises(DataError, match="input folder"):
+        correct_folder(model_dir, images, images.parent, progress=False)  # OUT/images is the input folder
+
+
+def test_shared_stems_are_an_error(tmp_path, model_dir, images):
+    cv2.imwrite(str(images / "a8.jpg"), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(DataError, match="share the stem"):
+        correct_folder(model_dir, images, tmp_path / "out", progress=False)

@@ -1,0 +1,131 @@
+"""Restorer nets and their training (tiny sizes; fast on 2 CPU cores)."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from watergan.errors import UserInputError
+from watergan.nets.restorer import Restorer, RestorerWidths, SegNetCore, bilinear_upsampler, restore
+from watergan.train_restorer import RestorerConfig, load_restorer, masked_mse, train_restorer
+
+TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
+
+
+def write_generate_folder(root, count=5, hw=(64, 72), seed=0):
+    """A random paired set in the `watergan generate` layout."""
+    rng = np.random.default_rng(seed)
+    for sub in ("inair", "depth", "underwater"):
+        (root / sub).mkdir(parents=True)
+    for i in range(count):
+        air = rng.integers(0, 256, (*hw, 3), dtype=np.uint8)
+        water = (air * np.array([0.3, 0.7, 0.8]) + 20).astype(np.uint8)
+        depth = rng.integers(500, 4000, hw).astype(np.uint16)
+        cv2.imwrite(str(root / "inair" / f"f{i:02d}.png"), air)
+        cv2.imwrite(str(root / "underwater" / f"f{i:02d}.png"), water)
+        cv2.imwrite(str(root / "depth" / f"f{i:02d}.png"), depth)
+    return root
+
+
+def test_shapes_at_odd_sizes():
+    model = Restorer(TINY).eval()
+    with torch.no_grad():
+        rgb, depth = restore(model, torch.rand(2, 3, 37, 51))
+    assert rgb.shape == (2, 3, 37, 51) and depth.shape == (2, 1, 37, 51)
+    assert rgb.min() >= 0 and rgb.max() <= 1 and depth.min() >= 0 and depth.max() <= 1
+
+
+def test_unpooling_puts_values_at_the_argmax_positions():
+    core = SegNetCore(1, 1, (2, 2, 2, 2))
+    x = torch.randn(1, 3, 8, 10)
+    pooled, idx = core.pool(x)
+    unpooled = core.unpool(pooled, idx)
+    block_max = F.max_pool2d(x, 2).repeat_interleave(2, -1).repeat_interleave(2, -2)
+    at_argmax = x == block_max
+    assert torch.equal(unpooled != 0, at_argmax)
+    assert torch.equal(unpooled[at_argmax], x[at_argmax])
+
+
+def test_core_rejects_sides_not_divisible_by_8():
+    with pytest.raises(ValueError, match="divisible by 8"):
+        SegNetCore(3, 1, (2, 2, 2, 2))(torch.rand(1, 3, 12, 16))
+
+
+def test_bilinear_init_matches_interpolate_away_from_borders():
+    factor = 4
+    up = bilinear_upsampler(3, factor)
+    x = torch.rand(2, 3, 9, 11)
+    with torch.no_grad():
+        ours = up(x)
+    ref = F.interpolate(x, scale_factor=factor, mode="bilinear", align_corners=False)
+    assert ours.shape == ref.shape
+    inner = (ours - ref)[..., factor:-factor, factor:-factor]
+    assert inner.abs().max() < 1e-5
+
+
+def test_skip_output_starts_as_the_upsampled_core():
+    model = Restorer(TINY).eval()
+    x = torch.rand(1, 4, 64, 64)
+    with torch.no_grad():
+        coarse = model.colour_net.up(model.colour_net.core(F.avg_pool2d(x, 4)))
+        assert torch.allclose(model.colour_net(x), coarse)
+
+
+def test_two_training_steps_reduce_the_loss():
+    torch.manual_seed(0)
+    model = Restorer(TINY).train()
+    x, target, depth_t = torch.rand(4, 3, 32, 32), torch.rand(4, 3, 32, 32), torch.rand(4, 1, 56, 56)
+    opt = torch.optim.Adam(model.parameters(), 1e-2)
+
+    def loss():
+        rgb, _ = model(x)
+        return F.mse_loss(rgb, target) + masked_mse(model.depth_net(x), depth_t)
+
+    first = loss()
+    for _ in range(2):
+        opt.zero_grad()
+        value = loss()
+        value.backward()
+        opt.step()
+    assert loss().item() < first.item()
+
+
+def _config(tmp_path, **kw):
+    base = dict(data_dir=tmp_path / "gen", out_dir=tmp_path / "model", depth_hw=(16, 16), core_hw=(32, 32),
+                crop_px=32, batch_size=2, stage1_iterations=2, stage2_iterations=2, progress=False)
+    base["widths"] = "cpu"
+    base.update(kw)
+    return RestorerConfig(**base)
+
+
+def test_train_restorer_end_to_end_and_resume(tmp_path):
+    write_generate_folder(tmp_path / "gen")
+    result = train_restorer(_config(tmp_path))
+    out = tmp_path / "model"
+    assert result.steps == (2, 2) and (result.train_count, result.val_count) == (4, 1)
+    for name in ("restorer.pt", "checkpoint.pt", "train_log.jsonl", "validation.json", "validation.md", "result.json"):
+        assert (out / name).is_file()
+    table = json.loads((out / "validation.json").read_text())["rmse"]
+    assert set(table["restorer"]) == {"R", "G", "B", "depth"} and table["restorer"]["depth"] is not None
+    assert "| raw (uncorrected) |" in (out / "validation.md").read_text()
+    model = load_restorer(out)
+    assert model.skip and model.depth_hw == (16, 16)
+
+    resumed = train_restorer(_config(tmp_path, stage2_iterations=3, resume=True))
+    assert resumed.steps == (2, 3)
+    lines = [json.loads(s) for s in (out / "train_log.jsonl").read_text().splitlines()]
+    assert [(r["stage"], r["step"]) for r in lines] == [(1, 1), (1, 2), (2, 1), (2, 2), (2, 3)]
+
+
+def test_no_skip_ablation_and_bad_config(tmp_path):
+    write_generate_folder(tmp_path / "gen", count=3, hw=(40, 40))
+    result = train_restorer(_config(tmp_path, skip=False, stage1_iterations=1, stage2_iterations=1))
+    assert "no skip" in (result.out_dir / "validation.md").read_text()
+    assert not load_restorer(result.out_dir).skip
+    with pytest.raises(UserInputError, match="widths"):
+        train_restorer(_config(tmp_path, widths="huge"))
+    with pytest.raises(UserInputError, match="generate"):
+        train_restorer(_config(tmp_path, data_dir=tmp_path / "nothing"))

@@ -1,0 +1,202 @@
+"""The restorer: a depth net and a colour net that turn an underwater image into an in-air one (paper Fig. 3).
+
+Both nets share a SegNet-style core :class:`SegNetCore` (Badrinarayanan et al.): conv blocks
+(3x3 conv, batch norm, ReLU) with three levels of 2x2 max pooling whose argmax indices drive
+``MaxUnpool2d`` in the decoder, and the core's input concatenated to the decoded features before the
+final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core needs sides divisible by 8.
+
+- :class:`DepthNet`: the core at ``depth_hw`` (56x56 by default); image in, relative depth
+  (0..1, 1 = the farthest pixel of the image) out. The full-resolution image is area-averaged to
+  56x56 first (the aspect ratio is not kept, as in the paper).
+- :class:`ColourNet`: the core at 1/``factor`` of the full resolution (the paper trains it at
+  128x128), wrapped by an average pool P (``factor`` x ``factor``) and a depthwise ``ConvTranspose2d``
+  U initialised as bilinear interpolation (it reproduces ``F.interpolate(mode="bilinear",
+  align_corners=False)`` away from the borders before training). Input: the image and its upsampled
+  estimated depth (4 channels); output RGB::
+
+      y = U(C(P(x))) + S([U(C(P(x))), F(x)], x)
+
+  with F a full-resolution conv block (skip layer 1: its features are concatenated to the upsampled
+  output) and S a 1x1 block followed by a 3x3 conv over [features, x] (skip layer 2: the full-resolution
+  input itself is concatenated), so texture survives the low-resolution core. The last conv of S
+  starts at zero, so a net whose core comes from the 128x128 stage starts as exactly its upsampled
+  output. ``skip=False`` (the ablation) gives y = U(C(P(x))).
+
+Pixels are the stored (sRGB-encoded) values scaled to 0..1. :func:`restore` pads any size to a
+multiple of :func:`Restorer.multiple` (replicating the border), runs both nets and crops back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+LEVELS = 3
+"""Max-pooling levels of the core: its input sides must be multiples of 2**LEVELS."""
+
+
+@dataclass(frozen=True)
+class RestorerWidths:
+    """Channel widths of the restorer's nets."""
+
+    depth_core: tuple[int, int, int, int] = (16, 24, 32, 48)
+    """Depth core channels at full, 1/2, 1/4 and 1/8 of its 56x56 input."""
+    colour_core: tuple[int, int, int, int] = (16, 24, 32, 48)
+    """Colour core channels at 1, 1/2, 1/4, 1/8 of its (1/factor of full) resolution."""
+    full_res: int = 8
+    """Channels of the colour net's full-resolution skip layers (the cost at 640x480 is mostly here)."""
+    blocks_per_level: int = 1
+    """Conv blocks per encoder and decoder level (SegNet: 2-3)."""
+
+
+#: A small setting that corrects 640x480 at several frames per second on a 2-core CPU.
+CPU_WIDTHS = RestorerWidths()
+#: SegNet-sized widths as in the paper (for a GPU).
+PAPER_WIDTHS = RestorerWidths(depth_core=(64, 128, 256, 512), colour_core=(64, 128, 256, 512), full_res=64,
+                              blocks_per_level=2)
+WIDTH_PRESETS = {"cpu": CPU_WIDTHS, "paper": PAPER_WIDTHS}
+
+
+def conv_block(c_in: int, c_out: int, kernel: int = 3) -> nn.Sequential:
+    """k x k convolution (same size, k odd), batch norm, ReLU."""
+    return nn.Sequential(nn.Conv2d(c_in, c_out, kernel, padding=kernel // 2, bias=False), nn.BatchNorm2d(c_out),
+                         nn.ReLU(inplace=True))
+
+
+def _blocks(c_in: int, c_out: int, count: int) -> nn.Sequential:
+    return nn.Sequential(conv_block(c_in, c_out), *(conv_block(c_out, c_out) for _ in range(count - 1)))
+
+
+class SegNetCore(nn.Module):
+    """SegNet encoder-decoder: enc_k -> maxpool (indices kept) three times, a bottleneck, then
+    MaxUnpool with the same indices -> dec_k; finally y = conv3x3([decoded features, input])."""
+
+    def __init__(self, c_in: int, c_out: int, widths: tuple[int, int, int, int], blocks: int = 1) -> None:
+        super().__init__()
+        w = widths
+        self.enc = nn.ModuleList([_blocks(a, b, blocks) for a, b in ((c_in, w[0]), (w[0], w[1]), (w[1], w[2]))])
+        self.bottleneck = nn.Sequential(_blocks(w[2], w[3], blocks), conv_block(w[3], w[2]))
+        self.dec = nn.ModuleList([_blocks(a, b, blocks) for a, b in ((w[0], w[0]), (w[1], w[0]), (w[2], w[1]))])
+        self.pool = nn.MaxPool2d(2, 2, return_indices=True)
+        self.unpool = nn.MaxUnpool2d(2, 2)
+        self.head = nn.Conv2d(w[0] + c_in, c_out, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-2] % 2**LEVELS or x.shape[-1] % 2**LEVELS:
+            raise ValueError(f"SegNetCore needs sides divisible by {2**LEVELS}, got {tuple(x.shape[-2:])}")
+        h, indices = x, []
+        for enc in self.enc:
+            h, idx = self.pool(enc(h))
+            indices.append(idx)
+        h = self.bottleneck(h)
+        for level in reversed(range(LEVELS)):
+            h = self.dec[level](self.unpool(h, indices[level]))
+        return self.head(torch.cat([h, x], dim=1))
+
+
+class DepthNet(nn.Module):
+    """Relative depth at ``depth_hw`` from an image of any size (area-averaged to ``depth_hw``)."""
+
+    def __init__(self, widths: RestorerWidths = CPU_WIDTHS, depth_hw: tuple[int, int] = (56, 56)) -> None:
+        super().__init__()
+        if depth_hw[0] % 2**LEVELS or depth_hw[1] % 2**LEVELS:
+            raise ValueError(f"depth_hw must be multiples of {2**LEVELS}, got {depth_hw}")
+        self.depth_hw = tuple(depth_hw)
+        self.core = SegNetCore(3, 1, widths.depth_core, widths.blocks_per_level)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """(B,3,H,W) -> (B,1,*depth_hw) relative depth (unclamped)."""
+        return self.core(F.adaptive_avg_pool2d(image, self.depth_hw))
+
+
+def bilinear_kernel(factor: int) -> torch.Tensor:
+    """The (2f, 2f) kernel k(i, j) = t(i) t(j), t(i) = 1 - |i - (2f - 1)/2| / f, which as a transposed
+    convolution with stride f and padding f/2 equals bilinear upsampling by f with half-pixel centres
+    (``align_corners=False``) away from the borders."""
+    centre = (2 * factor - 1) / 2.0
+    t = 1.0 - (torch.arange(2 * factor, dtype=torch.float64) - centre).abs() / factor
+    return (t[:, None] * t[None, :]).float()
+
+
+def bilinear_upsampler(channels: int, factor: int) -> nn.ConvTranspose2d:
+    """A depthwise ``ConvTranspose2d`` (kernel 2f, stride f, padding f/2; output size f x input)
+    initialised with :func:`bilinear_kernel`; it stays learnable."""
+    if factor < 2 or factor % 2:
+        raise ValueError(f"the upsampling factor must be even and >= 2, got {factor}")
+    up = nn.ConvTranspose2d(channels, channels, 2 * factor, stride=factor, padding=factor // 2, groups=channels,
+                            bias=False)
+    with torch.no_grad():
+        up.weight.copy_(bilinear_kernel(factor).expand(channels, 1, 2 * factor, 2 * factor))
+    return up
+
+
+class ColourNet(nn.Module):
+    """In-air RGB at full resolution from the image and its estimated depth (see the module docstring)."""
+
+    def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True) -> None:
+        super().__init__()
+        self.factor, self.skip = factor, skip
+        self.core = SegNetCore(4, 3, widths.colour_core, widths.blocks_per_level)
+        self.up = bilinear_upsampler(3, factor)
+        if skip:
+            f = widths.full_res
+            self.skip1 = conv_block(4, f)
+            self.fuse = conv_block(3 + f, f, kernel=1)  # 1x1: the full-resolution cost is in skip1 and out
+            self.out = nn.Conv2d(f + 4, 3, 3, padding=1)
+            nn.init.zeros_(self.out.weight)
+            nn.init.zeros_(self.out.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,4,H,W) image + depth, sides multiples of factor * 8 -> (B,3,H,W)."""
+        coarse = self.up(self.core(F.avg_pool2d(x, self.factor)))
+        if not self.skip:
+            return coarse
+        h = self.fuse(torch.cat([coarse, self.skip1(x)], dim=1))
+        return coarse + self.out(torch.cat([h, x], dim=1))
+
+
+class Restorer(nn.Module):
+    """Depth net + colour net. ``forward(image)`` -> (rgb, depth), both at the image's size."""
+
+    def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True,
+                 depth_hw: tuple[int, int] = (56, 56)) -> None:
+        super().__init__()
+        self.widths, self.factor, self.skip, self.depth_hw = widths, factor, skip, tuple(depth_hw)
+        self.depth_net = DepthNet(widths, depth_hw)
+        self.colour_net = ColourNet(widths, factor, skip)
+
+    @property
+    def multiple(self) -> int:
+        """Full-resolution sides must be multiples of this (factor * 2**LEVELS)."""
+        return self.factor * 2**LEVELS
+
+    def to_config(self) -> dict:
+        return {"widths": asdict(self.widths), "factor": self.factor, "skip": self.skip,
+                "depth_hw": list(self.depth_hw)}
+
+    @classmethod
+    def from_config(cls, config: dict) -> Restorer:
+        w = config["widths"]
+        widths = RestorerWidths(tuple(w["depth_core"]), tuple(w["colour_core"]), int(w["full_res"]),
+                                int(w["blocks_per_level"]))
+        return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]))
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,3,H,W), H and W multiples of ``multiple`` -> RGB (B,3,H,W) and relative depth (B,1,H,W):
+        depth d = bilinear(DepthNet(x)) and rgb = ColourNet([x, d])."""
+        depth = F.interpolate(self.depth_net(image), size=image.shape[-2:], mode="bilinear", align_corners=False)
+        return self.colour_net(torch.cat([image, depth], dim=1)), depth
+
+
+def restore(model: Restorer, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Correct (B,3,H,W) images of any size: replicate-pad the bottom and right to multiples of
+    ``model.multiple``, run the model, crop back; both outputs clamped to 0..1."""
+    h, w = image.shape[-2:]
+    m = model.multiple
+    pad_h, pad_w = -h % m, -w % m
+    x = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate") if pad_h or pad_w else image
+    rgb, depth = model(x)
+    return rgb[..., :h, :w].clamp(0.0, 1.0), depth[..., :h, :w].clamp(0.0, 1.0)

@@ -1,0 +1,415 @@
+"""Training the restorer (:mod:`watergan.nets.restorer`) on WaterGAN's paired output.
+
+Data: a ``watergan generate`` folder (``underwater/``, ``inair/`` 8-bit sRGB PNGs and ``depth/``
+16-bit millimetre PNGs, paired by stem). Pixels are the stored sRGB values scaled to 0..1 (the
+restorer corrects stored images, as the paper's 8-bit ones); depth targets are relative,
+d_rel = d / max(d) per image, with 0 (no value) left out of the depth loss. The frames are split
+80/20 into training and validation by a seeded permutation.
+
+Loss (Euclidean, per iteration on a batch drawn with replacement)::
+
+    L = mean_valid (D(u) - d_rel)^2 + mean (C(u, up(D(u))) - a)^2
+
+with u the underwater image, a the in-air one, D the depth net (at 56x56) and C the colour net; the
+estimated depth is detached where it enters C. The paper's two-level schedule: stage 1 trains C's
+core alone at ``core_hw`` (128x128: images area-averaged), stage 2 trains the whole colour net on
+full-resolution random crops of ``crop_px`` with the core initialised from stage 1 (the depth net
+trains in both). Adam, one optimiser per stage.
+
+Files in ``out_dir``: ``checkpoint.pt`` (stage, step, model and optimiser states, RNG, split;
+atomic; ``resume`` continues from it), ``train_log.jsonl`` (one line per iteration), ``restorer.pt``
+(the final model, read by :func:`load_restorer`), ``validation.json`` and ``validation.md``
+(per-channel colour RMSE and depth RMSE on the held-out split, paper Table III form) and
+``result.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from .data import DataError, atomic_write_bytes, read_depth, read_image
+from .errors import UserInputError
+from .nets.restorer import WIDTH_PRESETS, Restorer, restore
+from .train import pick_device
+
+CHECKPOINT = "checkpoint.pt"
+MODEL = "restorer.pt"
+TRAIN_LOG = "train_log.jsonl"
+VALIDATION_JSON = "validation.json"
+VALIDATION_MD = "validation.md"
+RESULT_JSON = "result.json"
+
+
+@dataclass(frozen=True)
+class RestorerConfig:
+    """Options of ``train_restorer`` (and of ``watergan train-restorer``)."""
+
+    data_dir: Path
+    """A ``watergan generate`` output folder (underwater/, inair/, depth/)."""
+    out_dir: Path
+    """Model folder: checkpoint, log, restorer.pt and validation tables go here."""
+    widths: str = "cpu"
+    """Width preset of the nets: "cpu" (small, fast) or "paper" (SegNet-sized)."""
+    skip: bool = True
+    """Full-resolution skip layers in the colour net; False is the ``no_skip`` ablation."""
+    factor: int = 4
+    """Average-pool factor from full resolution to the colour core (even)."""
+    depth_hw: tuple[int, int] = (56, 56)
+    """Depth net input and output size (height, width), pixels; multiples of 8."""
+    core_hw: tuple[int, int] = (128, 128)
+    """Stage-1 training size of the colour core (height, width), pixels; multiples of 8."""
+    crop_px: int = 256
+    """Side of the stage-2 full-resolution training crops, pixels (a multiple of factor * 8; reduced
+    to fit the smallest image)."""
+    batch_size: int = 8
+    """Images per batch."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    stage1_iterations: int = 2000
+    """Iterations of stage 1 (colour core at core_hw)."""
+    stage2_iterations: int = 1000
+    """Iterations of stage 2 (full-resolution crops)."""
+    budget_min: float | None = None
+    """Wall-clock budget of this run, minutes (None: none); stage 1 may use ``stage1_budget_share`` of it."""
+    stage1_budget_share: float = 0.5
+    """Fraction of the budget for stage 1 (stage 2 gets the rest)."""
+    val_fraction: float = 0.2
+    """Fraction of frames held out for validation (at least one frame each side)."""
+    seed: int = 0
+    """Seed of the split, initialisation and batch sampling."""
+    checkpoint_every: int = 100
+    """Iterations between checkpoints (one is always written at the end of each stage)."""
+    resume: bool = False
+    """Continue from ``out_dir/checkpoint.pt`` when it exists."""
+    device: str = "auto"
+    """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
+    progress: bool = True
+    """Show progress bars."""
+
+
+@dataclass
+class RestorerResult:
+    """What ``train_restorer`` produced (file names inside ``out_dir``)."""
+
+    out_dir: Path
+    steps: tuple[int, int]
+    """Iterations done in stage 1 and stage 2 (including those before a resume)."""
+    seconds: float
+    """Wall-clock time of this run, seconds."""
+    loss: float
+    """Last training loss."""
+    validation: dict
+    """Held-out RMSE (stored 0..1 units): {"raw": {...}, "restorer": {...}} with keys R, G, B, depth."""
+    train_count: int
+    val_count: int
+    model: str = MODEL
+    checkpoint: str = CHECKPOINT
+    log: str = TRAIN_LOG
+    validation_json: str = VALIDATION_JSON
+    validation_md: str = VALIDATION_MD
+    skipped: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["out_dir"] = str(self.out_dir)
+        return d
+
+
+@dataclass
+class PairedSet:
+    """Paired frames in memory: full-resolution uint8 (3,H,W) underwater and in-air images (stored
+    sRGB values), relative depth at ``depth_hw``, and the depth file of each frame."""
+
+    stems: list[str]
+    underwater: list[torch.Tensor]
+    inair: list[torch.Tensor]
+    depth_small: torch.Tensor
+    depth_files: list[Path]
+
+
+def _check_config(c: RestorerConfig) -> None:
+    if c.widths not in WIDTH_PRESETS:
+        raise UserInputError(f"widths must be one of {sorted(WIDTH_PRESETS)}, got {c.widths!r}")
+    for name in ("batch_size", "checkpoint_every"):
+        if getattr(c, name) < 1:
+            raise UserInputError(f"RestorerConfig.{name} must be at least 1, got {getattr(c, name)}")
+    if c.stage1_iterations < 0 or c.stage2_iterations < 0:
+        raise UserInputError("stage iterations must be >= 0")
+    if c.factor < 2 or c.factor % 2:
+        raise UserInputError(f"RestorerConfig.factor must be even and >= 2, got {c.factor}")
+    if any(v % 8 for v in (*c.core_hw, *c.depth_hw)):
+        raise UserInputError(f"core_hw {c.core_hw} and depth_hw {c.depth_hw} must be multiples of 8")
+    if c.crop_px < c.factor * 8 or c.crop_px % (c.factor * 8):
+        raise UserInputError(f"crop_px must be a positive multiple of {c.factor * 8}, got {c.crop_px}")
+    if not 0 < c.val_fraction < 1 or not 0 <= c.stage1_budget_share <= 1:
+        raise UserInputError("val_fraction must be in (0, 1) and stage1_budget_share in [0, 1]")
+    if c.budget_min is not None and not c.budget_min > 0:
+        raise UserInputError(f"budget_min must be positive, got {c.budget_min}")
+    if not c.lr > 0:
+        raise UserInputError(f"lr must be positive, got {c.lr}")
+
+
+def _stored(path: Path) -> torch.Tensor:
+    """An image file as (3,H,W) uint8 stored values (16-bit files are rounded to 8 bits)."""
+    return torch.from_numpy(np.rint(read_image(path, "linear") * 255.0).astype(np.uint8).transpose(2, 0, 1).copy())
+
+
+def relative_depth(depth_m: np.ndarray) -> np.ndarray:
+    """d_rel = d / max(d) (0 stays 0: no value); all zeros stays zeros."""
+    top = depth_m.max(initial=0.0)
+    return depth_m / top if top > 0 else depth_m
+
+
+def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56)) -> PairedSet:
+    """Every frame of a ``generate`` folder, paired by stem (a missing partner is an error naming it)."""
+    data_dir = Path(data_dir)
+    folders = {name: data_dir / name for name in ("underwater", "inair", "depth")}
+    missing = [str(p) for p in folders.values() if not p.is_dir()]
+    if missing:
+        raise DataError(f"{data_dir} is not a `watergan generate` folder: missing {', '.join(missing)}")
+    stems = sorted(p.stem for p in folders["underwater"].glob("*.png"))
+    if len(stems) < 2:
+        raise DataError(f"{folders['underwater']} holds {len(stems)} PNG images; training needs at least 2")
+    under, air, small, depth_files = [], [], [], []
+    for stem in stems:
+        paths = {k: v / f"{stem}.png" for k, v in folders.items()}
+        for p in paths.values():
+            if not p.is_file():
+                raise DataError(f"{p} is missing: every underwater image needs an inair and a depth file")
+        u, a = _stored(paths["underwater"]), _stored(paths["inair"])
+        d = read_depth(paths["depth"])
+        if u.shape != a.shape or u.shape[1:] != d.shape:
+            raise DataError(f"frame {stem}: underwater {tuple(u.shape[1:])}, inair {tuple(a.shape[1:])} and depth "
+                            f"{d.shape} sizes differ")
+        d_t = torch.from_numpy(relative_depth(d)).float()[None, None]
+        valid = (d_t > 0).float()
+        total, weight = F.adaptive_avg_pool2d(d_t, depth_hw), F.adaptive_avg_pool2d(valid, depth_hw)
+        small.append(torch.where(weight > 1e-6, total / weight.clamp_min(1e-6), torch.zeros_like(total))[0])
+        under.append(u)
+        air.append(a)
+        depth_files.append(paths["depth"])
+    return PairedSet(stems, under, air, torch.stack(small), depth_files)
+
+
+def split_indices(count: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """A seeded permutation split into (train, validation); each side gets at least one frame."""
+    order = torch.randperm(count, generator=torch.Generator().manual_seed(seed)).tolist()
+    n_val = min(count - 1, max(1, round(val_fraction * count)))
+    return sorted(order[n_val:]), sorted(order[:n_val])
+
+
+def _float(images: list[torch.Tensor], idx: list[int], device: torch.device) -> torch.Tensor:
+    return torch.stack([images[i] for i in idx]).to(device).float().div_(255.0)
+
+
+def masked_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """mean over target > 0 of (pred - target)^2 (0 = no depth value)."""
+    valid = (target > 0).float()
+    return ((pred - target) ** 2 * valid).sum() / valid.sum().clamp_min(1.0)
+
+
+def save_restorer(path: str | Path, model: Restorer, extra: dict | None = None) -> None:
+    """The model's configuration and weights (CPU tensors), atomically (the folder is created)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    torch.save({"model_config": model.to_config(), "model": state, **(extra or {})}, buffer)
+    atomic_write_bytes(Path(path), buffer.getvalue())
+
+
+def load_restorer(model_dir: str | Path) -> Restorer:
+    """The trained restorer of a ``train_restorer`` folder (``restorer.pt``), in inference mode."""
+    path = Path(model_dir) / MODEL
+    if not path.is_file():
+        raise UserInputError(f"no {MODEL} in {model_dir}: train one first (watergan train-restorer)")
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        model = Restorer.from_config(saved["model_config"])
+        model.load_state_dict(saved["model"])
+    except Exception as exc:  # a torn or foreign file: say which
+        raise UserInputError(f"restorer {path} cannot be read ({type(exc).__name__}: {exc})") from exc
+    return model.eval()
+
+
+def _log_lines_up_to(path: Path, stage: int, step: int) -> str:
+    if not path.is_file():
+        return ""
+    keep = [line for line in path.read_text().splitlines()
+            if line.strip() and (json.loads(line)["stage"], json.loads(line)["step"]) <= (stage, step)]
+    return "".join(line + "\n" for line in keep)
+
+
+def validate(model: Restorer, data: PairedSet, idx: list[int], device: torch.device) -> dict:
+    """Root-mean-square errors over all held-out pixels at full resolution, stored 0..1 units:
+    per channel RMSE_c = sqrt(mean (y_c - a_c)^2) for the raw underwater image and the restorer, and
+    depth RMSE = sqrt(mean_valid (d - d_rel)^2) of the restorer."""
+    model.eval()
+    sums = {"raw": torch.zeros(3, dtype=torch.float64), "restorer": torch.zeros(3, dtype=torch.float64)}
+    pixels, depth_sq, depth_n = 0, 0.0, 0
+    with torch.no_grad():
+        for i in idx:
+            u, a = _float(data.underwater, [i], device), _float(data.inair, [i], device)
+            rgb, depth = restore(model, u)
+            sums["raw"] += ((u - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
+            sums["restorer"] += ((rgb - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
+            pixels += u.shape[-1] * u.shape[-2]
+            truth = torch.from_numpy(relative_depth(read_depth(data.depth_files[i]))).to(device)
+            valid = truth > 0
+            depth_sq += float(((depth[0, 0].double() - truth) ** 2)[valid].sum())
+            depth_n += int(valid.sum())
+    out = {name: {c: float(torch.sqrt(s[k] / pixels)) for k, c in enumerate("RGB")} for name, s in sums.items()}
+    out["raw"]["depth"] = None
+    out["restorer"]["depth"] = (depth_sq / depth_n) ** 0.5 if depth_n else None
+    return out
+
+
+def validation_markdown(table: dict, val_count: int, skip: bool) -> str:
+    """The held-out RMSE as a Markdown table (paper Table III form: a row per method, a column per channel)."""
+    name = "restorer" + ("" if skip else " (no skip)")
+    lines = [f"RMSE on the held-out synthetic split ({val_count} frames; stored sRGB values 0..1, relative depth 0..1)",
+             "", "| Method | R | G | B | Depth |", "|---|---|---|---|---|"]
+    for key, label in (("raw", "raw (uncorrected)"), ("restorer", name)):
+        row = table[key]
+        depth = "-" if row["depth"] is None else f"{row['depth']:.4f}"
+        lines.append(f"| {label} | {row['R']:.4f} | {row['G']:.4f} | {row['B']:.4f} | {depth} |")
+    return "\n".join(lines) + "\n"
+
+
+def train_restorer(config: RestorerConfig) -> RestorerResult:
+    """Train the depth and colour nets on a ``generate`` folder (see the module docstring)."""
+    _check_config(config)
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = pick_device(config.device)
+    data = load_paired(config.data_dir, config.depth_hw)
+    train_idx, val_idx = split_indices(len(data.stems), config.val_fraction, config.seed)
+    min_side = min(min(u.shape[1:]) for u in data.underwater)
+    mult = config.factor * 8
+    crop = min(config.crop_px, min_side // mult * mult)
+    if crop < mult:
+        raise DataError(f"the smallest image of {config.data_dir} is {min_side} px; training needs >= {mult} px")
+
+    ckpt_path = out / CHECKPOINT
+    checkpoint = None
+    if config.resume and ckpt_path.is_file():
+        checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    elif config.resume:
+        print(f"train-restorer: no checkpoint in {out}, starting from the beginning", file=sys.stderr)
+    torch.manual_seed(config.seed)
+    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw).to(device)
+    rng = torch.Generator().manual_seed(config.seed)
+    stage, start = 1, 0
+    if checkpoint is not None:
+        if checkpoint["model_config"] != model.to_config() or checkpoint["val_idx"] != val_idx:
+            raise UserInputError(f"checkpoint {ckpt_path} was made with other nets or data: use a new --out")
+        model.load_state_dict(checkpoint["model"])
+        rng.set_state(checkpoint["rng"])
+        stage, start = int(checkpoint["stage"]), int(checkpoint["step"])
+
+    small_u = torch.stack([F.adaptive_avg_pool2d(u.float()[None], config.core_hw)[0] for u in data.underwater]) / 255
+    small_a = torch.stack([F.adaptive_avg_pool2d(a.float()[None], config.core_hw)[0] for a in data.inair]) / 255
+    depth_u = torch.stack([F.adaptive_avg_pool2d(u.float()[None], config.depth_hw)[0] for u in data.underwater]) / 255
+    small_u, small_a, depth_u = small_u.to(device), small_a.to(device), depth_u.to(device)
+    depth_t = data.depth_small.to(device)
+
+    def batch_indices() -> list[int]:
+        picks = torch.randint(len(train_idx), (config.batch_size,), generator=rng)
+        return [train_idx[int(k)] for k in picks]
+
+    def stage1_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        depth = model.depth_net.core(depth_u[idx])
+        up = F.interpolate(depth.detach(), size=config.core_hw, mode="bilinear", align_corners=False)
+        colour = model.colour_net.core(torch.cat([small_u[idx], up], dim=1))
+        return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
+
+    def stage2_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        depth = model.depth_net.core(depth_u[idx])
+        inputs, targets = [], []
+        for k, i in enumerate(idx):
+            h, w = data.underwater[i].shape[1:]
+            y0 = int(torch.randint(h - crop + 1, (1,), generator=rng))
+            x0 = int(torch.randint(w - crop + 1, (1,), generator=rng))
+            d = F.interpolate(depth[k:k + 1].detach(), size=(h, w), mode="bilinear", align_corners=False)
+            u = data.underwater[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255
+            inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop]]))
+            targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
+        colour = model.colour_net(torch.stack(inputs))
+        return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, depth_t[idx])
+
+    def save_checkpoint(stage_now: int, step_now: int, opt_state: dict | None, stage1_steps: int) -> None:
+        buffer = io.BytesIO()
+        torch.save({"stage": stage_now, "step": step_now, "stage1_steps": stage1_steps,
+                    "model_config": model.to_config(), "model": model.state_dict(), "opt": opt_state,
+                    "rng": rng.get_state(), "val_idx": val_idx}, buffer)
+        atomic_write_bytes(ckpt_path, buffer.getvalue())
+
+    log_path = out / TRAIN_LOG
+    atomic_write_bytes(log_path, _log_lines_up_to(log_path, stage, start).encode() if checkpoint else b"")
+    began = time.perf_counter()
+    budget_s = None if config.budget_min is None else 60.0 * config.budget_min
+    steps, loss_value = [0, 0], float("nan")
+    if checkpoint is not None:
+        steps[0] = int(checkpoint["stage1_steps"])
+    with log_path.open("a") as log:
+        for current, target, loss_fn in ((1, config.stage1_iterations, stage1_loss),
+                                         (2, config.stage2_iterations, stage2_loss)):
+            if current < stage:
+                continue
+            params = (list(model.depth_net.parameters()) +
+                      list((model.colour_net.core if current == 1 else model.colour_net).parameters()))
+            opt = torch.optim.Adam(params, config.lr)
+            step = start if current == stage else 0
+            if checkpoint is not None and current == stage and checkpoint["opt"] is not None:
+                opt.load_state_dict(checkpoint["opt"])
+            stage_end_s = None if budget_s is None else (
+                budget_s * config.stage1_budget_share if current == 1 else budget_s)
+            model.train()
+            bar = tqdm(total=target, initial=step, disable=not config.progress, desc=f"restorer stage {current}",
+                       unit="it")
+            while step < target:
+                if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
+                    break
+                colour_loss, depth_loss = loss_fn(batch_indices())
+                loss = colour_loss + depth_loss
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                step += 1
+                loss_value = loss.item()
+                log.write(json.dumps({"stage": current, "step": step, "loss": loss_value,
+                                      "colour_loss": colour_loss.item(), "depth_loss": depth_loss.item(),
+                                      "seconds": round(time.perf_counter() - began, 3)}) + "\n")
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss_value:.4f}")
+                if step % config.checkpoint_every == 0:
+                    log.flush()
+                    save_checkpoint(current, step, opt.state_dict(), step if current == 1 else steps[0])
+            bar.close()
+            log.flush()
+            steps[current - 1] = step
+            if current == 1:  # a stage-2 checkpoint at its step 0 (fresh optimiser): a resume goes on from there
+                save_checkpoint(2, 0, None, step)
+            else:
+                save_checkpoint(2, step, opt.state_dict(), steps[0])
+    seconds = time.perf_counter() - began
+
+    table = validate(model, data, val_idx, device)
+    atomic_write_bytes(out / VALIDATION_JSON, (json.dumps(
+        {"val_count": len(val_idx), "units": "stored sRGB 0..1; relative depth 0..1", "rmse": table,
+         "val_stems": [data.stems[i] for i in val_idx]}, indent=2) + "\n").encode())
+    atomic_write_bytes(out / VALIDATION_MD, validation_markdown(table, len(val_idx), config.skip).encode())
+    save_restorer(out / MODEL, model, {"steps": steps})
+    result = RestorerResult(out, (steps[0], steps[1]), seconds, loss_value, table, len(train_idx), len(val_idx))
+    atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
+    return result
