@@ -27,7 +27,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from watergan.data import IMAGE_SUFFIXES, DataError, atomic_write_bytes, encode_png, read_image
+from watergan.data import (
+    IMAGE_SUFFIXES,
+    DataError,
+    atomic_write_bytes,
+    encode_png,
+    index_by_stem,
+    list_files,
+    read_image,
+)
 from watergan.nets.restorer import restore
 from watergan.train import pick_device
 from watergan.train_restorer import load_restorer
@@ -92,15 +100,10 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     targets = {p.resolve() for p in (out, out / "images", out / "depth")}
     if images_dir.resolve() in targets:
         raise DataError(f"the output folder {out} would write into the input folder {images_dir}: choose another")
-    files = sorted(p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    files = list_files(images_dir, IMAGE_SUFFIXES)
     if not files:
         raise DataError(f"image folder {images_dir} holds no PNG, JPEG or TIFF images")
-    stems: dict[str, Path] = {}
-    for p in files:
-        if p.stem in stems:
-            raise DataError(f"{stems[p.stem].name} and {p.name} share the stem '{p.stem}': both would be "
-                            f"written as {p.stem}.png; rename one")
-        stems[p.stem] = p
+    index_by_stem(files, "image")  # refuses two inputs with one stem: outputs are <stem>.png
     dev = pick_device(device)
     model = load_restorer(model_dir).to(dev)
     (out / "images").mkdir(parents=True, exist_ok=True)

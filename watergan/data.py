@@ -222,11 +222,13 @@ def resize_depth(depth_m: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
     return np.where(weight > 1e-6, total / np.maximum(weight, 1e-6), 0.0)
 
 
-def _files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
+def list_files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
+    """The files in ``folder`` with one of the (lower-case) suffixes, sorted by name."""
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
 
 
-def _by_stem(files: list[Path], kind: str) -> dict[str, Path]:
+def index_by_stem(files: list[Path], kind: str) -> dict[str, Path]:
+    """{stem: path}; two files with one stem (a.png, a.jpg) are an error, never a silent choice."""
     out: dict[str, Path] = {}
     for p in files:
         if p.stem in out:
@@ -255,8 +257,8 @@ def find_rgbd_pairs(folder: str | Path, skip_bad: bool = False) -> tuple[list[Rg
     An rgb without a depth file (or a depth without an rgb) is an error naming it, unless ``skip_bad``.
     """
     rgb_dir, depth_dir = rgbd_folders(folder)
-    rgbs = _by_stem(_files(rgb_dir, IMAGE_SUFFIXES), "rgb")
-    depths = _by_stem(_files(depth_dir, DEPTH_SUFFIXES), "depth")
+    rgbs = index_by_stem(list_files(rgb_dir, IMAGE_SUFFIXES), "rgb")
+    depths = index_by_stem(list_files(depth_dir, DEPTH_SUFFIXES), "depth")
     unpaired = [f"{rgbs[s]}: no depth file with stem '{s}' in {depth_dir}" for s in sorted(set(rgbs) - set(depths))]
     unpaired += [f"{depths[s]}: no rgb file with stem '{s}' in {rgb_dir}" for s in sorted(set(depths) - set(rgbs))]
     if unpaired and not skip_bad:
@@ -333,7 +335,7 @@ def load_underwater(folder: str | Path, size_hw: tuple[int, int] = TRAIN_HW, enc
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(f"underwater image folder {folder} does not exist")
-    files = _files(folder, IMAGE_SUFFIXES)
+    files = list_files(folder, IMAGE_SUFFIXES)
     if not files:
         subfolders = sorted(p.name for p in folder.iterdir() if p.is_dir())
         hint = f" (it has subfolders {subfolders}: pass one of them)" if subfolders else ""
