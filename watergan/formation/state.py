@@ -1,7 +1,8 @@
 """The state that flows through a formation stack.
 
 Every tensor is laid out ``(B, C, H, W)``. Images are the usual case; the diagnosis passes per-point
-observations as ``(1, C, N, 1)`` columns, which every effect that acts pixel by pixel accepts.
+observations as ``(N, C, 1, 1)`` (one observation per batch element, so per-frame fields such as
+``frame_index`` vary per observation); every effect that acts pixel by pixel accepts them.
 
 Signals are linear (not sRGB encoded), in relative radiance units where the in-air scene is 0..1.
 
