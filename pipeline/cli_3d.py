@@ -1,11 +1,12 @@
 """The 3D subcommands of the `watergan` console script (wired in by pipeline.cli):
 
     watergan sfm --workspace WS [--images DIR] [--matching auto|sequential|exhaustive]
-                 [--scale auto|stereo|altitude|none]
-    watergan dense --workspace WS [--images DIR] [--pairs auto|rig|neighbours] [--no-fuse]
+                 [--scale auto|stereo|board|altitude|none] [--board FILE [--board-width-m W --board-height-m H]]
+    watergan dense --workspace WS [--images DIR] [--method auto|sgbm|patch_match] [--pairs auto|rig|neighbours]
+                   [--no-fuse]
     watergan consistency --workspace WS --folder NAME=DIR [--folder ...] [--patch-px 5] [--truth SURVEY | --board FILE]
     watergan depth-compare --pred DIR [--ref DIR] (--workspace WS | --out DIR) [--with-shift] [--global-alignment]
-    watergan texture --workspace WS [--images DIR] [--source auto|dense|sparse]
+    watergan texture --workspace WS [--images DIR] [--source auto|dense|sparse] [--mesh-kind auto|2.5d|tsdf]
     watergan mosaic --workspace WS [--images DIR] [--texel-m M]
 
 sfm, dense, texture and mosaic are workspace stages (skipped when done with the same options,
@@ -27,7 +28,8 @@ def cmd_sfm(args: argparse.Namespace) -> int:
     from pipeline.sfm import SfmConfig, run_sfm
 
     cfg = SfmConfig(images_dir=args.images or "", matching=args.matching, sequential_overlap=args.sequential_overlap,
-                    scale=args.scale, fix_intrinsics=not args.refine_intrinsics,
+                    scale=args.scale, board_json=args.board or "", board_width_m=args.board_width_m,
+                    board_height_m=args.board_height_m, fix_intrinsics=not args.refine_intrinsics,
                     init_min_tri_angle_deg=args.init_min_tri_angle_deg, seed=args.seed)
     ws = _workspace(args)
     r = ws.run("sfm", cfg, run_sfm, force=args.force)["result"]
@@ -42,7 +44,7 @@ def cmd_sfm(args: argparse.Namespace) -> int:
 def cmd_dense(args: argparse.Namespace) -> int:
     from pipeline.dense import DenseConfig, run_dense
 
-    cfg = DenseConfig(images_dir=args.images or "", pairs=args.pairs, fuse=not args.no_fuse)
+    cfg = DenseConfig(images_dir=args.images or "", method=args.method, pairs=args.pairs, fuse=not args.no_fuse)
     ws = _workspace(args)
     r = ws.run("dense", cfg, run_dense, force=args.force)["result"]
     print(f"dense: {len(r['pairs'])} depth maps, mean coverage {100 * r['mean_coverage']:.1f} %, "
@@ -97,15 +99,16 @@ def cmd_depth_compare(args: argparse.Namespace) -> int:
 def _mesh(args: argparse.Namespace) -> tuple[object, dict]:
     from pipeline.mesh import MeshConfig, run_mesh
 
-    cfg = MeshConfig(images_dir=args.images or "", source=args.source, texel_m=args.texel_m)
+    cfg = MeshConfig(images_dir=args.images or "", source=args.source, texel_m=args.texel_m, mesh_kind=args.mesh_kind)
     ws = _workspace(args)
     return ws, ws.run("mesh", cfg, run_mesh, force=args.force)["result"]
 
 
 def cmd_texture(args: argparse.Namespace) -> int:
     ws, r = _mesh(args)
-    print(f"mesh: {r['n_vertices']} vertices, {r['n_faces']} faces, texture {1000 * r['texel_m']:.1f} mm/texel, "
-          f"{r['seconds']:.1f} s")
+    kind = r.get("mesh_kind", "2.5d")
+    print(f"mesh ({kind}): {r['n_vertices']} vertices, {r['n_faces']} faces, "
+          f"texture {1000 * r['texel_m']:.1f} mm/texel, {r['seconds']:.1f} s")
     for key in ("glb", "obj", "ply"):
         print(f"{key}: {ws.path(r[key])}")
     return 0
@@ -130,8 +133,13 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--matching", choices=["auto", "sequential", "exhaustive"], default="auto",
                    help="auto: exhaustive up to 40 images, else sequential with quadratic overlap")
     p.add_argument("--sequential-overlap", type=int, default=10, help="neighbours matched per image (sequential)")
-    p.add_argument("--scale", choices=["auto", "stereo", "altitude", "none"], default="auto",
-                   help="metric scale source (auto: stereo rig, else navigation altitude, else none)")
+    p.add_argument("--scale", choices=["auto", "stereo", "board", "altitude", "none"], default="auto",
+                   help="metric scale source (auto: stereo rig, else board (with --board), else navigation "
+                        "altitude, else none)")
+    p.add_argument("--board", help="board JSON: per image the pixel corners of the board (4 outer corners, or 4 "
+                                   "per colour patch) and its true size (width_m/height_m or patch_side_m)")
+    p.add_argument("--board-width-m", type=float, default=0.0, help="true board (patch) width, overrides the file")
+    p.add_argument("--board-height-m", type=float, default=0.0, help="true board (patch) height, overrides the file")
     p.add_argument("--refine-intrinsics", action="store_true",
                    help="refine camera.json intrinsics in bundle adjustment")
     p.add_argument("--init-min-tri-angle-deg", type=float, default=8.0,
@@ -139,7 +147,9 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_sfm)
 
-    p = sub.add_parser("dense", parents=[*parents, ws, images], help="SGBM depth maps and TSDF fusion")
+    p = sub.add_parser("dense", parents=[*parents, ws, images], help="SGBM/patch-match depth maps and TSDF fusion")
+    p.add_argument("--method", choices=["auto", "sgbm", "patch_match"], default="auto",
+                   help="auto: pycolmap patch-match when it was built with CUDA, else OpenCV SGBM")
     p.add_argument("--pairs", choices=["auto", "rig", "neighbours"], default="auto",
                    help="stereo rig pairs or SfM neighbours (auto: rig when right/ exists)")
     p.add_argument("--no-fuse", action="store_true", help="depth maps only, no fused cloud/mesh")
@@ -166,11 +176,14 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--global-alignment", action="store_true", help="one alignment for all images (default: per image)")
     p.set_defaults(func=cmd_depth_compare)
 
-    for name, func, text in (("texture", cmd_texture, "2.5D mesh textured from the images (GLB, OBJ, PLY)"),
+    for name, func, text in (("texture", cmd_texture, "mesh (2.5D or TSDF) textured from the images (GLB, OBJ, PLY)"),
                              ("mosaic", cmd_mosaic, "orthophoto mosaic PNG with a world file")):
         p = sub.add_parser(name, parents=[*parents, ws, images], help=text)
         p.add_argument("--source", choices=["auto", "dense", "sparse"], default="auto",
                        help="points to mesh (auto: dense fused points when present)")
         p.add_argument("--texel-m", type=float, default=0.0, help="metres per texel (0: automatic)")
+        p.add_argument("--mesh-kind", choices=["auto", "2.5d", "tsdf"], default="auto",
+                       help="2.5d height field (planar UVs) or the dense stage's TSDF mesh (xatlas UVs); "
+                            "auto: tsdf when the points are not a height field")
         p.set_defaults(func=func)
 

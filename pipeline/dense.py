@@ -32,8 +32,12 @@ Pixels that move more than ``subpixel_max_shift_px`` from SGBM's value or have n
 The refined disparity is carried back to the original pixels by (validity-normalised) bilinear
 interpolation.
 
-pycolmap's patch-match MVS needs CUDA; this CPU path is used whenever ``pycolmap.has_cuda`` is
-false (this stage never calls patch-match).
+Method: ``method="auto"`` uses pycolmap's patch-match MVS when pycolmap was built with CUDA
+(``pycolmap.has_cuda``), else this SGBM path; 'patch_match' without CUDA is an error. Patch-match
+runs on an undistorted COLMAP workspace (``05_dense/mvs``: ``pycolmap.undistort_images`` of the
+SfM model in the survey frame, then ``pycolmap.patch_match_stereo`` with geometric consistency); its
+geometric depth maps (camera z in survey units; the PINHOLE camera undistorts to itself, so the
+pixels are the original ones) are read back and written and fused like SGBM's.
 
 Outputs (``05_dense/``): ``depth/<stem>.png`` 16-bit millimetres (0 = invalid) in the survey frame's
 units, ``fused_points.ply`` and ``fused_mesh.ply`` (TSDF fusion with the tensor VoxelBlockGrid).
@@ -42,7 +46,9 @@ units, ``fused_points.ply`` and ``fused_mesh.ply`` (TSDF fusion with the tensor 
 from __future__ import annotations
 
 import json
+import shutil
 import time
+import zlib  # noqa: F401  must load before pycolmap (see pipeline.sfm)
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,6 +65,8 @@ class DenseConfig:
     """Images to match (raw or corrected; same names as SfM's); empty: ``00_survey/images``."""
     right_dir: str = ""
     """The stereo rig's right frames; empty: ``right`` beside the images folder when it exists."""
+    method: str = "auto"
+    """'sgbm' (OpenCV, CPU), 'patch_match' (pycolmap, needs CUDA) or 'auto' (patch_match when pycolmap has CUDA)."""
     pairs: str = "auto"
     """'rig' (stereo rig pairs), 'neighbours' (SfM neighbours) or 'auto' (rig when present)."""
     target_baseline_ratio: float = 0.12
@@ -355,14 +363,85 @@ def fuse_depths(depths: dict[str, np.ndarray], poses: dict[str, np.ndarray], K: 
     return str(points_path), str(mesh_path), int(cloud.point.positions.shape[0])
 
 
+def dense_method(method: str) -> str:
+    """The depth method to use for ``DenseConfig.method`` (see the module docstring)."""
+    import pycolmap
+
+    if method not in ("auto", "sgbm", "patch_match"):
+        raise UserInputError(f"method must be 'auto', 'sgbm' or 'patch_match', not '{method}'")
+    has_cuda = bool(getattr(pycolmap, "has_cuda", False))
+    if method == "patch_match" and not has_cuda:
+        raise UserInputError("patch_match needs pycolmap built with CUDA (pycolmap.has_cuda is false here): "
+                             "use --method sgbm (or auto)")
+    return "patch_match" if method == "patch_match" or (method == "auto" and has_cuda) else "sgbm"
+
+
+def read_colmap_array(path: Path) -> np.ndarray:
+    """A COLMAP dense array file: text header 'width&height&channels&', then float32 with x varying fastest,
+    then y, then the channel (COLMAP's read_write_dense.py: Fortran-order reshape to (width, height, channels))."""
+    data = path.read_bytes()
+    ends = [i for i, c in enumerate(data) if c == ord("&")][:3]
+    width, height, channels = (int(x) for x in data[:ends[2]].split(b"&"))
+    values = np.frombuffer(data[ends[2] + 1:], np.float32, count=width * height * channels)
+    return values.reshape((width, height, channels), order="F").transpose(1, 0, 2).squeeze()
+
+
+def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: Path, cfg: DenseConfig
+                           ) -> DenseResult:
+    """pycolmap patch-match depth maps (CUDA) for the registered images, written and fused like SGBM's."""
+    import pycolmap
+
+    from eval.depth import write_depth_png
+
+    start = time.perf_counter()
+    mvs, depth_dir = out_dir / "mvs", out_dir / "depth"
+    shutil.rmtree(mvs, ignore_errors=True)
+    depth_dir.mkdir(parents=True, exist_ok=True)
+    pycolmap.undistort_images(mvs, model_dir, images_dir)
+    options = pycolmap.PatchMatchOptions()
+    options.geom_consistency = True
+    pycolmap.patch_match_stereo(mvs, options=options)
+    pairs, coverage, skipped, depths = {}, {}, [], {}
+    for k in np.flatnonzero(tracks.registered):
+        name = str(tracks.image_names[k])
+        path = mvs / "stereo" / "depth_maps" / f"{name}.geometric.bin"
+        depth = read_colmap_array(path).astype(np.float32) if path.is_file() else None
+        if depth is None or depth.shape != (tracks.height, tracks.width) or not (depth > 0).any():
+            skipped.append(name)
+            continue
+        depth[~(depth > 0)] = np.nan
+        write_depth_png(depth_dir / f"{Path(name).stem}.png", depth)
+        pairs[name], coverage[name], depths[name] = "patch_match", float(np.isfinite(depth).mean()), depth
+    if not depths:
+        raise UserInputError("patch-match gave no depth map: check the SfM result")
+    result = DenseResult(depth_dir=str(depth_dir), pairs=pairs, coverage=coverage,
+                         mean_coverage=float(np.mean(list(coverage.values()))), skipped=skipped)
+    if cfg.fuse:
+        index = {str(n): i for i, n in enumerate(tracks.image_names)}
+        obs_depth = tracks.depths()
+        result.points_ply, result.mesh_ply, result.n_fused_points = fuse_depths(
+            depths, {n: tracks.world_from_cam[index[n]] for n in depths}, tracks.K, images_dir, out_dir,
+            cfg.voxel_m or float(np.median(obs_depth)) / 100, cfg.weight_threshold,
+            2.5 * float(np.percentile(obs_depth, 99)))
+    result.seconds = time.perf_counter() - start
+    return result
+
+
 def run_dense(ws, cfg: DenseConfig) -> DenseResult:
     """Workspace stage: tracks from ``04_sfm``; outputs in ``05_dense``."""
     from pipeline.sfm import Tracks
 
+    method = dense_method(cfg.method)
     tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
     sfm_result = (ws.load_result("sfm") or {}).get("result", {})
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     right_dir = Path(cfg.right_dir) if cfg.right_dir else images_dir.parent / "right"
+    if method == "patch_match":
+        result = run_patch_match_folder(tracks, ws.stage_dir("sfm") / "sparse", images_dir, ws.stage_dir("dense"), cfg)
+        result.depth_dir = ws.relative(result.depth_dir)
+        if result.points_ply:
+            result.points_ply, result.mesh_ply = ws.relative(result.points_ply), ws.relative(result.mesh_ply)
+        return result
     camera_path = images_dir.parent / "camera.json"
     baseline_m = json.loads(camera_path.read_text()).get("baseline_m") if camera_path.is_file() else None
     if baseline_m and cfg.pairs != "neighbours" and sfm_result.get("scale_method") == "none":

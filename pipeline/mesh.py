@@ -22,6 +22,18 @@ a high power p (``blend_power``) picks the most central view almost exclusively 
 blending smoothly across the seams where two views are equally central. Occlusion is not tested
 (a 2.5D seafloor seen from above is assumed).
 
+Non-2.5D scenes (``mesh_kind="tsdf"``; 'auto' picks it when fewer than ``height_field_fraction`` of
+the points have a normal with |n_z| > 0.5, i.e. the points are not a height field, and the dense
+stage left a fused mesh): the TSDF mesh of ``05_dense/fused_mesh.ply`` (decimated to at most
+``max_faces``) is unwrapped with xatlas (texels of ``texel_m``, at most ``max_texture_px`` a side).
+Each atlas texel is found by casting a ray onto the UV triangles (open3d), which gives its triangle and
+barycentric coordinates, hence its 3D point and face normal. The point is projected into every view;
+a view counts when the point is in front, inside the image and not occluded (its camera depth within
+2 % of the mesh's depth rendered at that pixel), with weight (1 - rho^2)^p |cos theta| (theta between
+the normal and the direction to the camera). Texels no view sees stay black; colours are grown a few
+texels into the empty atlas space so that bilinear lookups at chart edges do not pull in black.
+The orthophoto mosaic is still made from the 2.5D height field.
+
 Outputs (``07_mesh/``): ``mesh.glb`` (textured), ``obj/mesh.obj`` + ``mesh.mtl`` + texture PNG,
 ``mesh_colours.ply`` (vertex colours), ``mosaic.png`` + ``mosaic.pgw`` (world file: texel size,
 rotation terms, -texel size, x and y of the upper-left texel's centre).
@@ -56,6 +68,16 @@ class MeshConfig:
     (image -> texture -> view): on the demo survey the render-back PSNR drops from ~32.6 to ~27 dB."""
     blend_power: float = 8.0
     """Exponent p of the view weight (1 - rho^2)^p."""
+    mesh_kind: str = "auto"
+    """'2.5d' (height-field Delaunay, planar UVs), 'tsdf' (the dense stage's fused mesh, xatlas UVs) or
+    'auto' (tsdf when the points are not a height field and a fused mesh exists)."""
+    height_field_fraction: float = 0.8
+    """'auto': the points are a height field when at least this fraction has |normal z| > 0.5."""
+    max_faces: int = 20_000
+    """'tsdf': the fused mesh is decimated (quadric) to at most this many faces before unwrapping (xatlas
+    takes ~6 s for 20k faces, ~130 s for 80k, on 2 cores; the texture carries the detail)."""
+    max_texture_px: int = 4096
+    """'tsdf': the atlas side in texels at most (the texel grows to fit)."""
 
 
 @dataclass
@@ -72,6 +94,8 @@ class MeshResult:
     mosaic_coverage: float
     """Fraction of mosaic texels seen by at least one image."""
     seconds: float
+    mesh_kind: str = "2.5d"
+    """'2.5d' or 'tsdf': which mesh was textured and exported."""
 
 
 @dataclass
@@ -227,19 +251,27 @@ def write_world_file(path: Path, texel_m: float, upper_left_centre_xy: tuple[flo
 
 def export_mesh(mesh: HeightMesh, texture: np.ndarray, out_dir: Path) -> tuple[Path, Path, Path]:
     """Write mesh.glb (textured), obj/mesh.obj + mesh.mtl + texture, mesh_colours.ply (vertex colours)."""
+    uv = mesh.uv()
+    h, w = texture.shape[:2]
+    # uv 0 and 1 are the first and last texel centres, while glTF/OBJ put 0 and 1 at the image's edges;
+    # image row 0 is the largest y, and glTF/OBJ v runs upwards from the image's bottom row
+    uv_image = np.column_stack([(uv[:, 0] * (w - 1) + 0.5) / w, (uv[:, 1] * (h - 1) + 0.5) / h])
+    return export_textured(mesh.vertices, mesh.faces, uv_image, texture, out_dir)
+
+
+def export_textured(vertices: np.ndarray, faces: np.ndarray, uv_image: np.ndarray, texture: np.ndarray,
+                    out_dir: Path) -> tuple[Path, Path, Path]:
+    """The exports of :func:`export_mesh` for any mesh with glTF/OBJ texture coordinates (V,2): 0 and 1
+    at the image edges, v up from the bottom row. Vertex colours: the texel under each vertex's UV."""
     import trimesh
     from PIL import Image
 
     from pipeline.workspace import atomic_write_bytes
 
     image = Image.fromarray(texture)
-    uv = mesh.uv()
     h, w = texture.shape[:2]
-    # uv 0 and 1 are the first and last texel centres, while glTF/OBJ put 0 and 1 at the image's edges;
-    # image row 0 is the largest y, and glTF/OBJ v runs upwards from the image's bottom row
-    uv_image = np.column_stack([(uv[:, 0] * (w - 1) + 0.5) / w, (uv[:, 1] * (h - 1) + 0.5) / h])
     material = trimesh.visual.material.SimpleMaterial(image=image, name="mosaic")
-    textured = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces,
+    textured = trimesh.Trimesh(vertices=vertices, faces=faces,
                                visual=trimesh.visual.TextureVisuals(uv=uv_image, material=material), process=False)
     glb = out_dir / "mesh.glb"
     atomic_write_bytes(glb, textured.export(file_type="glb"))
@@ -252,13 +284,153 @@ def export_mesh(mesh: HeightMesh, texture: np.ndarray, out_dir: Path) -> tuple[P
     for name, data in files.items():
         atomic_write_bytes(obj_dir / name, data)
 
-    col = np.clip(np.rint(uv[:, 0] * (w - 1)), 0, w - 1).astype(int)
-    row = np.clip(np.rint((1 - uv[:, 1]) * (h - 1)), 0, h - 1).astype(int)
-    colours = np.column_stack([texture[row, col], np.full(len(uv), 255, np.uint8)])
-    coloured = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, vertex_colors=colours, process=False)
+    col = np.clip(np.floor(uv_image[:, 0] * w), 0, w - 1).astype(int)
+    row = np.clip(np.floor((1 - uv_image[:, 1]) * h), 0, h - 1).astype(int)
+    colours = np.column_stack([texture[row, col], np.full(len(uv_image), 255, np.uint8)])
+    coloured = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=colours, process=False)
     ply = out_dir / "mesh_colours.ply"
     atomic_write_bytes(ply, coloured.export(file_type="ply"))
     return glb, obj_dir / "mesh.obj", ply
+
+
+def is_height_field(points: np.ndarray, fraction: float = 0.8, neighbours: int = 20) -> bool:
+    """Whether points (N,3) look like a height field over the survey frame's x-y: at least ``fraction``
+    of the normals (open3d, ``neighbours`` nearest points) have |n_z| > 0.5."""
+    import open3d as o3d
+
+    points = np.asarray(points, float)
+    points = points[np.isfinite(points).all(1)]
+    if len(points) < neighbours:
+        return True
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+    return float(np.mean(np.abs(np.asarray(cloud.normals)[:, 2]) > 0.5)) >= fraction
+
+
+def atlas_unwrap(vertices: np.ndarray, faces: np.ndarray, texel_m: float, max_texture_px: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], float]:
+    """xatlas UV unwrap with about ``texel_m`` per texel (larger when the atlas would exceed
+    ``max_texture_px``). Returns (vertices (V',3) split at seams, faces, uv (V',2) with 0 and 1 at the
+    atlas edges and v down the image rows, atlas (height, width) in texels, texel_m used)."""
+    import xatlas
+
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    texel_m = max(texel_m, float(np.sqrt(2.0 * area) / (0.9 * max_texture_px)))  # ~50 % packing efficiency
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(vertices.astype(np.float32), faces.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.texels_per_unit, pack.padding, pack.bilinear = 1.0 / texel_m, 2, True
+    atlas.generate(pack_options=pack)  # resolution 0: the atlas size follows the texel
+    vmapping, new_faces, uv = atlas[0]
+    return (vertices[vmapping], new_faces.astype(np.int64), np.asarray(uv, np.float64),
+            (int(atlas.height), int(atlas.width)), texel_m)
+
+
+def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size: tuple[int, int], tracks,
+                  images_dir: Path, blend_power: float, grow_texels: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Texture (H,W,3) uint8 of an unwrapped mesh and its coverage mask (see the module docstring)."""
+    import cv2
+    import open3d as o3d
+    from tqdm import tqdm
+
+    height, width = size
+    # texel -> triangle and barycentrics: rays cast down onto the UV triangles laid out at z = 0
+    flat = o3d.t.geometry.RaycastingScene()
+    flat.add_triangles(o3d.core.Tensor(np.column_stack([uv * [width, height], np.zeros(len(uv))]).astype(np.float32)),
+                       o3d.core.Tensor(faces.astype(np.uint32)))
+    ti, tj = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays = np.zeros((height, width, 6), np.float32)
+    rays[..., 0], rays[..., 1], rays[..., 2], rays[..., 5] = ti, tj, 1.0, -1.0
+    hit = flat.cast_rays(o3d.core.Tensor(rays))
+    inside = np.isfinite(hit["t_hit"].numpy())
+    prim = hit["primitive_ids"].numpy()[inside].astype(np.int64)
+    bary = hit["primitive_uvs"].numpy()[inside].astype(np.float64)
+    tri = vertices[faces[prim]]
+    points = (1 - bary.sum(1))[:, None] * tri[:, 0] + bary[:, :1] * tri[:, 1] + bary[:, 1:] * tri[:, 2]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    K, w_img, h_img = tracks.K, tracks.width, tracks.height
+    u_grid, v_grid = np.meshgrid(np.arange(w_img, dtype=np.float64), np.arange(h_img, dtype=np.float64))
+    rays_cam = np.stack([(u_grid - K[0, 2]) / K[0, 0], (v_grid - K[1, 2]) / K[1, 1], np.ones_like(u_grid)], -1)
+    half_diag = 0.5 * np.hypot(w_img, h_img)
+    centre = np.array([(w_img - 1) / 2, (h_img - 1) / 2])
+    acc, weight = np.zeros((len(points), 3)), np.zeros(len(points))
+    for k in tqdm(np.flatnonzero(tracks.registered), desc="texture", unit="image"):
+        pose = tracks.world_from_cam[k]
+        pc = (points - pose[:3, 3]) @ pose[:3, :3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2]
+            v = K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]
+        seen = (pc[:, 2] > 0) & (u >= 0) & (u <= w_img - 1) & (v >= 0) & (v <= h_img - 1)
+        if not seen.any():
+            continue
+        # occlusion: the mesh's camera depth at the pixel (rays K^-1 (u, v, 1): t_hit is the camera z)
+        cam_rays = np.concatenate([np.broadcast_to(pose[:3, 3], rays_cam.shape), rays_cam @ pose[:3, :3].T], -1)
+        depth = scene.cast_rays(o3d.core.Tensor(cam_rays.astype(np.float32)))["t_hit"].numpy()
+        idx = np.flatnonzero(seen)
+        nearest = depth[np.rint(v[idx]).astype(int), np.rint(u[idx]).astype(int)]
+        idx = idx[np.abs(pc[idx, 2] - nearest) <= 0.02 * pc[idx, 2]]
+        if not len(idx):
+            continue
+        image = cv2.imread(str(images_dir / str(tracks.image_names[k])), cv2.IMREAD_COLOR)
+        if image is None:
+            raise UserInputError(f"cannot read {images_dir / str(tracks.image_names[k])}")
+        rho2 = ((u[idx] - centre[0]) ** 2 + (v[idx] - centre[1]) ** 2) / half_diag**2
+        to_cam = pose[:3, 3] - points[idx]
+        cos = np.abs(np.einsum("ni,ni->n", normals[idx], to_cam)) / np.linalg.norm(to_cam, axis=1)
+        wk = np.clip(1 - rho2, 0, 1) ** blend_power * cos
+        acc[idx] += wk[:, None] * _bilinear(image[..., ::-1].astype(np.float64), u[idx], v[idx])
+        weight[idx] += wk
+    colours = np.zeros((height, width, 3))
+    covered = np.zeros((height, width), bool)
+    ok = weight > 0
+    colours[np.flatnonzero(inside.ravel())[ok] // width, np.flatnonzero(inside.ravel())[ok] % width] = \
+        acc[ok] / weight[ok, None]
+    covered[inside] = ok
+    filled = covered.astype(np.float64)
+    for _ in range(grow_texels):  # grow colours into the empty atlas space (bilinear lookups at chart edges)
+        total = cv2.boxFilter(colours * filled[..., None], -1, (3, 3), normalize=False)
+        count = cv2.boxFilter(filled, -1, (3, 3), normalize=False)
+        grow = (filled == 0) & (count > 0)
+        colours[grow] = total[grow] / count[grow, None]
+        filled[grow] = 1
+    return np.clip(np.rint(colours), 0, 255).astype(np.uint8), covered
+
+
+def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N,C) of an (H,W,C) image at pixel positions inside it."""
+    h, w = image.shape[:2]
+    x0 = np.clip(np.floor(u).astype(int), 0, w - 2)
+    y0 = np.clip(np.floor(v).astype(int), 0, h - 2)
+    fx, fy = (u - x0)[:, None], (v - y0)[:, None]
+    return ((1 - fx) * (1 - fy) * image[y0, x0] + fx * (1 - fy) * image[y0, x0 + 1]
+            + (1 - fx) * fy * image[y0 + 1, x0] + fx * fy * image[y0 + 1, x0 + 1])
+
+
+def tsdf_textured_mesh(mesh_ply: Path, tracks, images_dir: Path, texel_m: float, cfg: MeshConfig, out_dir: Path
+                       ) -> tuple[tuple[Path, Path, Path], int, int, float]:
+    """Decimate, unwrap, texture and export the fused TSDF mesh. Returns (exports, vertices, faces, texel)."""
+    import open3d as o3d
+
+    if not mesh_ply.is_file():
+        raise UserInputError(f"no fused TSDF mesh at {mesh_ply}: run the dense stage (with fusion) first")
+    legacy = o3d.io.read_triangle_mesh(str(mesh_ply))
+    legacy.remove_duplicated_vertices()
+    legacy.remove_degenerate_triangles()
+    legacy.remove_unreferenced_vertices()
+    if len(legacy.triangles) > cfg.max_faces:
+        legacy = legacy.simplify_quadric_decimation(cfg.max_faces)
+    vertices, faces = np.asarray(legacy.vertices, np.float64), np.asarray(legacy.triangles, np.int64)
+    if len(faces) == 0:
+        raise UserInputError(f"the fused mesh {mesh_ply} has no faces")
+    vertices, faces, uv, size, texel = atlas_unwrap(vertices, faces, texel_m, cfg.max_texture_px)
+    texture, _ = atlas_texture(vertices, faces, uv, size, tracks, images_dir, cfg.blend_power)
+    exports = export_textured(vertices, faces, np.column_stack([uv[:, 0], 1 - uv[:, 1]]), texture, out_dir)
+    return exports, len(vertices), len(faces), texel
 
 
 def render_back(mesh: HeightMesh, texture: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray,
@@ -297,7 +469,7 @@ def render_back(mesh: HeightMesh, texture: np.ndarray, world_from_cam: np.ndarra
 
 
 def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: MeshConfig,
-                    dense_points_ply: Path | None = None) -> MeshResult:
+                    dense_points_ply: Path | None = None, dense_mesh_ply: Path | None = None) -> MeshResult:
     """Mesh, texture, exports and mosaic (see the module docstring)."""
     import cv2
 
@@ -308,6 +480,8 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg.source not in ("auto", "dense", "sparse"):
         raise UserInputError(f"source must be 'auto', 'dense' or 'sparse', not '{cfg.source}'")
+    if cfg.mesh_kind not in ("auto", "2.5d", "tsdf"):
+        raise UserInputError(f"mesh_kind must be 'auto', '2.5d' or 'tsdf', not '{cfg.mesh_kind}'")
     use_dense = cfg.source == "dense" or (cfg.source == "auto" and dense_points_ply is not None
                                           and dense_points_ply.is_file())
     if use_dense:
@@ -326,7 +500,17 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     texel = cfg.texel_m or max(extent / 3000, ground_sampling / 2)
     mesh = mesh.on_texel_grid(texel)
     mosaic, covered = orthophoto(mesh, texel, tracks, images_dir, cfg.blend_power)
-    glb, obj, ply = export_mesh(mesh, mosaic, out_dir)
+    kind = cfg.mesh_kind
+    if kind == "auto":
+        has_fused = dense_mesh_ply is not None and dense_mesh_ply.is_file()
+        kind = "tsdf" if has_fused and not is_height_field(points, cfg.height_field_fraction) else "2.5d"
+    if kind == "tsdf":
+        (glb, obj, ply), n_vertices, n_faces, _ = tsdf_textured_mesh(
+            dense_mesh_ply if dense_mesh_ply is not None else Path("fused_mesh.ply"), tracks, images_dir, texel,
+            cfg, out_dir)
+    else:
+        glb, obj, ply = export_mesh(mesh, mosaic, out_dir)
+        n_vertices, n_faces = len(mesh.vertices), len(mesh.faces)
     ok, png = cv2.imencode(".png", np.ascontiguousarray(mosaic[..., ::-1]))
     if not ok:
         raise OSError("could not encode the mosaic")
@@ -335,8 +519,8 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     world_file = out_dir / "mosaic.pgw"
     write_world_file(world_file, texel, (float(mesh.bounds[0, 0]), float(mesh.bounds[1, 1])))
     return MeshResult(glb=str(glb), obj=str(obj), ply=str(ply), mosaic_png=str(mosaic_png), world_file=str(world_file),
-                      n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), texel_m=texel,
-                      mosaic_coverage=float(covered.mean()), seconds=time.perf_counter() - start)
+                      n_vertices=n_vertices, n_faces=n_faces, texel_m=texel, mosaic_coverage=float(covered.mean()),
+                      seconds=time.perf_counter() - start, mesh_kind=kind)
 
 
 def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
@@ -345,7 +529,9 @@ def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
 
     tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
-    result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, ws.stage_dir("dense") / "fused_points.ply")
+    dense = ws.stage_dir("dense")
+    result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, dense / "fused_points.ply",
+                             dense / "fused_mesh.ply")
     for name in ("glb", "obj", "ply", "mosaic_png", "world_file"):
         setattr(result, name, ws.relative(getattr(result, name)))
     return result

@@ -9,11 +9,16 @@ moved into a *survey frame* and given a metric scale:
                    points (oriented towards the cameras), x = main direction of camera travel;
     p_survey = s R (p_colmap - o)
 
-with the scale ``s`` from, in order of preference (``scale="auto"``):
+with the scale ``s`` from, in order of preference (``scale="auto"``; board only when a board file is given):
 
     stereo:    a rectified stereo rig (``right/`` frames, ``baseline_m`` in camera.json). Sparse
                observations are matched along their row in the right frame (normalised cross
                correlation, sub-pixel peak); z_stereo = fx b / disparity; s = median(z_stereo / z_sfm).
+    board:     a board of known size (``board_json``: per image, pixel corners of the board's four outer
+               corners, or of each patch of a colour board in eval.colour's board-file format, with the
+               true size ``width_m``/``height_m`` or ``patch_side_m``). Each corner seen in >= 2 registered
+               views is triangulated with the SfM poses (linear DLT); every edge with both ends
+               triangulated gives a sample true / measured length; s = median of the samples.
     altitude:  navigation altitudes (``nav_altitude_m`` in survey.json):
                s = median(altitude_nav) / median(n . (C_i - o)), camera heights above the sparse points'
                median height.
@@ -69,7 +74,16 @@ class SfmConfig:
     min_registered_fraction: float = 0.5
     """Fewer registered images than this fraction of all images is an error."""
     scale: str = "auto"
-    """Metric scale from 'stereo', 'altitude' (navigation), 'none', or 'auto' (stereo, else altitude, else none)."""
+    """Metric scale from 'stereo', 'board' (known board size), 'altitude' (navigation), 'none', or 'auto'
+    (stereo, else board when ``board_json`` is given, else altitude, else none)."""
+    board_json: str = ""
+    """Board file for the 'board' scale: ``{"images": {file name: [[x, y] x 4] outer corners, or per patch
+    [[x, y] x 4] | null}, "width_m", "height_m" | "patch_side_m", ...}`` (pixels, OpenCV convention;
+    eval.colour's board files qualify once they carry the size). Empty: no board."""
+    board_width_m: float = 0.0
+    """True board (or patch) extent along corners 0-1 and 2-3, metres; 0: from the board file."""
+    board_height_m: float = 0.0
+    """True extent along corners 1-2 and 3-0, metres; 0: from the board file (or ``board_width_m``)."""
     right_dir: str = ""
     """Folder of the stereo rig's right frames (same names); empty: ``right`` beside the images folder."""
     survey_json: str = ""
@@ -97,7 +111,7 @@ class SfmResult:
     matching: str
     """The matching that was used."""
     scale_method: str
-    """'stereo', 'altitude' or 'none': where the metric scale came from."""
+    """'stereo', 'board', 'altitude' or 'none': where the metric scale came from."""
     scale_factor: float
     """s in p_survey = s R (p_colmap - o)."""
     scale_spread: float
@@ -275,6 +289,67 @@ def altitude_scale(points: np.ndarray, centres: np.ndarray, nav_altitude_m: np.n
     return s, spread
 
 
+def triangulate_dlt(projections: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """A 3D point from its pixel positions (V,2) in V >= 2 views with 3x4 projections (V,3,4): the
+    null vector of the stacked rows x P_3 - P_1, y P_3 - P_2 (linear DLT, rows normalised)."""
+    rows = np.concatenate([xy[:, :1] * projections[:, 2] - projections[:, 0],
+                           xy[:, 1:] * projections[:, 2] - projections[:, 1]])
+    rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(rows)
+    return vt[-1, :3] / vt[-1, 3]
+
+
+def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
+                       ) -> tuple[dict[str, np.ndarray], float, float]:
+    """Board file -> (image name -> (Q,4,2) pixel quads, NaN when not visible; true width; true height)."""
+    try:
+        data = json.loads(Path(path).read_text())
+        images = {}
+        for name, corners in data["images"].items():
+            if corners is None:
+                continue
+            quads = [q if q is not None else [[np.nan, np.nan]] * 4 for q in corners] \
+                if np.ndim(corners[0]) == 2 or corners[0] is None else [corners]
+            images[name] = np.array(quads, float).reshape(-1, 4, 2)
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise UserInputError(f"board file {path} must have 'images' (file name -> 4 pixel corners, or 4 per "
+                             f"patch): {exc}") from exc
+    side = data.get("patch_side_m", 0.0)
+    width_m = width_m or data.get("width_m", side)
+    height_m = height_m or data.get("height_m", side) or width_m
+    if not width_m > 0:
+        raise UserInputError(f"give the board's true size (width_m/height_m or patch_side_m in {path}, "
+                             f"or --board-width-m/--board-height-m)")
+    if len({q.shape[0] for q in images.values()}) > 1:
+        raise UserInputError(f"board file {path}: every image must list the same number of quads")
+    return images, float(width_m), float(height_m)
+
+
+def board_scale(tracks: Tracks, quads: dict[str, np.ndarray], width_m: float, height_m: float
+                ) -> tuple[float, float]:
+    """Scale from a board of known size: corners triangulated from >= 2 registered views (DLT),
+    s = median(true edge length / triangulated edge length). Returns (s, relative spread)."""
+    index = {str(n): k for k, n in enumerate(tracks.image_names)}
+    views = [(index[n], q) for n, q in quads.items() if n in index and tracks.registered[index[n]]]
+    if not views:
+        raise UserInputError("no registered image has board corners: check the board file's image names")
+    projections = []
+    for k, _ in views:
+        cam_from_world = np.linalg.inv(tracks.world_from_cam[k])
+        projections.append(tracks.K @ cam_from_world[:3])
+    projections = np.array(projections)
+    corners = np.stack([q for _, q in views])  # (V,Q,4,2)
+    xyz = np.full(corners.shape[1:3] + (3,), np.nan)
+    for qi in range(corners.shape[1]):
+        for ci in range(4):
+            seen = np.isfinite(corners[:, qi, ci]).all(1)
+            if seen.sum() >= 2:
+                xyz[qi, ci] = triangulate_dlt(projections[seen], corners[seen, qi, ci])
+    true = np.array([width_m, height_m, width_m, height_m])
+    measured = np.linalg.norm(xyz - np.roll(xyz, -1, axis=1), axis=2)  # edges 0-1, 1-2, 2-3, 3-0
+    return _robust_ratio((true / measured).ravel(), "board", minimum=3)
+
+
 def _build_tracks(rec, names: list[str], K: np.ndarray, width: int, height: int) -> Tracks:
     index = {n: i for i, n in enumerate(names)}
     poses = np.full((len(names), 4, 4), np.nan)
@@ -404,8 +479,8 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
     has_stereo = cam is not None and "baseline_m" in cam and right_dir.is_dir()
     survey = json.loads(survey_path.read_text()) if survey_path.is_file() else {}
     has_altitude = "nav_altitude_m" in survey
-    choices = {"auto": ["stereo", "altitude", "none"], "stereo": ["stereo"], "altitude": ["altitude"],
-               "none": ["none"]}
+    choices = {"auto": ["stereo", "board", "altitude", "none"], "stereo": ["stereo"], "board": ["board"],
+               "altitude": ["altitude"], "none": ["none"]}
     if cfg.scale not in choices:
         raise UserInputError(f"scale must be one of {', '.join(choices)}, not '{cfg.scale}'")
     for method in choices[cfg.scale]:
@@ -415,6 +490,14 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
                 return method, s, spread
             if cfg.scale == "stereo":
                 raise UserInputError(f"stereo scale needs right frames in {right_dir} and baseline_m in camera.json")
+        elif method == "board":
+            if cfg.board_json:
+                quads, width_m, height_m = read_board_corners(Path(cfg.board_json), cfg.board_width_m,
+                                                              cfg.board_height_m)
+                s, spread = board_scale(tracks, quads, width_m, height_m)
+                return method, s, spread
+            if cfg.scale == "board":
+                raise UserInputError("board scale needs a board file with pixel corners (--board) and its true size")
         elif method == "altitude":
             if has_altitude:
                 frames = survey.get("frames", list(tracks.image_names))

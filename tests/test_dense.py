@@ -91,3 +91,28 @@ def test_subpixel_refinement_removes_pixel_locking():
     inner = refined[20:-20, 40:-40]
     assert np.isnan(refined[:5]).all() and np.isfinite(inner).all()
     assert np.median(np.abs(inner - 12.3)) < 0.01
+
+
+def test_patch_match_without_cuda_is_a_clear_error(sfm):
+    import pycolmap
+
+    from pipeline.dense import dense_method
+    from watergan.errors import UserInputError
+
+    _, ws, _ = sfm
+    if pycolmap.has_cuda:
+        pytest.skip("pycolmap has CUDA here")
+    assert dense_method("auto") == "sgbm" and dense_method("sgbm") == "sgbm"
+    with pytest.raises(UserInputError, match="patch_match needs pycolmap built with CUDA"):
+        run_dense(ws, DenseConfig(method="patch_match"))
+    with pytest.raises(UserInputError, match="method must be"):
+        dense_method("mvs")
+
+
+def test_read_colmap_array(tmp_path):
+    from pipeline.dense import read_colmap_array
+
+    depth = np.arange(12, dtype=np.float32).reshape(3, 4)
+    path = tmp_path / "a.geometric.bin"
+    path.write_bytes(b"4&3&1&" + depth.astype("<f4").tobytes())  # COLMAP: x fastest, then y, then channel
+    assert np.array_equal(read_colmap_array(path), depth)

@@ -106,3 +106,28 @@ def test_texel_grid_and_exported_uvs_follow_the_texel_centres(tmp_path):
     # glTF/OBJ uv 0..1 spans the image edges: the vertex at x0, y1 sits on texel (0, 0)'s centre
     corner = np.flatnonzero(np.all(np.isclose(geometry.vertices[:, :2], [0.0, 0.51]), axis=1))[0]
     assert np.allclose(geometry.visual.uv[corner], [0.5 / 12, 1 - 0.5 / 7])
+
+
+def test_tsdf_mesh_with_atlas_uvs(sfm, tmp_path):
+    from pipeline.dense import DenseConfig, run_dense
+    from pipeline.mesh import is_height_field, run_mesh_folder
+
+    survey, ws, _ = sfm
+    ws.run("dense", DenseConfig(), run_dense)  # skipped when tests/test_dense.py made it already
+    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
+    dense = ws.stage_dir("dense")
+    result = run_mesh_folder(tracks, survey / "images", tmp_path, MeshConfig(mesh_kind="tsdf"),
+                             dense / "fused_points.ply", dense / "fused_mesh.ply")
+    assert result.mesh_kind == "tsdf"
+    scene = trimesh.load(result.glb)
+    geometry = next(iter(scene.geometry.values()))
+    assert len(geometry.faces) == result.n_faces > 100
+    assert geometry.visual.kind == "texture"
+    texture = np.asarray(geometry.visual.material.baseColorTexture)
+    assert texture.ndim == 3 and texture.shape[0] > 16 and texture[..., :3].max() > 0
+    uv = geometry.visual.uv
+    assert uv.min() >= 0 and uv.max() <= 1
+    # the seafloor is a height field: auto keeps the 2.5D path for it; a vertical wall is not one
+    rng = np.random.default_rng(0)
+    assert is_height_field(tracks.xyz)
+    assert not is_height_field(np.column_stack([rng.uniform(0, 1, 2000), np.zeros(2000), rng.uniform(0, 1, 2000)]))

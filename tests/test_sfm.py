@@ -123,3 +123,52 @@ def test_too_few_registered_images_is_a_clear_error(tmp_path):
 def test_missing_images_folder_is_a_clear_error(tmp_path):
     with pytest.raises(UserInputError, match="does not exist"):
         run_sfm(Workspace(tmp_path / "ws"), SfmConfig(images_dir=str(tmp_path / "nope")))
+
+
+def _board_clicks(survey: Path, tmp_path: Path, outline: bool) -> Path:
+    """A user's board file: the truth board's corners projected with the true poses (as if clicked)."""
+    import json
+
+    from eval.colour import project_board, truth_board
+
+    board = json.loads((survey / "truth" / "board.json").read_text())
+    if not outline:
+        quads = truth_board(survey).quads
+        data = {"patch_side_m": board["patch_side_m"], "patches": board["patches"],
+                "images": {n: [None if np.isnan(q).any() else q.tolist() for q in qs] for n, qs in quads.items()}}
+    else:
+        poses = json.loads((survey / "truth" / "poses.json").read_text())["frames"]
+        cam = json.loads((survey / "camera.json").read_text())
+        K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+        outline_world = np.array(board["outline_world"])
+        projected = project_board(["board"], outline_world[None], np.zeros((1, 3)), [f["name"] for f in poses],
+                                  np.array([f["world_from_cam"] for f in poses]), K, cam["width"], cam["height"])
+        edges = np.linalg.norm(outline_world - np.roll(outline_world, -1, axis=0), axis=1)
+        data = {"width_m": float(edges[0]), "height_m": float(edges[1]),
+                "images": {n: q[0].tolist() for n, q in projected.quads.items() if np.isfinite(q).all()}}
+    path = tmp_path / ("outline.json" if outline else "board.json")
+    path.write_text(json.dumps(data))
+    return path
+
+
+@pytest.mark.parametrize("outline", [False, True])
+def test_board_scale_agrees_with_stereo_scale(sfm, tmp_path, outline):
+    import json
+
+    from pipeline.sfm import _choose_scale
+
+    survey, ws, record = sfm
+    tracks = Tracks.load(ws.path(record["result"]["tracks"]))  # already metric (stereo): expect s = 1
+    cfg = SfmConfig(scale="board", board_json=str(_board_clicks(survey, tmp_path, outline)))
+    cam = json.loads((survey / "camera.json").read_text())
+    method, s, spread = _choose_scale(cfg, tracks, survey / "images", cam, tracks.track_lengths() >= 3)
+    assert method == "board" and s == pytest.approx(1.0, abs=0.01) and spread < 0.02
+
+
+def test_board_scale_without_a_board_file_is_a_clear_error(sfm):
+    from pipeline.sfm import _choose_scale
+
+    survey, ws, record = sfm
+    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    with pytest.raises(UserInputError, match="board scale needs"):
+        _choose_scale(SfmConfig(scale="board"), tracks, survey / "images", None, tracks.track_lengths() >= 3)
