@@ -322,13 +322,22 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
         pairs[name], coverage[name], depths[name] = partner, cover, depth
     if not depths:
         raise UserInputError("no image got a dense depth map: check the pairs (--pairs) and the SfM result")
+    return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start)
+
+
+def _finish(depths: dict[str, np.ndarray], pairs: dict[str, str], coverage: dict[str, float], skipped: list[str],
+            depth_dir: Path, tracks, images_dir: Path, out_dir: Path, cfg: DenseConfig, start: float) -> DenseResult:
+    """The result of either depth method, with the depth maps fused (TSDF) when ``cfg.fuse``: voxel
+    ``cfg.voxel_m`` or the median sparse depth / 100, depth cut at 2.5x the 99th sparse percentile."""
     result = DenseResult(depth_dir=str(depth_dir), pairs=pairs, coverage=coverage,
                          mean_coverage=float(np.mean(list(coverage.values()))), skipped=skipped)
     if cfg.fuse:
         index = {str(n): i for i, n in enumerate(tracks.image_names)}
+        obs_depth = tracks.depths()
         result.points_ply, result.mesh_ply, result.n_fused_points = fuse_depths(
             depths, {n: tracks.world_from_cam[index[n]] for n in depths}, tracks.K, images_dir, out_dir,
-            cfg.voxel_m or median_depth / 100, cfg.weight_threshold, 2.5 * float(np.percentile(obs_depth, 99)))
+            cfg.voxel_m or float(np.median(obs_depth)) / 100, cfg.weight_threshold,
+            2.5 * float(np.percentile(obs_depth, 99)))
     result.seconds = time.perf_counter() - start
     return result
 
@@ -414,17 +423,7 @@ def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: P
         pairs[name], coverage[name], depths[name] = "patch_match", float(np.isfinite(depth).mean()), depth
     if not depths:
         raise UserInputError("patch-match gave no depth map: check the SfM result")
-    result = DenseResult(depth_dir=str(depth_dir), pairs=pairs, coverage=coverage,
-                         mean_coverage=float(np.mean(list(coverage.values()))), skipped=skipped)
-    if cfg.fuse:
-        index = {str(n): i for i, n in enumerate(tracks.image_names)}
-        obs_depth = tracks.depths()
-        result.points_ply, result.mesh_ply, result.n_fused_points = fuse_depths(
-            depths, {n: tracks.world_from_cam[index[n]] for n in depths}, tracks.K, images_dir, out_dir,
-            cfg.voxel_m or float(np.median(obs_depth)) / 100, cfg.weight_threshold,
-            2.5 * float(np.percentile(obs_depth, 99)))
-    result.seconds = time.perf_counter() - start
-    return result
+    return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start)
 
 
 def run_dense(ws, cfg: DenseConfig) -> DenseResult:
