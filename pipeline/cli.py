@@ -7,6 +7,7 @@
     watergan train-restorer / correct     the restorer (see pipeline/cli_restorer.py)
     watergan sfm / dense / consistency / depth-compare / texture / mosaic   3D (see pipeline/cli_3d.py)
     watergan diagnose / ledger            the discovery loop (see pipeline/cli_diagnose.py)
+    watergan evaluate / report            baselines, tables and the HTML report (see pipeline/cli_report.py)
 
 Every command takes ``--plugin FILE.py`` (repeatable) to register a user's own effects first.
 """
@@ -101,12 +102,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="redo finished stages")
     p.set_defaults(func=cmd_demo)
 
-    from . import cli_3d, cli_diagnose, cli_gan, cli_restorer
+    from . import cli_3d, cli_diagnose, cli_gan, cli_report, cli_restorer
 
     cli_gan.add_commands(sub, [plugin])
     cli_restorer.add_commands(sub, [plugin])
     cli_3d.add_commands(sub, [plugin])
     cli_diagnose.add_commands(sub, [plugin])
+    cli_report.add_commands(sub, [plugin])
     return parser
 
 

@@ -1,0 +1,699 @@
+"""The evaluation stage: every baseline and the restorer measured on the same SfM points and board,
+and the paper's tables side by side (``watergan evaluate``).
+
+``run_evaluate(ws, cfg)`` (run as ``ws.run("eval", cfg, run_evaluate)``) writes under ``06_eval/``:
+
+    baselines/<method>/<image name>   each baseline's corrected survey frames (8-bit sRGB PNG)
+    consistency_points.npz            per method, the per-point variance (P,3) behind Table II
+    tables.json, tables.md            the tables (best value per row or column in bold) and the verdict
+
+Methods: the baselines of :mod:`eval.baselines` (raw, histogram equalisation, CLAHE, gray world,
+Jaffe-McGlamery, Sea-thru, oracle) and "ours", the restorer's corrected frames (``03_correct/images``
+by default, made by ``watergan correct``). A baseline that lacks an input (range, coefficients,
+simulator truth) is skipped and the tables say why. On a simulated survey the in-air truth
+(``truth/inair``) is measured too, as a reference column that is never "best".
+
+Range for Jaffe-McGlamery and Sea-thru (``range_source``): 'dense' reads the dense stage's camera
+z-depth (``05_dense/depth/<stem>.png``, millimetres of the survey frame's units) and converts it
+with the intrinsics to the ray length r = z |K^-1 (x, y, 1)|; pixels without depth take the
+nearest valid pixel's range (a frame without depth: its median sparse SfM depth everywhere).
+'truth' reads the simulator's ``truth/range``. 'auto': dense when the dense stage ran, else truth
+when the survey is simulated.
+
+Tables (as in the paper; lower is better unless said):
+- Table I: per board patch, the mean over views of |n(measured) - n(true)| (n = c / (R + G + B)),
+  their mean and the mean CIEDE2000 (:func:`eval.colour.board_accuracy`).
+- Table II: per channel, the mean over SfM points of the variance of n across views
+  (:func:`eval.colour.consistency`, the same points and observations for every method).
+- Table III: the restorer's RMSE on its held-out synthetic split (``02_restorer/validation.json``).
+- Fidelity (simulated surveys): PSNR (dB) and SSIM of the sRGB-encoded frames against the in-air
+  truth (higher is better), averaged over frames.
+- Depth: monocular (the restorer's relative depth, ``03_correct/depth``) against stereo/MVS depth
+  (``06_eval/depth/metrics.json``; computed here when both inputs exist and it is missing).
+- Speed: seconds per frame of each method's correction alone (files excluded; the oracle's excludes
+  rendering the true geometry; ours from ``03_correct/summary.json``, which includes file I/O).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from eval.baselines import BASELINES, jaffe_coefficients
+from watergan.errors import UserInputError
+
+OURS = "ours"
+INAIR = "inair"
+LABELS = {**{name: b.label for name, b in BASELINES.items()}, OURS: "ours", INAIR: "in-air truth"}
+RANGE_SOURCES = ("auto", "truth", "dense")
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """Baselines and the restorer measured on the same SfM points and colour board."""
+
+    survey_dir: str = ""
+    """The survey folder (images/, camera.json, and truth/ when simulated); empty: ``00_survey``."""
+    images_dir: str = ""
+    """The raw frames SfM ran on; empty: ``<survey>/images``."""
+    methods: tuple[str, ...] = tuple(BASELINES)
+    """Baselines to run (names of eval.baselines.BASELINES)."""
+    ours_dir: str = ""
+    """The restorer's corrected frames; empty: ``03_correct/images`` when present."""
+    range_source: str = "auto"
+    """Range for Jaffe-McGlamery and Sea-thru: 'dense', 'truth' or 'auto' (dense, else truth)."""
+    jaffe_stack: str = ""
+    """A formation-stack JSON ([{name, params}]) with the Jaffe-McGlamery coefficients; empty: the
+    simulated survey's true (full) stack."""
+    board_json: str = ""
+    """A board file with per-image pixel corners (eval.colour.load_board_json); empty: the simulated
+    survey's board."""
+    patch_px: int = 5
+    """Side of the square patch averaged at each SfM observation, pixels (odd)."""
+    min_views: int = 3
+    """Points with fewer valid views are left out of the consistency."""
+    board_inset: float = 0.2
+    """Fraction by which each board patch is shrunk towards its centre before averaging."""
+    example_frames: int = 3
+    """Frames the report shows side by side (those with the most board patches first)."""
+
+
+@dataclass
+class EvaluateResult:
+    tables_json: str
+    """Workspace-relative path of tables.json."""
+    tables_md: str
+    baselines_dir: str
+    methods: list[str]
+    """Methods measured (baselines run, then ours when present)."""
+    skipped: dict[str, str]
+    """Method -> why it was not measured."""
+    range_source: str
+    """'dense', 'truth' or 'none'."""
+    mean_board_distance: dict[str, float] = field(default_factory=dict)
+    consistency_variance: dict[str, list[float]] = field(default_factory=dict)
+    verdict: list[str] = field(default_factory=list)
+    example_frames: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+# ---------------------------------------------------------------------------------------- inputs
+
+
+def _camera_K(survey: Path, tracks) -> np.ndarray:
+    from pipeline.sfm import read_camera_json
+
+    cam = read_camera_json(survey / "camera.json")
+    if cam is None:
+        return np.asarray(tracks.K, float)
+    return np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+
+
+def z_to_range(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Ray length r = z |K^-1 (x, y, 1)| of camera z-depth (H,W) (NaN stays NaN)."""
+    h, w = depth_m.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return depth_m * np.sqrt(((xs - K[0, 2]) / K[0, 0]) ** 2 + ((ys - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
+
+
+def fill_nearest(values: np.ndarray) -> np.ndarray:
+    """Non-finite entries of (H,W) replaced by the nearest finite one (all NaN: unchanged)."""
+    from scipy.ndimage import distance_transform_edt
+
+    bad = ~np.isfinite(values)
+    if not bad.any() or bad.all():
+        return values
+    idx = distance_transform_edt(bad, return_distances=False, return_indices=True)
+    return values[tuple(idx)]
+
+
+class _RangeSource:
+    """Range (H,W) metres per frame name from the dense stage or the simulator's truth."""
+
+    def __init__(self, kind: str, ws, survey: Path, tracks) -> None:
+        self.kind = kind
+        self.dense_dir = ws.root / "05_dense" / "depth"
+        self.truth_dir = survey / "truth" / "range"
+        self.K = _camera_K(survey, tracks)
+        self.fallback: list[str] = []
+        depths = tracks.depths()
+        names = [str(n) for n in tracks.image_names]
+        self.sparse_m = {names[k]: float(np.median(depths[tracks.obs_image == k]))
+                         for k in np.unique(tracks.obs_image)}
+        self.sparse_all_m = float(np.median(depths)) if len(depths) else 1.0
+
+    @staticmethod
+    def choose(requested: str, ws, survey: Path) -> str:
+        if requested not in RANGE_SOURCES:
+            raise UserInputError(f"range source must be one of {', '.join(RANGE_SOURCES)}, got '{requested}'")
+        dense = (ws.root / "05_dense" / "depth").is_dir() and any((ws.root / "05_dense" / "depth").glob("*.png"))
+        truth = (survey / "truth" / "range").is_dir()
+        if requested == "dense" and not dense:
+            raise UserInputError(f"no dense depth in {ws.root / '05_dense' / 'depth'}: run `watergan dense` first "
+                                 f"or use --range truth on a simulated survey")
+        if requested == "truth" and not truth:
+            raise UserInputError(f"no simulator range in {survey / 'truth' / 'range'}: --range truth needs a "
+                                 f"simulated survey; use --range dense")
+        if requested == "auto":
+            return "dense" if dense else "truth" if truth else "none"
+        return requested
+
+    def __call__(self, name: str, shape: tuple[int, int]) -> np.ndarray:
+        from eval.depth import read_depth
+
+        if self.kind == "truth":
+            r = read_depth(self.truth_dir / name)
+        else:
+            path = self.dense_dir / f"{Path(name).stem}.png"
+            z = read_depth(path) if path.is_file() else np.full(shape, np.nan)
+            if z.shape != shape:
+                raise UserInputError(f"dense depth {path} is {z.shape}, the image {shape}")
+            r = z_to_range(z, self.K)
+        if np.isfinite(r).mean() < 0.01:  # no usable depth: the frame's median sparse depth, everywhere
+            self.fallback.append(name)
+            return np.full(shape, self.sparse_m.get(name, self.sparse_all_m))
+        return fill_nearest(r)
+
+
+class _OracleGeometry:
+    """The simulator's true geometry and full stack: one formation state per frame (re-rendered)."""
+
+    def __init__(self, survey: Path) -> None:
+        from eval.synth import load_truth
+        from eval.synth.camera import intrinsics_for
+        from eval.synth.render import make_raycaster
+        from eval.synth.scene import build_scene
+        from watergan.formation import Stack
+
+        self.truth = load_truth(survey)
+        cfg = self.truth.config
+        self.scene = build_scene(cfg.scene, cfg.seed)
+        self.caster = make_raycaster(self.scene)
+        self.intr = intrinsics_for(cfg.camera)
+        self.stack = Stack.from_config(self.truth.effects["full"])
+        self.index = {name: k for k, name in enumerate(self.truth.frames)}
+
+    def state(self, name: str):
+        from eval.synth.render import frame_state, render_view
+
+        cfg = self.truth.config
+        if name not in self.index:
+            raise UserInputError(f"frame {name} is not in the simulator's truth of {self.truth.root}")
+        k = self.index[name]
+        view = render_view(self.caster, self.scene, self.intr, self.truth.world_from_cam[k], cfg.render)
+        return frame_state(view, k, cfg.render.site_depth_m)
+
+
+def _write_srgb8(path: Path, linear: np.ndarray) -> None:
+    import cv2
+
+    from eval.synth.io import quantise, srgb_encode
+    from pipeline.workspace import atomic_write_bytes
+
+    rgb = quantise(srgb_encode(linear), 8)
+    ok, data = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    atomic_write_bytes(path, data.tobytes())
+
+
+def _missing(folder: Path, names: list[str]) -> list[str]:
+    return [n for n in names if not (folder / n).is_file()]
+
+
+# ---------------------------------------------------------------------------------- measurement
+
+
+def point_variances(tracks, folders: dict[str, Path], patch_px: int, min_views: int) -> dict[str, np.ndarray]:
+    """Per method, the per-point variance across views of the normalised colour (P',3), on the points
+    and observations :func:`eval.colour.consistency` uses (valid in every folder, >= ``min_views``)."""
+    from eval.colour import observation_colours
+
+    colours = {name: observation_colours(tracks, path, patch_px) for name, path in folders.items()}
+    valid = np.logical_and.reduce([np.isfinite(c).all(1) for c in colours.values()])
+    counts = np.bincount(tracks.obs_point[valid], minlength=len(tracks.xyz))
+    use = valid & (counts[tracks.obs_point] >= min_views)
+    point = tracks.obs_point[use]
+    n = np.bincount(point, minlength=len(tracks.xyz)).astype(float)
+    keep = n >= min_views
+    out = {}
+    for name, c in colours.items():
+        c = c[use]
+        s1 = np.stack([np.bincount(point, c[:, ch], minlength=len(n)) for ch in range(3)], 1)
+        s2 = np.stack([np.bincount(point, c[:, ch] ** 2, minlength=len(n)) for ch in range(3)], 1)
+        out[name] = np.maximum(s2[keep] / n[keep, None] - (s1[keep] / n[keep, None]) ** 2, 0.0)
+    return out
+
+
+def fidelity(folder: Path, truth_dir: Path, names: list[str]) -> tuple[float, float]:
+    """Mean over frames of PSNR (dB) and SSIM of the sRGB-encoded frames against the in-air truth."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    from eval.colour import read_rgb
+
+    psnr, ssim = [], []
+    for name in names:
+        a, b = read_rgb(folder / name, linear=False), read_rgb(truth_dir / name, linear=False)
+        psnr.append(peak_signal_noise_ratio(b, a, data_range=1.0))
+        ssim.append(structural_similarity(b, a, channel_axis=2, data_range=1.0))
+    return float(np.mean(psnr)), float(np.mean(ssim))
+
+
+def _ours_seconds(correct_dir: Path) -> float | None:
+    """Seconds per frame of ``watergan correct`` (its summary.json: wall time / frames corrected)."""
+    for path in (correct_dir / "summary.json", correct_dir / "result.json"):
+        if path.is_file():
+            data = json.loads(path.read_text())
+            data = data.get("result", data)
+            n = data.get("corrected") or data.get("n_images") or 0
+            if n and data.get("seconds"):
+                return float(data["seconds"]) / n
+    return None
+
+
+def _example_frames(names: list[str], board, count: int) -> list[str]:
+    """The frame with the most visible board patches, then frames spread evenly over the rest."""
+    if count <= 0 or not names:
+        return []
+    order = list(names)
+    chosen = []
+    if board is not None:
+        seen = {n: int(np.isfinite(q).all(axis=(1, 2)).sum()) for n, q in board.quads.items() if n in names}
+        if seen:
+            chosen.append(max(sorted(seen), key=lambda n: seen[n]))
+    rest = [n for n in order if n not in chosen]
+    need = count - len(chosen)
+    if need > 0 and rest:
+        picks = np.linspace(0, len(rest) - 1, min(need, len(rest)) + 2)[1:-1] if len(rest) > need else \
+            np.arange(len(rest))
+        chosen += [rest[int(round(i))] for i in picks]
+    return sorted(dict.fromkeys(chosen), key=order.index)[:count]
+
+
+# ----------------------------------------------------------------------------------------- tables
+
+
+def make_table(table_id: str, title: str, columns: list[str], rows: list[dict], bold: str = "row",
+               reference: tuple[str, ...] = (), note: str = "", status: str = "ok") -> dict:
+    """A table as plain data: ``rows`` are ``{"label", "values" (one per column, None = no value),
+    "better": "lower" | "higher" | ""}``; ``bold`` marks the best value per 'row' or per 'column'
+    ('none': nothing) among the non-reference columns."""
+    return {"id": table_id, "title": title, "columns": columns, "labels": {c: LABELS.get(c, c) for c in columns},
+            "rows": rows, "bold": bold, "reference": [c for c in reference if c in columns], "note": note,
+            "status": status}
+
+
+def best_cells(table: dict) -> set[tuple[int, int]]:
+    """(row, column) indices of the best values (ties all count)."""
+    out = set()
+    cols = [j for j, c in enumerate(table["columns"]) if c not in table.get("reference", [])]
+    rows = table["rows"]
+    if table.get("bold") == "row":
+        groups = [[(i, j) for j in cols] for i in range(len(rows))]
+    elif table.get("bold") == "column":
+        groups = [[(i, j) for i in range(len(rows))] for j in cols]
+    else:
+        return out
+    for group in groups:
+        cells = [(i, j, rows[i]["values"][j]) for i, j in group
+                 if rows[i].get("better") and rows[i]["values"][j] is not None and np.isfinite(rows[i]["values"][j])]
+        if len(cells) < 2:
+            continue
+        sign = -1.0 if rows[cells[0][0]]["better"] == "higher" else 1.0
+        top = min(sign * v for _, _, v in cells)
+        out |= {(i, j) for i, j, v in cells if sign * v <= top + 1e-12 * max(abs(top), 1e-300)}
+    return out
+
+
+def format_value(value) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "-"
+    if isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return str(value)
+    a = abs(value)
+    return f"{value:.3e}" if 0 < a < 1e-3 else f"{value:.4f}" if a < 10 else f"{value:.2f}"
+
+
+def table_markdown(table: dict) -> str:
+    """The table in Markdown, best values in bold."""
+    lines = [f"### {table['title']}", ""]
+    if table["status"] != "ok":
+        return "\n".join([*lines, f"{table['status']}", ""])
+    best = best_cells(table)
+    labels = [table["labels"].get(c, c) + (" (reference)" if c in table["reference"] else "")
+              for c in table["columns"]]
+    lines += ["| | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
+    for i, row in enumerate(table["rows"]):
+        cells = [f"**{format_value(v)}**" if (i, j) in best else format_value(v) for j, v in enumerate(row["values"])]
+        lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+    if table["note"]:
+        lines += ["", table["note"]]
+    return "\n".join(lines) + "\n"
+
+
+def table_html(table: dict) -> str:
+    """The table as an HTML fragment, best values in bold."""
+    from html import escape
+
+    title = f"<h3>{escape(table['title'])}</h3>"
+    if table["status"] != "ok":
+        return f"{title}<p class='missing'>{escape(table['status'])}</p>"
+    best = best_cells(table)
+    head = "".join(f"<th>{escape(table['labels'].get(c, c))}{' (ref.)' if c in table['reference'] else ''}</th>"
+                   for c in table["columns"])
+    body = []
+    for i, row in enumerate(table["rows"]):
+        cells = "".join(f"<td><b>{format_value(v)}</b></td>" if (i, j) in best else f"<td>{format_value(v)}</td>"
+                        for j, v in enumerate(row["values"]))
+        body.append(f"<tr><th>{escape(str(row['label']))}</th>{cells}</tr>")
+    note = f"<p class='note'>{escape(table['note'])}</p>" if table["note"] else ""
+    return f"{title}<table><tr><th></th>{head}</tr>{''.join(body)}</table>{note}"
+
+
+def verdict_lines(metrics: list[tuple[str, dict[str, float], str]], methods: list[str]) -> list[str]:
+    """Plain sentences: each metric on which ours loses to another method, then what ours beats.
+    ``metrics``: (name, method -> value, 'lower' | 'higher')."""
+    if OURS not in methods:
+        return []
+    losses, wins = [], []
+    for name, values, better in metrics:
+        mine = values.get(OURS)
+        if mine is None or not np.isfinite(mine):
+            continue
+        beaten = []
+        for m in methods:
+            v = values.get(m)
+            if m == OURS or v is None or not np.isfinite(v):
+                continue
+            worse = mine > v if better == "lower" else mine < v
+            if worse:
+                losses.append(f"ours loses to {LABELS.get(m, m)} on {name}: {mine:.3g} vs {v:.3g}")
+            elif v != mine:
+                beaten.append(LABELS.get(m, m))
+        if beaten:
+            wins.append(f"ours beats {', '.join(beaten)} on {name} ({mine:.3g})")
+    return losses + wins
+
+
+def _board_table(board_results: dict, methods: list[str], reference: tuple[str, ...]) -> dict:
+    columns = [m for m in [*methods, *reference] if m in board_results]
+    names = [p.name for p in next(iter(board_results.values())).patches]
+    rows = []
+    for p, name in enumerate(names):
+        values = [board_results[m].patches[p].distance for m in columns]
+        rows.append({"label": name, "values": [v if np.isfinite(v) else None for v in values], "better": "lower"})
+    rows.append({"label": "mean distance", "values": [board_results[m].mean_distance for m in columns],
+                 "better": "lower"})
+    rows.append({"label": "mean CIEDE2000", "values": [board_results[m].mean_ciede2000 for m in columns],
+                 "better": "lower"})
+    first = next(iter(board_results.values()))
+    return make_table("table1", "Table I: colour-board accuracy (distance of intensity-normalised RGB, lower is "
+                      "better)", columns, rows, "row", reference,
+                      f"Per patch: mean over views of |n(measured) - n(true)|, n = c / (R + G + B); CIEDE2000 after "
+                      f"one exposure factor per view; {first.n_images} images, patches shrunk by "
+                      f"{first.inset:.0%}.")
+
+
+def _consistency_table(result, methods: list[str], reference: tuple[str, ...]) -> dict:
+    columns = [m for m in [*methods, *reference] if m in result.scores]
+    rows = [{"label": ch, "values": [result.scores[m].variance[k] for m in columns], "better": "lower"}
+            for k, ch in enumerate("RGB")]
+    rows.append({"label": "mean", "values": [result.scores[m].mean_variance for m in columns], "better": "lower"})
+    return make_table("table2", "Table II: colour consistency across views (variance of normalised colour, lower is "
+                      "better)", columns, rows, "row", reference,
+                      f"{result.n_points} SfM points, {result.n_observations} observations, {result.patch_px}x"
+                      f"{result.patch_px} px patch means, >= {result.min_views} views, "
+                      f"{'linear' if result.linear else 'encoded'} RGB. A constant image has zero variance: read "
+                      f"this beside Table I.")
+
+
+def restorer_table(restorer_dir: Path) -> dict:
+    """Table III from ``validation.json`` (or a 'not run' table)."""
+    path = restorer_dir / "validation.json"
+    title = "Table III: restorer RMSE on its held-out synthetic split (lower is better)"
+    if not path.is_file():
+        return make_table("table3", title, [], [], status=f"not run: no {path.parent.name}/validation.json "
+                          f"(train the restorer with `watergan train-restorer` into the workspace's 02_restorer)")
+    data = json.loads(path.read_text())
+    rmse = data["rmse"]
+    rows = [{"label": {"raw": "raw (uncorrected)", "restorer": "restorer"}.get(k, k),
+             "values": [rmse[k].get(c) for c in ("R", "G", "B", "depth")], "better": "lower"} for k in rmse]
+    table = make_table("table3", title, ["R", "G", "B", "depth"], rows, "column",
+                       note=f"{data.get('val_count', '?')} held-out frames; {data.get('units', '')}.")
+    return table
+
+
+def depth_table(depth_dir: Path) -> dict:
+    """Monocular vs stereo depth from ``06_eval/depth/metrics.json`` (or a 'not run' table)."""
+    path = depth_dir / "metrics.json"
+    title = "Depth: monocular (restorer) vs stereo/MVS"
+    if not path.is_file():
+        return make_table("depth", title, [], [], status="not run: no 06_eval/depth/metrics.json (needs the "
+                          "restorer's depth in 03_correct/depth and the dense stage, or `watergan depth-compare`)")
+    data = json.loads(path.read_text())
+    o = data["overall"]
+    rows = [{"label": label, "values": [o[key]], "better": ""} for key, label in (
+        ("rmse_m", "RMSE (m)"), ("rmse_over_range", "RMSE / depth range"), ("abs_rel", "AbsRel"),
+        ("delta_125", "delta < 1.25"), ("coverage", "coverage"), ("scale", "median scale"))]
+    rows.append({"label": "images", "values": [len(data.get("per_image", {}))], "better": ""})
+    return make_table("depth", title, ["monocular vs stereo"], rows, "none",
+                      note=f"alignment: {data.get('alignment', '?')}; {len(data.get('skipped', []))} skipped.")
+
+
+# ------------------------------------------------------------------------------------------ stage
+
+
+def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: Path, ranges=None,
+                  coefficients: dict | None = None, geometry=None) -> dict[str, float]:
+    """Correct every frame with every method into ``out_dir/<method>/<name>`` (8-bit sRGB); returns
+    the seconds per frame of each method's correction alone."""
+    from tqdm import tqdm
+
+    from eval.synth.imaging import single_torch_thread
+
+    seconds = dict.fromkeys(methods, 0.0)
+    needs_range = any(BASELINES[m].needs_range for m in methods)
+    with single_torch_thread():  # the oracle's few element-wise renders: torch's pool only adds contention
+        for name in tqdm(names, desc="baselines", unit="frame"):
+            _correct_frame(name, images, methods, out_dir, seconds, ranges if needs_range else None, coefficients,
+                           geometry)
+    return {m: s / max(len(names), 1) for m, s in seconds.items()}
+
+
+def _correct_frame(name: str, images: Path, methods: list[str], out_dir: Path, seconds: dict[str, float], ranges,
+                   coefficients: dict | None, geometry) -> None:
+    """One frame through every method (adds each method's correction time to ``seconds``)."""
+    from eval.colour import read_rgb
+
+    image = read_rgb(images / name)
+    range_m = ranges(name, image.shape[:2]) if ranges is not None else None
+    state = geometry.state(name) if "oracle" in methods else None
+    for m in methods:
+        start = time.perf_counter()
+        if m == "jaffe":
+            corrected = BASELINES[m].fn(image, range_m, **coefficients)
+        elif m == "oracle":
+            corrected = BASELINES[m].fn(image, state, geometry.stack)
+        elif BASELINES[m].needs_range:
+            corrected = BASELINES[m].fn(image, range_m)
+        else:
+            corrected = BASELINES[m].fn(image)
+        seconds[m] += time.perf_counter() - start
+        _write_srgb8(out_dir / m / name, corrected)
+
+
+def _inputs(ws, cfg: EvaluateConfig, survey: Path, tracks, simulated: bool):
+    """(methods that can run, skipped method -> why, range source or None, Jaffe coefficients, oracle geometry)."""
+    skipped: dict[str, str] = {}
+    range_kind = _RangeSource.choose(cfg.range_source, ws, survey)
+    ranges = _RangeSource(range_kind, ws, survey, tracks) if range_kind != "none" else None
+    coefficients = None
+    if "jaffe" in cfg.methods:
+        if cfg.jaffe_stack:
+            path = Path(cfg.jaffe_stack)
+            if not path.is_file():
+                raise UserInputError(f"Jaffe-McGlamery stack file {path} does not exist")
+            coefficients = jaffe_coefficients(json.loads(path.read_text()))
+        elif simulated:
+            coefficients = jaffe_coefficients(json.loads((survey / "truth" / "effects.json").read_text())["full"])
+        else:
+            skipped["jaffe"] = "no coefficients: give a formation-stack JSON with --jaffe-stack"
+    geometry = None
+    if "oracle" in cfg.methods:
+        if simulated:
+            geometry = _OracleGeometry(survey)
+        else:
+            skipped["oracle"] = "needs the simulator's truth (not a simulated survey)"
+    methods = []
+    for m in cfg.methods:
+        if m in skipped:
+            continue
+        if BASELINES[m].needs_range and ranges is None:
+            skipped[m] = "no range: run the dense stage (or --range truth on a simulated survey)"
+            continue
+        methods.append(m)
+    return methods, skipped, ranges, coefficients, geometry
+
+
+def _measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -> tuple[object, dict, str]:
+    """(board or None, method -> BoardResult, why there is none)."""
+    from eval.colour import board_accuracy, load_board_json, truth_board
+
+    if cfg.board_json:
+        board = load_board_json(cfg.board_json)
+    elif (survey / "truth" / "board.json").is_file():
+        try:
+            board = truth_board(survey)
+        except UserInputError as exc:
+            return None, {}, str(exc)
+    else:
+        return None, {}, "no board (give --board FILE with pixel corners)"
+    try:
+        return board, {m: board_accuracy(p, board, cfg.board_inset) for m, p in folders.items()}, ""
+    except UserInputError as exc:
+        return board, {}, str(exc)
+
+
+def _depth_compare(ws, correct_dir: Path) -> str:
+    """Run the monocular-vs-stereo comparison when both depths exist and it was not run; '' or why it failed."""
+    from eval.depth import DepthCompareConfig, run_depth_compare
+
+    if (ws.root / "06_eval" / "depth" / "metrics.json").is_file():
+        return ""
+    if not (correct_dir / "depth").is_dir() or not (ws.root / "05_dense" / "depth").is_dir():
+        return ""
+    try:
+        run_depth_compare(ws, DepthCompareConfig(pred_dir=str(correct_dir / "depth")))
+    except UserInputError as exc:
+        return f"depth comparison failed: {exc}"
+    return ""
+
+
+def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
+    """Workspace stage (see the module docstring)."""
+    from eval.colour import consistency
+    from pipeline.sfm import Tracks, image_files
+    from pipeline.workspace import atomic_write_bytes, atomic_write_json, atomic_write_text
+
+    began = time.perf_counter()
+    unknown = [m for m in cfg.methods if m not in BASELINES]
+    if unknown:
+        raise UserInputError(f"unknown method(s) {unknown}; choose from {', '.join(BASELINES)}")
+    survey = Path(cfg.survey_dir) if cfg.survey_dir else ws.root / "00_survey"
+    images = Path(cfg.images_dir) if cfg.images_dir else survey / "images"
+    tracks = Tracks.load(ws.root / "04_sfm" / "tracks.npz")
+    names = [str(n) for n in tracks.image_names]  # the frames SfM ran on: what every method is measured on
+    image_files(images)
+    if _missing(images, names):
+        raise UserInputError(f"{images} lacks SfM images (e.g. {_missing(images, names)[0]}): give the folder "
+                             f"SfM ran on with --images")
+    simulated = (survey / "truth" / "effects.json").is_file()
+    out = ws.stage_dir("eval")
+    methods, skipped, ranges, coefficients, geometry = _inputs(ws, cfg, survey, tracks, simulated)
+    per_frame: dict[str, float | None] = run_baselines(names, images, methods, out / "baselines", ranges,
+                                                       coefficients, geometry)
+    folders = {m: out / "baselines" / m for m in methods}
+
+    correct_dir = Path(cfg.ours_dir).parent if cfg.ours_dir else ws.root / "03_correct"
+    ours_dir = Path(cfg.ours_dir) if cfg.ours_dir else correct_dir / "images"
+    if not ours_dir.is_dir():
+        skipped[OURS] = f"no corrected images in {ours_dir} (run `watergan correct` into 03_correct)"
+    elif _missing(ours_dir, names):
+        skipped[OURS] = (f"{ours_dir} lacks {len(_missing(ours_dir, names))} of the SfM images "
+                         f"(e.g. {_missing(ours_dir, names)[0]})")
+    else:
+        folders[OURS] = ours_dir
+        per_frame[OURS] = _ours_seconds(correct_dir)
+    methods = [m for m in [*methods, OURS] if m != "oracle" and m in folders] + \
+        (["oracle"] if "oracle" in folders else [])
+    reference: tuple[str, ...] = ()
+    if simulated and (survey / "truth" / "inair").is_dir():
+        folders[INAIR] = survey / "truth" / "inair"
+        reference = (INAIR,)
+    folders = {m: folders[m] for m in [*methods, *reference]}
+
+    # measurements on the same points, observations and board for every method
+    cons = consistency(tracks, folders, cfg.patch_px, cfg.min_views, progress=True)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in
+                                   point_variances(tracks, folders, cfg.patch_px, cfg.min_views).items()})
+    atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
+    board, board_results, board_note = _measure_board(cfg, survey, folders)
+    fid = {m: fidelity(folders[m], folders[INAIR], names) for m in methods} if reference else {}
+    depth_note = _depth_compare(ws, correct_dir)
+    if depth_note:
+        skipped["depth comparison"] = depth_note
+
+    tables = [_board_table(board_results, methods, reference) if board_results else
+              make_table("table1", "Table I: colour-board accuracy", [], [], status=f"not measured: {board_note}"),
+              _consistency_table(cons, methods, reference), restorer_table(ws.root / "02_restorer")]
+    if fid:
+        tables.append(make_table("fidelity", "Fidelity against the in-air truth (higher is better)", methods, [
+            {"label": "PSNR (dB)", "values": [fid[m][0] for m in methods], "better": "higher"},
+            {"label": "SSIM", "values": [fid[m][1] for m in methods], "better": "higher"}], "row",
+            note=f"sRGB-encoded frames against truth/inair, mean over {len(names)} frames. Methods that cannot "
+                 f"know the exposure (all but Jaffe-McGlamery and the oracle) are not rescaled."))
+    else:
+        tables.append(make_table("fidelity", "Fidelity against the in-air truth", [], [],
+                                 status="not measured: not a simulated survey (no truth/inair)"))
+    tables.append(depth_table(out / "depth"))
+    tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
+        {"label": "seconds per frame", "values": [per_frame.get(m) for m in methods], "better": "lower"}], "row",
+        note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "
+             "`watergan correct`'s wall time per corrected frame, model loading and files included."))
+
+    metrics = []
+    if board_results:
+        metrics += [("mean board distance", {m: board_results[m].mean_distance for m in methods}, "lower"),
+                    ("mean board CIEDE2000", {m: board_results[m].mean_ciede2000 for m in methods}, "lower")]
+    metrics += [(f"{ch} consistency", {m: cons.scores[m].variance[k] for m in methods}, "lower")
+                for k, ch in enumerate("RGB")]
+    if fid:
+        metrics += [("PSNR", {m: fid[m][0] for m in methods}, "higher"),
+                    ("SSIM", {m: fid[m][1] for m in methods}, "higher")]
+    verdict = verdict_lines(metrics, methods)
+    if OURS in skipped:
+        verdict.insert(0, f"ours not measured: {skipped[OURS]}")
+    elif board_results and "oracle" in board_results:
+        ratio = board_results[OURS].mean_distance / max(board_results["oracle"].mean_distance, 1e-12)
+        verdict.append(f"ours' mean board distance is {ratio:.2f}x the oracle's "
+                       f"({'within' if ratio <= 2 else 'more than'} 2x)")
+    sfm = ws.load_result("sfm") or {}
+    if ranges is not None and ranges.kind == "dense" and sfm.get("result", {}).get("scale_method") == "none":
+        verdict.append("the dense depth is not metric (SfM found no scale): Jaffe-McGlamery's coefficients (1/m) "
+                       "and Sea-thru's fitted ones are in survey units")
+    if ranges is not None and ranges.fallback:
+        verdict.append(f"{len(ranges.fallback)} frames had no {ranges.kind} range; the range baselines used a "
+                       f"constant range there (the frame's median SfM depth)")
+    verdict += [f"{LABELS.get(m, m)} not run: {why}" for m, why in skipped.items() if m != OURS]
+
+    range_kind = ranges.kind if ranges is not None else "none"
+    examples = _example_frames(names, board, cfg.example_frames)
+    data = {"methods": methods, "labels": {m: LABELS.get(m, m) for m in [*methods, *reference]},
+            "reference": list(reference), "folders": {m: _maybe_relative(ws, p) for m, p in folders.items()},
+            "skipped": skipped, "range_source": range_kind, "simulated": simulated, "example_frames": examples,
+            "tables": tables, "verdict": verdict}
+    atomic_write_json(out / "tables.json", data)
+    md = ["# Evaluation", "", f"Methods: {', '.join(LABELS.get(m, m) for m in methods)}; range from {range_kind}.",
+          ""] + [table_markdown(t) for t in tables] + ["## Verdict", ""] + [f"- {line}" for line in verdict]
+    atomic_write_text(out / "tables.md", "\n".join(md) + "\n")
+    return EvaluateResult(
+        tables_json=ws.relative(out / "tables.json"), tables_md=ws.relative(out / "tables.md"),
+        baselines_dir=ws.relative(out / "baselines"), methods=methods, skipped=skipped, range_source=range_kind,
+        mean_board_distance={m: r.mean_distance for m, r in board_results.items()},
+        consistency_variance={m: s.variance for m, s in cons.scores.items()}, verdict=verdict,
+        example_frames=examples, seconds=time.perf_counter() - began)
+
+
+def _maybe_relative(ws, path: Path) -> str:
+    try:
+        return ws.relative(path)
+    except ValueError:
+        return str(Path(path).resolve())

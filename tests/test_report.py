@@ -1,0 +1,291 @@
+"""The evaluation stage (tables, verdict) on a small simulated workspace, and the HTML report opened in
+headless Chromium.
+
+The workspace reuses the session's small simulated survey and its real pycolmap SfM (tests/test_sfm.py),
+copied so that nothing here changes the shared one. What the other stages would produce is stood in
+for where training them would take minutes: "ours" is a copy of the raw frames (so every sentence of
+the verdict about it can be predicted), the dense depth is the simulator's true depth, the restorer's
+relative depth is half the true depth, and Table III reads a validation.json in the format
+watergan.train_restorer writes."""
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_sfm import survey_and_sfm
+
+from eval.tables import (
+    EvaluateConfig,
+    _RangeSource,
+    best_cells,
+    make_table,
+    run_evaluate,
+    table_markdown,
+    verdict_lines,
+    z_to_range,
+)
+from pipeline.workspace import Workspace
+from watergan.errors import UserInputError
+
+CHROMIUM = Path("/usr/bin/chromium")
+VALIDATION = {"val_count": 2, "units": "stored sRGB 0..1; relative depth 0..1",
+              "rmse": {"raw": {"R": 0.21, "G": 0.12, "B": 0.15, "depth": None},
+                       "restorer": {"R": 0.05, "G": 0.04, "B": 0.06, "depth": 0.08}}}
+
+
+def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
+    survey, shared, _ = survey_and_sfm()
+    ws = Workspace(Path(tempfile.mkdtemp(prefix=prefix)) / "ws")
+    shutil.copytree(survey, ws.root / "00_survey")
+    shutil.copytree(shared.root / "04_sfm", ws.root / "04_sfm")
+    return ws.root / "00_survey", ws
+
+
+@pytest.fixture(scope="module")
+def evaluated():
+    """A workspace with every input the evaluation and the report use, evaluated."""
+    from eval.depth import read_depth, write_depth_png
+    from pipeline.mesh import MeshConfig, run_mesh
+
+    survey, ws = _copy_workspace("watergan-eval-")
+    shutil.copytree(survey / "images", ws.root / "03_correct" / "images")  # "ours" stands in as the raw frames
+    (ws.root / "03_correct" / "summary.json").write_text(json.dumps({"corrected": 10, "seconds": 2.5}))
+    (ws.root / "02_restorer").mkdir()
+    (ws.root / "02_restorer" / "validation.json").write_text(json.dumps(VALIDATION))
+    (ws.root / "05_dense" / "depth").mkdir(parents=True)
+    (ws.root / "03_correct" / "depth").mkdir()
+    for path in sorted((survey / "truth" / "depth").glob("*.png")):
+        shutil.copy(path, ws.root / "05_dense" / "depth" / path.name)
+        write_depth_png(ws.root / "03_correct" / "depth" / path.name, 0.5 * read_depth(path))
+    ws.run("mesh", MeshConfig(source="sparse"), run_mesh)
+    (ws.root / "model_ledger.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (
+        {"time": "2026-01-01 00:00:00", "kind": "model", "heldout_rmse": 0.02, "stack": ["attenuation", "gain"]},
+        {"time": "2026-01-01 00:01:00", "kind": "candidate", "heldout_rmse": 0.012,
+         "stack": ["attenuation", "gain", "vignetting_offcentre"]})))
+    record = ws.run("eval", EvaluateConfig(range_source="dense"), run_evaluate)
+    tables = json.loads((ws.root / "06_eval" / "tables.json").read_text())
+    return survey, ws, record["result"], tables
+
+
+def _table(tables: dict, table_id: str) -> dict:
+    return next(t for t in tables["tables"] if t["id"] == table_id)
+
+
+def _row(table: dict, label: str) -> dict:
+    row = next(r for r in table["rows"] if r["label"] == label)
+    return dict(zip(table["columns"], row["values"], strict=True))
+
+
+@pytest.mark.slow
+def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
+    survey, ws, result, tables = evaluated
+    assert result["methods"] == ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "ours", "oracle"]
+    assert result["range_source"] == "dense" and result["skipped"] == {}
+    for m in ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "oracle"]:
+        files = sorted(p.name for p in (ws.root / "06_eval" / "baselines" / m).iterdir())
+        assert files == sorted(p.name for p in (survey / "images").iterdir()), m
+    board, cons = _table(tables, "table1"), _table(tables, "table2")
+    assert board["reference"] == cons["reference"] == ["inair"]
+    mean = _row(board, "mean distance")
+    # ours is a copy of the raw frames: identical measurements, on the same points and board
+    assert mean["ours"] == mean["raw"] and _row(cons, "G")["ours"] == _row(cons, "G")["raw"]
+    # the oracle inverts the true stack: near the in-air truth, far better than raw and every blind baseline
+    assert mean["oracle"] < 3 * mean["inair"] + 0.005 and mean["oracle"] < 0.1 * mean["raw"]
+    assert mean["jaffe"] < 0.5 * mean["raw"] and mean["gray_world"] < mean["raw"]
+    assert len(board["rows"]) == 24 + 2 and _row(board, "mean CIEDE2000")["oracle"] < 2
+    assert _row(cons, "mean")["inair"] < _row(cons, "mean")["raw"]
+    fid = _table(tables, "fidelity")
+    assert _row(fid, "PSNR (dB)")["oracle"] > _row(fid, "PSNR (dB)")["raw"] + 10
+    # per-point variances behind Table II average to it
+    with np.load(ws.root / "06_eval" / "consistency_points.npz") as npz:
+        assert np.isclose(npz["raw"][:, 1].mean(), _row(cons, "G")["raw"], rtol=1e-4)
+
+
+@pytest.mark.slow
+def test_verdict_says_plainly_where_ours_loses(evaluated):
+    _, ws, result, tables = evaluated
+    verdict = result["verdict"]
+    mean = _row(_table(tables, "table1"), "mean distance")
+    assert f"ours loses to oracle on mean board distance: {mean['ours']:.3g} vs {mean['oracle']:.3g}" in verdict
+    assert any(line.startswith("ours loses to Jaffe-McGlamery on mean board distance") for line in verdict)
+    assert not any("to raw " in line or "beats raw" in line for line in verdict)  # a tie is neither
+    assert any("more than 2x" in line and "oracle" in line for line in verdict)
+    md = (ws.root / "06_eval" / "tables.md").read_text()
+    assert f"**{mean['oracle']:.4f}**" in md and "ours loses to oracle" in md
+
+
+@pytest.mark.slow
+def test_restorer_depth_and_speed_tables(evaluated):
+    _, _, _, tables = evaluated
+    t3 = _table(tables, "table3")
+    assert t3["status"] == "ok" and _row(t3, "restorer")["G"] == 0.04 and _row(t3, "raw (uncorrected)")["depth"] is None
+    depth = _table(tables, "depth")
+    assert depth["status"] == "ok"
+    values = {r["label"]: r["values"][0] for r in depth["rows"]}
+    assert values["median scale"] == pytest.approx(2.0, rel=0.01) and values["RMSE (m)"] < 0.005
+    speed = _row(_table(tables, "speed"), "seconds per frame")
+    assert speed["ours"] == pytest.approx(0.25) and all(v is not None and v >= 0 for v in speed.values())
+
+
+@pytest.mark.slow
+def test_dense_depth_becomes_the_true_range(evaluated):
+    from eval.depth import read_depth
+
+    survey, ws, _, _ = evaluated
+    from pipeline.sfm import Tracks
+
+    source = _RangeSource("dense", ws, survey, Tracks.load(ws.root / "04_sfm" / "tracks.npz"))
+    name = sorted(p.name for p in (survey / "images").iterdir())[3]
+    true = read_depth(survey / "truth" / "range" / name)
+    estimate = source(name, true.shape)
+    assert np.nanmax(np.abs(estimate - true)) < 0.003  # mm rounding of depth and range
+    assert np.allclose(z_to_range(np.full((3, 3), 2.0), np.array([[1.0, 0, 1], [0, 1.0, 1], [0, 0, 1]]))[1, 1], 2.0)
+
+
+@pytest.mark.slow
+def test_missing_inputs_are_skipped_with_reasons(tmp_path):
+    survey, ws = _copy_workspace("watergan-eval-plain-")
+    plain = tmp_path / "survey"  # what a user has: images and camera.json, no truth
+    shutil.copytree(survey / "images", plain / "images")
+    shutil.copy(survey / "camera.json", plain / "camera.json")
+    cfg = EvaluateConfig(survey_dir=str(plain), methods=("raw", "gray_world", "jaffe", "seathru", "oracle"))
+    result = ws.run("eval", cfg, run_evaluate)["result"]
+    assert result["methods"] == ["raw", "gray_world"] and result["range_source"] == "none"
+    assert set(result["skipped"]) == {"jaffe", "seathru", "oracle", "ours"}
+    assert result["verdict"][0].startswith("ours not measured")
+    tables = json.loads((ws.root / "06_eval" / "tables.json").read_text())
+    assert _table(tables, "table1")["status"].startswith("not measured")
+    assert _table(tables, "fidelity")["status"].startswith("not measured")
+    assert ws.run("eval", cfg, run_evaluate)["result"]["seconds"] == result["seconds"]  # done: skipped
+    with pytest.raises(UserInputError, match="range"):
+        run_evaluate(ws, EvaluateConfig(survey_dir=str(plain), range_source="truth"))
+
+
+def test_tables_mark_the_best_value_and_verdict_wording():
+    table = make_table("t", "T", ["raw", "clahe", "ours", "inair"], [
+        {"label": "G", "values": [0.02, 0.010, 0.012, 0.0], "better": "lower"},
+        {"label": "PSNR", "values": [20.0, 25.0, 25.0, None], "better": "higher"}], reference=("inair",))
+    assert best_cells(table) == {(0, 1), (1, 1), (1, 2)}  # the reference column is never best; ties all bold
+    md = table_markdown(table)
+    assert "| G | 0.0200 | **0.0100** | 0.0120 | 0.0000 |" in md and "in-air truth (reference)" in md
+    lines = verdict_lines([("G consistency", {"raw": 0.02, "clahe": 0.010, "ours": 0.012}, "lower")],
+                          ["raw", "clahe", "ours"])
+    assert lines == ["ours loses to CLAHE on G consistency: 0.012 vs 0.01",
+                     "ours beats raw on G consistency (0.012)"]
+    assert verdict_lines([("x", {"raw": 1.0}, "lower")], ["raw"]) == []
+
+
+def _open_in_chromium(html_path: Path, tmp_path: Path) -> tuple[dict, list[str]]:
+    """Load the page in headless Chromium with a probe script prepended: every <img> must have decoded
+    (naturalWidth > 0) and nothing may reach the console. Returns (probe result, console lines)."""
+    probe = """<script>
+window.__errors = [];
+window.addEventListener('error', function (e) {
+  window.__errors.push('error: ' + (e.message || (e.target && e.target.tagName) || '?')); }, true);
+var _error = console.error;
+console.error = function () { window.__errors.push('console.error: ' + Array.prototype.join.call(arguments, ' '));
+  _error.apply(console, arguments); };
+window.addEventListener('load', function () {
+  var images = Array.prototype.slice.call(document.images);
+  var bad = images.filter(function (i) { return !(i.complete && i.naturalWidth > 0); }).map(function (i) {
+    return i.alt; });
+  var out = document.createElement('pre'); out.id = '__probe';
+  out.textContent = JSON.stringify({n: images.length, bad: bad, errors: window.__errors});
+  document.body.appendChild(out); });
+</script>"""
+    page = html_path.read_text()
+    checked = html_path.parent / "_probe.html"  # beside the report: relative links resolve the same
+    checked.write_text(page.replace("<head>", "<head>" + probe, 1))
+    try:
+        run = subprocess.run([str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                              f"--user-data-dir={tmp_path / 'chromium-profile'}", "--virtual-time-budget=10000",
+                              "--enable-logging=stderr", "--v=0", "--dump-dom", checked.resolve().as_uri()],
+                             capture_output=True, text=True, timeout=120)
+    finally:
+        checked.unlink()
+    found = re.search(r'<pre id="__probe">(.*?)</pre>', run.stdout, re.S)
+    assert found, f"the probe did not run (exit {run.returncode}): {run.stderr[-2000:]}"
+    text = found.group(1).replace("&quot;", '"').replace("&lt;", "<").replace("&gt;", ">").replace("&amp;", "&")
+    console = [line for line in run.stderr.splitlines() if ":CONSOLE" in line]
+    return json.loads(text), console
+
+
+NO_CHROMIUM = "Chromium is not installed at /usr/bin/chromium (Debian package 'chromium'; CI installs it)"
+
+
+@pytest.mark.slow
+def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
+    from eval.report import write_report
+
+    _, ws, _, _ = evaluated
+    path = write_report(ws)
+    assert path == ws.root / "report" / "report.html"
+    page = path.read_text()
+    assert "<script" not in page and not re.search(r"""(src|href)=['"]?(https?:)?//""", page)
+    report = json.loads((ws.root / "report" / "report.json").read_text())
+    status = {s["id"]: s["status"] for s in report["sections"]}
+    assert set(status.values()) == {"ok"}, report["sections"]
+    assert report["verdict"] and any("ours loses to oracle" in line for line in report["verdict"])
+    frames = next(s for s in report["sections"] if s["id"] == "frames")
+    assert len(frames["frames"]) == 3 and frames["columns"][-1] == "inair"
+    assert "href='../07_mesh/mesh.glb'" in page and "<b>" in page
+    assert "ours loses to oracle" in (ws.root / "report" / "report.md").read_text()
+    if not CHROMIUM.is_file():
+        pytest.skip(NO_CHROMIUM)
+    probe, console = _open_in_chromium(path, tmp_path)
+    assert probe["n"] >= 3 * 10 + 5 and probe["bad"] == [] and probe["errors"] == [], probe
+    assert console == []
+
+
+def test_report_of_an_empty_workspace_says_not_run(tmp_path):
+    from pipeline.cli_report import add_commands
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command", required=True), [])
+    args = parser.parse_args(["report", str(tmp_path / "ws")])
+    Workspace(tmp_path / "ws")
+    assert args.func(args) == 0
+    report = json.loads((tmp_path / "ws" / "report" / "report.json").read_text())
+    status = {s["id"]: s["status"] for s in report["sections"]}
+    assert status.pop("config") == "ok" and set(status.values()) == {"not run"}
+    page = (tmp_path / "ws" / "report" / "report.html").read_text()
+    assert page.count("not run") >= 9
+    if not CHROMIUM.is_file():
+        pytest.skip(NO_CHROMIUM)
+    probe, console = _open_in_chromium(tmp_path / "ws" / "report" / "report.html", tmp_path)
+    assert probe["bad"] == [] and probe["errors"] == [] and console == []
+
+
+def test_evaluate_command_parses_and_needs_sfm(tmp_path):
+    from pipeline.cli_report import add_commands
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command", required=True), [])
+    args = parser.parse_args(["evaluate", "--workspace", str(tmp_path / "ws"), "--range", "truth",
+                              "--methods", "raw,clahe"])
+    assert args.range == "truth" and args.methods == "raw,clahe"
+    with pytest.raises(UserInputError, match="sfm"):
+        args.func(args)
+    bad = parser.parse_args(["evaluate", "--workspace", str(tmp_path / "ws"), "--methods", "raw,magic"])
+    with pytest.raises(UserInputError, match="magic"):
+        bad.func(bad)
+
+
+@pytest.mark.slow
+def test_evaluate_command_prints_the_verdict_of_the_finished_stage(evaluated, capsys):
+    from pipeline.cli_report import add_commands
+
+    _, ws, result, _ = evaluated
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command", required=True), [])
+    args = parser.parse_args(["evaluate", "--workspace", str(ws.root), "--range", "dense"])
+    assert args.func(args) == 0  # the same options as the fixture's stage: skipped, its result printed
+    printed = capsys.readouterr().out
+    assert f"{result['seconds']:.1f} s" in printed and "ours loses to oracle on mean board distance" in printed
+    assert str(ws.root / "06_eval" / "tables.md") in printed
