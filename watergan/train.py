@@ -4,10 +4,13 @@ WaterGAN (Li et al. 2017) learns a site's water without labels: the generator G 
 see :mod:`watergan.nets.generator`) turns in-air RGB-D into underwater images and the discriminator
 D (DCGAN) tells them from the survey's real frames. Per iteration, with BCE on logits::
 
-    L_D = BCE(D(x + n), real_label) + BCE(D(G(J, d, z) + n'), 0)     one Adam step on D
-    L_G = BCE(D(G(J, d, z) + n'), 1)                                 ``gen_steps_per_disc_step`` steps on G
+    L_D = BCE(D(b(x) + n), real_label) + BCE(D(b(G(J, d, z)) + n'), 0)          one Adam step on D
+    L_G = BCE(D(b(G(J, d, z)) + n'), 1) + w |m(G(J, d, z)) - m(x)|^2            ``gen_steps_per_disc_step`` steps on G
 
-with instance noise n, n' ~ N(0, instance_noise_std^2) and one-sided label smoothing (``real_label``).
+with a Gaussian blur b (``disc_blur_px``), instance noise n, n' ~ N(0, instance_noise_std^2),
+one-sided label smoothing (``real_label``) and the per-channel mean and standard deviation m of a
+batch weighted by w (``moment_weight``). The generator starts near the survey's brightness and veil
+(``init_from_data``) with one gain for all channels (``gain_channels``).
 Adam (lr 2e-4, beta1 0.5) for the nets; the generator's few physical parameters use ``physics_lr`` and
 the backscatter veil's level and spread ``veil_lr`` (see :class:`GanConfig`). The geometry of every
 RGB-D view (range, points, normals) is computed once before training (see
@@ -85,24 +88,43 @@ class GanConfig:
     """Adam learning rate of both nets."""
     beta1: float = 0.5
     """Adam beta1 of both nets."""
-    physics_lr: float = 1e-2
+    physics_lr: float = 3e-3
     """Adam learning rate of every effect's bounded physical parameters (eta, vignetting, gain...).
-    At 2e-4 these few parameters move too slowly for a minutes-long CPU run; the learned layers
-    (backscatter_conv) keep ``lr``, since a fast rate on them grows the z mask into texture. Set it
-    to ``lr`` for the paper's single rate."""
-    veil_lr: float | None = None
+    At 2e-4 these few parameters move too slowly for a minutes-long CPU run; at 1e-2 Adam's
+    normalised steps turn any small persistent bias of the discriminator into a steady drift (eta
+    rose 3-8x on the demo survey in 150 iterations). The learned layers (backscatter_conv) keep
+    ``lr``, since a fast rate on them grows the z mask into texture. Set it to ``lr`` for the paper's
+    single rate."""
+    veil_lr: float | None = 2e-3
     """Adam learning rate of ``backscatter_conv``'s batch-norm scale and shift (the level and spread
-    of the backscatter veil per channel, linear radiance; 6 numbers); None: ``lr``, as the paper.
-    At ``lr`` the veil moves by at most ~0.02 in the ~100 iterations a loaded CPU allows in 5 minutes
-    while the demo survey's veil is ~0.1, and generated images stayed ~0.1 too dark. One run with
-    2e-3 (demo survey, seed 0, 168 iterations) matched the G and B means within 0.015 but let eta
-    drift to 2-4x the truth and left R 0.22 too dark, so it is off by default (not yet tuned)."""
+    of the backscatter veil per channel, linear radiance; 6 numbers); None: ``lr``, as the paper. At
+    ``lr`` the veil moves by at most ~0.02 in the few hundred iterations a CPU allows in minutes,
+    while the demo survey's veil is ~0.1."""
+    gain_channels: int = 1
+    """Values of the generator's ``gain``: 1 (one exposure factor, as the paper's camera model) or 3
+    (a white balance per channel). A per-channel gain and a per-channel attenuation explain a frame's
+    colour cast equally well; only the weak change of colour with range tells them apart, so with 3
+    the learned eta is poorly determined."""
+    init_from_data: bool = True
+    """Start the backscatter veil at the real frames' darkest colour (the 2nd percentile per channel,
+    linear: in the darkest pixels little but backscatter remains, the dark-channel idea) instead of
+    INITIAL_BACKSCATTER_LEVEL, and the gain at the ratio of the real frames' mean to the first
+    generated batch's mean above that veil, so training starts near the site's brightness and cast."""
+    moment_weight: float = 10.0
+    """Weight of a colour-statistics term added to the generator loss: the squared differences of
+    the per-channel mean and standard deviation of a generated and a real batch (linear), a form of
+    feature matching (Salimans et al. 2016) on the raw colours; 0: the paper's loss alone."""
     gen_steps_per_disc_step: int = 2
     """Generator updates per discriminator update (2 in the original code)."""
     instance_noise_std: float = 0.1
     """Standard deviation of Gaussian noise added to every discriminator input (real and generated,
     linear units). It hides fine texture that tells the in-air dataset from the survey apart, so the
     discriminator judges colour and brightness, which the physical stack can match; 0 turns it off."""
+    disc_blur_px: float = 1.5
+    """Standard deviation, pixels, of a Gaussian blur applied to every discriminator input (real and
+    generated, before the instance noise): the discriminator then judges colour, brightness and
+    coarse structure rather than the fine texture in which the in-air scenes and the site differ and
+    which no physical stage can change; 0 turns it off."""
     real_label: float = 0.9
     """Target of the discriminator on real images (one-sided label smoothing; generated images keep
     0 and the generator's target stays 1). The in-air RGB-D scenes and the survey differ in content
@@ -188,6 +210,12 @@ def _check_config(config: GanConfig) -> None:
         raise UserInputError(f"GanConfig.veil_lr must be positive or None, got {config.veil_lr}")
     if not (config.lr > 0 and config.physics_lr > 0):
         raise UserInputError(f"learning rates must be positive, got lr={config.lr}, physics_lr={config.physics_lr}")
+    if config.gain_channels not in (1, 3):
+        raise UserInputError(f"GanConfig.gain_channels must be 1 or 3, got {config.gain_channels}")
+    if config.disc_blur_px < 0:
+        raise UserInputError(f"GanConfig.disc_blur_px must be >= 0, got {config.disc_blur_px}")
+    if config.moment_weight < 0:
+        raise UserInputError(f"GanConfig.moment_weight must be >= 0, got {config.moment_weight}")
     for name in ("iterations", "epochs", "batch_size", "gen_steps_per_disc_step", "disc_width", "z_dim",
                  "checkpoint_every", "sample_every"):
         value = getattr(config, name)
@@ -226,6 +254,64 @@ def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: flo
     if veil_ids:
         groups.append({"params": [p for p in trainable if id(p) in veil_ids], "lr": veil_lr})
     return groups
+
+
+def colour_moments(images: torch.Tensor) -> torch.Tensor:
+    """(2,3): the per-channel mean and standard deviation of a (B,3,H,W) batch."""
+    return torch.stack([images.mean(dim=(0, 2, 3)), images.std(dim=(0, 2, 3))])
+
+
+def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Separable Gaussian blur of (B,C,H,W) images (reflect padding, kernel radius 3 sigma)."""
+    if sigma_px <= 0:
+        return images
+    radius = max(1, int(math.ceil(3.0 * sigma_px)))
+    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
+    kernel = torch.exp(-0.5 * (x / sigma_px) ** 2)
+    kernel = kernel / kernel.sum()
+    c = images.shape[1]
+    out = F.conv2d(F.pad(images, (radius, radius, 0, 0), mode="reflect"), kernel.view(1, 1, 1, -1).repeat(c, 1, 1, 1),
+                   groups=c)
+    return F.conv2d(F.pad(out, (0, 0, radius, radius), mode="reflect"), kernel.view(1, 1, -1, 1).repeat(c, 1, 1, 1),
+                    groups=c)
+
+
+def init_from_data(generator: WaterGenerator, air: torch.Tensor, depth_m: torch.Tensor, real: torch.Tensor,
+                   intrinsics: tuple[float, float, float, float] | None, count: int = 64) -> dict[str, list[float]]:
+    """Start the veil and the gain near the survey (see ``GanConfig.init_from_data``).
+
+    With D the generated image without veil (gain 1), q_c the real frames' 2nd percentile and R the
+    real mean: k = (mean R - mean q) / mean D (the mean over channels with one gain, per channel with
+    three), then the veil level L_c = q_c / k, so that k L_c = q_c and k (D + L) matches R on average.
+    Returns the values set."""
+    stack = generator.stack
+    q = torch.quantile(real.permute(1, 0, 2, 3).reshape(3, -1)[:, ::7], 0.02, dim=1).double()
+    r_mean = real.mean(dim=(0, 2, 3)).double()
+    norm = stack[BackscatterConv.name].norm if BackscatterConv.name in stack.names else None
+    if norm is not None:
+        saved = norm.weight.detach().clone(), norm.bias.detach().clone()
+        with torch.no_grad():
+            norm.weight.zero_()
+            norm.bias.zero_()
+    z = torch.zeros(min(count, air.shape[0]), generator.z_dim)
+    d_mean = _render_eval(generator, air[:count], depth_m[:count], z, intrinsics).mean(dim=(0, 2, 3)).double()
+    values = {}
+    if "gain" in stack.names:
+        k = stack["gain"].param("k")
+        ratio = (r_mean - q) / d_mean.clamp_min(1e-4)
+        ratio = ratio.mean().reshape(1) if k.numel() == 1 else ratio
+        stack["gain"].set_values(k=ratio.clamp(0.05, 50.0).tolist())
+        values["gain.k"] = stack["gain"].param("k").tolist()
+        k = stack["gain"].param("k").double()
+    else:
+        k = torch.ones(1, dtype=torch.float64)
+    if norm is not None:
+        level = (q / k).float()
+        with torch.no_grad():
+            norm.weight.copy_(saved[0])
+            norm.bias.copy_(level)
+        values["veil_level"] = level.tolist()
+    return values
 
 
 def _json_ready(values: dict[str, torch.Tensor]) -> dict[str, list | float]:
@@ -375,7 +461,10 @@ def train_gan(config: GanConfig) -> GanResult:
         depth_scale_m = config.depth_scale_m or float(rgbd.depth_m.max())
         if not depth_scale_m > 0:
             raise DataError(f"every depth in {config.rgbd_dir} is 0: no depth to learn the water from")
-        generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw)
+        generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw,
+                                         config.gain_channels)
+        if config.init_from_data:
+            init_from_data(generator, rgbd.rgb, rgbd.depth_m, water.images, intrinsics)
     discriminator = Discriminator(config.disc_width, config.image_hw)
     generator.to(device).train()
     discriminator.to(device).train()
@@ -435,15 +524,21 @@ def train_gan(config: GanConfig) -> GanResult:
                                       ).to(device)
 
             fake = generator.render(state_b)
-            d_real, d_fake = discriminator(real_b + noise_real), discriminator(fake.detach() + noise_fake)
+            blur = config.disc_blur_px
+            d_real = discriminator(gaussian_blur(real_b, blur) + noise_real)
+            d_fake = discriminator(gaussian_blur(fake.detach(), blur) + noise_fake)
             loss_d = bce(d_real, real_target) + bce(d_fake, zeros)
             opt_d.zero_grad(set_to_none=True)
             loss_d.backward()
             opt_d.step()
 
             discriminator.requires_grad_(False)
+            real_moments = colour_moments(real_b) if config.moment_weight > 0 else None
             for _ in range(config.gen_steps_per_disc_step):
-                loss_g = bce(discriminator(generator.render(state_b) + noise_fake), ones)
+                fake = generator.render(state_b)
+                loss_g = bce(discriminator(gaussian_blur(fake, blur) + noise_fake), ones)
+                if real_moments is not None:
+                    loss_g = loss_g + config.moment_weight * (colour_moments(fake) - real_moments).square().sum()
                 opt_g.zero_grad(set_to_none=True)
                 loss_g.backward()
                 opt_g.step()

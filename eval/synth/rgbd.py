@@ -1,6 +1,11 @@
 """The in-air RGB-D training set: many views of other random seafloor scenes (other seeds, other
 photographs and tints, no board), from nadir and oblique poses.
 
+The scenes are drawn to resemble the survey site (sediment photographs, tints and texture contrast
+near the site's), as an in-air set chosen for a survey would be: WaterGAN can change colour and
+brightness, not content, so a set with twice the site's texture contrast pushes the learned water
+towards a murkier one (a larger eta dims the texture, a stronger veil restores the mean).
+
 Written as ``rgb/NNNNNN.png`` (sRGB 8-bit in-air colour), ``depth/NNNNNN.png`` (camera z, 16-bit
 millimetres, 0 where a ray leaves the scene) and ``camera.json`` (intrinsics of these images).
 """
@@ -17,10 +22,11 @@ from tqdm import tqdm
 from .camera import intrinsics_from_fov, make_pose
 from .io import write_depth_png, write_json, write_srgb_png
 from .render import RenderConfig, make_raycaster, render_view
-from .scene import TEXTURES, SceneConfig, build_scene
+from .scene import SceneConfig, build_scene
 from .trajectory import CAM_IN_BODY, body_rotation
 
-#: Photographs whose texture reads as sediment (the colour ones serve as overlays only).
+#: Photographs whose texture reads as sediment (the colour ones are left out: their hues are not
+#: sediment's).
 GREY_TEXTURES = ("gravel", "grass", "brick")
 
 #: Sediment tints (linear albedo) the random scenes choose from: sand, darker sand, shell grit, algal
@@ -53,18 +59,18 @@ class RGBDConfig:
 
 
 def random_scene_config(rng: np.random.Generator, size_m: float, spacing_m: float) -> SceneConfig:
-    """A board-less seafloor with random photographs (a grey one for the main detail, any other as
-    the overlay), tint, relief and rocks."""
+    """A board-less seafloor with random sediment photographs (two different grey ones, for the detail
+    and the overlay), tint, texture contrast, relief and rocks."""
     detail = GREY_TEXTURES[rng.integers(len(GREY_TEXTURES))]
-    overlay = [t for t in TEXTURES if t != detail][rng.integers(len(TEXTURES) - 1)]
+    overlay = [t for t in GREY_TEXTURES if t != detail][rng.integers(len(GREY_TEXTURES) - 1)]
     return SceneConfig(size_x_m=size_m, size_y_m=size_m, grid_spacing_m=spacing_m,
-                       relief_m=float(rng.uniform(0.05, 0.3)), n_rocks=int(rng.integers(3, 15)),
+                       relief_m=float(rng.uniform(0.05, 0.3)), n_rocks=int(rng.integers(3, 10)),
                        rock_height_m=(0.1, float(rng.uniform(0.3, 0.8))),
-                       texel_m=float(rng.uniform(0.003, 0.008)),
+                       texel_m=float(rng.uniform(0.004, 0.007)),
                        detail_texture=detail, overlay_texture=overlay,
                        tint_linear=TINTS[rng.integers(len(TINTS))],
-                       colour_variation=float(rng.uniform(0.1, 0.3)),
-                       detail_contrast=float(rng.uniform(0.8, 1.5)), board=None)
+                       colour_variation=float(rng.uniform(0.1, 0.25)),
+                       detail_contrast=float(rng.uniform(0.9, 1.3)), board=None)
 
 
 def random_view_pose(rng: np.random.Generator, config: RGBDConfig) -> np.ndarray:

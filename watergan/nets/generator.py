@@ -27,10 +27,14 @@ INITIAL_BACKSCATTER_LEVEL = 0.05
 
 
 def generator_stack_config(effects: tuple[str, ...] | list[str] = DEFAULT_EFFECTS, depth_scale_m: float = 10.0,
-                           z_dim: int = 100, mask_hw: tuple[int, int] = (48, 64)) -> list[dict]:
+                           z_dim: int = 100, mask_hw: tuple[int, int] = (48, 64),
+                           gain_channels: int = 1) -> list[dict]:
     """The stack configuration of a fresh generator: the named effects at their initial values,
     sorted by class ``rank`` (stable, so effects of equal rank keep the given order), with
-    ``backscatter_conv``'s fixed settings (noise length, mask size, depth normaliser) filled in."""
+    ``backscatter_conv``'s fixed settings (noise length, mask size, depth normaliser) filled in and
+    ``gain`` with ``gain_channels`` values (1: one exposure factor, as the paper; 3: per channel)."""
+    if gain_channels not in (1, 3):
+        raise ValueError(f"gain_channels must be 1 or 3, got {gain_channels}")
     names = sorted(dict.fromkeys(effects), key=lambda name: get(name).rank)
     config = []
     for name in names:
@@ -38,6 +42,8 @@ def generator_stack_config(effects: tuple[str, ...] | list[str] = DEFAULT_EFFECT
         if name == BackscatterConv.name:
             params = {"z_dim": float(z_dim), "mask_height": float(mask_hw[0]), "mask_width": float(mask_hw[1]),
                       "depth_scale_m": float(depth_scale_m)}
+        if name == "gain":
+            params = {"k": [1.0] * gain_channels}
         config.append({"name": name, "params": params})
     return config
 
@@ -78,10 +84,11 @@ class WaterGenerator(nn.Module):
 
     @classmethod
     def build(cls, effects: tuple[str, ...] | list[str] = DEFAULT_EFFECTS, depth_scale_m: float = 10.0,
-              z_dim: int = 100, mask_hw: tuple[int, int] = (48, 64)) -> WaterGenerator:
+              z_dim: int = 100, mask_hw: tuple[int, int] = (48, 64), gain_channels: int = 1) -> WaterGenerator:
         """A fresh generator (see :func:`generator_stack_config`); the learned backscatter starts as a
         faint veil (BN scale INITIAL_BACKSCATTER_SPREAD, shift INITIAL_BACKSCATTER_LEVEL)."""
-        generator = cls(Stack.from_config(generator_stack_config(effects, depth_scale_m, z_dim, mask_hw)))
+        generator = cls(Stack.from_config(generator_stack_config(effects, depth_scale_m, z_dim, mask_hw,
+                                                                 gain_channels)))
         if BackscatterConv.name in generator.stack.names:
             norm = generator.stack[BackscatterConv.name].norm
             with torch.no_grad():
