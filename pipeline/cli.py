@@ -2,7 +2,8 @@
 
     watergan effects                      list every registered effect, its parameters and signature
     watergan simulate --out DIR [--preset demo|tiny] [--hidden NAME[,NAME]] [--seed N] [--force]
-    watergan demo [--out DIR]             the main job on the built-in default survey
+    watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py)
+    watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
     watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
     watergan train-restorer / correct     the restorer (see pipeline/cli_restorer.py)
     watergan sfm / dense / consistency / depth-compare / texture / mosaic   3D (see pipeline/cli_3d.py)
@@ -65,16 +66,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return _simulate(Path(args.out), args.preset, name_list(args.hidden), args.seed, args.force)
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    survey = out / "00_survey"
-    if (survey / "truth" / "config.json").is_file() and not args.force:
-        print(f"demo survey already simulated in {survey} (use --force to render it again)")
-        return 0
-    print("watergan demo: simulating the built-in survey with one hidden effect (vignetting_offcentre)")
-    return _simulate(survey, "demo", ["vignetting_offcentre"], args.seed, force=args.force)
-
-
 def build_parser() -> argparse.ArgumentParser:
     plugin = _plugin_parent()
     parser = argparse.ArgumentParser(prog="watergan",
@@ -88,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", parents=[plugin], help="render a simulated survey with known truth")
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty, unless --force)")
-    p.add_argument("--preset", choices=["demo", "tiny"], default="demo",
+    p.add_argument("--preset", choices=["demo", "tiny", "small"], default="demo",
                    help="demo: 44 frames of 640x480; tiny: a few small frames for tests")
     p.add_argument("--hidden", default="", metavar="NAME[,NAME]",
                    help="effects applied to the images but left out of the visible model")
@@ -96,19 +87,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("demo", parents=[plugin], help="run the main job on the built-in simulated survey")
-    p.add_argument("--out", default="demo_out", help="workspace folder (default: demo_out)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--force", action="store_true", help="redo finished stages")
-    p.set_defaults(func=cmd_demo)
-
-    from . import cli_3d, cli_diagnose, cli_gan, cli_report, cli_restorer
+    from . import cli_3d, cli_diagnose, cli_gan, cli_report, cli_restorer, cli_run
 
     cli_gan.add_commands(sub, [plugin])
     cli_restorer.add_commands(sub, [plugin])
     cli_3d.add_commands(sub, [plugin])
     cli_diagnose.add_commands(sub, [plugin])
     cli_report.add_commands(sub, [plugin])
+    cli_run.add_commands(sub, [plugin])
     return parser
 
 

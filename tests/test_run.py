@@ -1,0 +1,135 @@
+"""`watergan run` / `watergan demo`: every stage end to end on a small simulated survey, resume,
+--force, the options file, and bad survey folders refused before any training starts."""
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.run import RunOptions, check_survey, load_options_file, run_all
+from watergan.errors import UserInputError
+
+FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--diagnose-points", "200",
+        "--diagnose-candidates", "vignetting_offcentre,sensor_response", "--no-progress"]
+
+
+def watergan(*args):
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True)
+
+
+@pytest.mark.slow
+def test_demo_end_to_end_resume_and_force(tmp_path):
+    out = tmp_path / "ws"
+    first = watergan("demo", "--preset", "small", "--out", str(out), *FAST)
+    assert first.returncode == 0, first.stderr[-3000:]
+    report = out / "report" / "report.html"
+    assert f"report: {report}" in first.stdout
+    html = report.read_text()
+    assert "<img" in html and "http://" not in html.replace("http://www.w3.org", "")
+    summary = json.loads((out / "run_summary.json").read_text())
+    assert [s["stage"] for s in summary["stages"]] == ["survey", "gan", "restorer", "correct", "sfm", "dense", "eval",
+                                                       "mesh", "diagnose", "report"]
+    assert not any(s["skipped"] for s in summary["stages"])
+    assert len(list((out / "03_correct" / "images").glob("*.png"))) == 10
+    assert (out / "07_mesh").glob("*.glb")
+    tables = json.loads((out / "06_eval" / "tables.json").read_text())
+    assert "ours" in json.dumps(tables)
+
+    began = time.perf_counter()
+    second = watergan("demo", "--preset", "small", "--out", str(out), *FAST)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert time.perf_counter() - began < 30
+    assert all(s["skipped"] for s in json.loads((out / "run_summary.json").read_text())["stages"])
+    assert second.stdout.count("finished earlier, skipped") == 10
+
+    restorer_mtime = (out / "02_restorer" / "result.json").stat().st_mtime_ns
+    sfm_mtime = (out / "04_sfm" / "result.json").stat().st_mtime_ns
+    forced = watergan("demo", "--preset", "small", "--out", str(out), "--force", "correct", *FAST)
+    assert forced.returncode == 0, forced.stderr[-3000:]
+    ran = {s["stage"] for s in json.loads((out / "run_summary.json").read_text())["stages"] if not s["skipped"]}
+    assert ran == {"correct", "eval", "mesh", "report"}  # correct and the stages that read it
+    assert (out / "02_restorer" / "result.json").stat().st_mtime_ns == restorer_mtime
+    assert (out / "04_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
+
+
+def _survey(root, n=4, size=(48, 64)):
+    images = root / "images"
+    images.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for k in range(n):
+        cv2.imwrite(str(images / f"f{k}.png"), rng.integers(0, 255, (*size, 3), dtype=np.uint8))
+    (root / "camera.json").write_text(json.dumps({"fx": 50, "fy": 50, "cx": 32, "cy": 24, "width": 64, "height": 48}))
+    return images
+
+
+def test_good_survey_is_accepted(tmp_path):
+    _survey(tmp_path)
+    assert check_survey(tmp_path) == {"n_images": 4, "width": 64, "height": 48, "stereo": False, "simulated": False}
+
+
+@pytest.mark.parametrize("problem, message", [
+    ("no_images", "no images/ folder"),
+    (r"too_few", r"holds 2 image\(s\)"),
+    ("mixed_sizes", "different sizes"),
+    ("truncated", "truncated"),
+    ("not_an_image", "not a readable"),
+    ("right_unpaired", "do not pair"),
+    ("no_camera", "no camera.json"),
+])
+def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
+    survey = tmp_path / "survey"
+    images = _survey(survey)
+    if problem == "no_images":
+        shutil.rmtree(images)
+    elif problem == "too_few":
+        for p in sorted(images.iterdir())[2:]:
+            p.unlink()
+    elif problem == "mixed_sizes":
+        cv2.imwrite(str(images / "f1.png"), np.zeros((40, 64, 3), np.uint8))
+    elif problem == "truncated":
+        data = (images / "f2.png").read_bytes()
+        (images / "f2.png").write_bytes(data[: len(data) // 2])
+    elif problem == "not_an_image":
+        (images / "f3.png").write_bytes(b"not a png" + b"IEND\xaeB`\x82")  # ends like a PNG, decodes as none
+    elif problem == "right_unpaired":
+        (survey / "right").mkdir()
+        shutil.copy(images / "f0.png", survey / "right" / "g0.png")
+    elif problem == "no_camera":
+        (survey / "camera.json").unlink()
+    before = sorted(p.name for p in survey.rglob("*"))
+    with pytest.raises(UserInputError, match=message):
+        run_all(RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False))
+    assert not (tmp_path / "ws" / "01_gan").exists()  # nothing trained
+    assert sorted(p.name for p in survey.rglob("*")) == before  # the user's folder is untouched
+
+
+def test_cli_bad_survey_is_a_clear_error(tmp_path):
+    out = watergan("run", str(tmp_path / "missing"), "--workspace", str(tmp_path / "ws"))
+    assert out.returncode == 2
+    assert "does not exist" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_options_file_and_unknown_keys(tmp_path):
+    good = tmp_path / "run.toml"
+    good.write_text('gan_budget_min = 1.5\nadd = ["vignetting_offcentre"]\n')
+    assert load_options_file(good) == {"gan_budget_min": 1.5, "add": ("vignetting_offcentre",)}
+    bad = tmp_path / "bad.toml"
+    bad.write_text("gan_budget = 1\n")
+    with pytest.raises(UserInputError, match="unknown option.*gan_budget"):
+        load_options_file(bad)
+
+
+def test_unknown_effect_and_stage_fail_first(tmp_path):
+    _survey(tmp_path / "s")
+    from watergan.formation import UnknownEffectError
+
+    with pytest.raises(UnknownEffectError):
+        run_all(RunOptions(survey_dir=str(tmp_path / "s"), workspace=str(tmp_path / "ws"), add=("vignetting_x",)))
+    with pytest.raises(UserInputError, match="unknown stage"):
+        run_all(RunOptions(survey_dir=str(tmp_path / "s"), workspace=str(tmp_path / "ws"), force=("gann",)))
+    assert not (tmp_path / "ws").exists()
