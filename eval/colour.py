@@ -12,7 +12,8 @@ dominate), normalised, and the per-channel variance across its views
 is averaged over points. The same points and observations are used for every image folder
 (raw, corrected, in-air truth, ...): an observation counts only if its patch is valid in all of
 them, so the comparison is like for like. A constant image has zero variance: report consistency
-beside a fidelity measure (the board accuracy, or PSNR against in-air truth).
+beside a fidelity measure (the board accuracy, or PSNR against in-air truth). The sampling is per
+image and can run on a Dask cluster (``scheduler``, :mod:`pipeline.parallel`) with the same values.
 
 Board accuracy, per patch and view: the patch quad (corners projected from the world with the
 poses and intrinsics, or given in pixels) is shrunk towards its centre by ``inset`` and the pixels
@@ -76,11 +77,33 @@ def patch_means(image: np.ndarray, xy: np.ndarray, patch_px: int) -> tuple[np.nd
     return values, inside
 
 
+@dataclass(frozen=True, eq=False)
+class ColourJob:
+    """Images to sample, with their observations' pixel positions (plain, picklable values: it may run on a
+    Dask worker)."""
+
+    paths: tuple[Path, ...]
+    xy: tuple[np.ndarray, ...]
+    """Per image, the (M_k,2) observation positions."""
+    patch_px: int
+    linear: bool
+
+
+def sample_colours(job: ColourJob) -> list[np.ndarray]:
+    """Per image of ``job``, the normalised patch-mean colour (M_k,3) of its observations (NaN outside)."""
+    return [normalise(patch_means(read_rgb(path, job.linear), xy, job.patch_px)[0])
+            for path, xy in zip(job.paths, job.xy, strict=True)]
+
+
 def observation_colours(tracks, folder: str | Path, patch_px: int = 5, linear: bool = True,
-                        progress: bool = False) -> np.ndarray:
+                        progress: bool = False, scheduler=None, chunk_size: int = 16) -> np.ndarray:
     """Normalised patch-mean colour (M,3) of every observation of ``tracks`` in the images of
-    ``folder`` (same file names as the SfM images); NaN where the patch leaves the image."""
-    from tqdm import tqdm
+    ``folder`` (same file names as the SfM images); NaN where the patch leaves the image.
+
+    ``scheduler``: empty or None samples here, image by image; a Dask scheduler address or
+    ``distributed.Client`` samples ``chunk_size`` images per task on the cluster (:mod:`pipeline.parallel`;
+    the images must be on a file system the workers share). The values are the same either way."""
+    from pipeline.parallel import chunks, is_distributed, map_tasks, rows_by_label, shared_path
 
     folder = Path(folder)
     out = np.full((len(tracks.obs_xy), 3), np.nan)
@@ -89,10 +112,20 @@ def observation_colours(tracks, folder: str | Path, patch_px: int = 5, linear: b
     if missing:
         raise UserInputError(f"{folder} lacks {len(missing)} of the SfM images (e.g. {missing[0]}): "
                              f"every folder must hold the same file names as the images SfM ran on")
-    for k in tqdm(images, desc=f"colours {folder.name}", unit="image", disable=not progress):
-        rows = np.flatnonzero(tracks.obs_image == k)
-        values, _ = patch_means(read_rgb(folder / str(tracks.image_names[k]), linear), tracks.obs_xy[rows], patch_px)
-        out[rows] = normalise(values)
+    if patch_px < 1 or patch_px % 2 == 0:  # before any work is sent
+        raise UserInputError(f"patch size must be an odd number of pixels >= 1, got {patch_px}")
+    distributed = is_distributed(scheduler)
+    rows = rows_by_label(tracks.obs_image, images)
+    paths = [shared_path(folder / str(tracks.image_names[k])) if distributed else folder / str(tracks.image_names[k])
+             for k in images]
+    parts = chunks(list(range(len(images))), chunk_size if distributed else 1)
+    jobs = [ColourJob(tuple(paths[i] for i in part), tuple(tracks.obs_xy[rows[i]] for i in part), patch_px, linear)
+            for part in parts]
+    results = map_tasks(sample_colours, jobs, scheduler, desc=f"colours {folder.name}",
+                        progress=progress, unit="task" if distributed else "image")
+    for part, values in zip(parts, results, strict=True):
+        for i, v in zip(part, values, strict=True):
+            out[rows[i]] = v
     return out
 
 
@@ -119,11 +152,17 @@ class ConsistencyResult:
 
 
 def consistency(tracks, folders: dict[str, str | Path], patch_px: int = 5, min_views: int = 3,
-                linear: bool = True, progress: bool = False) -> ConsistencyResult:
-    """Colour consistency of the tracks' points in each folder (see the module docstring)."""
+                linear: bool = True, progress: bool = False, scheduler=None,
+                colours: dict[str, np.ndarray] | None = None) -> ConsistencyResult:
+    """Colour consistency of the tracks' points in each folder (see the module docstring). The colours are
+    sampled with :func:`observation_colours` (on ``scheduler`` when given), unless ``colours`` holds them
+    already (folder name -> (M,3), sampled with the same ``patch_px`` and ``linear``)."""
     if not folders:
         raise UserInputError("give at least one image folder to measure")
-    colours = {name: observation_colours(tracks, path, patch_px, linear, progress) for name, path in folders.items()}
+    given = colours or {}
+    colours = {name: given[name] if name in given else
+               observation_colours(tracks, path, patch_px, linear, progress, scheduler)
+               for name, path in folders.items()}
     valid = np.logical_and.reduce([np.isfinite(c).all(1) for c in colours.values()])
     counts = np.bincount(tracks.obs_point[valid], minlength=len(tracks.xyz))
     use = valid & (counts[tracks.obs_point] >= min_views)
@@ -313,6 +352,9 @@ class ColourEvalConfig:
     """A simulated survey whose truth board is projected with the true poses; empty: none."""
     board_inset: float = 0.2
     """Fraction by which each board patch is shrunk towards its centre before averaging."""
+    scheduler: str = field(default="", metadata={"hash": False})
+    """A Dask scheduler address (tcp://HOST:8786) to sample the colours on its workers (shared file system);
+    empty: here. The numbers are the same either way."""
 
 
 @dataclass
@@ -345,7 +387,7 @@ def run_colour_eval(ws, cfg: ColourEvalConfig) -> ColourEvalResult:
     tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
     folders = parse_folders(cfg.folders)
     result = ColourEvalResult(consistency=consistency(tracks, folders, cfg.patch_px, cfg.min_views, cfg.linear,
-                                                      progress=True))
+                                                      progress=True, scheduler=cfg.scheduler or None))
     board = load_board_json(cfg.board_json) if cfg.board_json else truth_board(cfg.truth_dir) if cfg.truth_dir \
         else None
     if board is not None:

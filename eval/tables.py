@@ -32,6 +32,11 @@ Tables (as in the paper; lower is better unless said):
   (``06_eval/depth/metrics.json``; computed here when both inputs exist and it is missing).
 - Speed: seconds per frame of each method's correction alone (files excluded; the oracle's excludes
   rendering the true geometry; ours from ``03_correct/summary.json``, which includes file I/O).
+
+With ``EvaluateConfig.scheduler`` (a Dask scheduler address) the baselines (chunks of frames, every
+method) and the colour sampling at the SfM observations run on the cluster's workers
+(:mod:`pipeline.parallel`; the survey and the workspace on a file system they share); the files and
+numbers are the same as a local run's. The board, fidelity and depth measurements run here.
 """
 
 from __future__ import annotations
@@ -81,6 +86,9 @@ class EvaluateConfig:
     """Fraction by which each board patch is shrunk towards its centre before averaging."""
     example_frames: int = 3
     """Frames the report shows side by side (those with the most board patches first)."""
+    scheduler: str = field(default="", metadata={"hash": False})
+    """A Dask scheduler address (tcp://HOST:8786) to run the baselines and the colour sampling on its workers
+    (shared file system); empty: here. The outputs are the same either way."""
 
 
 @dataclass
@@ -137,8 +145,8 @@ class _RangeSource:
 
     def __init__(self, kind: str, ws, survey: Path, tracks) -> None:
         self.kind = kind
-        self.dense_dir = ws.root / "05_dense" / "depth"
-        self.truth_dir = survey / "truth" / "range"
+        self.dense_dir = (ws.root / "05_dense" / "depth").resolve()  # absolute: also read on a cluster's workers
+        self.truth_dir = (survey / "truth" / "range").resolve()
         self.K = _camera_K(survey, tracks)
         self.fallback: list[str] = []
         depths = tracks.depths()
@@ -190,6 +198,7 @@ class _OracleGeometry:
         from eval.synth.scene import build_scene
         from watergan.formation import Stack
 
+        self.survey = Path(survey)
         self.truth = load_truth(survey)
         cfg = self.truth.config
         self.scene = build_scene(cfg.scene, cfg.seed)
@@ -229,12 +238,16 @@ def _missing(folder: Path, names: list[str]) -> list[str]:
 # ---------------------------------------------------------------------------------- measurement
 
 
-def point_variances(tracks, folders: dict[str, Path], patch_px: int, min_views: int) -> dict[str, np.ndarray]:
+def point_variances(tracks, folders: dict[str, Path], patch_px: int, min_views: int,
+                    colours: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Per method, the per-point variance across views of the normalised colour (P',3), on the points
-    and observations :func:`eval.colour.consistency` uses (valid in every folder, >= ``min_views``)."""
+    and observations :func:`eval.colour.consistency` uses (valid in every folder, >= ``min_views``).
+    ``colours``: the folders' :func:`eval.colour.observation_colours` when already sampled."""
     from eval.colour import observation_colours
 
-    colours = {name: observation_colours(tracks, path, patch_px) for name, path in folders.items()}
+    given = colours or {}
+    colours = {name: given[name] if name in given else observation_colours(tracks, path, patch_px)
+               for name, path in folders.items()}
     valid = np.logical_and.reduce([np.isfinite(c).all(1) for c in colours.values()])
     counts = np.bincount(tracks.obs_point[valid], minlength=len(tracks.xyz))
     use = valid & (counts[tracks.obs_point] >= min_views)
@@ -470,20 +483,65 @@ def depth_table(depth_dir: Path) -> dict:
 # ------------------------------------------------------------------------------------------ stage
 
 
-def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: Path, ranges=None,
-                  coefficients: dict | None = None, geometry=None) -> dict[str, float]:
-    """Correct every frame with every method into ``out_dir/<method>/<name>`` (8-bit sRGB); returns
-    the seconds per frame of each method's correction alone."""
+@dataclass(frozen=True, eq=False)
+class BaselineChunk:
+    """Frames to correct with every method (plain, picklable values: it may run on a Dask worker)."""
+
+    names: tuple[str, ...]
+    images: Path
+    methods: tuple[str, ...]
+    out_dir: Path
+    ranges: _RangeSource | None
+    """Range per frame (plain data; the frames that fell back to a constant range are returned)."""
+    coefficients: dict | None
+    oracle_survey: Path | None
+    """The simulated survey whose true geometry the oracle re-renders (built once per chunk)."""
+
+
+def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False) -> tuple[dict[str, float], list[str]]:
+    """Every frame of ``job`` through every method into ``out_dir/<method>/<name>`` (8-bit sRGB, atomically).
+    Returns each method's correction seconds (summed over the frames) and the frames without a usable range.
+    ``geometry``: the oracle's, when already built (local runs); else built here from ``oracle_survey``."""
     from tqdm import tqdm
 
     from eval.synth.imaging import single_torch_thread
 
-    seconds = dict.fromkeys(methods, 0.0)
-    needs_range = any(BASELINES[m].needs_range for m in methods)
+    seconds = dict.fromkeys(job.methods, 0.0)
+    if "oracle" in job.methods and geometry is None:
+        geometry = _OracleGeometry(job.oracle_survey)
+    before = len(job.ranges.fallback) if job.ranges is not None else 0
     with single_torch_thread():  # the oracle's few element-wise renders: torch's pool only adds contention
-        for name in tqdm(names, desc="baselines", unit="frame"):
-            _correct_frame(name, images, methods, out_dir, seconds, ranges if needs_range else None, coefficients,
+        for name in tqdm(job.names, desc="baselines", unit="frame", disable=not progress):
+            _correct_frame(name, job.images, list(job.methods), job.out_dir, seconds, job.ranges, job.coefficients,
                            geometry)
+    return seconds, (job.ranges.fallback[before:] if job.ranges is not None else [])
+
+
+def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: Path, ranges=None,
+                  coefficients: dict | None = None, geometry=None, scheduler=None,
+                  chunk_size: int = 8) -> dict[str, float]:
+    """Correct every frame with every method into ``out_dir/<method>/<name>`` (8-bit sRGB); returns
+    the seconds per frame of each method's correction alone.
+
+    ``scheduler``: empty or None runs here, frame by frame; a Dask scheduler address or
+    ``distributed.Client`` sends ``chunk_size`` frames per task to the cluster (:mod:`pipeline.parallel`;
+    folders on a file system the workers share; the oracle's geometry is rebuilt once per chunk). The
+    files are the same either way. ``ranges.fallback`` lists the frames that had no usable range."""
+    from pipeline.parallel import chunks, is_distributed, map_tasks, shared_path
+
+    needs_range = any(BASELINES[m].needs_range for m in methods)
+    frame_ranges = ranges if needs_range else None
+    if not is_distributed(scheduler):  # one pass here, frame by frame
+        results = [baseline_chunk(BaselineChunk(tuple(names), images, tuple(methods), out_dir, frame_ranges,
+                                                coefficients, None), geometry, progress=True)]
+    else:
+        survey = shared_path(geometry.survey) if geometry is not None else None
+        jobs = [BaselineChunk(tuple(part), shared_path(images), tuple(methods), shared_path(out_dir), frame_ranges,
+                              coefficients, survey) for part in chunks(names, chunk_size)]
+        results = map_tasks(baseline_chunk, jobs, scheduler, desc="baselines", unit="chunk")
+    if frame_ranges is not None:
+        frame_ranges.fallback = [n for _, fell_back in results for n in fell_back]
+    seconds = {m: sum(part[m] for part, _ in results) for m in methods}
     return {m: s / max(len(names), 1) for m, s in seconds.items()}
 
 
@@ -578,7 +636,7 @@ def _depth_compare(ws, correct_dir: Path) -> str:
 
 def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
     """Workspace stage (see the module docstring)."""
-    from eval.colour import consistency
+    from eval.colour import consistency, observation_colours
     from pipeline.sfm import Tracks, image_files
     from pipeline.workspace import atomic_write_bytes, atomic_write_json, atomic_write_text
 
@@ -597,8 +655,9 @@ def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
     simulated = (survey / "truth" / "effects.json").is_file()
     out = ws.stage_dir("eval")
     methods, skipped, ranges, coefficients, geometry = _inputs(ws, cfg, survey, tracks, simulated)
+    scheduler = cfg.scheduler or None
     per_frame: dict[str, float | None] = run_baselines(names, images, methods, out / "baselines", ranges,
-                                                       coefficients, geometry)
+                                                       coefficients, geometry, scheduler)
     folders = {m: out / "baselines" / m for m in methods}
 
     correct_dir = Path(cfg.ours_dir).parent if cfg.ours_dir else ws.root / "03_correct"
@@ -620,10 +679,12 @@ def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
     folders = {m: folders[m] for m in [*methods, *reference]}
 
     # measurements on the same points, observations and board for every method
-    cons = consistency(tracks, folders, cfg.patch_px, cfg.min_views, progress=True)
+    colours = {m: observation_colours(tracks, p, cfg.patch_px, progress=True, scheduler=scheduler)
+               for m, p in folders.items()}  # sampled once for both
+    cons = consistency(tracks, folders, cfg.patch_px, cfg.min_views, colours=colours)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in
-                                   point_variances(tracks, folders, cfg.patch_px, cfg.min_views).items()})
+                                   point_variances(tracks, folders, cfg.patch_px, cfg.min_views, colours).items()})
     atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
     board, board_results, board_note = _measure_board(cfg, survey, folders)
     fid = {m: fidelity(folders[m], folders[INAIR], names) for m in methods} if reference else {}

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 
+from .cliargs import scheduler_parent
+
 
 def _workspace(args: argparse.Namespace):
     from pipeline.workspace import Workspace
@@ -44,7 +46,8 @@ def cmd_sfm(args: argparse.Namespace) -> int:
 def cmd_dense(args: argparse.Namespace) -> int:
     from pipeline.dense import DenseConfig, run_dense
 
-    cfg = DenseConfig(images_dir=args.images or "", method=args.method, pairs=args.pairs, fuse=not args.no_fuse)
+    cfg = DenseConfig(images_dir=args.images or "", method=args.method, pairs=args.pairs, fuse=not args.no_fuse,
+                      scheduler=args.scheduler)
     ws = _workspace(args)
     r = ws.run("dense", cfg, run_dense, force=args.force)["result"]
     print(f"dense: {len(r['pairs'])} depth maps, mean coverage {100 * r['mean_coverage']:.1f} %, "
@@ -59,7 +62,8 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     from eval.colour import ColourEvalConfig, run_colour_eval
 
     cfg = ColourEvalConfig(folders=tuple(args.folder), patch_px=args.patch_px, min_views=args.min_views,
-                           linear=not args.encoded, board_json=args.board or "", truth_dir=args.truth or "")
+                           linear=not args.encoded, board_json=args.board or "", truth_dir=args.truth or "",
+                           scheduler=args.scheduler)
     ws = _workspace(args)
     r = run_colour_eval(ws, cfg)
     c = r.consistency
@@ -147,7 +151,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_sfm)
 
-    p = sub.add_parser("dense", parents=[*parents, ws, images], help="SGBM/patch-match depth maps and TSDF fusion")
+    p = sub.add_parser("dense", parents=[*parents, ws, images, scheduler_parent()],
+                       help="SGBM/patch-match depth maps and TSDF fusion")
     p.add_argument("--method", choices=["auto", "sgbm", "patch_match"], default="auto",
                    help="auto: pycolmap patch-match when it was built with CUDA, else OpenCV SGBM")
     p.add_argument("--pairs", choices=["auto", "rig", "neighbours"], default="auto",
@@ -155,7 +160,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--no-fuse", action="store_true", help="depth maps only, no fused cloud/mesh")
     p.set_defaults(func=cmd_dense)
 
-    p = sub.add_parser("consistency", parents=[*parents], help="colour consistency across views (+ board accuracy)")
+    p = sub.add_parser("consistency", parents=[*parents, scheduler_parent()],
+                       help="colour consistency across views (+ board accuracy)")
     p.add_argument("--workspace", required=True, help="workspace with a finished sfm stage")
     p.add_argument("--folder", action="append", required=True, metavar="NAME=DIR",
                    help="image folder to measure (repeatable), same file names as the SfM images")

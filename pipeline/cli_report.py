@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 
+from .cliargs import scheduler_parent
+
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from eval.baselines import BASELINES
@@ -26,7 +28,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise UserInputError(f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(BASELINES)}")
     cfg = EvaluateConfig(survey_dir=args.survey or "", images_dir=args.images or "", methods=methods,
                          ours_dir=args.ours or "", range_source=args.range, jaffe_stack=args.jaffe_stack or "",
-                         board_json=args.board or "", patch_px=args.patch_px, min_views=args.min_views)
+                         board_json=args.board or "", patch_px=args.patch_px, min_views=args.min_views,
+                         scheduler=args.scheduler)
     ws = Workspace(args.workspace)
     r = ws.run("eval", cfg, run_evaluate, force=args.force)["result"]
     print(f"evaluate: {len(r['methods'])} methods on the same points and board "
@@ -48,7 +51,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``evaluate`` and ``report`` to an argparse subparsers object; each sets ``func``."""
-    p = sub.add_parser("evaluate", parents=parents,
+    p = sub.add_parser("evaluate", parents=[*parents, scheduler_parent()],
                        help="baselines and the restorer on the same SfM points and board: the paper's tables")
     p.add_argument("--workspace", required=True, help="workspace with a finished sfm stage")
     p.add_argument("--survey", help="survey folder (default: the workspace's 00_survey)")

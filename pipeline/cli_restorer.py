@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .cliargs import scheduler_parent
+
 
 def cmd_train_restorer(args: argparse.Namespace) -> int:
     from watergan.train_restorer import RestorerConfig, train_restorer
@@ -30,7 +32,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from pipeline.correct import correct_folder
 
     result = correct_folder(args.model, args.images, args.out, force=args.force, batch_size=args.batch_size,
-                            device=args.device)
+                            device=args.device, scheduler=args.scheduler or None)
     print(f"corrected {result.corrected}, already done {result.already_done}, failed {len(result.failed)} "
           f"in {result.seconds:.1f} s -> {result.out_dir} (images/, depth/, summary.json)")
     for line in result.failed:
@@ -60,7 +62,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     _device(p)
     p.set_defaults(func=cmd_train_restorer)
 
-    p = sub.add_parser("correct", parents=parents, help="correct an image sequence with a trained restorer")
+    p = sub.add_parser("correct", parents=[*parents, scheduler_parent()],
+                       help="correct an image sequence with a trained restorer")
     p.add_argument("--model", required=True, help="train-restorer output folder")
     p.add_argument("--images", required=True, help="folder of images to correct (PNG, JPEG, TIFF)")
     p.add_argument("--out", required=True, help="output folder (images/, depth/, summary.json)")

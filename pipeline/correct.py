@@ -12,6 +12,11 @@ The restorer works on the stored (sRGB-encoded) values scaled to 0..1, so the ou
 input's encoding. Images already corrected (all three outputs present) are skipped unless ``force``.
 An unreadable or truncated image is reported and skipped. Every file is written atomically; the
 output folder may not be (or contain) the input folder's files.
+
+With ``scheduler`` (a Dask scheduler address, ``tcp://HOST:8786``) the images still to do are sent in
+chunks to the cluster's workers (:mod:`pipeline.parallel`), each chunk corrected with the model loaded
+once on its worker (CUDA when the worker has it) and written to the shared file system; the files are
+the ones a local run writes.
 """
 
 from __future__ import annotations
@@ -87,10 +92,81 @@ def _write(out: Path, stem: str, rgb: np.ndarray, depth: np.ndarray, bits: int) 
     atomic_write_bytes(depth_npy, buffer.getvalue())
 
 
+@dataclass(frozen=True)
+class CorrectChunk:
+    """One task of ``correct_folder``: images to correct with one loaded model (plain, picklable values)."""
+
+    model_dir: Path
+    paths: tuple[Path, ...]
+    out_dir: Path
+    batch_size: int
+    device: str
+
+
+@dataclass
+class ChunkResult:
+    corrected: int
+    failed: list[str]
+    """"path: reason" for each unreadable image."""
+
+
+def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
+    """Correct ``chunk.paths`` into ``chunk.out_dir`` (every file written atomically), consecutive images of one
+    size ``batch_size`` at a time; the model is loaded here unless given. ``bar`` (local runs): advanced per
+    image, and unreadable images are reported as they come."""
+    dev = pick_device(chunk.device)
+    model = (model if model is not None else load_restorer(chunk.model_dir)).to(dev)
+    out = chunk.out_dir
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    result = ChunkResult(0, [])
+    batch: list[tuple[str, np.ndarray, int]] = []
+
+    def flush() -> None:
+        x = torch.from_numpy(np.stack([im for _, im, _ in batch]).transpose(0, 3, 1, 2)).float().to(dev)
+        with torch.no_grad():
+            rgb, depth = restore(model, x)
+        rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
+        depth_np = depth[:, 0].cpu().double().numpy()
+        for k, (stem, _, bits) in enumerate(batch):
+            _write(out, stem, rgb_np[k], depth_np[k], bits)
+        result.corrected += len(batch)
+        if bar is not None:
+            bar.update(len(batch))
+        batch.clear()
+
+    for path in chunk.paths:
+        try:
+            image = read_image(path, "linear")  # the stored values, 0..1
+            bits = _bit_depth(path)
+        except DataError as exc:
+            result.failed.append(str(exc))
+            if bar is not None:
+                tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
+                bar.update(1)
+            continue
+        if batch and batch[0][1].shape != image.shape:
+            flush()
+        batch.append((path.stem, image, bits))
+        if len(batch) == chunk.batch_size:
+            flush()
+    if batch:
+        flush()
+    return result
+
+
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
-                   batch_size: int = 4, device: str = "auto", progress: bool = True) -> CorrectResult:
+                   batch_size: int = 4, device: str = "auto", progress: bool = True, scheduler=None,
+                   chunk_size: int = 64) -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
-    images of the same size are corrected together, ``batch_size`` at a time."""
+    images of the same size are corrected together, ``batch_size`` at a time.
+
+    ``scheduler``: empty or None corrects here, in one pass with the model loaded once; a Dask scheduler
+    address (``tcp://HOST:8786``) or ``distributed.Client`` sends chunks of ``chunk_size`` images (rounded up
+    to a multiple of ``batch_size``) to the cluster's workers, each loading the model once per chunk and
+    writing to ``out_dir`` on the shared file system (:mod:`pipeline.parallel`). Same files either way."""
+    from pipeline.parallel import chunks, is_distributed, map_tasks, shared_path
+
     began = time.perf_counter()
     images_dir, out = Path(images_dir), Path(out_dir)
     if not images_dir.is_dir():
@@ -104,48 +180,30 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     if not files:
         raise DataError(f"image folder {images_dir} holds no PNG, JPEG or TIFF images")
     index_by_stem(files, "image")  # refuses two inputs with one stem: outputs are <stem>.png
-    dev = pick_device(device)
-    model = load_restorer(model_dir).to(dev)
+    distributed = is_distributed(scheduler)
+    if not distributed or device not in ("auto", "cpu", "cuda"):
+        pick_device(device)  # a bad device name fails here (a cluster's workers may have CUDA where this has none)
+    model = load_restorer(model_dir)  # a missing or torn model fails here, before any work is sent
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
     result = CorrectResult(out, 0, 0)
-    batch: list[tuple[str, np.ndarray, int]] = []
-
-    def flush() -> None:
-        x = torch.from_numpy(np.stack([im for _, im, _ in batch]).transpose(0, 3, 1, 2)).float().to(dev)
-        with torch.no_grad():
-            rgb, depth = restore(model, x)
-        rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
-        depth_np = depth[:, 0].cpu().double().numpy()
-        for k, (stem, _, bits) in enumerate(batch):
-            _write(out, stem, rgb_np[k], depth_np[k], bits)
-        result.corrected += len(batch)
-        bar.update(len(batch))
-        batch.clear()
-
-    bar = tqdm(total=len(files), disable=not progress, desc="correct", unit="img")
-    for path in files:
-        if not force and all(p.is_file() for p in _outputs(out, path.stem)):
-            result.already_done += 1
-            bar.update(1)
-            continue
-        try:
-            image = read_image(path, "linear")  # the stored values, 0..1
-            bits = _bit_depth(path)
-        except DataError as exc:
-            result.failed.append(str(exc))
-            tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
-            bar.update(1)
-            continue
-        if batch and batch[0][1].shape != image.shape:
-            flush()
-        batch.append((path.stem, image, bits))
-        if len(batch) == batch_size:
-            flush()
-    if batch:
-        flush()
-    bar.close()
+    todo = [p for p in files if force or not all(p.is_file() for p in _outputs(out, p.stem))]
+    result.already_done = len(files) - len(todo)
+    if not distributed:
+        with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
+                  unit="img") as bar:
+            done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device), bar, model)
+        parts = [done]
+    else:
+        size = -(-max(chunk_size, 1) // batch_size) * batch_size
+        jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
+                             batch_size, device) for part in chunks(todo, size)]
+        parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
+        for message in (m for part in parts for m in part.failed):
+            print(f"correct: skipped {message}", file=sys.stderr)
+    result.corrected = sum(part.corrected for part in parts)
+    result.failed = [m for part in parts for m in part.failed]
     result.seconds = time.perf_counter() - began
     summary = {"images_dir": str(images_dir), "model_dir": str(model_dir), "total": len(files),
                "corrected": result.corrected, "already_done": result.already_done,

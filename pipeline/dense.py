@@ -41,6 +41,11 @@ pixels are the original ones) are read back and written and fused like SGBM's.
 
 Outputs (``05_dense/``): ``depth/<stem>.png`` 16-bit millimetres (0 = invalid) in the survey frame's
 units, ``fused_points.ply`` and ``fused_mesh.ply`` (TSDF fusion with the tensor VoxelBlockGrid).
+
+Scale: with ``DenseConfig.scheduler`` (a Dask scheduler address) the SGBM depth of each image runs on the
+cluster's workers (:func:`pair_depth`, one task per image; the images and ``05_dense`` on a file system
+the workers share) and the depth maps come back here for the fusion; the files are the same as a local
+run's. Patch-match and the fusion run here.
 """
 
 from __future__ import annotations
@@ -95,6 +100,9 @@ class DenseConfig:
     """TSDF voxel size in survey units (metres when scaled); 0: median depth / 100."""
     weight_threshold: float = 1.0
     """Fusion: voxels observed by fewer (weighted) views are not extracted."""
+    scheduler: str = field(default="", metadata={"hash": False})
+    """A Dask scheduler address (tcp://HOST:8786) to compute the per-image SGBM depth on its workers (shared
+    file system); empty: here. Not used by patch_match. The outputs are the same either way."""
 
 
 @dataclass
@@ -246,36 +254,79 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     return np.where(keep, d, np.nan).astype(np.float32)
 
 
-def choose_neighbour(k: int, tracks, median_depth: float, cfg: DenseConfig) -> int | None:
+def choose_neighbour(k: int, tracks, median_depth: float, cfg: DenseConfig,
+                     rows: list[np.ndarray] | None = None) -> int | None:
     """The registered image whose baseline / median depth is nearest the target (within bounds),
-    preferring images that share more sparse points with image k."""
+    preferring images that share more sparse points with image k. ``rows``: per image, its observations'
+    indices (``pipeline.parallel.rows_by_label(tracks.obs_image, range(n_images))``), to avoid rescanning."""
+    def observations(i: int) -> np.ndarray:
+        return rows[i] if rows is not None else np.flatnonzero(tracks.obs_image == i)
+
     reg = np.flatnonzero(tracks.registered)
     centres = tracks.world_from_cam[:, :3, 3]
+    ratios = np.linalg.norm(centres[reg] - centres[k], axis=1) / median_depth
+    near = (reg != k) & (ratios >= cfg.min_baseline_ratio) & (ratios <= cfg.max_baseline_ratio)
     mine = np.zeros(len(tracks.xyz), bool)
-    mine[tracks.obs_point[tracks.obs_image == k]] = True
+    mine[tracks.obs_point[observations(k)]] = True
     best, best_cost = None, np.inf
-    for j in reg:
-        if j == k:
-            continue
-        ratio = np.linalg.norm(centres[j] - centres[k]) / median_depth
-        if not cfg.min_baseline_ratio <= ratio <= cfg.max_baseline_ratio:
-            continue
-        shared = mine[tracks.obs_point[tracks.obs_image == j]].sum() / max(mine.sum(), 1)
+    for j, ratio in zip(reg[near], ratios[near], strict=True):
+        shared = mine[tracks.obs_point[observations(j)]].sum() / max(mine.sum(), 1)
         if shared < 0.3:
             continue
         cost = abs(np.log(ratio / cfg.target_baseline_ratio)) - shared
         if cost < best_cost:
-            best, best_cost = j, cost
+            best, best_cost = int(j), cost
     return best
+
+
+@dataclass(frozen=True, eq=False)
+class PairJob:
+    """One image's depth task (plain, picklable values: it may run on a Dask worker)."""
+
+    name: str
+    left: Path
+    right: Path
+    partner: str
+    """The partner image's name, or 'rig'."""
+    K: np.ndarray
+    world_from_left: np.ndarray
+    world_from_right: np.ndarray
+    depth_range: tuple[float, float]
+    cfg: DenseConfig
+    depth_png: Path
+    """Where the 16-bit millimetre depth map goes (written atomically)."""
+
+
+def pair_depth(job: PairJob) -> tuple[float, np.ndarray | None]:
+    """Depth of ``job.left`` from its pair, written to ``job.depth_png``: (coverage, depth (H,W), NaN = invalid);
+    (0, None) when the rig's right frame is unreadable or no pixel got a depth (nothing written)."""
+    import cv2
+
+    from eval.depth import write_depth_png
+
+    left = cv2.imread(str(job.left), cv2.IMREAD_COLOR)
+    if left is None:
+        raise UserInputError(f"cannot read {job.left}")
+    right = cv2.imread(str(job.right), cv2.IMREAD_COLOR)
+    if right is None:
+        if job.partner == "rig":
+            return 0.0, None
+        raise UserInputError(f"cannot read {job.right}")
+    depth = rectified_pair_depth(left[..., ::-1], right[..., ::-1], job.K, job.world_from_left,
+                                 job.world_from_right, job.depth_range, job.cfg)
+    cover = float(np.isfinite(depth).mean())
+    if cover == 0:
+        return 0.0, None
+    write_depth_png(job.depth_png, depth)
+    return cover, depth
 
 
 def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: DenseConfig,
                      baseline_m: float | None = None, right_dir: Path | None = None) -> DenseResult:
-    """Depth maps for the registered images of ``tracks`` and their fusion (see module docstring)."""
-    import cv2
-    from tqdm import tqdm
-
-    from eval.depth import write_depth_png
+    """Depth maps for the registered images of ``tracks`` and their fusion (see module docstring). With
+    ``cfg.scheduler`` the per-image depth runs on that Dask cluster (:mod:`pipeline.parallel`); the
+    fusion runs here."""
+    from pipeline.parallel import map_tasks, rows_by_label, shared_path
 
     start = time.perf_counter()
     images_dir, out_dir = Path(images_dir), Path(out_dir)
@@ -288,38 +339,38 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
     depth_dir.mkdir(parents=True, exist_ok=True)
     obs_depth = tracks.depths()
     median_depth = float(np.median(obs_depth))
-    pairs, coverage, skipped, depths = {}, {}, [], {}
-    for k in tqdm(np.flatnonzero(tracks.registered), desc="dense", unit="image"):
+    K = np.asarray(tracks.K, float)
+    rows = rows_by_label(tracks.obs_image, range(len(tracks.image_names)))
+    order: list[tuple[str, PairJob | None]] = []  # every registered image, None: no partner
+    for k in np.flatnonzero(tracks.registered):
         name = str(tracks.image_names[k])
-        left = cv2.imread(str(images_dir / name), cv2.IMREAD_COLOR)
-        if left is None:
-            raise UserInputError(f"cannot read {images_dir / name}")
-        mine = obs_depth[tracks.obs_image == k]
+        mine = obs_depth[rows[k]]
         z_range = (float(np.percentile(mine, 1)), float(np.percentile(mine, 99))) if len(mine) >= 10 else \
             (0.5 * median_depth, 2 * median_depth)
         if use_rig:
-            right = cv2.imread(str(right_dir / name), cv2.IMREAD_COLOR)
-            if right is None:
-                skipped.append(name)
-                continue
             offset = np.eye(4)
             offset[0, 3] = baseline_m
-            pose_r, partner = tracks.world_from_cam[k] @ offset, "rig"
+            right, pose_r, partner = right_dir / name, tracks.world_from_cam[k] @ offset, "rig"
         else:
-            j = choose_neighbour(k, tracks, median_depth, cfg)
+            j = choose_neighbour(k, tracks, median_depth, cfg, rows)
             if j is None:
-                skipped.append(name)
+                order.append((name, None))
                 continue
             partner = str(tracks.image_names[j])
-            right, pose_r = cv2.imread(str(images_dir / partner), cv2.IMREAD_COLOR), tracks.world_from_cam[j]
-        depth = rectified_pair_depth(left[..., ::-1], right[..., ::-1], tracks.K, tracks.world_from_cam[k], pose_r,
-                                     z_range, cfg)
-        cover = float(np.isfinite(depth).mean())
-        if cover == 0:
+            right, pose_r = images_dir / partner, tracks.world_from_cam[j]
+        order.append((name, PairJob(name, shared_path(images_dir / name), shared_path(right), partner, K,
+                                    np.array(tracks.world_from_cam[k], float), np.array(pose_r, float), z_range,
+                                    cfg, shared_path(depth_dir / f"{Path(name).stem}.png"))))
+    jobs = [job for _, job in order if job is not None]
+    done = dict(zip((job.name for job in jobs), map_tasks(pair_depth, jobs, cfg.scheduler or None, desc="dense",
+                                                           unit="image"), strict=True))
+    pairs, coverage, skipped, depths = {}, {}, [], {}
+    for name, job in order:
+        cover, depth = done[name] if job is not None else (0.0, None)
+        if depth is None:
             skipped.append(name)
             continue
-        write_depth_png(depth_dir / f"{Path(name).stem}.png", depth)
-        pairs[name], coverage[name], depths[name] = partner, cover, depth
+        pairs[name], coverage[name], depths[name] = job.partner, cover, depth
     if not depths:
         raise UserInputError("no image got a dense depth map: check the pairs (--pairs) and the SfM result")
     return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start)

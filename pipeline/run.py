@@ -198,15 +198,15 @@ def run_restorer_stage(ws: Workspace, cfg) -> dict:
 class CorrectStage:
     images_dir: str
     batch_size: int = 4
-    scheduler: str = ""
-    progress: bool = True
+    scheduler: str = field(default="", metadata={"hash": False})
+    progress: bool = field(default=True, metadata={"hash": False})
 
 
 def run_correct_stage(ws: Workspace, cfg: CorrectStage) -> dict:
     from .correct import correct_folder
 
     result = correct_folder(ws.stage_dir("restorer"), cfg.images_dir, ws.stage_dir("correct"), force=True,
-                            batch_size=cfg.batch_size, progress=cfg.progress)
+                            batch_size=cfg.batch_size, progress=cfg.progress, scheduler=cfg.scheduler or None)
     return {"corrected": result.corrected, "failed": result.failed, "seconds": result.seconds,
             "images": ws.relative(ws.stage_dir("correct") / "images"),
             "fps": result.corrected / max(result.seconds, 1e-9)}
@@ -252,8 +252,8 @@ def _stage_plan(ws: Workspace, opts: RunOptions, survey: dict) -> list[tuple[str
         ("correct", lambda: CorrectStage(images_dir=images, scheduler=opts.scheduler, progress=opts.progress),
          run_correct_stage),
         ("sfm", lambda: SfmConfig(images_dir=images, seed=opts.seed), None),
-        ("dense", lambda: DenseConfig(images_dir=images), None),
-        ("eval", lambda: EvaluateConfig(survey_dir=str(ws.stage_dir("survey"))), None),
+        ("dense", lambda: DenseConfig(images_dir=images, scheduler=opts.scheduler), None),
+        ("eval", lambda: EvaluateConfig(survey_dir=str(ws.stage_dir("survey")), scheduler=opts.scheduler), None),
         ("mesh", lambda: MeshConfig(images_dir=str(ws.stage_dir("correct") / "images")), None),
         ("diagnose", lambda: DiagnoseConfig(add=opts.add, candidates=opts.diagnose_candidates,
                                             measure=MeasureConfig(n_points=opts.diagnose_points, seed=opts.seed)),

@@ -57,15 +57,18 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def _jsonable(value: Any) -> Any:
+def _jsonable(value: Any, for_hash: bool = False) -> Any:
+    """Dataclasses as dicts, paths as strings; ``for_hash`` leaves out dataclass fields marked
+    ``metadata={"hash": False}`` (where work runs, progress bars: not what a stage computes)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {f.name: _jsonable(getattr(value, f.name), for_hash) for f in dataclasses.fields(value)
+                if not (for_hash and f.metadata.get("hash") is False)}
     if isinstance(value, Path):
         return str(value)
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): _jsonable(v, for_hash) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [_jsonable(v, for_hash) for v in value]
     return value
 
 
@@ -75,8 +78,9 @@ def atomic_write_json(path: Path, value: Any) -> None:
 
 
 def config_hash(config: Any) -> str:
-    """SHA-256 (first 16 hex digits) of the configuration's canonical JSON."""
-    text = json.dumps(_jsonable(config), sort_keys=True, separators=(",", ":"))
+    """SHA-256 (first 16 hex digits) of the configuration's canonical JSON (fields marked
+    ``metadata={"hash": False}`` left out)."""
+    text = json.dumps(_jsonable(config, for_hash=True), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 

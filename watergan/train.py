@@ -158,9 +158,9 @@ class GanConfig:
     """Iterations between sample grids (one is always written at the end)."""
     resume: bool = False
     """Continue from ``out_dir/checkpoint.pt`` when it exists."""
-    device: str = "auto"
+    device: str = field(default="auto", metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
-    progress: bool = True
+    progress: bool = field(default=True, metadata={"hash": False})
     """Show a progress bar."""
 
 

@@ -92,9 +92,9 @@ class RestorerConfig:
     """Iterations between checkpoints (one is always written at the end of each stage)."""
     resume: bool = False
     """Continue from ``out_dir/checkpoint.pt`` when it exists."""
-    device: str = "auto"
+    device: str = field(default="auto", metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
-    progress: bool = True
+    progress: bool = field(default=True, metadata={"hash": False})
     """Show progress bars."""
 
 
