@@ -4,8 +4,8 @@
 
 Each stage is a plain function ``fn(ws, config)`` run through :meth:`Workspace.run`: it is skipped
 when its ``result.json`` records the hash of the same configuration. A stage's configuration holds
-the hashes of the stages it reads (``upstream``), so retraining the restorer reruns the correction
-and everything after it, while an unchanged run finishes in seconds. ``force`` reruns named stages
+the hashes of the results of the stages it reads (``upstream``), so retraining the restorer reruns
+the correction and everything after it, while an unchanged run finishes in seconds. ``force`` reruns named stages
 (and, through their new hashes, the stages that read them).
 
 The survey folder is what a user has: ``images/`` (one camera), optional ``right/`` (the stereo
@@ -71,7 +71,7 @@ class RunOptions:
 
 @dataclass(frozen=True)
 class Staged:
-    """A stage's own configuration plus the hashes of the stage results it reads."""
+    """A stage's own configuration plus the hashes of the stage results it reads (``upstream``)."""
 
     config: Any
     upstream: dict[str, str] = field(default_factory=dict)
@@ -288,7 +288,9 @@ def _stage_fn(stage: str) -> Callable:
 
 
 def _upstream(ws: Workspace, stage: str) -> dict[str, str]:
-    return {s: (ws.load_result(s) or {}).get("config_hash", "") for s in UPSTREAM.get(stage, ())}
+    """Per stage read by ``stage``: the hash of its whole result record, which changes whenever it
+    reran (its timings differ), so a forced rerun upstream reruns the stages that read it."""
+    return {s: config_hash(ws.load_result(s) or {}) for s in UPSTREAM.get(stage, ())}
 
 
 def run_all(opts: RunOptions) -> dict:
