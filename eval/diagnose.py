@@ -7,7 +7,8 @@ name the missing effect, and keep a ledger of model versions.
 
 Pieces (each usable alone):
 
-- :mod:`eval.diagnose_measure`: the measurement table (points seen in >= 3 views).
+- :mod:`eval.diagnose_measure`: the measurement table (points seen in >= 3 views), geometry from the
+  SfM tracks of a workspace or from the simulator's truth.
 - :mod:`eval.diagnose_fit`: fit a stack with per-point albedos; held-out error; Laplace uncertainties.
 - :mod:`eval.diagnose_residuals`: residuals binned along every axis, structure scores, plots, PLY.
 - this module: candidate ranking, verdict, ledger, and :func:`run_diagnose` (the stage).
@@ -16,14 +17,27 @@ Candidate ranking: every registered effect not in the stack is a candidate unles
 images (``needs_image``), has learned layers, needs a state field the measurements lack, or acts
 identically on every view of a point (then the per-point albedo absorbs it and multi-view colour
 cannot see it). Each candidate is inserted by ``rank`` into the model *as configured* and the
-whole stack is refitted (albedos start from the base fit). Relative held-out change
+whole stack is refitted (albedos start from the base fit; a declared light rig is held; effects
+with many local minima start from the best point of a grid, :data:`START_GRIDS`, also when added
+with ``--add``). Relative held-out change
 d = RMSE_candidate / RMSE_base - 1; its significance is a paired bootstrap over held-out points
 (p = fraction of resamples with d >= 0). A candidate is accepted when p < ``alpha`` and
-d <= -``min_improvement``; the best accepted one is the verdict.
+d <= -``min_improvement``; the best accepted one is the verdict. Axes whose structure score
+exceeds ``structure_threshold`` and whose structure is at least ``structure_fraction`` of the
+residual RMSE after the verdict's model are reported as unexplained.
+
+Ledger (``model_ledger.jsonl`` in the workspace, or SURVEY/diagnose/): one JSON record per fit with
+time, kind ("model" or "candidate"), stack, fitted values, held-out and training RMSE, the number of
+observations and the geometry source; model records of a workspace also carry, when
+``06_eval/colour.json`` exists (``watergan consistency``), the colour consistency of each measured
+image folder (``consistency``: mean over points of the per-channel variance of c / (R + G + B)
+across views) and its colour-board error (``board_ciede2000``: mean CIEDE2000 over patches), so a
+model version can be read beside what its corrected images achieve.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from dataclasses import dataclass, field, replace
@@ -37,20 +51,43 @@ from pipeline.workspace import Workspace, atomic_write_json, atomic_write_text
 from watergan.errors import UserInputError
 from watergan.formation import MissingInputError, Stack, available, get
 
-from .diagnose_fit import FitConfig, FitResult, copy_stack, fit_stack, insert_by_rank, make_split, observation_state
-from .diagnose_measure import MeasureConfig, Measurements, measure_survey, resolve_survey
-from .diagnose_residuals import ResidualConfig, analyse, plot_residuals, scores, write_residual_ply
+from .diagnose_fit import (
+    FitConfig,
+    FitResult,
+    copy_stack,
+    fit_stack,
+    insert_by_rank,
+    make_split,
+    observation_state,
+    soft_l1,
+)
+from .diagnose_measure import MeasureConfig, Measurements, choose_geometry, measure_survey, resolve_survey
+from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
 
 DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 LEDGER_NAME = "model_ledger.jsonl"
 #: Parameters of ``artificial_light`` that survey.json declares (the rig is known, not fitted).
 LIGHT_GEOMETRY = ("offset_m", "tilt_deg", "beam_deg")
+#: Starting values tried for candidates whose fit has many local minima: {effect: {param: values}}.
+#: Caustics is a moving periodic pattern: its fit finds the cell size and drift only from within
+#: about a quarter cycle of phase over the survey, so the grid is uniform in spatial frequency
+#: (0.5 to 10 cycles/m in steps of 0.1, cells 0.1 to 2 m) and drift (0 to 0.3 m/frame in 1 cm steps).
+#: An effect class may declare its own ``start_grid`` (same form), e.g. in a plugin.
+START_GRIDS: dict[str, dict[str, np.ndarray]] = {
+    "caustics": {"wavelength_m": 1.0 / np.arange(0.5, 10.01, 0.1), "drift_m_per_frame": np.arange(0.0, 0.301, 0.01)},
+}
+#: Training observations on which the start grid is evaluated.
+START_GRID_OBS = 300
 
 
 @dataclass(frozen=True)
 class DiagnoseConfig:
     """The diagnose stage."""
 
+    geometry: str = "auto"
+    """Where the 3D points and their views come from: "sfm" (the workspace's 04_sfm/tracks.npz),
+    "truth" (the simulator's depth maps and poses) or "auto" (sfm when the workspace has tracks, else
+    truth when the survey is simulated)."""
     effects: tuple[str, ...] = ()
     """Effects of the current model (empty: the survey's visible stack from truth/effects.json when
     simulated, with its parameters as the starting point, else attenuation,backscatter,vignetting,gain)."""
@@ -71,7 +108,11 @@ class DiagnoseConfig:
     bootstrap: int = 2000
     """Bootstrap resamples of the held-out points."""
     structure_threshold: float = 3.0
-    """Structure score above which an axis is reported as unexplained."""
+    """Structure score above which an axis is reported as unexplained (with ``structure_fraction``)."""
+    structure_fraction: float = 0.1
+    """... and the least amplitude of the structure (RMS of the bin means about their centre) as a
+    fraction of the residual RMSE: with many observations tiny biases (a few 1e-4 in the darkest
+    patches) score above 3 without mattering."""
     plots: bool = True
     """Write residual plots and the PLY."""
 
@@ -80,7 +121,8 @@ class DiagnoseConfig:
 class CandidateResult:
     """One candidate's refit. ``change``: relative held-out RMSE change (negative = better);
     ``ci95``: bootstrap 95% interval of it; ``p``: fraction of resamples with no improvement;
-    ``flattened``: the axis whose structure score dropped most, with the drop."""
+    ``flattened``: the axis whose structure score dropped most, with the drop; ``scores`` and
+    ``structure`` (amplitude / residual RMSE) per axis after the refit."""
 
     name: str
     heldout_rmse: float
@@ -92,6 +134,7 @@ class CandidateResult:
     flattened_drop: float
     params: dict
     scores: dict
+    structure: dict
     seconds: float
 
 
@@ -99,7 +142,8 @@ class CandidateResult:
 class DiagnoseResult:
     """What the diagnose stage wrote (``out_dir``, absolute) and found: the model, its held-out
     RMSE, the verdict, the best significant candidate (or None), the ranking, the skipped effects
-    with reasons, axes with unexplained structure, the base model's structure scores, wall time."""
+    with reasons, axes with unexplained structure, the base model's structure scores, the geometry
+    source ("truth" or "sfm (scale: METHOD)"), wall time."""
 
     out_dir: str
     stack: list[str]
@@ -112,7 +156,40 @@ class DiagnoseResult:
     skipped: dict[str, str]
     unexplained_axes: list[str]
     scores: dict[str, float]
+    geometry: str
     seconds: float
+
+
+#: Hidden parameters of the small survey other than HIDDEN_DEFAULTS: caustics' cell size and drift
+#: away from the effect's initial values (0.4 m, 0.07 m/frame), so that the fit has to find them.
+SMALL_SURVEY_HIDDEN = {"caustics": {"wavelength_m": 0.6, "drift_m_per_frame": 0.05}}
+
+
+def small_survey_config(hidden: list | tuple = (), seed: int = 1, width_px: int = 160):
+    """The small simulated survey the diagnosis is tested and benchmarked on: the ``tiny`` preset
+    with 2 lines of 8 frames (``width_px`` x 3/4, 70 degrees wide, 80% forward overlap), one
+    camera, a 2-view RGB-D set, and 40 mm texels. ``hidden``: effect names (parameters from
+    HIDDEN_DEFAULTS, then SMALL_SURVEY_HIDDEN) or ``{"name", "params"}`` entries.
+
+    Why 40 mm texels: the renderer casts one ray per pixel, so the preset's 5 mm texels seen at
+    ~22 mm per pixel alias, a view-dependent colour noise (held-out RMSE about 0.01 on a survey with
+    nothing hidden) that a real camera, which integrates over each pixel, does not record; at
+    40 mm the floor is about 0.003, near the sensor noise."""
+    from eval.synth import HIDDEN_DEFAULTS, make_config
+    from eval.synth.camera import CameraConfig
+    from eval.synth.rgbd import RGBDConfig
+
+    entries = tuple({"name": h, "params": {**HIDDEN_DEFAULTS.get(h, {}), **SMALL_SURVEY_HIDDEN.get(h, {})}}
+                    if isinstance(h, str) else dict(h) for h in hidden)
+    for entry in entries:
+        get(entry["name"])
+    cfg = make_config("tiny", seed=seed)
+    return replace(cfg, camera=CameraConfig(width_px=width_px, height_px=width_px * 3 // 4, hfov_deg=70.0),
+                   scene=replace(cfg.scene, texel_m=0.04),
+                   trajectory=replace(cfg.trajectory, frames_per_line=8, forward_overlap=0.8, stereo=False),
+                   rgbd=RGBDConfig(n_scenes=1, views_per_scene=2, width_px=32, height_px=24, scene_size_m=8.0,
+                                   grid_spacing_m=0.25),
+                   formation=replace(cfg.formation, hidden=entries))
 
 
 def default_stack(survey: Path, effects: tuple[str, ...]) -> Stack:
@@ -149,6 +226,81 @@ def make_effect(name: str, meas: Measurements):
     """A candidate effect at its initial values (the declared light rig for artificial_light)."""
     cls = get(name)
     return cls(**light_settings(meas)) if name == "artificial_light" else cls()
+
+
+def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:
+    """Set the starting values of candidate ``name`` in ``trial`` (in place) to the best point of its
+    start grid (``start_grid`` of the class, else START_GRIDS; nothing without one): each combination
+    is scored by the soft-L1 loss of the base fit (parameters and albedos) with the candidate added,
+    on ``START_GRID_OBS`` random training observations; the lowest wins. See :func:`grid_losses`."""
+    grid = getattr(get(name), "start_grid", None) or START_GRIDS.get(name)
+    if not grid:
+        return
+    rng = np.random.default_rng([config.fit.seed, 17])
+    obs = np.sort(rng.permutation(split.train_obs)[:START_GRID_OBS])
+    albedo = torch.from_numpy(base.albedo[meas.point[obs]]).view(-1, 3, 1, 1)
+    state = observation_state(meas, obs).replace(direct=albedo)
+    probe = insert_by_rank(base.stack, make_effect(name, meas)).to(torch.float64)
+    values = {k: np.asarray(v, float) for k, v in grid.items()}
+    losses = grid_losses(probe, name, state, torch.from_numpy(meas.colour[obs]), values, config.fit.loss_scale)
+    best = np.unravel_index(int(np.argmin(losses)), losses.shape)
+    trial[name].set_values(**{k: float(v[i]) for (k, v), i in zip(values.items(), best, strict=True)})
+
+
+def grid_losses(probe: Stack, name: str, state, y: torch.Tensor, grid: dict[str, np.ndarray],
+                scale: float) -> np.ndarray:
+    """Mean soft-L1 loss of ``probe`` with the scalar parameters of effect ``name`` set to every
+    combination of the values in ``grid`` ({param: values}); shape: one axis per parameter.
+
+    Fast path, when the effect multiplies the direct signal by a factor g that does not depend on it
+    and the effects after it are affine in the direct signal: with J the direct signal reaching the
+    effect, T = S(1) - S(0) and B = S(0) for the effects S after it, the prediction is T g J + B, so
+    each combination costs one evaluation of the effect alone. Otherwise the whole stack is rendered
+    per combination."""
+    index = probe.names.index(name)
+    effect = probe.effects[index]
+
+    def run(effects, st):
+        for e in effects:
+            st = e(st)
+        return st
+
+    with torch.no_grad():
+        before = run(probe.effects[:index], state)
+        ones = before.replace(direct=torch.ones_like(before.direct))
+        after = effect(before)
+        g = effect(ones).direct
+        rest = probe.effects[index + 1:]
+        s0, s1, s2 = (run(rest, after.replace(direct=k * after.direct)).image for k in (0.0, 1.0, 2.0))
+        fast = (torch.allclose(after.direct, before.direct * g, atol=1e-10)
+                and torch.allclose(after.backscatter, before.backscatter, atol=1e-10)
+                and torch.allclose(s2 - s1, s1 - s0, atol=1e-9))
+        if fast:
+            t = (run(rest, after.replace(direct=torch.ones_like(after.direct))).image - s0)[:, :, 0, 0]
+            b = s0[:, :, 0, 0]
+            j = before.direct[:, :, 0, 0]
+        raws = [effect._spec(k).to_raw(torch.from_numpy(v)) for k, v in grid.items()]
+        losses = np.zeros([len(v) for v in grid.values()])
+        for index in itertools.product(*(range(len(v)) for v in grid.values())):
+            for k, raw, i in zip(grid, raws, index, strict=True):
+                effect.raw[k].copy_(raw[i])
+            pred = t * effect(ones).direct[:, :, 0, 0] * j + b if fast else probe.render(state)[:, :, 0, 0]
+            losses[index] = float(soft_l1(pred - y, scale).sum(1).mean())
+    return losses
+
+
+def start_added(stack: Stack, added: list[str], meas: Measurements, split, config: DiagnoseConfig) -> None:
+    """Starting values of the effects just added to the model (``--add``) that have a start grid, as
+    a candidate gets them: the grid is scored against a fit of the model without them (one more fit),
+    in place. Without this an added caustics effect would start from its initial cell size and drift
+    and stay in the wrong minimum."""
+    gridded = [n for n in added if getattr(get(n), "start_grid", None) or n in START_GRIDS]
+    if not gridded:
+        return
+    without = Stack([e for e in copy_stack(stack).effects if e.name not in gridded])
+    prior = fit_stack(without, meas, split, config.fit, frozen_settings(without, meas))
+    for name in gridded:
+        grid_start(stack, name, prior, meas, split, config)
 
 
 def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
@@ -222,17 +374,32 @@ def rank_candidates(stack: Stack, meas: Measurements, base: FitResult, base_scor
     results = []
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
         trial = insert_by_rank(stack, make_effect(name, meas))
+        grid_start(trial, name, base, meas, split, config)
         fit = fit_stack(trial, meas, split, config.fit, frozen_settings(trial, meas), init_albedo=base.albedo)
         change, ci, p = paired_bootstrap(base, fit, config.bootstrap, config.fit.seed)
-        cand_scores = scores(analyse(meas, fit.predicted, fit.residual, config.residuals))
+        cand_analysis = analyse(meas, fit.predicted, fit.residual, config.residuals)
+        cand_scores = scores(cand_analysis)
         drops = {a: base_scores[a] - cand_scores.get(a, 0.0) for a in base_scores}
         flattened = max(drops, key=drops.get)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
             significant=p < config.alpha and change <= -config.min_improvement, flattened=flattened,
             flattened_drop=round(drops[flattened], 3), params=fit.params[name], scores=cand_scores,
+            structure=relative_amplitudes(cand_analysis, fit),
             seconds=fit.seconds))
     return sorted(results, key=lambda r: r.change)
+
+
+def relative_amplitudes(analysis: dict, fit: FitResult) -> dict[str, float]:
+    """Structure amplitude per axis over the RMSE of all the fit's residuals."""
+    rms = float(np.sqrt(np.mean(fit.residual ** 2))) + 1e-12
+    return {axis: round(a / rms, 3) for axis, a in amplitudes(analysis).items()}
+
+
+def unexplained_axes(final_scores: dict, structure: dict, config: DiagnoseConfig) -> list[str]:
+    """Axes with structure score > ``structure_threshold`` and amplitude >= ``structure_fraction`` of the RMSE."""
+    return [a for a, s in final_scores.items()
+            if s > config.structure_threshold and structure.get(a, 0.0) >= config.structure_fraction]
 
 
 def _short_params(params: dict) -> str:
@@ -245,7 +412,8 @@ def _short_params(params: dict) -> str:
     return ""
 
 
-def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict) -> str:
+def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
+                 final_structure: dict | None = None) -> str:
     """One line naming the missing effect (or none), plus a line on unexplained structure."""
     best = next((r for r in ranking if r.significant), None)
     if best is not None:
@@ -258,7 +426,9 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
             top = ranking[0]
             line += f" (best candidate {top.name}: held-out error {top.change * 100:+.1f}%, p = {top.p:.2f})"
     if unexplained:
-        listed = ", ".join(f"{a} (score {final_scores[a]:.1f})" for a in unexplained)
+        size = final_structure or {}
+        listed = ", ".join(f"{a} (score {final_scores[a]:.1f}" + (f", {size[a]:.0%} of the RMSE)" if a in size else ")")
+                           for a in unexplained)
         line += (f"\nunexplained structure along: {listed} — no registered candidate explains it; an effect "
                  f"whose signature lies on this axis is missing (write one and pass --plugin FILE.py)")
     return line
@@ -282,6 +452,27 @@ def append_ledger(folder: Path, record: dict) -> None:
         f.write(json.dumps(record) + "\n")
 
 
+def colour_summary(workspace: Path) -> dict:
+    """From ``workspace/06_eval/colour.json`` (eval.colour's run_colour_eval), per image folder: the
+    colour consistency (mean normalised-colour variance across views) and, when a board was
+    measured, its mean CIEDE2000. Empty without the file."""
+    path = Path(workspace) / "06_eval" / "colour.json"
+    if not path.is_file():
+        return {}
+    out = {}
+    try:
+        data = json.loads(path.read_text())
+        scores = (data.get("consistency") or {}).get("scores") or {}
+        if scores:
+            out["consistency"] = {name: float(s["mean_variance"]) for name, s in scores.items()}
+        board = data.get("board") or {}
+        if board:
+            out["board_ciede2000"] = {name: float(b["mean_ciede2000"]) for name, b in board.items()}
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return {}  # another layout: the ledger simply goes without the colour fields
+    return out
+
+
 def find_ledger(target: str | Path) -> Path:
     """The ledger of a workspace (or of a bare survey's diagnose/ folder)."""
     root = Path(target)
@@ -297,7 +488,8 @@ def read_ledger(path: Path) -> list[dict]:
 
 
 def ledger_table(records: list[dict]) -> str:
-    """A plain-text table: version, time, kind, held-out RMSE, change from the previous model, stack."""
+    """A plain-text table: version, time, kind, held-out RMSE, change from the previous model, stack;
+    then, for records that carry them, the consistency and board error of the measured image folders."""
     lines = [f"{'ver':>3}  {'time':19}  {'kind':9}  {'heldout_rmse':>12}  {'change':>7}  stack"]
     previous = None
     for i, r in enumerate(records):
@@ -306,6 +498,17 @@ def ledger_table(records: list[dict]) -> str:
                      f"{','.join(r['stack'])}")
         if r["kind"] == "model":
             previous = r["heldout_rmse"]
+    colour = [(i, r) for i, r in enumerate(records) if r.get("consistency") or r.get("board_ciede2000")]
+    if colour:
+        lines.append("\ncolour of the image folders measured by `watergan consistency` (06_eval/colour.json) "
+                     "when the version was fitted: consistency = mean variance of c/(R+G+B) across views "
+                     "(lower = more consistent), board = mean CIEDE2000 to the true patch colours")
+        for i, r in colour:
+            for name in sorted({*r.get("consistency", {}), *r.get("board_ciede2000", {})}):
+                var = r.get("consistency", {}).get(name)
+                de = r.get("board_ciede2000", {}).get(name)
+                lines.append(f"{i:>3}  {name:24}  consistency {'-' if var is None else f'{var:.3e}':>9}  "
+                             f"board {'-' if de is None else f'{de:.2f}':>6}")
     return "\n".join(lines)
 
 
@@ -334,32 +537,46 @@ def plot_ledger(records: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _ledger_record(fit: FitResult, kind: str, n_obs: int) -> dict:
+def _ledger_record(fit: FitResult, kind: str, meas: Measurements, colour: dict) -> dict:
     return {"time": time.strftime("%Y-%m-%d %H:%M:%S"), "kind": kind, "stack": fit.stack.names,
             "params": {e: {p: v["value"] for p, v in d.items()} for e, d in fit.params.items()},
-            "heldout_rmse": fit.heldout_rmse, "train_rmse": fit.train_rmse, "n_obs": n_obs,
-            "seconds": round(fit.seconds, 3)}
+            "heldout_rmse": fit.heldout_rmse, "train_rmse": fit.train_rmse, "n_obs": meas.n_obs,
+            "geometry": meas.source, "seconds": round(fit.seconds, 3), **colour}
 
 
 def run_diagnose(target: str | Path, config: DiagnoseConfig = DiagnoseConfig(),
                  progress: bool | None = None) -> DiagnoseResult:
     """Measure, fit the model, analyse residuals, rank candidates, write everything to the output
-    folder (see :func:`output_dir`) and append the fits to the ledger."""
+    folder (see :func:`output_dir`) and append the fits to the ledger. Torch runs on one thread: the
+    tensors are small (observations x 3), and a thread pool competing with other processes for the
+    cores made a fit 30 times slower (150 s instead of 5 s on the demo survey)."""
+    from eval.synth.imaging import single_torch_thread
+
+    with single_torch_thread():
+        return _run_diagnose(target, config, progress)
+
+
+def _run_diagnose(target: str | Path, config: DiagnoseConfig, progress: bool | None) -> DiagnoseResult:
     start = time.perf_counter()
     survey = resolve_survey(target)
     stack = default_stack(survey, config.effects)
     for name in config.add:
-        if name not in stack.names:
-            stack = insert_by_rank(stack, get(name)())
+        get(name)
+    geometry = choose_geometry(target, config.geometry)
     out, ledger_dir = output_dir(target)
-    meas = measure_survey(survey, config.measure)
+    meas = measure_survey(target, config.measure, geometry)
+    added = [name for name in config.add if name not in stack.names]
+    for name in added:
+        stack = insert_by_rank(stack, make_effect(name, meas))
     meas.save(out / "measurements.npz")
     split = make_split(meas, config.fit)
+    start_added(stack, added, meas, split, config)
     base = fit_stack(stack, meas, split, config.fit, frozen_settings(stack, meas))
     analysis = analyse(meas, base.predicted, base.residual, config.residuals)
     base_scores = scores(analysis)
     atomic_write_json(out / "fit.json", {**base.summary(), "n_points": meas.n_points, "n_obs": meas.n_obs,
                                          "patch_px": meas.patch_px, "geometry_source": meas.source,
+                                         "clipped_obs_dropped": meas.clipped_obs,
                                          "degeneracy": f"effects {list(config.fit.fixed_effects)} are held at "
                                                        f"their configured values: a gain and the albedos' "
                                                        f"scale are exactly degenerate"})
@@ -370,7 +587,8 @@ def run_diagnose(target: str | Path, config: DiagnoseConfig = DiagnoseConfig(),
     if config.plots:
         plot_residuals(analysis, out, f"{'+'.join(stack.names)}")
         write_residual_ply(meas, base.residual, out / "points_residual.ply")
-    append_ledger(ledger_dir, _ledger_record(base, "model", meas.n_obs))
+    append_ledger(ledger_dir, _ledger_record(base, "model", meas, colour_summary(ledger_dir) if ledger_dir != out
+                                             else {}))
 
     names, skipped = candidate_names(stack, meas, config.candidates)
     ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress)
@@ -378,20 +596,28 @@ def run_diagnose(target: str | Path, config: DiagnoseConfig = DiagnoseConfig(),
         append_ledger(ledger_dir, {"time": time.strftime("%Y-%m-%d %H:%M:%S"), "kind": "candidate",
                                    "stack": [*stack.names, r.name], "params": {r.name: {
                                        p: v["value"] for p, v in r.params.items()}},
-                                   "heldout_rmse": r.heldout_rmse, "seconds": round(r.seconds, 3)})
+                                   "heldout_rmse": r.heldout_rmse, "geometry": meas.source,
+                                   "seconds": round(r.seconds, 3)})
     best = next((r for r in ranking if r.significant), None)
     final_scores = best.scores if best is not None else base_scores
-    unexplained = [a for a, s in final_scores.items() if s > config.structure_threshold]
-    verdict = verdict_text(ranking, unexplained, final_scores)
+    final_structure = best.structure if best is not None else relative_amplitudes(analysis, base)
+    unexplained = unexplained_axes(final_scores, final_structure, config)
+    verdict = verdict_text(ranking, unexplained, final_scores, final_structure)
+    if meas.source.endswith("(scale: none)"):
+        verdict += ("\nnote: the reconstruction has no metric scale (sfm scale 'none'): ranges are in SfM units, so "
+                    "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "
+                    "a board or navigation altitudes")
     ranking_json = [{**r.__dict__, "ci95": list(r.ci95)} for r in ranking]
     atomic_write_json(out / "ranking.json", {"base_heldout_rmse": base.heldout_rmse, "base_scores": base_scores,
+                                             "base_structure": relative_amplitudes(analysis, base),
                                              "candidates": ranking_json, "skipped": skipped})
     atomic_write_text(out / "verdict.txt", verdict + "\n")
     plot_ledger(read_ledger(ledger_dir / LEDGER_NAME), out / "ledger.png")
     result = DiagnoseResult(out_dir=str(out), stack=stack.names, heldout_rmse=base.heldout_rmse,
                             n_points=meas.n_points, n_obs=meas.n_obs, verdict=verdict,
                             best=best.name if best else None, ranking=ranking_json, skipped=skipped,
-                            unexplained_axes=unexplained, scores=base_scores, seconds=time.perf_counter() - start)
+                            unexplained_axes=unexplained, scores=base_scores, geometry=meas.source,
+                            seconds=time.perf_counter() - start)
     if ledger_dir != out:
         Workspace(ledger_dir).save("diagnose", config, replace(result, ranking=[]))
     else:

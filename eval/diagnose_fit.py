@@ -11,7 +11,20 @@ out as a batch of 1x1 images, every tensor (N,C,1,1), so per-observation fields 
 
 Loss: soft-L1 on the linear colour residual e, rho(e) = 2 f^2 (sqrt(1 + (e/f)^2) - 1) with scale
 f = ``loss_scale`` (quadratic below f, linear above), summed over channels, averaged over
-observations; minimised jointly over theta and log a with Adam (cosine learning-rate decay).
+observations.
+
+Minimisation, by variable projection then a joint polish (L-BFGS, strong-Wolfe line search):
+
+1. theta alone, each albedo replaced by its least-squares value given theta (:func:`ls_albedo`;
+   closed form a_p = sum_v T (y - B) / sum_v T^2 with T = F(1) - F(0), B = F(0) when the stack is
+   affine in the albedo, a few secant steps otherwise): ``iterations`` steps. Jointly, the albedos
+   (thousands) and a parameter such as attenuation (which only the views' range differences
+   constrain) make a badly conditioned problem that Adam or L-BFGS take many hundreds of steps on.
+2. theta and log a together on the robust loss, from there: ``polish_iterations`` steps.
+
+Starting point: fitted parameters are moved 1% of their span inside their bounds (a value on a
+bound has no gradient through the sigmoid: ``artificial_light.ambient = 0`` stayed at 0); albedos,
+unless given, from secant steps at a = 0.3.
 
 Degeneracy: a per-channel gain k and the albedos' scale are exactly degenerate (k a = (k s)(a/s)),
 so the effects named in ``FitConfig.fixed_effects`` (``gain`` by default) keep their configured
@@ -43,15 +56,22 @@ from watergan.formation.params import to_json_value
 
 from .diagnose_measure import Measurements
 
+#: L-BFGS stops when the loss changes by less than this fraction of its starting value.
+RELATIVE_TOLERANCE = 1e-8
+#: Fraction of a parameter's span kept from its bounds at the start of a fit (see start_inside_bounds).
+START_MARGIN = 0.01
+
 
 @dataclass(frozen=True)
 class FitConfig:
     """How a stack is fitted to the measurements."""
 
-    iterations: int = 300
-    """Adam iterations of the joint fit (the held-out albedo fit, albedos only, uses a third)."""
-    lr: float = 0.05
-    """Adam learning rate on the raw parameters and log albedos (cosine decay to 5% of it)."""
+    iterations: int = 100
+    """L-BFGS iterations over the parameters with the albedos projected out (variable projection)."""
+    polish_iterations: int = 20
+    """L-BFGS iterations of the joint fit of parameters and albedos that follows (robust loss)."""
+    secant_steps: int = 4
+    """Secant steps of each least-squares albedo when the model is not affine in the albedo."""
     loss_scale: float = 0.02
     """Scale f of the soft-L1 loss, linear colour units: residuals above it count linearly."""
     holdout_fraction: float = 0.2
@@ -176,55 +196,116 @@ def fitted_names(stack: Stack, config: FitConfig, frozen: dict[str, tuple[str, .
     return names
 
 
-def _initial_albedo(stack: Stack, state: FormationState, y: torch.Tensor, local: torch.Tensor, n: int) -> torch.Tensor:
-    """Per point least squares of y = a T + B with T = F(1) - F(0), B = F(0) (exact when the
-    stack is affine in the albedo, a starting point otherwise), clamped to >= 1e-3."""
+def start_inside_bounds(stack: Stack, names: list[str], margin: float = START_MARGIN) -> None:
+    """Move the starting value of each fitted raw parameter ``names`` at least ``margin`` inside its
+    bounds (in place): sigmoid parameters to p = (v - lower)/(upper - lower) in [margin, 1 - margin],
+    softplus ones to v - lower >= margin. A value on a bound (e.g. ``artificial_light.ambient = 0``)
+    has raw = logit(1e-9) ~ -21, where d value / d raw ~ 1e-9: the fit cannot move it in a few hundred steps."""
+    by_name = dict(stack.named_parameters())
+    limit = math.log(margin) - math.log1p(-margin)  # logit(margin) < 0; softplus(limit) ~ margin
     with torch.no_grad():
-        zero = stack.render(state.replace(direct=torch.zeros_like(state.direct)))[:, :, 0, 0]
-        t = stack.render(state)[:, :, 0, 0] - zero
-        num = torch.zeros(n, 3, dtype=y.dtype).index_add_(0, local, t * (y - zero))
-        den = torch.zeros(n, 3, dtype=y.dtype).index_add_(0, local, t * t)
-    return (num / den.clamp_min(1e-12)).clamp(1e-3, 10.0)
+        for name in names:
+            raw = by_name[name]
+            spec = stack.effects[int(name.split(".")[1])]._spec(name.rsplit(".", 1)[1])
+            raw.clamp_(limit, -limit) if spec.bounded_above else raw.clamp_(min=limit)
 
 
-def _adam(params: list[torch.Tensor], loss_fn, iterations: int, lr: float) -> None:
-    opt = torch.optim.Adam(params, lr=lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda t: 0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * t / max(iterations, 1))))
-    for _ in range(iterations):
-        opt.zero_grad(set_to_none=True)
+def ls_albedo(stack: Stack, state: FormationState, y: torch.Tensor, local: torch.Tensor, start: torch.Tensor,
+              steps: int) -> torch.Tensor:
+    """Per point and channel, the albedo a with F(a) ~ y over the point's views, by ``steps`` secant
+    steps from ``start`` (n,3): with B = F(0) and each view's slope t_k = (F(a_k) - B) / a_k,
+    a_{k+1} = sum_v t_k (y - B) / sum_v t_k^2 (least squares of y = a t_k + B), clamped to [1e-3, 10].
+    One step is exact when the stack is affine in the albedo; otherwise the steps follow the curve's
+    secant, which a single slope at a = 1 does not (a clipped F(1) gives a tiny slope and an albedo
+    so large that every view is clipped and the fit has no gradient). Differentiable in the stack's
+    parameters (the variable projection of :func:`fit_stack`)."""
+    n = start.shape[0]
+    zero = stack.render(state.replace(direct=torch.zeros_like(state.direct)))[:, :, 0, 0]
+    albedo = start
+    for _ in range(steps):
+        a_obs = albedo[local]
+        t = (stack.render(state.replace(direct=a_obs.view(-1, 3, 1, 1)))[:, :, 0, 0] - zero) / a_obs
+        num = torch.zeros(n, 3, dtype=y.dtype).index_add(0, local, t * (y - zero))
+        den = torch.zeros(n, 3, dtype=y.dtype).index_add(0, local, t * t)
+        albedo = (num / den.clamp_min(1e-12)).clamp(1e-3, 10.0)
+    return albedo
+
+
+def is_affine_in_albedo(stack: Stack, state: FormationState, albedo: torch.Tensor) -> bool:
+    """True when F(2a) - F(a) = F(a) - F(0) for these observations (no sensor curve or clipping)."""
+    with torch.no_grad():
+        f0, f1, f2 = (stack.render(state.replace(direct=k * albedo)) for k in (0.0, 1.0, 2.0))
+    return bool(torch.allclose(f2 - f1, f1 - f0, atol=1e-9, rtol=1e-6))
+
+
+def _minimise(params: list[torch.Tensor], loss_fn, iterations: int) -> None:
+    """At most ``iterations`` L-BFGS iterations (strong-Wolfe line search, history 20), stopping when
+    the loss changes by less than RELATIVE_TOLERANCE of its starting value."""
+    if iterations <= 0:
+        return
+    with torch.no_grad():
+        scale = abs(float(loss_fn())) + 1e-30
+    lbfgs = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+                              tolerance_grad=1e-12, tolerance_change=RELATIVE_TOLERANCE * scale)
+
+    def closure():
+        lbfgs.zero_grad(set_to_none=True)
         loss = loss_fn()
         loss.backward()
-        opt.step()
-        sched.step()
+        return loss
+
+    lbfgs.step(closure)
 
 
 def _fit_albedos(stack: Stack, meas: Measurements, obs: np.ndarray, config: FitConfig,
                  train_names: list[str], init_albedo: np.ndarray | None,
                  iterations: int) -> tuple[torch.Tensor, FormationState]:
     """Fit log albedos of the points of ``obs`` (and the raw parameters ``train_names``, which may be
-    empty). Returns the (P,3) albedo tensor (rows of other points are NaN) and the state."""
+    empty; see the module docstring). Returns the (P,3) albedo tensor (rows of other points are NaN)
+    and the state."""
     state = observation_state(meas, obs)
     y = torch.from_numpy(meas.colour[obs])
     points, local = np.unique(meas.point[obs], return_inverse=True)
     local = torch.from_numpy(local)
-    if init_albedo is not None and np.isfinite(init_albedo[points]).all():
-        a0 = torch.from_numpy(init_albedo[points]).clamp_min(1e-3)
-    else:
-        a0 = _initial_albedo(stack, state, y, local, len(points))
-    log_a = torch.nn.Parameter(torch.log(a0))
     by_name = dict(stack.named_parameters())
     theta = [by_name[n] for n in train_names]
     for p in stack.parameters():
         p.requires_grad_(False)
-    for p in theta:
-        p.requires_grad_(True)
+    if init_albedo is not None and np.isfinite(init_albedo[points]).all():
+        start = torch.from_numpy(init_albedo[points]).clamp(1e-3, 10.0)
+    else:
+        start = torch.full((len(points), 3), 0.3, dtype=torch.float64)
+    steps = 1 if is_affine_in_albedo(stack, state, start[local].view(-1, 3, 1, 1)) else config.secant_steps
+    with torch.no_grad():
+        start = ls_albedo(stack, state, y, local, start, steps if init_albedo is None else 0)
+
+    def render(albedo):
+        return stack.render(state.replace(direct=albedo[local].view(-1, 3, 1, 1)))[:, :, 0, 0]
+
+    if theta:  # variable projection: the parameters alone, each point's albedo its least-squares value
+        for p in theta:
+            p.requires_grad_(True)
+
+        def reduced_loss():
+            if steps > 1:
+                pred = render(ls_albedo(stack, state, y, local, start, steps))
+            else:  # affine: F(a) = T a + B, T = F(1) - F(0), B = F(0); the least-squares a in closed form
+                b = stack.render(state.replace(direct=torch.zeros_like(state.direct)))[:, :, 0, 0]
+                t = stack.render(state.replace(direct=torch.ones_like(state.direct)))[:, :, 0, 0] - b
+                num = torch.zeros(len(points), 3, dtype=y.dtype).index_add(0, local, t * (y - b))
+                den = torch.zeros(len(points), 3, dtype=y.dtype).index_add(0, local, t * t)
+                pred = t * (num / den.clamp_min(1e-12)).clamp(1e-3, 10.0)[local] + b
+            return soft_l1(pred - y, config.loss_scale).sum(1).mean()
+
+        _minimise(theta, reduced_loss, iterations)
+        with torch.no_grad():
+            start = ls_albedo(stack, state, y, local, start, steps)
+    log_a = torch.nn.Parameter(torch.log(start))
 
     def loss_fn():
-        pred = stack.render(state.replace(direct=torch.exp(log_a)[local].view(-1, 3, 1, 1)))[:, :, 0, 0]
-        return soft_l1(pred - y, config.loss_scale).sum(1).mean()
+        return soft_l1(render(torch.exp(log_a)) - y, config.loss_scale).sum(1).mean()
 
-    _adam([log_a, *theta], loss_fn, iterations, config.lr)
+    _minimise([log_a, *theta], loss_fn, config.polish_iterations)
     for p in stack.parameters():
         p.requires_grad_(False)
     albedo = torch.full((meas.n_points, 3), float("nan"), dtype=torch.float64)
@@ -300,9 +381,9 @@ def fit_stack(stack: Stack, meas: Measurements, split: Split, config: FitConfig 
     start = time.perf_counter()
     stack = copy_stack(stack).to(torch.float64)
     names = fitted_names(stack, config, frozen or {})
+    start_inside_bounds(stack, names)
     albedo_t, state = _fit_albedos(stack, meas, split.train_obs, config, names, init_albedo, config.iterations)
-    held_albedo, _ = _fit_albedos(stack, meas, split.holdout_fit_obs, config, [], init_albedo,
-                                   max(config.iterations // 3, 1))
+    held_albedo, _ = _fit_albedos(stack, meas, split.holdout_fit_obs, config, [], None, 0)
     albedo_t[torch.from_numpy(split.holdout_points)] = held_albedo[torch.from_numpy(split.holdout_points)]
     albedo = albedo_t.numpy()
 

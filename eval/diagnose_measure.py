@@ -6,13 +6,18 @@ and every derived quantity are then read from the survey's images by :func:`meas
 
 Geometry sources are plain functions returning :class:`Geometry`:
 
+- :func:`geometry_from_tracks`: the SfM reconstruction (``WORKSPACE/04_sfm/tracks.npz``), what a
+  real survey has. Points are the sparse points, observations their feature positions (within
+  ``max_reprojection_px`` of the point's projection); normals from the neighbouring sparse points.
 - :func:`geometry_from_truth`: the simulator's truth (depth maps and poses), for tests and
-  simulated surveys. Points are sampled by unprojecting random pixels of random frames and
-  projected into every frame; a point is seen in a frame when it lands inside the image (with the
-  patch margin) and the frame's true depth there agrees with its camera z within ``depth_tol_m``.
+  simulated surveys without a reconstruction. Points are sampled by unprojecting random pixels of
+  random frames and projected into every frame; a point is seen in a frame when it lands inside the
+  image (with the patch margin) and the frame's true depth there agrees with its camera z within
+  ``depth_tol_m``.
 
-A second source (for instance COLMAP tracks from ``04_sfm``) is a second function returning the
-same :class:`Geometry`; :func:`measure` needs nothing else.
+:func:`measure_survey` picks the source (``geometry="auto"``: the tracks of a workspace that has
+them, else the truth of a simulated survey); :func:`measure` needs nothing but the
+:class:`Geometry`.
 
 Observed colour is the mean of a ``patch_px`` x ``patch_px`` patch of the sRGB-decoded (linear)
 image, bilinearly interpolated at the sub-pixel projection (OpenCV pixel centres: pixel (i, j)
@@ -23,7 +28,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import cv2
@@ -51,6 +56,11 @@ class MeasureConfig:
     as seen (occlusion test), metres."""
     seed: int = 0
     """Seed of the point sampling."""
+    max_reprojection_px: float = 2.0
+    """SfM geometry: an observation is kept when its feature lies within this distance of the
+    point's projection, pixels."""
+    normal_neighbours: int = 12
+    """SfM geometry: sparse points (the point included) whose plane gives a point's normal."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +75,10 @@ class Geometry:
     world_from_cam:(F,4,4) camera poses.
     intrinsics:    the camera.
     frames:        (F,) image file names.
+    scale:         where the metric scale comes from: "truth", or the SfM stage's scale_method
+                   ("stereo", "board", "altitude"; "none": arbitrary units).
+    water_depth_m: (P,) depth of each point below the surface, metres, when the source knows it
+                   better than ``site_depth_m - z`` (SfM with navigation depths); None otherwise.
     """
 
     points_world: np.ndarray
@@ -75,6 +89,13 @@ class Geometry:
     world_from_cam: np.ndarray
     intrinsics: Intrinsics
     frames: list[str]
+    scale: str = "truth"
+    water_depth_m: np.ndarray | None = None
+
+
+#: Where ``geometry="auto"`` finds a workspace's reconstruction.
+TRACKS_RELATIVE = Path("04_sfm") / "tracks.npz"
+GEOMETRY_SOURCES = ("auto", "truth", "sfm")
 
 
 @dataclass(frozen=True)
@@ -94,7 +115,8 @@ class Measurements:
 
     Per point (P rows): points_world, normals_world, height_m (world z), water_depth_m
     (site depth - z). Scalars: image_wh, site_depth_m, patch_px; lights as declared in survey.json;
-    frames (file names); source (which geometry source made it).
+    frames (file names); source (which geometry source made it: "truth", or "sfm (scale: METHOD)");
+    clipped_obs: observations dropped because their patch held a clipped pixel.
     """
 
     point: np.ndarray
@@ -120,6 +142,7 @@ class Measurements:
     lights: list[dict]
     frames: list[str]
     source: str
+    clipped_obs: int = 0
 
     @property
     def n_obs(self) -> int:
@@ -217,7 +240,8 @@ def geometry_from_truth(survey: Path, config: MeasureConfig) -> Geometry:
                            np.concatenate(obs_px), poses, intr, truth.frames, config.min_views)
 
 
-def _keep_multiview(points, normals, obs_point, obs_frame, obs_px, poses, intr, frames, min_views) -> Geometry:
+def _keep_multiview(points, normals, obs_point, obs_frame, obs_px, poses, intr, frames, min_views,
+                    scale: str = "truth") -> Geometry:
     """Drop points seen in fewer than ``min_views`` frames and renumber the rest."""
     views = np.bincount(obs_point, minlength=len(points))
     keep = views >= min_views
@@ -229,7 +253,129 @@ def _keep_multiview(points, normals, obs_point, obs_frame, obs_px, poses, intr, 
     order = np.lexsort((obs_frame[sel], new_index[obs_point[sel]]))
     return Geometry(points_world=points[keep], normals_world=normals[keep],
                     obs_point=new_index[obs_point[sel]][order], obs_frame=obs_frame[sel][order],
-                    obs_px=obs_px[sel][order], world_from_cam=poses, intrinsics=intr, frames=list(frames))
+                    obs_px=obs_px[sel][order], world_from_cam=poses, intrinsics=intr, frames=list(frames),
+                    scale=scale)
+
+
+def drop_observations(geometry: Geometry, keep: np.ndarray, min_views: int) -> tuple[Geometry, np.ndarray]:
+    """The geometry without the observations where ``keep`` (N,) is False, less the points left with
+    fewer than ``min_views`` views (renumbered), and the indices of the kept observations (in the
+    new order, which is the old one: observations stay sorted by point, then frame)."""
+    index = np.flatnonzero(keep)
+    views = np.bincount(geometry.obs_point[index], minlength=len(geometry.points_world))
+    ok = views >= min_views
+    if ok.sum() < 20:
+        raise UserInputError(f"only {int(ok.sum())} points keep at least {min_views} views without clipped pixels: "
+                             f"the survey is over- or under-exposed")
+    index = index[ok[geometry.obs_point[index]]]
+    new_point = np.cumsum(ok) - 1
+    depth = geometry.water_depth_m[ok] if geometry.water_depth_m is not None else None
+    return replace(geometry, points_world=geometry.points_world[ok], normals_world=geometry.normals_world[ok],
+                   obs_point=new_point[geometry.obs_point[index]], obs_frame=geometry.obs_frame[index],
+                   obs_px=geometry.obs_px[index], water_depth_m=depth), index
+
+
+def tracks_file(source: str | Path) -> Path:
+    """The tracks.npz of a workspace (``04_sfm/tracks.npz``), of an SfM folder, or the file itself."""
+    source = Path(source)
+    for path in (source, source / "tracks.npz", source / TRACKS_RELATIVE):
+        if path.is_file():
+            return path
+    raise UserInputError(f"no SfM tracks at {source} (looked for {source / TRACKS_RELATIVE}): run "
+                         f"`watergan sfm --workspace WORKSPACE` first, or diagnose on the simulator's truth "
+                         f"(--geometry truth)")
+
+
+def sfm_scale_method(tracks_path: Path) -> str:
+    """The SfM stage's ``scale_method`` from ``result.json`` beside the tracks ("unknown" without one)."""
+    result = tracks_path.parent / "result.json"
+    if not result.is_file():
+        return "unknown"
+    return str(json.loads(result.read_text()).get("result", {}).get("scale_method", "unknown"))
+
+
+def pca_normals(points: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
+    """(P,3) unit normals of a point cloud: the direction of least variance of each point's
+    ``neighbours`` nearest points (the eigenvector of the smallest eigenvalue of their covariance),
+    turned towards ``centres`` (P,3), e.g. the mean centre of the cameras that see the point:
+    n . (c - X) > 0."""
+    from scipy.spatial import cKDTree
+
+    k = int(min(max(neighbours, 3), len(points)))
+    _, idx = cKDTree(points).query(points, k=k)
+    local = points[idx] - points[idx].mean(1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("pki,pkj->pij", local, local))
+    normals = vectors[:, :, 0]
+    flip = ((centres - points) * normals).sum(1) < 0
+    normals[flip] *= -1.0
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def geometry_from_tracks(source: str | Path, survey: Path, config: MeasureConfig) -> Geometry:
+    """Points and their views from the SfM reconstruction (:class:`pipeline.sfm.Tracks`).
+
+    ``source``: a workspace, its ``04_sfm`` folder or a tracks.npz. An observation of sparse point X
+    in registered image k at feature pixel x_f is kept when the patch fits inside the image and
+    |x_f - pi_k(X)| <= ``max_reprojection_px`` (pi_k the projection). Of the points with at least
+    ``min_views`` kept observations, ``n_points`` are drawn at random (all when fewer). Normals:
+    :func:`pca_normals` over every sparse point, towards the mean centre of the point's cameras.
+    Water depth, when survey.json has the navigation depth d_k of each camera: the median over the
+    point's views of d_k + (C_k - X) . z (the survey frame's z is up, metric when the SfM scale is);
+    else site_depth_m - z. The scale (``Geometry.scale``) is the SfM stage's ``scale_method``.
+    """
+    from pipeline.sfm import Tracks
+
+    path = tracks_file(source)
+    tracks = Tracks.load(path)
+    K = np.asarray(tracks.K, float)
+    intr = Intrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                      width=int(tracks.width), height=int(tracks.height))
+    poses = np.asarray(tracks.world_from_cam, float)
+    frames = [str(n) for n in tracks.image_names]
+    obs_point, obs_frame = tracks.obs_point.astype(np.int64), tracks.obs_image.astype(np.int64)
+    px = tracks.obs_xy.astype(np.float64)
+    margin = config.patch_px // 2 + 1
+    ok = tracks.registered[obs_frame] & (px[:, 0] >= margin) & (px[:, 0] <= intr.width - 1 - margin) \
+        & (px[:, 1] >= margin) & (px[:, 1] <= intr.height - 1 - margin)
+    pose = np.where(ok[:, None, None], poses[obs_frame], np.eye(4))
+    pc = np.einsum("nji,nj->ni", pose[:, :3, :3], tracks.xyz[obs_point] - pose[:, :3, 3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = np.stack([intr.fx * pc[:, 0] / pc[:, 2] + intr.cx, intr.fy * pc[:, 1] / pc[:, 2] + intr.cy], 1)
+    ok &= (pc[:, 2] > 0) & (np.linalg.norm(proj - px, axis=1) <= config.max_reprojection_px)
+
+    views = np.bincount(obs_point[ok], minlength=len(tracks.xyz))
+    eligible = np.flatnonzero(views >= config.min_views)
+    rng = np.random.default_rng([config.seed, 7])
+    chosen = np.sort(rng.permutation(eligible)[:config.n_points])
+    take = np.zeros(len(tracks.xyz), bool)
+    take[chosen] = True
+    ok &= take[obs_point]
+
+    centre_sum = np.zeros((len(tracks.xyz), 3))
+    np.add.at(centre_sum, obs_point, poses[obs_frame, :3, 3])  # tracks observe registered images only
+    seen = np.maximum(np.bincount(obs_point, minlength=len(tracks.xyz)), 1)[:, None]
+    normals = pca_normals(tracks.xyz, centre_sum / seen, config.normal_neighbours)
+
+    geometry = _keep_multiview(tracks.xyz, normals, obs_point[ok], obs_frame[ok], px[ok], poses, intr, frames,
+                               config.min_views, scale=sfm_scale_method(path))
+    return replace(geometry, water_depth_m=_navigation_water_depth(survey, geometry))
+
+
+def _navigation_water_depth(survey: Path, geometry: Geometry) -> np.ndarray | None:
+    """Per point, median over its views of nav_depth_k + (C_k - X) . z; None without navigation depths."""
+    path = survey / "survey.json"
+    info = json.loads(path.read_text()) if path.is_file() else {}
+    if "nav_depth_m" not in info:
+        return None
+    by_name = dict(zip(info.get("frames", geometry.frames), info["nav_depth_m"], strict=False))
+    nav = np.array([by_name.get(name, np.nan) for name in geometry.frames], float)
+    per_obs = nav[geometry.obs_frame] + geometry.world_from_cam[geometry.obs_frame, 2, 3] \
+        - geometry.points_world[geometry.obs_point, 2]
+    if not np.isfinite(per_obs).all():
+        return None
+    # observations are grouped by point (see _keep_multiview)
+    groups = np.split(per_obs, np.cumsum(np.bincount(geometry.obs_point))[:-1])
+    return np.array([np.median(g) for g in groups])
 
 
 def bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
@@ -248,6 +394,11 @@ def bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
 def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str) -> Measurements:
     """Observed colour and every per-observation quantity for the points of ``geometry``.
 
+    Observations whose patch holds a clipped pixel (a channel at 0 or at full scale) are dropped
+    (then points left with fewer than ``min_views`` views): a clipped value is not what the model
+    predicts, and a few of them (a white board patch) would otherwise make a sensor curve with a
+    saturation level look like a missing effect.
+
     colour = bilinear sample of the patch-mean (box filter) of the sRGB-decoded image;
     grad_energy = E[L^2] - E[L]^2 over the patch, L the Laplacian of the grey linear image;
     view angle = acos(n . (c - X)/|c - X|), c the camera centre.
@@ -259,20 +410,28 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     n_obs = len(geometry.obs_point)
     colour = np.zeros((n_obs, 3))
     grad = np.zeros(n_obs)
+    clipped = np.zeros(n_obs, bool)
     k_size = (config.patch_px, config.patch_px)
     for k in np.unique(geometry.obs_frame):
         path = survey / "images" / geometry.frames[k]
         image = read_png(path)
         if image.ndim != 3 or image.shape[:2] != (intr.height, intr.width):
             raise UserInputError(f"image {path} is not a {intr.width}x{intr.height} RGB image")
-        top = 255.0 if image.dtype == np.uint8 else 65535.0
-        linear = srgb_decode(image / top).astype(np.float32)
+        top = 255 if image.dtype == np.uint8 else 65535
+        linear = srgb_decode(image / float(top)).astype(np.float32)
+        at_limit = ((image == 0) | (image == top)).any(axis=2).astype(np.float32)
+        near = cv2.blur(at_limit, (config.patch_px + 2, config.patch_px + 2))  # > 0 within the sampled pixels
         lap = cv2.Laplacian(linear.mean(axis=2), cv2.CV_32F)
         mean_lap = cv2.blur(lap, k_size)
         energy = cv2.blur(lap * lap, k_size) - mean_lap * mean_lap
         sel = geometry.obs_frame == k
         colour[sel] = bilinear(cv2.blur(linear, k_size).astype(np.float64), geometry.obs_px[sel])
         grad[sel] = bilinear(energy[..., None].astype(np.float64), geometry.obs_px[sel])[:, 0]
+        clipped[sel] = bilinear(near[..., None].astype(np.float64), geometry.obs_px[sel])[:, 0] > 0
+
+    if clipped.any():
+        geometry, index = drop_observations(geometry, ~clipped, config.min_views)
+        colour, grad, n_obs = colour[index], grad[index], len(index)
 
     poses = geometry.world_from_cam[geometry.obs_frame]
     xw = geometry.points_world[geometry.obs_point]
@@ -293,14 +452,38 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
         normals_cam=nc, view_angle_deg=np.degrees(np.arccos(cos_view)), light_distance_m=light_d,
         grad_energy=np.maximum(grad, 0.0), points_world=geometry.points_world,
         normals_world=geometry.normals_world, height_m=geometry.points_world[:, 2],
-        water_depth_m=site_depth - geometry.points_world[:, 2], image_wh=(w, h), site_depth_m=site_depth,
-        patch_px=config.patch_px, lights=lights, frames=list(geometry.frames), source=source)
+        water_depth_m=site_depth - geometry.points_world[:, 2] if geometry.water_depth_m is None
+        else geometry.water_depth_m, image_wh=(w, h), site_depth_m=site_depth,
+        patch_px=config.patch_px, lights=lights, frames=list(geometry.frames), source=source,
+        clipped_obs=int(clipped.sum()))
 
 
-def measure_survey(target: str | Path, config: MeasureConfig = MeasureConfig()) -> Measurements:
-    """Measurements of a survey folder or a workspace's ``00_survey`` (geometry from the simulator's truth)."""
+def choose_geometry(target: str | Path, geometry: str = "auto") -> str:
+    """"truth" or "sfm" for ``geometry`` = "auto" | "truth" | "sfm": auto takes the reconstruction of a
+    workspace that has ``04_sfm/tracks.npz``, else the simulator's truth when the survey has it."""
+    if geometry not in GEOMETRY_SOURCES:
+        raise UserInputError(f"geometry must be one of {', '.join(GEOMETRY_SOURCES)}, not '{geometry}'")
+    if geometry != "auto":
+        return geometry
+    root = Path(target)
+    if (root / TRACKS_RELATIVE).is_file():
+        return "sfm"
+    if (resolve_survey(root) / "truth" / "poses.json").is_file():
+        return "truth"
+    raise UserInputError(f"{root} has no reconstruction ({TRACKS_RELATIVE}) and no simulator truth: copy the survey "
+                         f"into a workspace's 00_survey/, run `watergan sfm --workspace WORKSPACE` and diagnose the "
+                         f"workspace")
+
+
+def measure_survey(target: str | Path, config: MeasureConfig = MeasureConfig(), geometry: str = "auto",
+                   tracks: str | Path | None = None) -> Measurements:
+    """Measurements of a survey folder or a workspace (its ``00_survey``), the geometry from the
+    source :func:`choose_geometry` picks (``tracks``: another tracks.npz than the workspace's)."""
     if config.patch_px < 1 or config.patch_px % 2 == 0:
         raise UserInputError(f"patch_px must be a positive odd number of pixels, got {config.patch_px}")
     survey = resolve_survey(target)
+    source = "sfm" if tracks is not None else choose_geometry(target, geometry)
+    if source == "sfm":
+        geo = geometry_from_tracks(tracks if tracks is not None else target, survey, config)
+        return measure(survey, geo, config, source=f"sfm (scale: {geo.scale})")
     return measure(survey, geometry_from_truth(survey, config), config, source="truth")
-

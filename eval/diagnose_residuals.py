@@ -10,6 +10,11 @@ bin mean m_bc, its standard error se_bc = std_bc / sqrt(n_b) and the inverse-var
 mean m_c of the bin means; score = sqrt(mean_bc ((m_bc - m_c) / se_bc)^2). It is about 1 when the
 residual does not depend on the axis and grows with systematic structure. Residuals of one point
 share its fitted albedo, so the score of pure noise is somewhat below or above 1, not exactly 1.
+
+Amplitude of an axis: sqrt(mean_bc (m_bc - m_c)^2), linear colour units: how large the structure
+is. With tens of thousands of observations a score above 3 can come from bin means a few 1e-4 apart
+(e.g. the darkest patches, where 8-bit quantisation and noise clipped at 0 bias the mean), so the
+diagnosis reports an axis only when its amplitude is also a sizeable fraction of the residual RMSE.
 """
 
 from __future__ import annotations
@@ -71,15 +76,27 @@ def structure_score(stats: dict, min_count: int) -> float:
     return float(np.sqrt(np.mean(((m - centre) / se) ** 2)))
 
 
+def structure_amplitude(stats: dict, min_count: int) -> float:
+    """sqrt(mean over bins and channels of (m_bc - m_c)^2), m_c the inverse-variance weighted mean."""
+    ok = stats["count"] >= min_count
+    if ok.sum() < 2:
+        return 0.0
+    m, se = stats["mean"][ok], np.maximum(stats["se"][ok], 1e-9)
+    w = 1.0 / se ** 2
+    centre = (w * m).sum(0) / w.sum(0)
+    return float(np.sqrt(np.mean((m - centre) ** 2)))
+
+
 def analyse(meas: Measurements, predicted: np.ndarray, residual: np.ndarray,
             config: ResidualConfig = ResidualConfig()) -> dict:
-    """{axis: {"edges" or "grid", "count", "mean", "se", "score"}} (JSON-ready lists)."""
+    """{axis: {"edges" or "grid", "count", "mean", "se", "score", "amplitude"}} (JSON-ready lists)."""
     out = {}
     nu, nv = config.grid_uv
     iu = np.clip((meas.pixel_uv[:, 0] * nu).astype(int), 0, nu - 1)
     iv = np.clip((meas.pixel_uv[:, 1] * nv).astype(int), 0, nv - 1)
     stats = _bin_stats(iv * nu + iu, nu * nv, residual)
-    out["image_position"] = {"grid_uv": [nu, nv], **_jsonable(stats), "score": structure_score(stats, config.min_count)}
+    out["image_position"] = {"grid_uv": [nu, nv], **_jsonable(stats), "score": structure_score(stats, config.min_count),
+                             "amplitude": structure_amplitude(stats, config.min_count)}
     for axis, values in axis_values(meas, predicted).items():
         if axis == "frame":
             edges = np.arange(int(values.max()) + 2) - 0.5
@@ -89,7 +106,8 @@ def analyse(meas: Measurements, predicted: np.ndarray, residual: np.ndarray,
             continue
         index = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
         stats = _bin_stats(index, len(edges) - 1, residual)
-        out[axis] = {"edges": edges.tolist(), **_jsonable(stats), "score": structure_score(stats, config.min_count)}
+        out[axis] = {"edges": edges.tolist(), **_jsonable(stats), "score": structure_score(stats, config.min_count),
+                     "amplitude": structure_amplitude(stats, config.min_count)}
     return out
 
 
@@ -99,6 +117,10 @@ def _jsonable(stats: dict) -> dict:
 
 def scores(analysis: dict) -> dict[str, float]:
     return {axis: round(a["score"], 3) for axis, a in analysis.items()}
+
+
+def amplitudes(analysis: dict) -> dict[str, float]:
+    return {axis: a["amplitude"] for axis, a in analysis.items()}
 
 
 AXIS_LABELS = {"range": "range (m)", "intensity": "predicted intensity (linear)", "height": "world height z (m)",

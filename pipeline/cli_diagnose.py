@@ -1,7 +1,7 @@
 """The diagnosis commands of the `watergan` console script.
 
-    watergan diagnose WORKSPACE_OR_SURVEY [--effects A,B,...] [--add NAME] [--candidates A,B,...]
-                      [--points N] [--iterations N] [--seed N] [--no-plots]
+    watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|truth|sfm] [--effects A,B,...] [--add NAME]
+                      [--candidates A,B,...] [--points N] [--iterations N] [--seed N] [--no-plots]
     watergan ledger WORKSPACE
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``; ``--plugin FILE.py`` (from the
@@ -24,12 +24,14 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     effects, add, candidates = name_list(args.effects), args.add, name_list(args.candidates)
     for name in (*effects, *add, *candidates):
         get(name)  # unknown names fail before any data is read
-    config = DiagnoseConfig(effects=tuple(effects), add=tuple(add), candidates=tuple(candidates),
+    config = DiagnoseConfig(geometry=args.geometry, effects=tuple(effects), add=tuple(add),
+                            candidates=tuple(candidates),
                             measure=MeasureConfig(n_points=args.points, seed=args.seed),
                             fit=FitConfig(iterations=args.iterations, seed=args.seed), plots=not args.no_plots)
     result = run_diagnose(args.target, config)
     print(f"model: {' -> '.join(result.stack)}")
-    print(f"{result.n_points} points, {result.n_obs} observations; held-out RMSE {result.heldout_rmse:.5f} (linear)")
+    print(f"{result.n_points} points, {result.n_obs} observations (geometry: {result.geometry}); "
+          f"held-out RMSE {result.heldout_rmse:.5f} (linear)")
     print("structure score per axis (about 1 = no structure): "
           + ", ".join(f"{axis} {score:.1f}" for axis, score in result.scores.items()))
     print("candidates (held-out error change, 95% CI, p, axis flattened):")
@@ -66,6 +68,9 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("target", metavar="WORKSPACE_OR_SURVEY",
                    help="a workspace (its 00_survey/ is used, output in 08_diagnose/) or a survey folder "
                         "(output in SURVEY/diagnose/)")
+    p.add_argument("--geometry", choices=("auto", "truth", "sfm"), default="auto",
+                   help="3D points and views from the workspace's SfM tracks (sfm), the simulator's truth (truth), "
+                        "or auto: sfm when WORKSPACE/04_sfm/tracks.npz exists, else truth (default)")
     p.add_argument("--effects", default="", metavar="A,B,...",
                    help="the model's effects (default: the survey's visible stack when simulated, else "
                         "attenuation,backscatter,vignetting,gain)")
@@ -74,7 +79,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--candidates", default="", metavar="A,B,...",
                    help="candidate effects to try (default: every registered effect that can act on points)")
     p.add_argument("--points", type=int, default=3000, help="3D points to sample (default 3000)")
-    p.add_argument("--iterations", type=int, default=300, help="Adam iterations per fit (default 300)")
+    p.add_argument("--iterations", type=int, default=100,
+                   help="L-BFGS iterations per fit, albedos projected out (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed of the point sampling and held-out split")
     p.add_argument("--no-plots", action="store_true", help="skip the residual plots and PLY")
     p.set_defaults(func=cmd_diagnose)
