@@ -155,6 +155,8 @@ def run_survey(ws: Workspace, cfg: SurveyStage) -> dict:
     if survey != target:
         for name in ("images", "right", "camera.json", "survey.json", "truth"):
             src, dst = survey / name, target / name
+            if dst.is_symlink() and dst.resolve() != src.resolve():
+                dst.unlink()  # a link left by a run on another survey folder
             if src.exists() and not dst.exists():
                 dst.symlink_to(src)
     rgbd = Path(cfg.rgbd_dir) if cfg.rgbd_dir else survey / "rgbd"

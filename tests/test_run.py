@@ -133,3 +133,19 @@ def test_unknown_effect_and_stage_fail_first(tmp_path):
     with pytest.raises(UserInputError, match="unknown stage"):
         run_all(RunOptions(survey_dir=str(tmp_path / "s"), workspace=str(tmp_path / "ws"), force=("gann",)))
     assert not (tmp_path / "ws").exists()
+
+
+def test_survey_stage_links_without_copying(tmp_path):
+    from pipeline.run import SurveyStage, run_survey
+    from pipeline.workspace import Workspace
+
+    for name in ("a", "b"):
+        _survey(tmp_path / name)
+        (tmp_path / name / "rgbd" / "rgb").mkdir(parents=True)
+    ws = Workspace(tmp_path / "ws")
+    run_survey(ws, SurveyStage(str(tmp_path / "a"), "", 0))
+    assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "a" / "images").resolve()
+    summary = run_survey(ws, SurveyStage(str(tmp_path / "b"), "", 0))  # the workspace moved to another survey
+    assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "b" / "images").resolve()
+    assert summary["rgbd_dir"] == str((tmp_path / "b" / "rgbd").resolve())
+    assert sorted(p.name for p in (tmp_path / "a" / "images").iterdir()) == ["f0.png", "f1.png", "f2.png", "f3.png"]
