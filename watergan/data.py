@@ -23,6 +23,7 @@ raises :class:`DataError` naming it; with ``skip_bad=True`` it is skipped and li
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,6 +66,28 @@ class PinholeIntrinsics:
 
     def as_tuple(self) -> tuple[float, float, float, float]:
         return (self.fx, self.fy, self.cx, self.cy)
+
+    @property
+    def K(self) -> np.ndarray:
+        """The 3x3 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def hfov_deg(self) -> float:
+        """Horizontal field of view, degrees: 2 atan(W / (2 fx))."""
+        return math.degrees(2 * math.atan(self.width / (2 * self.fx)))
+
+    def to_json(self) -> dict:
+        """The ``camera.json`` form (with the pixel-centre convention spelled out)."""
+        return {"model": "PINHOLE", "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                "width": self.width, "height": self.height, "hfov_deg": self.hfov_deg,
+                "pixel_centres": "opencv: pixel (i, j) centre at (i, j); COLMAP convention is +0.5"}
+
+    @classmethod
+    def from_json(cls, d: dict) -> PinholeIntrinsics:
+        """From a ``camera.json`` dict (keys fx, fy, cx, cy, width, height; others ignored)."""
+        return cls(fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
+                   width=int(d["width"]), height=int(d["height"]))
 
 
 @dataclass(frozen=True)
@@ -286,9 +309,7 @@ def read_intrinsics(folder: str | Path) -> PinholeIntrinsics | None:
     for path in (folder / "camera.json", folder.parent / "camera.json"):
         if path.is_file():
             try:
-                d = json.loads(path.read_text())
-                return PinholeIntrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
-                                         int(d["width"]), int(d["height"]))
+                return PinholeIntrinsics.from_json(json.loads(path.read_text()))
             except (ValueError, KeyError, TypeError) as exc:
                 raise DataError(f"camera file {path} needs numbers fx, fy, cx, cy, width, height: {exc}") from exc
     return None

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from watergan.data import PinholeIntrinsics as Intrinsics  # one pinhole camera type for simulator and learning
+
 
 @dataclass(frozen=True)
 class CameraConfig:
@@ -26,36 +28,6 @@ class CameraConfig:
     """Image height, pixels."""
     hfov_deg: float = 70.0
     """Horizontal field of view (in water, i.e. of the housing + lens system), degrees."""
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels (square pixels, no distortion)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def hfov_deg(self) -> float:
-        return math.degrees(2 * math.atan(self.width / (2 * self.fx)))
-
-    def to_json(self) -> dict:
-        return {"model": "PINHOLE", "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
-                "width": self.width, "height": self.height, "hfov_deg": self.hfov_deg,
-                "pixel_centres": "opencv: pixel (i, j) centre at (i, j); COLMAP convention is +0.5"}
-
-    @classmethod
-    def from_json(cls, d: dict) -> Intrinsics:
-        return cls(fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
-                   width=int(d["width"]), height=int(d["height"]))
 
 
 def intrinsics_from_fov(width: int, height: int, hfov_deg: float) -> Intrinsics:
