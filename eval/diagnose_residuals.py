@@ -65,26 +65,27 @@ def _bin_stats(index: np.ndarray, n_bins: int, residual: np.ndarray) -> dict:
     return {"count": count, "mean": mean, "se": se}
 
 
-def structure_score(stats: dict, min_count: int) -> float:
-    """sqrt(mean over bins and channels of ((m_bc - m_c)/se_bc)^2), m_c the weighted mean (see module)."""
+def _bin_deviations(stats: dict, min_count: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(m_bc - m_c, se_bc) over bins with at least ``min_count`` observations, m_c the
+    inverse-variance weighted mean over those bins; None when fewer than 2 bins qualify."""
     ok = stats["count"] >= min_count
     if ok.sum() < 2:
-        return 0.0
+        return None
     m, se = stats["mean"][ok], np.maximum(stats["se"][ok], 1e-9)
     w = 1.0 / se ** 2
-    centre = (w * m).sum(0) / w.sum(0)
-    return float(np.sqrt(np.mean(((m - centre) / se) ** 2)))
+    return m - (w * m).sum(0) / w.sum(0), se
+
+
+def structure_score(stats: dict, min_count: int) -> float:
+    """sqrt(mean over bins and channels of ((m_bc - m_c)/se_bc)^2), m_c the weighted mean (see module)."""
+    dev = _bin_deviations(stats, min_count)
+    return 0.0 if dev is None else float(np.sqrt(np.mean((dev[0] / dev[1]) ** 2)))
 
 
 def structure_amplitude(stats: dict, min_count: int) -> float:
     """sqrt(mean over bins and channels of (m_bc - m_c)^2), m_c the inverse-variance weighted mean."""
-    ok = stats["count"] >= min_count
-    if ok.sum() < 2:
-        return 0.0
-    m, se = stats["mean"][ok], np.maximum(stats["se"][ok], 1e-9)
-    w = 1.0 / se ** 2
-    centre = (w * m).sum(0) / w.sum(0)
-    return float(np.sqrt(np.mean((m - centre) ** 2)))
+    dev = _bin_deviations(stats, min_count)
+    return 0.0 if dev is None else float(np.sqrt(np.mean(dev[0] ** 2)))
 
 
 def analyse(meas: Measurements, predicted: np.ndarray, residual: np.ndarray,
