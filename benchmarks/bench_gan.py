@@ -58,6 +58,8 @@ def main() -> int:
     parser.add_argument("--instance-noise", type=float, default=defaults.instance_noise_std)
     parser.add_argument("--real-label", type=float, default=defaults.real_label)
     parser.add_argument("--physics-lr", type=float, default=defaults.physics_lr)
+    parser.add_argument("--adversarial-physics", action="store_true",
+                        help="the paper's training: the discriminator moves the physical parameters too")
     args = parser.parse_args()
     os.environ.setdefault("MPLCONFIGDIR", str(Path(args.out) / "mpl"))
 
@@ -74,7 +76,8 @@ def main() -> int:
     config = GanConfig(rgbd_dir=survey / "rgbd", underwater_dir=survey / "images", out_dir=out / "model",
                        budget_min=args.budget_min, iterations=args.iterations, seed=args.seed,
                        disc_width=args.disc_width, instance_noise_std=args.instance_noise,
-                       real_label=args.real_label, physics_lr=args.physics_lr)
+                       real_label=args.real_label, physics_lr=args.physics_lr,
+                       adversarial_physics=args.adversarial_physics)
     cpu_started = time.process_time()
     result = train_gan(config)
     cpu_s = time.process_time() - cpu_started

@@ -42,6 +42,7 @@ def cmd_train_gan(args: argparse.Namespace) -> int:
     config = GanConfig(rgbd_dir=Path(args.rgbd), underwater_dir=Path(args.underwater), out_dir=Path(args.out),
                        effects=tuple(effects), iterations=args.iterations, epochs=args.epochs, budget_min=budget,
                        seed=args.seed, resume=args.resume, skip_bad=args.skip_bad, disc_width=args.disc_width,
+                       adversarial_physics=args.adversarial_physics,
                        batch_size=args.batch_size, encoding=args.encoding, device=args.device)
     result = train_gan(config)
     print(f"trained {result.steps} iterations ({result.iterations_per_s:.2f} it/s, stopped by {result.stopped_by}) "
@@ -98,6 +99,9 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--disc-width", type=int, default=GanConfig.disc_width,
                    help=f"channels of the discriminator's first conv (paper 64; default {GanConfig.disc_width} "
                         f"for the CPU)")
+    p.add_argument("--adversarial-physics", action="store_true",
+                   help="let the discriminator move the physical parameters too, as the paper does (default: "
+                        "they follow the colour statistics; see GanConfig.adversarial_physics)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     _common(p)
     p.set_defaults(func=cmd_train_gan)

@@ -158,13 +158,16 @@ def test_two_steps_change_params_files_and_constraint(data_dir, tmp_path):
 
 def test_param_groups_fast_physics():
     generator = WaterGenerator.build()
-    fast, slow = generator_param_groups(generator, 2e-4, 1e-2)
+    slow, fast = generator_param_groups(generator, 2e-4, 1e-2)
     assert fast["lr"] == 1e-2 and slow["lr"] == 2e-4
     assert len(fast["params"]) == 5  # eta, a_margin, b, c, k
     assert sum(p.numel() for p in slow["params"]) > 100 * 48 * 64  # z projection and convolutions
-    fast, slow, veil = generator_param_groups(generator, 2e-4, 1e-2, 2e-3)
-    assert veil["lr"] == 2e-3 and sum(p.numel() for p in veil["params"]) == 6  # BN scale and shift, 3 channels
-    assert len(fast["params"]) == 5 and not {id(p) for p in veil["params"]} & {id(p) for p in slow["params"]}
+    norm = generator.stack["backscatter_conv"].norm
+    slow, fast, level, spread = generator_param_groups(generator, 2e-4, 1e-2, 2e-3, 5e-4)
+    assert level["lr"] == 2e-3 and level["params"] == [norm.bias]  # the veil's level, 3 channels
+    assert spread["lr"] == 5e-4 and spread["params"] == [norm.weight]  # its spread
+    ids = [id(p) for group in (slow, fast, level, spread) for p in group["params"]]
+    assert len(ids) == len(set(ids)) == sum(1 for p in generator.parameters() if p.requires_grad)
 
 
 def test_checkpoint_round_trip(data_dir, tmp_path):
@@ -246,3 +249,65 @@ def test_cli_train_and_generate(data_dir, tmp_path):
     assert cv2.imread(str(tmp_path / "g" / "underwater" / "000.png")).shape == (30, 40, 3)
     with pytest.raises(SystemExit):
         parser.parse_args(["generate", "--model", "m", "--rgbd", "r", "--out", "o", "--size", "big"])
+
+
+def test_augment_is_a_flip_and_shift_of_each_image():
+    from torch.nn.functional import pad
+
+    from watergan.train import augment
+
+    images = torch.rand(6, 3, 16, 24)
+    out = augment(images, torch.Generator().manual_seed(0))
+    assert out.shape == images.shape
+    dy, dx = 2, 3  # 1/8 of each side
+    for image, result in zip(images, out, strict=True):
+        candidates = [pad(f[None], (dx, dx, dy, dy), mode="reflect")[0][:, oy:oy + 16, ox:ox + 24]
+                      for f in (image, image.flip(-1), image.flip(-2), image.flip(-1).flip(-2))
+                      for oy in range(2 * dy + 1) for ox in range(2 * dx + 1)]
+        assert any(torch.equal(result, c) for c in candidates)
+    flat = torch.full((4, 3, 16, 24), 0.3)
+    assert torch.equal(augment(flat, torch.Generator().manual_seed(1)), flat)  # colour untouched
+
+
+def test_init_from_data_recovers_the_linear_water_map():
+    """Real frames rendered with a known eta, veil and gain from textured in-air views at one range: the
+    initial eta differs between channels as the truth does, the veil level and k T match."""
+    from watergan.train import init_from_data
+
+    g = torch.Generator().manual_seed(0)
+    air = (0.2 + 0.5 * torch.rand(48, 3, 24, 32, generator=g)) * torch.tensor([1.0, 0.8, 0.5]).view(1, 3, 1, 1)
+    depth = torch.full((48, 1, 24, 32), 2.5)
+    truth = WaterGenerator.build(("attenuation", "backscatter_conv", "gain"), depth_scale_m=3.0)
+    truth.stack["attenuation"].set_values(eta_per_m=[0.45, 0.14, 0.2])
+    truth.stack["gain"].set_values(k=[1.5])
+    with torch.no_grad():
+        truth.stack["backscatter_conv"].norm.weight.zero_()
+        truth.stack["backscatter_conv"].norm.bias.copy_(torch.tensor([0.02, 0.09, 0.11]))
+    real = truth.eval()(air, depth, torch.zeros(48, truth.z_dim))
+    fresh = WaterGenerator.build(("attenuation", "backscatter_conv", "gain"), depth_scale_m=3.0)
+    values = init_from_data(fresh, air, depth, real, None)
+    eta = np.array(values["attenuation.eta_per_m"])
+    np.testing.assert_allclose(eta - eta.mean(), np.array([0.45, 0.14, 0.2]) - 0.79 / 3, atol=0.01)
+    k = values["gain.k"][0]
+    np.testing.assert_allclose(k * np.exp(-eta * 2.5), 1.5 * np.exp(-np.array([0.45, 0.14, 0.2]) * 2.5), rtol=0.03)
+    np.testing.assert_allclose(k * np.array(values["veil_level"]), 1.5 * np.array([0.02, 0.09, 0.11]), atol=0.01)
+
+
+@pytest.mark.parametrize("adversarial", [False, True])
+def test_adversarial_physics_decides_whether_the_discriminator_moves_the_water(data_dir, tmp_path, adversarial):
+    """One generator step against two different discriminators (widths 8 and 16): the learned physical
+    values are identical when only the colour statistics move them, and differ when the discriminator
+    does too."""
+    params = []
+    for width in (8, 16):
+        result = train_gan(small_config(data_dir, tmp_path / f"w{width}", iterations=1, gen_steps_per_disc_step=1,
+                                        disc_width=width, adversarial_physics=adversarial))
+        params.append(np.concatenate([np.ravel(v) for v in result.params.values()]))
+    start = WaterGenerator.build().physical_values()
+    assert not np.allclose(params[0][:3], np.ravel(start["attenuation.eta_per_m"].numpy()))  # it moved
+    assert np.array_equal(params[0], params[1]) != adversarial
+
+
+def test_statistics_only_needs_a_moment_term(data_dir, tmp_path):
+    with pytest.raises(UserInputError, match="nothing moves the physical parameters"):
+        train_gan(small_config(data_dir, tmp_path, moment_weight=0.0, adversarial_physics=False))

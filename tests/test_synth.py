@@ -247,3 +247,32 @@ def test_every_candidate_effect_can_be_hidden(name, no_hidden, tmp_path):
 def test_learned_effect_cannot_be_hidden():
     with pytest.raises(SimulationError, match="backscatter_conv.*learned"):
         make_config("tiny", hidden=["backscatter_conv"])
+
+
+def test_rgbd_scenes_resemble_the_site():
+    from eval.synth.rgbd import SITE_BRIGHTNESS_SPREAD, SITE_TINT_SPREAD, random_scene_config
+    from eval.synth.scene import SceneConfig
+
+    site = SceneConfig(tint_linear=(0.4, 0.3, 0.2), detail_texture="brick", overlay_texture="gravel")
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        scene = random_scene_config(rng, 10.0, 0.1, site)
+        assert (scene.detail_texture, scene.overlay_texture, scene.board) == ("brick", "gravel", None)
+        ratio = np.array(scene.tint_linear) / np.array(site.tint_linear)
+        assert np.all(np.abs(np.log(ratio)) < np.log(1 + SITE_BRIGHTNESS_SPREAD) + 4 * SITE_TINT_SPREAD)
+    generic = random_scene_config(np.random.default_rng(0), 10.0, 0.1)
+    assert generic.detail_texture != "brick" or generic.tint_linear != site.tint_linear
+
+
+def test_downsample_view_averages_blocks_and_drops_partial_depth():
+    from eval.synth.rgbd import downsample_view
+
+    rgb = np.arange(4 * 6 * 3, dtype=np.float32).reshape(4, 6, 3)
+    depth = np.full((4, 6), 2.0)
+    depth[0, 1] = 4.0
+    valid = np.ones((4, 6), bool)
+    valid[3, 5] = False
+    small_rgb, small_depth = downsample_view(rgb, depth, valid, 2)
+    assert small_rgb.shape == (2, 3, 3) and small_depth.shape == (2, 3)
+    np.testing.assert_allclose(small_rgb[0, 0], rgb[:2, :2].reshape(-1, 3).mean(0))
+    assert small_depth[0, 0] == pytest.approx(2.5) and small_depth[1, 2] == 0.0 and small_depth[1, 1] == 2.0

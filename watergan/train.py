@@ -4,15 +4,16 @@ WaterGAN (Li et al. 2017) learns a site's water without labels: the generator G 
 see :mod:`watergan.nets.generator`) turns in-air RGB-D into underwater images and the discriminator
 D (DCGAN) tells them from the survey's real frames. Per iteration, with BCE on logits::
 
-    L_D = BCE(D(b(x) + n), real_label) + BCE(D(b(G(J, d, z)) + n'), 0)          one Adam step on D
-    L_G = BCE(D(b(G(J, d, z)) + n'), 1) + w |m(G(J, d, z)) - m(x)|^2            ``gen_steps_per_disc_step`` steps on G
+    L_D = BCE(D(b(a(x)) + n), real_label) + BCE(D(b(a(G(J, d, z))) + n'), 0)    one Adam step on D
+    L_G = BCE(D(b(a(G(J, d, z))) + n'), 1) + w |m(G(J, d, z)) - m(x)|^2         ``gen_steps_per_disc_step`` steps on G
 
-with a Gaussian blur b (``disc_blur_px``), instance noise n, n' ~ N(0, instance_noise_std^2),
-one-sided label smoothing (``real_label``) and the per-channel mean and standard deviation m of a
-batch weighted by w (``moment_weight``). The generator starts near the survey's brightness and veil
-(``init_from_data``) with one gain for all channels (``gain_channels``).
-Adam (lr 2e-4, beta1 0.5) for the nets; the generator's few physical parameters use ``physics_lr`` and
-the backscatter veil's level and spread ``veil_lr`` (see :class:`GanConfig`). The geometry of every
+with random flips and shifts a (``disc_augment``), a Gaussian blur b (``disc_blur_px``), instance
+noise n, n' ~ N(0, instance_noise_std^2),
+one-sided label smoothing (``real_label``) and the per-channel mean and texture contrast m of a
+batch weighted by w (``moment_weight``). The generator starts at the linear map from the in-air set's
+colour statistics to the survey's (``init_from_data``) with one gain for all channels (``gain_channels``).
+Adam (lr 2e-4, beta1 0.5) for the nets; the generator's few physical parameters use ``physics_lr``, the
+backscatter veil's level ``veil_lr`` and its spread ``veil_spread_lr`` (see :class:`GanConfig`). The geometry of every
 RGB-D view (range, points, normals) is computed once before training (see
 :func:`~watergan.nets.generator.select_state`).
 
@@ -100,20 +101,36 @@ class GanConfig:
     of the backscatter veil per channel, linear radiance; 6 numbers); None: ``lr``, as the paper. At
     ``lr`` the veil moves by at most ~0.02 in the few hundred iterations a CPU allows in minutes,
     while the demo survey's veil is ~0.1."""
+    veil_spread_lr: float | None = None
+    """Adam learning rate of ``backscatter_conv``'s batch-norm scale (the spread of the veil around its
+    level, 3 numbers); None: ``lr``. Backscatter is smooth, and a fast-growing spread lets the z mask
+    stand in for texture contrast (at 2e-3 the demo survey's green veil grew to a spread of 0.11 and
+    eta_G rose 70 %); the restorer cannot undo such a random pattern."""
     gain_channels: int = 1
     """Values of the generator's ``gain``: 1 (one exposure factor, as the paper's camera model) or 3
     (a white balance per channel). A per-channel gain and a per-channel attenuation explain a frame's
     colour cast equally well; only the weak change of colour with range tells them apart, so with 3
     the learned eta is poorly determined."""
     init_from_data: bool = True
-    """Start the backscatter veil at the real frames' darkest colour (the 2nd percentile per channel,
-    linear: in the darkest pixels little but backscatter remains, the dark-channel idea) instead of
-    INITIAL_BACKSCATTER_LEVEL, and the gain at the ratio of the real frames' mean to the first
-    generated batch's mean above that veil, so training starts near the site's brightness and cast."""
-    moment_weight: float = 10.0
+    """Start the attenuation's channel differences, the veil's level and the gain at the per-channel
+    linear map that carries the in-air set's mean and spread onto the real frames' (see
+    :func:`init_from_data`), instead of the effects' initial values, so training starts near the
+    site's brightness, contrast and cast."""
+    moment_weight: float = 1000.0
     """Weight of a colour-statistics term added to the generator loss: the squared differences of
-    the per-channel mean and standard deviation of a generated and a real batch (linear), a form of
-    feature matching (Salimans et al. 2016) on the raw colours; 0: the paper's loss alone."""
+    the per-channel mean and texture contrast (:func:`texture_contrast`) of a generated and a real
+    batch (linear), a form of feature matching (Salimans et al. 2016) on the raw colours; 0: the
+    paper's loss alone. Texture contrast, not the standard deviation: the transmission scales fine
+    texture alone, while the spread of whole frames also holds how much the in-air scenes and the site
+    vary from metre to metre, which no water changes (matching it raised eta_G 0.20 -> 0.33 on the
+    demo survey)."""
+    adversarial_physics: bool = False
+    """Let the discriminator's loss move the physical parameters (every effect's bounded values and the
+    veil's level and spread), as the paper does. False: they follow the colour-statistics term alone,
+    while the discriminator trains the learned veil pattern (``backscatter_conv``'s layers). On the demo
+    survey the adversarial gradient pushed eta_G 2-4x above the truth within 800 iterations in every
+    setting tried (augmentation, label smoothing, blur, instance noise, narrower discriminator, slower
+    physics, moment weights 10-1000), while the statistics term holds the data-driven start."""
     gen_steps_per_disc_step: int = 2
     """Generator updates per discriminator update (2 in the original code)."""
     instance_noise_std: float = 0.1
@@ -125,6 +142,13 @@ class GanConfig:
     generated, before the instance noise): the discriminator then judges colour, brightness and
     coarse structure rather than the fine texture in which the in-air scenes and the site differ and
     which no physical stage can change; 0 turns it off."""
+    disc_augment: bool = True
+    """Flip (left-right, up-down) and shift (up to ``image_hw / 8`` pixels, reflected border) every
+    discriminator input at random, real and generated alike (differentiable augmentation, Zhao et al.
+    2020). A survey gives few frames (the demo: 44); without it the discriminator memorises them within
+    a few hundred iterations (D(generated) < 0.01) and its gradients push the physical parameters off.
+    The augmentations change neither colour nor the radial vignetting, so the generator is not taught
+    to imitate them."""
     real_label: float = 0.9
     """Target of the discriminator on real images (one-sided label smoothing; generated images keep
     0 and the generator's target stays 1). The in-air RGB-D scenes and the survey differ in content
@@ -206,8 +230,9 @@ def _check_config(config: GanConfig) -> None:
         raise UserInputError(f"GanConfig.instance_noise_std must be >= 0, got {config.instance_noise_std}")
     if not 0.5 < config.real_label <= 1.0:
         raise UserInputError(f"GanConfig.real_label must be in (0.5, 1], got {config.real_label}")
-    if config.veil_lr is not None and not config.veil_lr > 0:
-        raise UserInputError(f"GanConfig.veil_lr must be positive or None, got {config.veil_lr}")
+    for name in ("veil_lr", "veil_spread_lr"):
+        if getattr(config, name) is not None and not getattr(config, name) > 0:
+            raise UserInputError(f"GanConfig.{name} must be positive or None, got {getattr(config, name)}")
     if not (config.lr > 0 and config.physics_lr > 0):
         raise UserInputError(f"learning rates must be positive, got lr={config.lr}, physics_lr={config.physics_lr}")
     if config.gain_channels not in (1, 3):
@@ -216,6 +241,9 @@ def _check_config(config: GanConfig) -> None:
         raise UserInputError(f"GanConfig.disc_blur_px must be >= 0, got {config.disc_blur_px}")
     if config.moment_weight < 0:
         raise UserInputError(f"GanConfig.moment_weight must be >= 0, got {config.moment_weight}")
+    if config.moment_weight == 0 and not config.adversarial_physics:
+        raise UserInputError("with moment_weight 0 and adversarial_physics off nothing moves the physical "
+                             "parameters: set moment_weight > 0 or adversarial_physics")
     for name in ("iterations", "epochs", "batch_size", "gen_steps_per_disc_step", "disc_width", "z_dim",
                  "checkpoint_every", "sample_every"):
         value = getattr(config, name)
@@ -239,26 +267,36 @@ def pick_device(name: str) -> torch.device:
 
 
 def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: float,
-                           veil_lr: float | None = None) -> list[dict]:
+                           veil_lr: float | None = None, veil_spread_lr: float | None = None) -> list[dict]:
     """Optimiser groups: each effect's bounded physical (``raw``) parameters at ``physics_lr``, the
-    learned layers at ``lr``; with ``veil_lr``, the batch-norm scale and shift of ``backscatter_conv``
-    (the veil's level and spread) in a third group at that rate. Fixed settings (``learnable=False``)
-    are left out."""
-    fast_ids = {id(p) for effect in generator.stack.effects for p in effect.raw.parameters()}
-    veil_ids = set()
-    if veil_lr is not None and BackscatterConv.name in generator.stack.names:
-        veil_ids = {id(p) for p in generator.stack[BackscatterConv.name].norm.parameters()}
+    learned layers at ``lr``; with ``veil_lr`` the batch-norm shift of ``backscatter_conv`` (the
+    veil's level) and with ``veil_spread_lr`` its scale (the veil's spread) in groups of their own at
+    those rates. Fixed settings (``learnable=False``) are left out."""
+    special = {id(p): physics_lr for effect in generator.stack.effects for p in effect.raw.parameters()}
+    if BackscatterConv.name in generator.stack.names:
+        norm = generator.stack[BackscatterConv.name].norm
+        for param, rate in ((norm.bias, veil_lr), (norm.weight, veil_spread_lr)):
+            if rate is not None:
+                special[id(param)] = rate
     trainable = [p for p in generator.parameters() if p.requires_grad]
-    groups = [{"params": [p for p in trainable if id(p) in fast_ids], "lr": physics_lr},
-              {"params": [p for p in trainable if id(p) not in fast_ids | veil_ids], "lr": lr}]
-    if veil_ids:
-        groups.append({"params": [p for p in trainable if id(p) in veil_ids], "lr": veil_lr})
-    return groups
+    groups = [{"params": [p for p in trainable if id(p) not in special], "lr": lr}]
+    for rate in dict.fromkeys(special.values()):
+        groups.append({"params": [p for p in trainable if special.get(id(p)) == rate], "lr": rate})
+    return [g for g in groups if g["params"]]
+
+
+def physical_parameters(generator: WaterGenerator) -> list[torch.nn.Parameter]:
+    """The generator's physical parameters: every effect's bounded (``raw``) values and the batch-norm
+    scale and shift of ``backscatter_conv`` (the veil's spread and level)."""
+    params = [p for effect in generator.stack.effects for p in effect.raw.parameters() if p.requires_grad]
+    if BackscatterConv.name in generator.stack.names:
+        params += list(generator.stack[BackscatterConv.name].norm.parameters())
+    return params
 
 
 def colour_moments(images: torch.Tensor) -> torch.Tensor:
-    """(2,3): the per-channel mean and standard deviation of a (B,3,H,W) batch."""
-    return torch.stack([images.mean(dim=(0, 2, 3)), images.std(dim=(0, 2, 3))])
+    """(2,3): the per-channel mean and texture contrast (:func:`texture_contrast`) of a (B,3,H,W) batch."""
+    return torch.stack([images.mean(dim=(0, 2, 3)), texture_contrast(images)])
 
 
 def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -276,39 +314,81 @@ def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
                     groups=c)
 
 
-def init_from_data(generator: WaterGenerator, air: torch.Tensor, depth_m: torch.Tensor, real: torch.Tensor,
-                   intrinsics: tuple[float, float, float, float] | None, count: int = 64) -> dict[str, list[float]]:
-    """Start the veil and the gain near the survey (see ``GanConfig.init_from_data``).
+def augment(images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Per image: a random left-right and up-down flip and a random shift of up to 1/8 of each side
+    (reflected border); see ``GanConfig.disc_augment``."""
+    b, _, h, w = images.shape
+    flips = torch.rand(b, 2, generator=generator).to(images.device) < 0.5
+    out = torch.where(flips[:, 0, None, None, None], images.flip(-1), images)
+    out = torch.where(flips[:, 1, None, None, None], out.flip(-2), out)
+    dy, dx = max(1, h // 8), max(1, w // 8)
+    padded = F.pad(out, (dx, dx, dy, dy), mode="reflect")
+    oy = torch.randint(0, 2 * dy + 1, (b,), generator=generator).tolist()
+    ox = torch.randint(0, 2 * dx + 1, (b,), generator=generator).tolist()
+    return torch.stack([padded[i, :, oy[i]:oy[i] + h, ox[i]:ox[i] + w] for i in range(b)])
 
-    With D the generated image without veil (gain 1), q_c the real frames' 2nd percentile and R the
-    real mean: k = (mean R - mean q) / mean D (the mean over channels with one gain, per channel with
-    three), then the veil level L_c = q_c / k, so that k L_c = q_c and k (D + L) matches R on average.
-    Returns the values set."""
+
+def texture_contrast(images: torch.Tensor, sigma_px: float = 2.0) -> torch.Tensor:
+    """(3,) per-channel standard deviation of the high-pass images x - blur(x) (Gaussian, ``sigma_px``):
+    the contrast of fine texture, which a smooth veil does not change and a transmission T scales by T."""
+    return (images - gaussian_blur(images, sigma_px)).std(dim=(0, 2, 3))
+
+
+def init_from_data(generator: WaterGenerator, air: torch.Tensor, depth_m: torch.Tensor, real: torch.Tensor,
+                   intrinsics: tuple[float, float, float, float] | None, count: int = 256) -> dict[str, list[float]]:
+    """Start the attenuation, the veil and the gain at the per-channel linear map that carries the in-air
+    set's colour statistics onto the survey's (see ``GanConfig.init_from_data``).
+
+    With D the generated image without water (eta 0, no veil, gain 1; vignetting kept), mu0_c its
+    per-channel mean and s0_c its texture contrast (:func:`texture_contrast`), mu_c, s_c the real
+    frames' and r the mean range of the RGB-D views: the transmission T_c = s_c / s0_c and the veil
+    V_c = mu_c - T_c mu0_c (so T D + V has the real mean and texture contrast). T_c = k exp(-eta_c r) fixes how eta_c differ between channels,
+    d_c = -ln(T_c) / r; their common level cannot be told from frames at one range (a common shift
+    is undone by k), so it stays at the stack's initial mean eta: eta_c = mean(eta_init) + d_c -
+    mean(d). Then k = exp(mean_c(ln T_c + eta_c r)) (per channel with three gains) and the veil's
+    batch-norm shift V_c / k (the backscatter sits before the gain). Returns the values set."""
     stack = generator.stack
-    q = torch.quantile(real.permute(1, 0, 2, 3).reshape(3, -1)[:, ::7], 0.02, dim=1).double()
-    r_mean = real.mean(dim=(0, 2, 3)).double()
+    n = min(count, air.shape[0])
+    r_mean, r_std = real.mean(dim=(0, 2, 3)).double(), texture_contrast(real.double())
     norm = stack[BackscatterConv.name].norm if BackscatterConv.name in stack.names else None
+    saved = {}
     if norm is not None:
-        saved = norm.weight.detach().clone(), norm.bias.detach().clone()
+        saved["veil"] = norm.weight.detach().clone()
         with torch.no_grad():
             norm.weight.zero_()
             norm.bias.zero_()
-    z = torch.zeros(min(count, air.shape[0]), generator.z_dim)
-    d_mean = _render_eval(generator, air[:count], depth_m[:count], z, intrinsics).mean(dim=(0, 2, 3)).double()
-    values = {}
+    if "attenuation" in stack.names:
+        saved["eta"] = stack["attenuation"].param("eta_per_m").detach().clone()
+        stack["attenuation"].set_values(eta_per_m=[0.0, 0.0, 0.0])
     if "gain" in stack.names:
-        k = stack["gain"].param("k")
-        ratio = (r_mean - q) / d_mean.clamp_min(1e-4)
-        ratio = ratio.mean().reshape(1) if k.numel() == 1 else ratio
-        stack["gain"].set_values(k=ratio.clamp(0.05, 50.0).tolist())
-        values["gain.k"] = stack["gain"].param("k").tolist()
-        k = stack["gain"].param("k").double()
+        stack["gain"].set_values(k=[1.0] * stack["gain"].param("k").numel())
+    z = torch.zeros(n, generator.z_dim)
+    plain = _render_eval(generator, air[:n], depth_m[:n], z, intrinsics).double()
+    d_mean, d_std = plain.mean(dim=(0, 2, 3)), texture_contrast(plain)
+    state = generator.state(air[:n], depth_m[:n], z, intrinsics)
+    range_m = float(state.range_m[state.valid].double().mean()) if state.valid is not None else float(
+        state.range_m.double().mean())
+    transmission = (r_std / d_std.clamp_min(1e-4)).clamp(1e-3, 50.0)
+    veil = (r_mean - transmission * d_mean).clamp_min(0.0)
+    values: dict[str, list[float]] = {}
+    log_t = transmission.log()
+    if "attenuation" in stack.names:
+        d = -log_t / max(range_m, 1e-3)
+        eta = (saved["eta"].double().mean() + d - d.mean()).clamp(0.0, 5.0)
+        stack["attenuation"].set_values(eta_per_m=eta.tolist())
+        values["attenuation.eta_per_m"] = eta.tolist()
     else:
-        k = torch.ones(1, dtype=torch.float64)
+        eta = torch.zeros(3, dtype=torch.float64)
+    k = torch.ones(1, dtype=torch.float64)
+    if "gain" in stack.names:
+        log_k = log_t + eta * range_m
+        k = (log_k.mean().reshape(1) if stack["gain"].param("k").numel() == 1 else log_k).exp().clamp(0.05, 50.0)
+        stack["gain"].set_values(k=k.tolist())
+        values["gain.k"] = k.tolist()
     if norm is not None:
-        level = (q / k).float()
+        level = (veil / k).float()
         with torch.no_grad():
-            norm.weight.copy_(saved[0])
+            norm.weight.copy_(saved["veil"])
             norm.bias.copy_(level)
         values["veil_level"] = level.tolist()
     return values
@@ -469,7 +549,8 @@ def train_gan(config: GanConfig) -> GanResult:
     generator.to(device).train()
     discriminator.to(device).train()
     betas = (config.beta1, 0.999)
-    groups = generator_param_groups(generator, config.lr, config.physics_lr, config.veil_lr)
+    groups = generator_param_groups(generator, config.lr, config.physics_lr, config.veil_lr, config.veil_spread_lr)
+    physics = physical_parameters(generator)
     opt_g = torch.optim.Adam(groups, config.lr, betas)
     opt_d = torch.optim.Adam(discriminator.parameters(), config.lr, betas)
     rng = torch.Generator().manual_seed(config.seed)
@@ -523,10 +604,15 @@ def train_gan(config: GanConfig) -> GanResult:
             noise_real, noise_fake = (config.instance_noise_std * torch.randn(2, *real_b.shape, generator=rng)
                                       ).to(device)
 
-            fake = generator.render(state_b)
             blur = config.disc_blur_px
-            d_real = discriminator(gaussian_blur(real_b, blur) + noise_real)
-            d_fake = discriminator(gaussian_blur(fake.detach(), blur) + noise_fake)
+
+            def disc_input(images: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+                images = augment(images, rng) if config.disc_augment else images
+                return gaussian_blur(images, blur) + noise
+
+            fake = generator.render(state_b)
+            d_real = discriminator(disc_input(real_b, noise_real))
+            d_fake = discriminator(disc_input(fake.detach(), noise_fake))
             loss_d = bce(d_real, real_target) + bce(d_fake, zeros)
             opt_d.zero_grad(set_to_none=True)
             loss_d.backward()
@@ -536,12 +622,17 @@ def train_gan(config: GanConfig) -> GanResult:
             real_moments = colour_moments(real_b) if config.moment_weight > 0 else None
             for _ in range(config.gen_steps_per_disc_step):
                 fake = generator.render(state_b)
-                loss_g = bce(discriminator(gaussian_blur(fake, blur) + noise_fake), ones)
-                if real_moments is not None:
-                    loss_g = loss_g + config.moment_weight * (colour_moments(fake) - real_moments).square().sum()
+                loss_adv = bce(discriminator(disc_input(fake, noise_fake)), ones)
+                loss_mom = (config.moment_weight * (colour_moments(fake) - real_moments).square().sum()
+                            if real_moments is not None else torch.zeros((), device=device))
                 opt_g.zero_grad(set_to_none=True)
-                loss_g.backward()
+                loss_adv.backward(retain_graph=True)
+                if not config.adversarial_physics:
+                    for param in physics:
+                        param.grad = None
+                loss_mom.backward()
                 opt_g.step()
+                loss_g = loss_adv + loss_mom
             discriminator.requires_grad_(True)
 
             step += 1

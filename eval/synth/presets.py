@@ -1,9 +1,12 @@
 """Named simulation presets and the parameters of the hidden effects.
 
-- ``demo``: 44 frames (4 lines x 11) of 640x480 from a stereo rig at 2.5 m over a 14 m x 10 m
-  site with the colour board, plus a 240-view RGB-D set at 320x240
-  (rendered at 320x240, not smaller: a point-sampled texture at a coarse resolution aliases into
-  far more contrast than the site's frames show once both are reduced to WaterGAN's 64x48).
+- ``demo``: 44 frames (4 lines x 11) of 640x480 from a stereo rig at 2.0-3.0 m (2.5 m with a slow
+  0.5 m altitude wave, as a vehicle following terrain does) over a 14 m x 10 m site with the colour
+  board, plus a 240-view RGB-D set at 320x240 over the same altitudes.
+  The altitude wave matters to WaterGAN: at one range a common change of every eta_c is undone by the
+  gain, so only frames at several ranges fix eta's level. The RGB-D set is rendered at 320x240, not
+  smaller: a point-sampled texture at a coarse resolution aliases into far more contrast than the
+  site's frames show once both are reduced to WaterGAN's 64x48.
 - ``tiny``: 6 frames (2 lines x 3) of 160x120 over a small site, a 12-view RGB-D set; for tests.
 - ``small``: 10 frames (2 lines x 5) of 320x240 over the tiny site, with the overlap SfM needs; for
   end-to-end tests of every stage.
@@ -43,8 +46,9 @@ PRESETS: dict[str, SimulationConfig] = {
     "demo": SimulationConfig(
         preset="demo",
         camera=CameraConfig(width_px=640, height_px=480, hfov_deg=70.0),
-        trajectory=TrajectoryConfig(n_lines=4, frames_per_line=11, stereo=True),
-        rgbd=RGBDConfig(n_scenes=4, views_per_scene=60, width_px=320, height_px=240),
+        trajectory=TrajectoryConfig(n_lines=4, frames_per_line=11, stereo=True, altitude_wave_m=0.5),
+        rgbd=RGBDConfig(n_scenes=4, views_per_scene=60, width_px=320, height_px=240, altitude_m=(2.0, 3.0),
+                        max_tilt_deg=10.0),
     ),
     "tiny": SimulationConfig(
         preset="tiny",

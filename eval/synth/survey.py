@@ -255,7 +255,7 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     if not o3d.io.write_triangle_mesh(str(truth / "scene.ply"), scene.legacy_mesh()):
         raise OSError(f"could not write {truth / 'scene.ply'}")
     write_json(truth / "config.json", config_to_dict(config))
-    n_rgbd = write_rgbd_set(root / "rgbd", config.rgbd, config.seed, progress)
+    n_rgbd = write_rgbd_set(root / "rgbd", config.rgbd, config.seed, progress, site=config.scene)
     return len(names), board_frames, n_rgbd
 
 
