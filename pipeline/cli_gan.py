@@ -2,7 +2,7 @@
 
     watergan train-gan --rgbd DIR --underwater DIR --out DIR [--effects a,b,...] [--add NAME]
                        [--budget-min N] [--iterations N] [--epochs N] [--seed N] [--resume]
-    watergan generate --model DIR --rgbd DIR --out DIR [--size HxW] [--seed N]
+    watergan generate --model DIR --rgbd DIR --out DIR [--size HxW] [--recolour-fraction F] [--seed N]
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``.
 """
@@ -62,6 +62,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         raise UserInputError(f"model folder {args.model} does not exist: run `watergan train-gan` first")
     result = generate(GenerateConfig(model_dir=Path(args.model), rgbd_dir=Path(args.rgbd), out_dir=Path(args.out),
                                      size_hw=args.size, seed=args.seed, skip_bad=args.skip_bad,
+                                     recolour_fraction=args.recolour_fraction,
                                      encoding=args.encoding, device=args.device))
     print(f"generated {result.count} underwater images in {result.seconds:.1f} s -> {result.out_dir} "
           f"(inair/, depth/, underwater/, manifest.json)")
@@ -81,7 +82,8 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``train-gan`` and ``generate`` to the subparsers ``sub``."""
-    from watergan.train import GanConfig  # option defaults come from the config
+    from watergan.generate import GenerateConfig  # option defaults come from the configs
+    from watergan.train import GanConfig
     p = sub.add_parser("train-gan", parents=parents, help="learn the site's water: train a WaterGAN")
     p.add_argument("--rgbd", required=True, help="in-air RGB-D folder (rgb/ + depth/, paired by file stem)")
     p.add_argument("--underwater", required=True, help="folder of the survey's underwater images")
@@ -113,5 +115,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", required=True, help="output folder (inair/, depth/, underwater/, manifest.json)")
     p.add_argument("--size", type=_size, default=None, metavar="HxW",
                    help="output size, e.g. 480x640 (default: each in-air image's size)")
+    p.add_argument("--recolour-fraction", type=float, default=GenerateConfig.recolour_fraction, metavar="F",
+                   help="fraction of in-air images given random hues and saturation before rendering, so the "
+                        f"restorer sees colours a sediment set lacks (default {GenerateConfig.recolour_fraction})")
     _common(p)
     p.set_defaults(func=cmd_generate)

@@ -311,3 +311,29 @@ def test_adversarial_physics_decides_whether_the_discriminator_moves_the_water(d
 def test_statistics_only_needs_a_moment_term(data_dir, tmp_path):
     with pytest.raises(UserInputError, match="nothing moves the physical parameters"):
         train_gan(small_config(data_dir, tmp_path, moment_weight=0.0, adversarial_physics=False))
+
+
+def test_recolour_keeps_grey_and_brightness_and_changes_hue():
+    from watergan.generate import recolour
+
+    rng = np.random.default_rng(0)
+    grey = np.full((20, 30, 3), 0.4)
+    np.testing.assert_allclose(recolour(grey, rng), grey, atol=1e-12)
+    image = 0.3 + 0.1 * np.random.default_rng(1).random((20, 30, 3))  # low chroma: nothing clips
+    out = recolour(image, rng)
+    np.testing.assert_allclose(out.mean(axis=2), image.mean(axis=2), atol=1e-9)  # the grey component is kept
+    chroma_in, chroma_out = image - image.mean(2, keepdims=True), out - out.mean(2, keepdims=True)
+    cosine = (chroma_in * chroma_out).sum(2) / np.linalg.norm(chroma_in, axis=2) / np.linalg.norm(chroma_out, axis=2)
+    assert cosine.min() < 0.5  # hues turned by more than 60 degrees somewhere
+
+
+def test_generate_recolours_the_asked_fraction(data_dir, tmp_path):
+    train_gan(small_config(data_dir, tmp_path / "model", iterations=1))
+    for fraction, expected in ((0.0, 0), (1.0, 8)):
+        generate(GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=data_dir / "rgbd",
+                                out_dir=tmp_path / f"g{fraction}", recolour_fraction=fraction, progress=False))
+        manifest = json.loads((tmp_path / f"g{fraction}" / "manifest.json").read_text())
+        assert sum(item["recoloured"] for item in manifest["items"]) == expected
+    plain = cv2.imread(str(tmp_path / "g0.0" / "inair" / "000.png"))
+    coloured = cv2.imread(str(tmp_path / "g1.0" / "inair" / "000.png"))
+    assert plain.shape == coloured.shape and np.abs(plain.astype(int) - coloured.astype(int)).mean() > 3

@@ -13,6 +13,11 @@ trained at 48x64:
 Batch norm uses its running statistics (the generator in inference mode), so each image depends
 only on its own input and noise z (uniform in [-1, 1], one vector per image, seeded).
 
+``recolour_fraction`` of the in-air images are recoloured before rendering (:func:`recolour`): an
+in-air set chosen to resemble a sediment site holds few saturated colours, and a restorer trained on
+it alone learns to return sediment colours whatever it sees (on the demo survey it moved the colour
+board's blue and cyan patches further from the truth than the raw frames were).
+
 Output folder::
 
     OUT/inair/<stem>.png        in-air image as used, 8-bit sRGB
@@ -28,6 +33,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -69,10 +76,34 @@ class GenerateConfig:
     """Use camera.json beside the RGB-D data when present (range from the rays); else range = depth."""
     skip_bad: bool = False
     """Skip (and report) bad or unpaired files instead of stopping with an error."""
+    recolour_fraction: float = 0.5
+    """Fraction of the in-air images recoloured (:func:`recolour`, seeded) before rendering; 0: none."""
     device: str = "auto"
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = True
     """Show a progress bar."""
+
+
+def _smooth_field(rng: np.random.Generator, size_hw: tuple[int, int], cells: int = 3) -> np.ndarray:
+    """A smooth random field in [-1, 1]: a (cells+1)^2 grid of uniform values, bicubically upsampled."""
+    grid = rng.uniform(-1.0, 1.0, (cells + 1, cells + 1)).astype(np.float32)
+    return np.clip(cv2.resize(grid, (size_hw[1], size_hw[0]), interpolation=cv2.INTER_CUBIC), -1.0, 1.0)
+
+
+def recolour(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A linear (H,W,3) image with smoothly varying hue and saturation: per pixel, the colour's
+    distance from grey g = mean(c) is scaled by s = 2 ** (1.5 f1) (0.35x to 2.8x) and rotated about the
+    grey axis by pi f2 (Rodrigues' formula), with f1, f2 smooth random fields in [-1, 1]; clipped to
+    0..1. Grey stays grey, so brightness and texture are kept and only chroma changes."""
+    hw = rgb.shape[:2]
+    saturation = 2.0 ** (1.5 * _smooth_field(rng, hw))[..., None]
+    angle = np.pi * _smooth_field(rng, hw)[..., None]
+    grey = rgb.mean(axis=2, keepdims=True)
+    v = (rgb - grey) * saturation
+    axis = np.full(3, 1 / np.sqrt(3.0))
+    cross = np.cross(axis, v)  # k x v; k . v = 0 for a chroma vector
+    rotated = v * np.cos(angle) + cross * np.sin(angle)
+    return np.clip(grey + rotated, 0.0, 1.0)
 
 
 @dataclass
@@ -113,10 +144,15 @@ def generate(config: GenerateConfig) -> GenerateResult:
     out = Path(config.out_dir)
     for sub in ("inair", "depth", "underwater"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    if not 0.0 <= config.recolour_fraction <= 1.0:
+        raise UserInputError(f"recolour_fraction must be in [0, 1], got {config.recolour_fraction}")
     noise = torch.Generator().manual_seed(config.seed)
+    colours = np.random.default_rng([config.seed, 7])
     items = []
     for pair in tqdm(pairs, disable=not config.progress, desc="generate", unit="img"):
         z = torch.rand(1, generator.z_dim, generator=noise) * 2 - 1  # drawn first: a skipped pair shifts no other noise
+        recoloured = bool(colours.random() < config.recolour_fraction)
+        colour_rng = np.random.default_rng(colours.integers(2**63))
         try:
             rgb, depth = read_pair(pair, config.encoding)
         except DataError as exc:
@@ -127,6 +163,8 @@ def generate(config: GenerateConfig) -> GenerateResult:
         native_hw = depth.shape
         size_hw = config.size_hw or native_hw
         rgb, depth = resize_image(rgb, size_hw).clip(0.0, 1.0), resize_depth(depth, size_hw)
+        if recoloured:
+            rgb = recolour(rgb, colour_rng)
         intrinsics = None
         if camera is not None:
             if (camera.height, camera.width) != native_hw:
@@ -143,8 +181,10 @@ def generate(config: GenerateConfig) -> GenerateResult:
         write_srgb8(out / "underwater" / name, underwater.transpose(1, 2, 0))
         items.append({"stem": pair.stem, "inair": f"inair/{name}", "depth": f"depth/{name}",
                       "underwater": f"underwater/{name}", "source_rgb": str(pair.rgb),
-                      "source_depth": str(pair.depth), "height": size_hw[0], "width": size_hw[1]})
+                      "source_depth": str(pair.depth), "height": size_hw[0], "width": size_hw[1],
+                      "recoloured": recoloured})
     manifest = {"model_dir": str(config.model_dir), "rgbd_dir": str(config.rgbd_dir), "seed": config.seed,
+                "recolour_fraction": config.recolour_fraction,
                 "size_hw": list(config.size_hw) if config.size_hw else None,
                 "range_from": "camera rays" if camera is not None else "depth",
                 "encoding": {"inair": "srgb 8-bit", "depth": "uint16 millimetres", "underwater": "srgb 8-bit"},

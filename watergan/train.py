@@ -342,11 +342,12 @@ def init_from_data(generator: WaterGenerator, air: torch.Tensor, depth_m: torch.
     With D the generated image without water (eta 0, no veil, gain 1; vignetting kept), mu0_c its
     per-channel mean and s0_c its texture contrast (:func:`texture_contrast`), mu_c, s_c the real
     frames' and r the mean range of the RGB-D views: the transmission T_c = s_c / s0_c and the veil
-    V_c = mu_c - T_c mu0_c (so T D + V has the real mean and texture contrast). T_c = k exp(-eta_c r) fixes how eta_c differ between channels,
-    d_c = -ln(T_c) / r; their common level cannot be told from frames at one range (a common shift
-    is undone by k), so it stays at the stack's initial mean eta: eta_c = mean(eta_init) + d_c -
-    mean(d). Then k = exp(mean_c(ln T_c + eta_c r)) (per channel with three gains) and the veil's
-    batch-norm shift V_c / k (the backscatter sits before the gain). Returns the values set."""
+    V_c = mu_c - T_c mu0_c (so T D + V has the real mean and texture contrast). T_c = k exp(-eta_c r)
+    fixes how eta_c differ between channels, d_c = -ln(T_c) / r; their common level cannot be told
+    from frames at one range (a common shift is undone by k), so it stays at the stack's initial mean
+    eta: eta_c = mean(eta_init) + d_c - mean(d). Then k = exp(mean_c(ln T_c + eta_c r)) (per channel
+    with three gains) and the veil's batch-norm shift V_c / k (the backscatter sits before the gain).
+    Returns the values set."""
     stack = generator.stack
     n = min(count, air.shape[0])
     r_mean, r_std = real.mean(dim=(0, 2, 3)).double(), texture_contrast(real.double())
@@ -589,6 +590,11 @@ def train_gan(config: GanConfig) -> GanResult:
     ones, zeros = torch.ones(batch, device=device), torch.zeros(batch, device=device)
     real_target = torch.full((batch,), config.real_label, device=device)
     bce = F.binary_cross_entropy_with_logits
+    def disc_input(images: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """What the discriminator sees: augmented (``disc_augment``), blurred, with instance noise."""
+        images = augment(images, rng) if config.disc_augment else images
+        return gaussian_blur(images, config.disc_blur_px) + noise
+
     began = time.perf_counter()
     step, d_loss, g_loss = start, float("nan"), float("nan")
     bar = tqdm(total=target, initial=start, disable=not config.progress, desc="train-gan", unit="it")
@@ -603,12 +609,6 @@ def train_gan(config: GanConfig) -> GanResult:
             state_b, real_b = select_state(air_state, i_air, z=z), real_all[i_water]
             noise_real, noise_fake = (config.instance_noise_std * torch.randn(2, *real_b.shape, generator=rng)
                                       ).to(device)
-
-            blur = config.disc_blur_px
-
-            def disc_input(images: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-                images = augment(images, rng) if config.disc_augment else images
-                return gaussian_blur(images, blur) + noise
 
             fake = generator.render(state_b)
             d_real = discriminator(disc_input(real_b, noise_real))
