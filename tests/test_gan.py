@@ -337,3 +337,9 @@ def test_generate_recolours_the_asked_fraction(data_dir, tmp_path):
     plain = cv2.imread(str(tmp_path / "g0.0" / "inair" / "000.png"))
     coloured = cv2.imread(str(tmp_path / "g1.0" / "inair" / "000.png"))
     assert plain.shape == coloured.shape and np.abs(plain.astype(int) - coloured.astype(int)).mean() > 3
+
+
+def test_the_papers_loss_alone_trains(data_dir, tmp_path):
+    """moment_weight 0 with the discriminator moving the physics: the paper's generator loss."""
+    result = train_gan(small_config(data_dir, tmp_path, moment_weight=0.0, adversarial_physics=True))
+    assert result.steps == 2 and np.isfinite(result.g_loss)
