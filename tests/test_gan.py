@@ -334,6 +334,10 @@ def test_generate_recolours_the_asked_fraction(data_dir, tmp_path):
                                 out_dir=tmp_path / f"g{fraction}", recolour_fraction=fraction, progress=False))
         manifest = json.loads((tmp_path / f"g{fraction}" / "manifest.json").read_text())
         assert sum(item["recoloured"] for item in manifest["items"]) == expected
+    with pytest.raises(UserInputError, match="recolour_fraction"):
+        generate(GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=data_dir / "rgbd", out_dir=tmp_path / "bad",
+                                recolour_fraction=1.5, progress=False))
+    assert not (tmp_path / "bad").exists()  # refused before anything is written
     plain = cv2.imread(str(tmp_path / "g0.0" / "inair" / "000.png"))
     coloured = cv2.imread(str(tmp_path / "g1.0" / "inair" / "000.png"))
     assert plain.shape == coloured.shape and np.abs(plain.astype(int) - coloured.astype(int)).mean() > 3

@@ -136,6 +136,8 @@ def load_generator(model_dir: str | Path) -> WaterGenerator:
 
 def generate(config: GenerateConfig) -> GenerateResult:
     """Render the paired in-air / depth / underwater dataset (see the module docstring)."""
+    if not 0.0 <= config.recolour_fraction <= 1.0:
+        raise UserInputError(f"recolour_fraction must be in [0, 1], got {config.recolour_fraction}")
     began = time.perf_counter()
     device = pick_device(config.device)
     generator = load_generator(config.model_dir).to(device)
@@ -144,8 +146,6 @@ def generate(config: GenerateConfig) -> GenerateResult:
     out = Path(config.out_dir)
     for sub in ("inair", "depth", "underwater"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    if not 0.0 <= config.recolour_fraction <= 1.0:
-        raise UserInputError(f"recolour_fraction must be in [0, 1], got {config.recolour_fraction}")
     noise = torch.Generator().manual_seed(config.seed)
     colours = np.random.default_rng([config.seed, 7])
     items = []

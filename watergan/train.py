@@ -8,12 +8,12 @@ D (DCGAN) tells them from the survey's real frames. Per iteration, with BCE on l
     L_G = BCE(D(b(a(G(J, d, z))) + n'), 1) + w |m(G(J, d, z)) - m(x)|^2         ``gen_steps_per_disc_step`` steps on G
 
 with random flips and shifts a (``disc_augment``), a Gaussian blur b (``disc_blur_px``), instance
-noise n, n' ~ N(0, instance_noise_std^2),
-one-sided label smoothing (``real_label``) and the per-channel mean and texture contrast m of a
-batch weighted by w (``moment_weight``). The generator starts at the linear map from the in-air set's
-colour statistics to the survey's (``init_from_data``) with one gain for all channels (``gain_channels``).
-Adam (lr 2e-4, beta1 0.5) for the nets; the generator's few physical parameters use ``physics_lr``, the
-backscatter veil's level ``veil_lr`` and its spread ``veil_spread_lr`` (see :class:`GanConfig`). The geometry of every
+noise n, n' ~ N(0, instance_noise_std^2), one-sided label smoothing (``real_label``) and the
+per-channel mean and texture contrast m of a batch weighted by w (``moment_weight``). The generator
+starts at the linear map from the in-air set's colour statistics to the survey's (``init_from_data``)
+with one gain for all channels (``gain_channels``). Adam (lr 2e-4, beta1 0.5) for the nets; the
+generator's few physical parameters use ``physics_lr``, the backscatter veil's level ``veil_lr`` and
+its spread ``veil_spread_lr`` (see :class:`GanConfig`). The geometry of every
 RGB-D view (range, points, normals) is computed once before training (see
 :func:`~watergan.nets.generator.select_state`).
 
@@ -97,10 +97,10 @@ class GanConfig:
     ``lr``, since a fast rate on them grows the z mask into texture. Set it to ``lr`` for the paper's
     single rate."""
     veil_lr: float | None = 2e-3
-    """Adam learning rate of ``backscatter_conv``'s batch-norm scale and shift (the level and spread
-    of the backscatter veil per channel, linear radiance; 6 numbers); None: ``lr``, as the paper. At
-    ``lr`` the veil moves by at most ~0.02 in the few hundred iterations a CPU allows in minutes,
-    while the demo survey's veil is ~0.1."""
+    """Adam learning rate of ``backscatter_conv``'s batch-norm shift (the level of the backscatter veil
+    per channel, linear radiance; 3 numbers); None: ``lr``, as the paper. At ``lr`` the veil moves by
+    at most ~0.02 in the few hundred iterations a CPU allows in minutes, while the demo survey's veil
+    is ~0.1."""
     veil_spread_lr: float | None = None
     """Adam learning rate of ``backscatter_conv``'s batch-norm scale (the spread of the veil around its
     level, 3 numbers); None: ``lr``. Backscatter is smooth, and a fast-growing spread lets the z mask
@@ -368,8 +368,7 @@ def init_from_data(generator: WaterGenerator, air: torch.Tensor, depth_m: torch.
     plain = _render_eval(generator, air[:n], depth_m[:n], z, intrinsics).double()
     d_mean, d_contrast = plain.mean(dim=(0, 2, 3)), texture_contrast(plain)
     state = generator.state(air[:n], depth_m[:n], z, intrinsics)
-    range_m = float(state.range_m[state.valid].double().mean()) if state.valid is not None else float(
-        state.range_m.double().mean())
+    range_m = float(state.range_m[state.valid].double().mean())  # WaterGenerator.state always sets valid
     transmission = (r_contrast / d_contrast.clamp_min(1e-4)).clamp(1e-3, 50.0)
     veil = (r_mean - transmission * d_mean).clamp_min(0.0)
     values: dict[str, list[float]] = {}

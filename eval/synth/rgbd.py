@@ -136,7 +136,6 @@ def write_rgbd_set(out_dir: Path, config: RGBDConfig, seed: int, progress: bool 
     return total
 
 
-
 def downsample_view(rgb: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, factor: int
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Area-average (H f, W f) renders to (H, W): the mean colour of each f x f block, and its mean
