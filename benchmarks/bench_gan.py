@@ -113,7 +113,8 @@ def main() -> int:
     shutil.copy(survey / "camera.json", rgbd / "camera.json")
     started = time.perf_counter()
     gen = generate(GenerateConfig(model_dir=out / "model", rgbd_dir=rgbd, out_dir=out / "generated",
-                                  encoding="linear", seed=args.seed, progress=False))
+                                  encoding="linear", seed=args.seed, recolour_fraction=0.0,
+                                  progress=False))
     print(f"\ngenerated {gen.count} full-resolution images in {time.perf_counter() - started:.1f} s")
     fake = np.stack([read_image(p) for p in sorted((out / "generated" / "underwater").glob("*.png"))])
     real = np.stack([read_image(p) for p in sorted((survey / "images").glob("*.png"))])

@@ -1,6 +1,7 @@
 """The restorer commands of the `watergan` console script.
 
-    watergan train-restorer --data DIR --out DIR [--budget-min N] [--no-skip] [--seed N] [--resume]
+    watergan train-restorer --data DIR --out DIR [--budget-min N] [--no-skip] [--head affine|direct] [--seed N]
+                            [--resume]
     watergan correct --model DIR --images DIR --out DIR [--force] [--batch-size N]
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``.
@@ -18,8 +19,8 @@ def cmd_train_restorer(args: argparse.Namespace) -> int:
     from watergan.train_restorer import RestorerConfig, train_restorer
 
     config = RestorerConfig(data_dir=Path(args.data), out_dir=Path(args.out), widths=args.widths,
-                            skip=not args.no_skip, budget_min=args.budget_min, seed=args.seed, resume=args.resume,
-                            batch_size=args.batch_size, device=args.device)
+                            skip=not args.no_skip, head=args.head, budget_min=args.budget_min, seed=args.seed,
+                            resume=args.resume, batch_size=args.batch_size, device=args.device)
     result = train_restorer(config)
     print(f"trained {result.steps[0]} + {result.steps[1]} iterations (stage 1 + 2) in {result.seconds:.0f} s, "
           f"loss {result.loss:.4f}; {result.train_count} training, {result.val_count} held-out frames")
@@ -54,6 +55,9 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--budget-min", type=float, default=None,
                    help="time budget in minutes, half for each stage (default: the iteration counts only)")
     p.add_argument("--no-skip", action="store_true", help="ablation: colour net without full-resolution skips")
+    p.add_argument("--head", choices=("affine", "direct"), default="affine",
+                   help="colour core output: per-channel gain and offset fields (affine, default) or colours "
+                        "(direct, as the paper)")
     p.add_argument("--widths", choices=["cpu", "paper"], default="cpu",
                    help="net widths: cpu (small, default) or paper (SegNet-sized, for a GPU)")
     p.add_argument("--batch-size", type=int, default=8, help="images per batch (default 8)")

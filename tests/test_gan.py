@@ -297,11 +297,11 @@ def test_init_from_data_recovers_the_linear_water_map():
 def test_adversarial_physics_decides_whether_the_discriminator_moves_the_water(data_dir, tmp_path, adversarial):
     """One generator step against two different discriminators (widths 8 and 16): the learned physical
     values are identical when only the colour statistics move them, and differ when the discriminator
-    does too."""
+    does too (settling after training is left out: it starts from the two runs' different veil layers)."""
     params = []
     for width in (8, 16):
         result = train_gan(small_config(data_dir, tmp_path / f"w{width}", iterations=1, gen_steps_per_disc_step=1,
-                                        disc_width=width, adversarial_physics=adversarial))
+                                        disc_width=width, adversarial_physics=adversarial, settle_steps=0))
         params.append(np.concatenate([np.ravel(v) for v in result.params.values()]))
     start = WaterGenerator.build().physical_values()
     assert not np.allclose(params[0][:3], np.ravel(start["attenuation.eta_per_m"].numpy()))  # it moved
@@ -347,3 +347,27 @@ def test_the_papers_loss_alone_trains(data_dir, tmp_path):
     """moment_weight 0 with the discriminator moving the physics: the paper's generator loss."""
     result = train_gan(small_config(data_dir, tmp_path, moment_weight=0.0, adversarial_physics=True))
     assert result.steps == 2 and np.isfinite(result.g_loss)
+
+
+def test_settle_matches_the_statistics_and_moves_only_the_physics():
+    """Full-batch settling against frames of a nearby water brings the colour-statistics term down by far; the
+    learned veil layers and batch norm's running statistics stay as they were."""
+    from watergan.train import settle_statistics
+
+    g = torch.Generator().manual_seed(1)
+    air = 0.2 + 0.6 * torch.rand(16, 3, 24, 32, generator=g)
+    depth = 2.0 + torch.rand(16, 1, 1, 1, generator=g).expand(16, 1, 24, 32)
+    truth = WaterGenerator.build(DEFAULT_EFFECTS, depth_scale_m=3.0).eval()
+    truth.stack["attenuation"].set_values(eta_per_m=[0.45, 0.14, 0.2])
+    with torch.no_grad():
+        real = truth(air, depth, torch.zeros(16, truth.z_dim))
+    fresh = WaterGenerator.build(DEFAULT_EFFECTS, depth_scale_m=3.0)  # water near the truth, as after training
+    fresh.stack["attenuation"].set_values(eta_per_m=[0.5, 0.2, 0.25])
+    fresh.stack["gain"].set_values(k=[1.2])
+    state = fresh.state(air, depth, None)
+    fixed = {n: v.clone() for n, v in fresh.state_dict().items() if "convs" in n or "project" in n or "running" in n}
+    before = settle_statistics(fresh, state, real, 0, 1000.0, seed=0)
+    after = settle_statistics(fresh, state, real, 150, 1000.0, seed=0)
+    assert after < 0.05 * before, (before, after)
+    assert all(torch.equal(fresh.state_dict()[n], v) for n, v in fixed.items())
+    assert fresh.training  # its mode is given back

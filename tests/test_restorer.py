@@ -9,7 +9,16 @@ import torch
 import torch.nn.functional as F
 
 from watergan.errors import UserInputError
-from watergan.nets.restorer import Restorer, RestorerWidths, SegNetCore, bilinear_upsampler, restore
+from watergan.nets.restorer import (
+    Restorer,
+    RestorerWidths,
+    SegNetCore,
+    apply_affine,
+    bilinear_upsampler,
+    restore,
+    srgb_decode,
+    srgb_encode,
+)
 from watergan.train_restorer import RestorerConfig, load_restorer, masked_mse, train_restorer
 
 TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
@@ -66,12 +75,45 @@ def test_bilinear_init_matches_interpolate_away_from_borders():
     assert inner.abs().max() < 1e-5
 
 
-def test_skip_output_starts_as_the_upsampled_core():
-    model = Restorer(TINY).eval()
+@pytest.mark.parametrize("head", ["affine", "direct"])
+def test_skip_output_starts_as_the_upsampled_core(head):
+    model = Restorer(TINY, head=head).eval()
     x = torch.rand(1, 4, 64, 64)
     with torch.no_grad():
-        coarse = model.colour_net.up(model.colour_net.core(F.avg_pool2d(x, 4)))
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)  # a core that is not the identity
+        coarse = model.colour_net.colours(model.colour_net.up(model.colour_net.core(F.avg_pool2d(x, 4))), x)
         assert torch.allclose(model.colour_net(x), coarse)
+        assert not torch.allclose(coarse, x[:, :3], atol=1e-3)
+
+
+def test_affine_head_starts_as_the_identity():
+    model = Restorer(TINY).eval()
+    x = torch.rand(2, 4, 64, 64)
+    with torch.no_grad():
+        assert torch.allclose(model.colour_net(x), x[:, :3], atol=1e-5)
+
+
+def test_affine_fields_invert_the_formation_model_for_any_colour():
+    """I = srgb(k (J t + B)) per channel; the fields g = -log(k t), o = -B / t give back srgb(J) for every
+    colour J, saturated or not, with one pair of fields per pixel."""
+    g = torch.Generator().manual_seed(0)
+    j = torch.rand(1, 3, 8, 8, generator=g)  # linear in-air colours
+    t = torch.tensor([0.3, 0.75, 0.6]).view(1, 3, 1, 1)
+    b = torch.tensor([0.02, 0.1, 0.12]).view(1, 3, 1, 1)
+    k = 1.5
+    recorded = srgb_encode((k * (j * t + b)).clamp(max=1.0))
+    fields = torch.cat([(-torch.log(k * t)).expand(1, 3, 8, 8), (-b / t).expand(1, 3, 8, 8)], dim=1)
+    keep = (k * (j * t + b) < 1.0)  # unclipped pixels
+    assert torch.allclose(apply_affine(fields, recorded)[keep], srgb_encode(j)[keep], atol=1e-5)
+    assert torch.allclose(srgb_decode(srgb_encode(j)), j, atol=1e-6)
+
+
+def test_unknown_head_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="head"):
+        Restorer(TINY, head="rgb")
+    with pytest.raises(UserInputError, match="head"):
+        train_restorer(RestorerConfig(data_dir=write_generate_folder(tmp_path / "d"), out_dir=tmp_path / "m",
+                                      head="rgb"))
 
 
 def test_two_training_steps_reduce_the_loss():

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from .data import DataError, atomic_write_bytes, read_depth, read_image
 from .errors import UserInputError
-from .nets.restorer import WIDTH_PRESETS, Restorer, restore
+from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, restore
 from .train import pick_device
 
 CHECKPOINT = "checkpoint.pt"
@@ -63,6 +63,9 @@ class RestorerConfig:
     """Width preset of the nets: "cpu" (small, fast) or "paper" (SegNet-sized)."""
     skip: bool = True
     """Full-resolution skip layers in the colour net; False is the ``no_skip`` ablation."""
+    head: str = "affine"
+    """What the colour core outputs: "affine" (per-channel gain and offset fields applied to the image,
+    :func:`watergan.nets.restorer.apply_affine`) or "direct" (the colours, as the paper)."""
     factor: int = 4
     """Average-pool factor from full resolution to the colour core (even)."""
     depth_hw: tuple[int, int] = (56, 56)
@@ -141,6 +144,8 @@ class PairedSet:
 def _check_config(c: RestorerConfig) -> None:
     if c.widths not in WIDTH_PRESETS:
         raise UserInputError(f"widths must be one of {sorted(WIDTH_PRESETS)}, got {c.widths!r}")
+    if c.head not in HEADS:
+        raise UserInputError(f"head must be one of {HEADS}, got {c.head!r}")
     for name in ("batch_size", "checkpoint_every"):
         if getattr(c, name) < 1:
             raise UserInputError(f"RestorerConfig.{name} must be at least 1, got {getattr(c, name)}")
@@ -307,7 +312,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     elif config.resume:
         print(f"train-restorer: no checkpoint in {out}, starting from the beginning", file=sys.stderr)
     torch.manual_seed(config.seed)
-    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw).to(device)
+    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head).to(device)
     rng = torch.Generator().manual_seed(config.seed)
     stage, start = 1, 0
     if checkpoint is not None:
@@ -330,7 +335,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     def stage1_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         depth = model.depth_net.core(depth_u[idx])
         up = F.interpolate(depth.detach(), size=config.core_hw, mode="bilinear", align_corners=False)
-        colour = model.colour_net.core(torch.cat([small_u[idx], up], dim=1))
+        colour = model.colour_net.core_colours(torch.cat([small_u[idx], up], dim=1))
         return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
 
     def stage2_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:

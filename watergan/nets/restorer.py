@@ -22,6 +22,18 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   starts at zero, so a net whose core comes from the 128x128 stage starts as exactly its upsampled
   output. ``skip=False`` (the ablation) gives y = U(C(P(x))).
 
+  ``head="affine"`` (the default): the core does not output colours but a per-pixel gain and offset
+  per channel, (g_c, o_c) = U(C(P(x))), applied to the image itself in linear light (:func:`apply_affine`):
+
+      y_c = srgb(exp(g_c) lin(x_c) + o_c)
+
+  The formation model is of that form: the camera records k V (J t + B) per channel, whose inverse
+  J = I / (k V t) - B / t is affine in the recorded I with coefficients that vary smoothly with range
+  and image position. The net only learns those smooth fields, so it corrects colours that its
+  training images never held (the colour board's saturated patches) and full-resolution texture
+  passes through. The skip layers then add their correction to this y. ``head="direct"`` is the
+  paper's: the core outputs the colours.
+
 Pixels are the stored (sRGB-encoded) values scaled to 0..1. :func:`restore` pads any size to a
 multiple of :func:`Restorer.multiple` (replicating the border), runs both nets and crops back.
 """
@@ -36,6 +48,8 @@ from torch import nn
 
 LEVELS = 3
 """Max-pooling levels of the core: its input sides must be multiples of 2**LEVELS."""
+HEADS = ("affine", "direct")
+"""What the colour core outputs: per-channel gain and offset fields, or the colours themselves."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +126,25 @@ class DepthNet(nn.Module):
         return self.core(F.adaptive_avg_pool2d(image, self.depth_hw))
 
 
+def srgb_decode(v: torch.Tensor) -> torch.Tensor:
+    """IEC 61966-2-1 decoding of 0..1 values: v / 12.92 for v <= 0.04045, else ((v + 0.055) / 1.055)^2.4."""
+    v = v.clamp(0.0, 1.0)
+    return torch.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def srgb_encode(x: torch.Tensor) -> torch.Tensor:
+    """IEC 61966-2-1 encoding of linear values >= 0: 12.92 x for x <= 0.0031308, else 1.055 x^(1/2.4) - 0.055
+    (values above 1 are encoded on the same curve, not clipped, so the loss still sees them)."""
+    x = x.clamp(min=0.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def apply_affine(fields: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """y = srgb(exp(g) lin(x) + o) per channel: ``fields`` (B,6,H,W) holds the log gains g and offsets
+    o (linear light), ``image`` (B,3,H,W) the sRGB-encoded 0..1 input; zero fields give y = x."""
+    return srgb_encode(srgb_decode(image) * torch.exp(fields[:, :3]) + fields[:, 3:])
+
+
 def bilinear_kernel(factor: int) -> torch.Tensor:
     """The (2f, 2f) kernel k(i, j) = t(i) t(j), t(i) = 1 - |i - (2f - 1)/2| / f, which as a transposed
     convolution with stride f and padding f/2 equals bilinear upsampling by f with half-pixel centres
@@ -136,11 +169,18 @@ def bilinear_upsampler(channels: int, factor: int) -> nn.ConvTranspose2d:
 class ColourNet(nn.Module):
     """In-air RGB at full resolution from the image and its estimated depth (see the module docstring)."""
 
-    def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True) -> None:
+    def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True,
+                 head: str = "affine") -> None:
         super().__init__()
-        self.factor, self.skip = factor, skip
-        self.core = SegNetCore(4, 3, widths.colour_core, widths.blocks_per_level)
-        self.up = bilinear_upsampler(3, factor)
+        if head not in HEADS:
+            raise ValueError(f"head must be one of {HEADS}, got {head!r}")
+        self.factor, self.skip, self.head = factor, skip, head
+        channels = 6 if head == "affine" else 3
+        self.core = SegNetCore(4, channels, widths.colour_core, widths.blocks_per_level)
+        if head == "affine":  # zero fields: the net starts as the identity
+            nn.init.zeros_(self.core.head.weight)
+            nn.init.zeros_(self.core.head.bias)
+        self.up = bilinear_upsampler(channels, factor)
         if skip:
             f = widths.full_res
             self.skip1 = conv_block(4, f)
@@ -149,9 +189,18 @@ class ColourNet(nn.Module):
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
 
+    def colours(self, core_out: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """The colours of a core output at the size of the input x (B,4,H,W): the output itself
+        (``head="direct"``) or its fields applied to x (:func:`apply_affine`)."""
+        return core_out if self.head == "direct" else apply_affine(core_out, x[:, :3])
+
+    def core_colours(self, x_small: torch.Tensor) -> torch.Tensor:
+        """(B,4,h,w) image + depth at the core's resolution -> (B,3,h,w): the core alone (stage 1)."""
+        return self.colours(self.core(x_small), x_small)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B,4,H,W) image + depth, sides multiples of factor * 8 -> (B,3,H,W)."""
-        coarse = self.up(self.core(F.avg_pool2d(x, self.factor)))
+        coarse = self.colours(self.up(self.core(F.avg_pool2d(x, self.factor))), x)
         if not self.skip:
             return coarse
         h = self.fuse(torch.cat([coarse, self.skip1(x)], dim=1))
@@ -162,11 +211,11 @@ class Restorer(nn.Module):
     """Depth net + colour net. ``forward(image)`` -> (rgb, depth), both at the image's size."""
 
     def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True,
-                 depth_hw: tuple[int, int] = (56, 56)) -> None:
+                 depth_hw: tuple[int, int] = (56, 56), head: str = "affine") -> None:
         super().__init__()
         self.widths, self.factor, self.skip, self.depth_hw = widths, factor, skip, tuple(depth_hw)
         self.depth_net = DepthNet(widths, depth_hw)
-        self.colour_net = ColourNet(widths, factor, skip)
+        self.colour_net = ColourNet(widths, factor, skip, head)
 
     @property
     def multiple(self) -> int:
@@ -175,14 +224,15 @@ class Restorer(nn.Module):
 
     def to_config(self) -> dict:
         return {"widths": asdict(self.widths), "factor": self.factor, "skip": self.skip,
-                "depth_hw": list(self.depth_hw)}
+                "depth_hw": list(self.depth_hw), "head": self.colour_net.head}
 
     @classmethod
     def from_config(cls, config: dict) -> Restorer:
         w = config["widths"]
         widths = RestorerWidths(tuple(w["depth_core"]), tuple(w["colour_core"]), int(w["full_res"]),
                                 int(w["blocks_per_level"]))
-        return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]))
+        return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]),
+                   config.get("head", "direct"))
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B,3,H,W), H and W multiples of ``multiple`` -> RGB (B,3,H,W) and relative depth (B,1,H,W):
