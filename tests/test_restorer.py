@@ -15,6 +15,7 @@ from watergan.nets.restorer import (
     SegNetCore,
     apply_affine,
     bilinear_upsampler,
+    image_context,
     restore,
     srgb_decode,
     srgb_encode,
@@ -81,7 +82,7 @@ def test_skip_output_starts_as_the_upsampled_core(head):
     x = torch.rand(1, 4, 64, 64)
     with torch.no_grad():
         torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)  # a core that is not the identity
-        coarse = model.colour_net.colours(model.colour_net.up(model.colour_net.core(F.avg_pool2d(x, 4))), x)
+        coarse = model.colour_net.colours(model.colour_net.up(model.colour_net.run_core(F.avg_pool2d(x, 4))), x)
         assert torch.allclose(model.colour_net(x), coarse)
         assert not torch.allclose(coarse, x[:, :3], atol=1e-3)
 
@@ -106,6 +107,21 @@ def test_affine_fields_invert_the_formation_model_for_any_colour():
     keep = (k * (j * t + b) < 1.0)  # unclipped pixels
     assert torch.allclose(apply_affine(fields, recorded)[keep], srgb_encode(j)[keep], atol=1e-5)
     assert torch.allclose(srgb_decode(srgb_encode(j)), j, atol=1e-6)
+
+
+def test_the_colour_net_sees_the_whole_image_context():
+    """A crop is corrected with the context (per-channel mean and std) of its whole image: the same crop
+    in a darker frame comes out differently."""
+    x = torch.rand(1, 4, 64, 64)
+    context = image_context(x)
+    np.testing.assert_allclose(context[0, :3].numpy(), x[0, :3].mean(dim=(1, 2)).numpy(), rtol=1e-6)
+    np.testing.assert_allclose(context[0, 3:].numpy(), x[0, :3].flatten(1).std(dim=1).numpy(), rtol=1e-5)
+    model = Restorer(TINY).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+        own = model.colour_net(x)
+        darker_frame = model.colour_net(x, context * torch.tensor([0.5, 0.5, 0.5, 1.0, 1.0, 1.0]))
+    assert (own - darker_frame).abs().max() > 1e-3
 
 
 def test_unknown_head_is_refused(tmp_path):

@@ -13,7 +13,8 @@ Loss (Euclidean, per iteration on a batch drawn with replacement)::
 with u the underwater image, a the in-air one, D the depth net (at 56x56) and C the colour net; the
 estimated depth is detached where it enters C. The paper's two-level schedule: stage 1 trains C's
 core alone at ``core_hw`` (128x128: images area-averaged), stage 2 trains the whole colour net on
-full-resolution random crops of ``crop_px`` with the core initialised from stage 1 (the depth net
+full-resolution random crops of ``crop_px`` (each with the context of its whole image, see
+:func:`~watergan.nets.restorer.image_context`) with the core initialised from stage 1 (the depth net
 trains in both). Adam, one optimiser per stage.
 
 Files in ``out_dir``: ``checkpoint.pt`` (stage, step, model and optimiser states, RNG, split;
@@ -40,7 +41,7 @@ from tqdm import tqdm
 
 from .data import DataError, atomic_write_bytes, read_depth, read_image
 from .errors import UserInputError
-from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, restore
+from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, image_context, restore
 from .train import pick_device
 
 CHECKPOINT = "checkpoint.pt"
@@ -338,6 +339,9 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
         colour = model.colour_net.core_colours(torch.cat([small_u[idx], up], dim=1))
         return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
 
+    contexts = torch.stack([image_context(F.avg_pool2d(u.float()[None] / 255, config.factor))[0]
+                            for u in data.underwater]).to(device)  # of whole images, as at correction time
+
     def stage2_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         depth = model.depth_net.core(depth_u[idx])
         inputs, targets = [], []
@@ -349,7 +353,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
             u = data.underwater[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255
             inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop]]))
             targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
-        colour = model.colour_net(torch.stack(inputs))
+        colour = model.colour_net(torch.stack(inputs), contexts[idx])
         return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, depth_t[idx])
 
     def save_checkpoint(stage_now: int, step_now: int, opt_state: dict | None, stage1_steps: int) -> None:
