@@ -16,6 +16,7 @@ from watergan.nets.restorer import (
     apply_affine,
     bilinear_upsampler,
     image_context,
+    position_maps,
     restore,
     srgb_decode,
     srgb_encode,
@@ -79,7 +80,7 @@ def test_bilinear_init_matches_interpolate_away_from_borders():
 @pytest.mark.parametrize("head", ["affine", "direct"])
 def test_skip_output_starts_as_the_upsampled_core(head):
     model = Restorer(TINY, head=head).eval()
-    x = torch.rand(1, 4, 64, 64)
+    x = torch.rand(1, 7, 64, 64)
     with torch.no_grad():
         torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)  # a core that is not the identity
         coarse = model.colour_net.colours(model.colour_net.up(model.colour_net.run_core(F.avg_pool2d(x, 4))), x)
@@ -89,7 +90,7 @@ def test_skip_output_starts_as_the_upsampled_core(head):
 
 def test_affine_head_starts_as_the_identity():
     model = Restorer(TINY).eval()
-    x = torch.rand(2, 4, 64, 64)
+    x = torch.rand(2, 7, 64, 64)
     with torch.no_grad():
         assert torch.allclose(model.colour_net(x), x[:, :3], atol=1e-5)
 
@@ -112,7 +113,7 @@ def test_affine_fields_invert_the_formation_model_for_any_colour():
 def test_the_colour_net_sees_the_whole_image_context():
     """A crop is corrected with the context (per-channel mean and std) of its whole image: the same crop
     in a darker frame comes out differently."""
-    x = torch.rand(1, 4, 64, 64)
+    x = torch.rand(1, 7, 64, 64)
     context = image_context(x)
     np.testing.assert_allclose(context[0, :3].numpy(), x[0, :3].mean(dim=(1, 2)).numpy(), rtol=1e-6)
     np.testing.assert_allclose(context[0, 3:].numpy(), x[0, :3].flatten(1).std(dim=1).numpy(), rtol=1e-5)
@@ -122,6 +123,31 @@ def test_the_colour_net_sees_the_whole_image_context():
         own = model.colour_net(x)
         darker_frame = model.colour_net(x, context * torch.tensor([0.5, 0.5, 0.5, 1.0, 1.0, 1.0]))
     assert (own - darker_frame).abs().max() > 1e-3
+
+
+def test_position_maps_tell_the_centre_from_the_corners():
+    maps = position_maps(4, 6)[0]
+    assert maps.shape == (3, 4, 6)
+    np.testing.assert_allclose(maps[0, 0].numpy(), (np.arange(6) + 0.5) / 6 * 2 - 1, rtol=1e-6)
+    np.testing.assert_allclose(maps[1, :, 0].numpy(), (np.arange(4) + 0.5) / 4 * 2 - 1, rtol=1e-6)
+    assert maps[2].argmax() in (0, 5, 18, 23) and maps[2].max() < 1 and maps[2, 1:3, 2:4].max() < 0.1
+
+
+def test_the_same_pixels_are_corrected_by_where_they_are():
+    """A crop taken from the top-left corner and the same pixels placed at the centre of the frame: the
+    colour net gets different position maps and may correct them differently (vignetting)."""
+    torch.manual_seed(0)
+    model = Restorer(TINY).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+        image = torch.rand(1, 3, 64, 64)
+        full = position_maps(128, 128)
+        corner, centre = full[..., :64, :64], full[..., 32:96, 32:96]
+        a, _ = model(image, corner)
+        b, _ = model(image, centre)
+        c, _ = model(image)  # its own maps: the crop is a whole image
+    assert (a - b).abs().max() > 1e-3
+    assert torch.equal(c, model(image, position_maps(64, 64))[0])
 
 
 def test_unknown_head_is_refused(tmp_path):

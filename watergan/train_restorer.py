@@ -13,8 +13,8 @@ Loss (Euclidean, per iteration on a batch drawn with replacement)::
 with u the underwater image, a the in-air one, D the depth net (at 56x56) and C the colour net; the
 estimated depth is detached where it enters C. The paper's two-level schedule: stage 1 trains C's
 core alone at ``core_hw`` (128x128: images area-averaged), stage 2 trains the whole colour net on
-full-resolution random crops of ``crop_px`` (each with the context of its whole image, see
-:func:`~watergan.nets.restorer.image_context`) with the core initialised from stage 1 (the depth net
+full-resolution random crops of ``crop_px`` (each with the context and its part of the position maps
+of its whole image, see :mod:`watergan.nets.restorer`) with the core initialised from stage 1 (the depth net
 trains in both). Adam, one optimiser per stage.
 
 Files in ``out_dir``: ``checkpoint.pt`` (stage, step, model and optimiser states, RNG, split;
@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from .data import DataError, atomic_write_bytes, read_depth, read_image
 from .errors import UserInputError
-from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, image_context, restore
+from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, image_context, position_maps, restore
 from .train import pick_device
 
 CHECKPOINT = "checkpoint.pt"
@@ -336,9 +336,11 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     def stage1_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         depth = model.depth_net.core(depth_u[idx])
         up = F.interpolate(depth.detach(), size=config.core_hw, mode="bilinear", align_corners=False)
-        colour = model.colour_net.core_colours(torch.cat([small_u[idx], up], dim=1))
+        colour = model.colour_net.core_colours(torch.cat([small_u[idx], up, small_pos.expand(len(idx), -1, -1, -1)],
+                                                         dim=1))
         return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
 
+    small_pos = position_maps(*config.core_hw, device)
     contexts = torch.stack([image_context(F.avg_pool2d(u.float()[None] / 255, config.factor))[0]
                             for u in data.underwater]).to(device)  # of whole images, as at correction time
 
@@ -351,7 +353,8 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
             x0 = int(torch.randint(w - crop + 1, (1,), generator=rng))
             d = F.interpolate(depth[k:k + 1].detach(), size=(h, w), mode="bilinear", align_corners=False)
             u = data.underwater[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255
-            inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop]]))
+            position = position_maps(h, w, device)[0, :, y0:y0 + crop, x0:x0 + crop]
+            inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop], position]))
             targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
         colour = model.colour_net(torch.stack(inputs), contexts[idx])
         return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, depth_t[idx])

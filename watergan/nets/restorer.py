@@ -41,6 +41,12 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   from frame to frame, correlated -0.97 with the frame's range. Training crops take the context of
   their whole image.
 
+  Position: the colour net's input also holds each pixel's place in the whole image
+  (:func:`position_maps`: u, v in [-1, 1] and the squared radius, 1 at a corner), since vignetting
+  darkens the corners and a convolutional net cannot otherwise tell a corner from the centre (without
+  them the demo restorer left the raw frames' 0.75-1.22 centre-to-corner falloff in place). Training
+  crops take their part of the whole image's maps.
+
 Pixels are the stored (sRGB-encoded) values scaled to 0..1. :func:`restore` pads any size to a
 multiple of :func:`Restorer.multiple` (replicating the border), runs both nets and crops back.
 """
@@ -154,6 +160,19 @@ def apply_affine(fields: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
 
 CONTEXT_CHANNELS = 6
 """Channels of :func:`image_context`."""
+POSITION_CHANNELS = 3
+"""Channels of :func:`position_maps`."""
+IMAGE_CHANNELS = 4 + POSITION_CHANNELS
+"""The colour net's input: RGB, estimated depth and the position maps."""
+
+
+def position_maps(height: int, width: int, device: torch.device | None = None) -> torch.Tensor:
+    """(1,3,H,W): u and v of each pixel centre in [-1, 1] (left/top to right/bottom) and the squared
+    radius (u^2 + v^2) / 2, 1 at the corners."""
+    v = (torch.arange(height, device=device, dtype=torch.float32) + 0.5) / height * 2 - 1
+    u = (torch.arange(width, device=device, dtype=torch.float32) + 0.5) / width * 2 - 1
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    return torch.stack([uu, vv, (uu * uu + vv * vv) / 2])[None]
 
 
 def image_context(small: torch.Tensor) -> torch.Tensor:
@@ -194,37 +213,39 @@ class ColourNet(nn.Module):
             raise ValueError(f"head must be one of {HEADS}, got {head!r}")
         self.factor, self.skip, self.head = factor, skip, head
         channels = 6 if head == "affine" else 3
-        self.core = SegNetCore(4 + CONTEXT_CHANNELS, channels, widths.colour_core, widths.blocks_per_level)
+        self.core = SegNetCore(IMAGE_CHANNELS + CONTEXT_CHANNELS, channels, widths.colour_core,
+                               widths.blocks_per_level)
         if head == "affine":  # zero fields: the net starts as the identity
             nn.init.zeros_(self.core.head.weight)
             nn.init.zeros_(self.core.head.bias)
         self.up = bilinear_upsampler(channels, factor)
         if skip:
             f = widths.full_res
-            self.skip1 = conv_block(4, f)
+            self.skip1 = conv_block(IMAGE_CHANNELS, f)
             self.fuse = conv_block(3 + f, f, kernel=1)  # 1x1: the full-resolution cost is in skip1 and out
-            self.out = nn.Conv2d(f + 4, 3, 3, padding=1)
+            self.out = nn.Conv2d(f + IMAGE_CHANNELS, 3, 3, padding=1)
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
 
     def colours(self, core_out: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """The colours of a core output at the size of the input x (B,4,H,W): the output itself
+        """The colours of a core output at the size of the input x (B,7,H,W): the output itself
         (``head="direct"``) or its fields applied to x (:func:`apply_affine`)."""
         return core_out if self.head == "direct" else apply_affine(core_out, x[:, :3])
 
     def run_core(self, x_small: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
-        """The core on (B,4,h,w) image + depth at its resolution, with the image's context (B,6)
+        """The core on (B,7,h,w) image, depth and position at its resolution, with the image's context (B,6)
         (:func:`image_context`; None: that of ``x_small`` itself) as constant maps."""
         context = image_context(x_small) if context is None else context
         maps = context[:, :, None, None].expand(-1, -1, *x_small.shape[-2:])
         return self.core(torch.cat([x_small, maps], dim=1))
 
     def core_colours(self, x_small: torch.Tensor) -> torch.Tensor:
-        """(B,4,h,w) image + depth at the core's resolution -> (B,3,h,w): the core alone (stage 1)."""
+        """(B,7,h,w) image, depth and position at the core's resolution -> (B,3,h,w): the core alone
+        (stage 1)."""
         return self.colours(self.run_core(x_small), x_small)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
-        """(B,4,H,W) image + depth, sides multiples of factor * 8 -> (B,3,H,W); ``context``: that of the
+        """(B,7,H,W) image, depth and position, sides multiples of factor * 8 -> (B,3,H,W); ``context``: that of the
         whole image when x is a crop of it (None: x's own)."""
         coarse = self.colours(self.up(self.run_core(F.avg_pool2d(x, self.factor), context)), x)
         if not self.skip:
@@ -260,11 +281,14 @@ class Restorer(nn.Module):
         return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]),
                    config.get("head", "direct"))
 
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, image: torch.Tensor, position: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B,3,H,W), H and W multiples of ``multiple`` -> RGB (B,3,H,W) and relative depth (B,1,H,W):
-        depth d = bilinear(DepthNet(x)) and rgb = ColourNet([x, d])."""
-        depth = F.interpolate(self.depth_net(image), size=image.shape[-2:], mode="bilinear", align_corners=False)
-        return self.colour_net(torch.cat([image, depth], dim=1)), depth
+        depth d = bilinear(DepthNet(x)) and rgb = ColourNet([x, d, p]) with p the position maps (1,3,H,W)
+        (None: :func:`position_maps` of the image itself)."""
+        h, w = image.shape[-2:]
+        depth = F.interpolate(self.depth_net(image), size=(h, w), mode="bilinear", align_corners=False)
+        position = position_maps(h, w, image.device) if position is None else position
+        return self.colour_net(torch.cat([image, depth, position.expand(image.shape[0], -1, -1, -1)], dim=1)), depth
 
 
 def restore(model: Restorer, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -274,5 +298,7 @@ def restore(model: Restorer, image: torch.Tensor) -> tuple[torch.Tensor, torch.T
     m = model.multiple
     pad_h, pad_w = -h % m, -w % m
     x = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate") if pad_h or pad_w else image
-    rgb, depth = model(x)
+    position = position_maps(h, w, image.device)  # of the image itself, padded like it
+    position = F.pad(position, (0, pad_w, 0, pad_h), mode="replicate") if pad_h or pad_w else position
+    rgb, depth = model(x, position)
     return rgb[..., :h, :w].clamp(0.0, 1.0), depth[..., :h, :w].clamp(0.0, 1.0)
