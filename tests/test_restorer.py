@@ -213,3 +213,16 @@ def test_no_skip_ablation_and_bad_config(tmp_path):
         train_restorer(_config(tmp_path, widths="huge"))
     with pytest.raises(UserInputError, match="generate"):
         train_restorer(_config(tmp_path, data_dir=tmp_path / "nothing"))
+
+
+def test_a_restorer_from_older_nets_asks_to_be_trained_again(tmp_path):
+    """restorer.pt written before the position maps and the head existed: a clear error, not a traceback."""
+    from watergan.train_restorer import MODEL, save_restorer
+
+    save_restorer(tmp_path / MODEL, Restorer(TINY))
+    saved = torch.load(tmp_path / MODEL, weights_only=True)
+    del saved["model_config"]["head"]
+    saved["model"]["colour_net.skip1.0.weight"] = saved["model"]["colour_net.skip1.0.weight"][:, :4]
+    torch.save(saved, tmp_path / MODEL)
+    with pytest.raises(UserInputError, match="train it again"):
+        load_restorer(tmp_path)

@@ -243,8 +243,9 @@ def load_restorer(model_dir: str | Path) -> Restorer:
         saved = torch.load(path, map_location="cpu", weights_only=True)
         model = Restorer.from_config(saved["model_config"])
         model.load_state_dict(saved["model"])
-    except Exception as exc:  # a torn or foreign file: say which
-        raise UserInputError(f"restorer {path} cannot be read ({type(exc).__name__}: {exc})") from exc
+    except Exception as exc:  # a torn or foreign file, or one from before the nets changed: say which
+        raise UserInputError(f"restorer {path} cannot be read ({type(exc).__name__}: {exc}); if an older "
+                             f"watergan wrote it, train it again") from exc
     return model.eval()
 
 

@@ -11,8 +11,8 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
 - :class:`ColourNet`: the core at 1/``factor`` of the full resolution (the paper trains it at
   128x128), wrapped by an average pool P (``factor`` x ``factor``) and a depthwise ``ConvTranspose2d``
   U initialised as bilinear interpolation (it reproduces ``F.interpolate(mode="bilinear",
-  align_corners=False)`` away from the borders before training). Input: the image and its upsampled
-  estimated depth (4 channels); output RGB::
+  align_corners=False)`` away from the borders before training). Input: the image, its upsampled
+  estimated depth and position maps (7 channels; see "Position" below); output RGB::
 
       y = U(C(P(x))) + S([U(C(P(x))), F(x)], x)
 
@@ -278,8 +278,7 @@ class Restorer(nn.Module):
         w = config["widths"]
         widths = RestorerWidths(tuple(w["depth_core"]), tuple(w["colour_core"]), int(w["full_res"]),
                                 int(w["blocks_per_level"]))
-        return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]),
-                   config.get("head", "direct"))
+        return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]), config["head"])
 
     def forward(self, image: torch.Tensor, position: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B,3,H,W), H and W multiples of ``multiple`` -> RGB (B,3,H,W) and relative depth (B,1,H,W):
