@@ -89,6 +89,8 @@ class EvaluateConfig:
     scheduler: str = field(default="", metadata={"hash": False})
     """A Dask scheduler address (tcp://HOST:8786) to run the baselines and the colour sampling on its workers
     (shared file system); empty: here. The outputs are the same either way."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Show progress bars."""
 
 
 @dataclass
@@ -519,7 +521,7 @@ def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False) ->
 
 def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: Path, ranges=None,
                   coefficients: dict | None = None, geometry=None, scheduler=None,
-                  chunk_size: int = 8) -> dict[str, float]:
+                  chunk_size: int = 8, progress: bool = True) -> dict[str, float]:
     """Correct every frame with every method into ``out_dir/<method>/<name>`` (8-bit sRGB); returns
     the seconds per frame of each method's correction alone.
 
@@ -533,12 +535,12 @@ def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: P
     frame_ranges = ranges if needs_range else None
     if not is_distributed(scheduler):  # one pass here, frame by frame
         results = [baseline_chunk(BaselineChunk(tuple(names), images, tuple(methods), out_dir, frame_ranges,
-                                                coefficients, None), geometry, progress=True)]
+                                                coefficients, None), geometry, progress=progress)]
     else:
         survey = shared_path(geometry.survey) if geometry is not None else None
         jobs = [BaselineChunk(tuple(part), shared_path(images), tuple(methods), shared_path(out_dir), frame_ranges,
                               coefficients, survey) for part in chunks(names, chunk_size)]
-        results = map_tasks(baseline_chunk, jobs, scheduler, desc="baselines", unit="chunk")
+        results = map_tasks(baseline_chunk, jobs, scheduler, desc="baselines", unit="chunk", progress=progress)
     if frame_ranges is not None:
         frame_ranges.fallback = [n for _, fell_back in results for n in fell_back]
     seconds = {m: sum(part[m] for part, _ in results) for m in methods}
@@ -657,7 +659,7 @@ def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
     methods, skipped, ranges, coefficients, geometry = _inputs(ws, cfg, survey, tracks, simulated)
     scheduler = cfg.scheduler or None
     per_frame: dict[str, float | None] = run_baselines(names, images, methods, out / "baselines", ranges,
-                                                       coefficients, geometry, scheduler)
+                                                       coefficients, geometry, scheduler, progress=cfg.progress)
     folders = {m: out / "baselines" / m for m in methods}
 
     correct_dir = Path(cfg.ours_dir).parent if cfg.ours_dir else ws.root / "03_correct"
@@ -679,7 +681,7 @@ def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
     folders = {m: folders[m] for m in [*methods, *reference]}
 
     # measurements on the same points, observations and board for every method
-    colours = {m: observation_colours(tracks, p, cfg.patch_px, progress=True, scheduler=scheduler)
+    colours = {m: observation_colours(tracks, p, cfg.patch_px, progress=cfg.progress, scheduler=scheduler)
                for m, p in folders.items()}  # sampled once for both
     cons = consistency(tracks, folders, cfg.patch_px, cfg.min_views, colours=colours)
     buffer = io.BytesIO()

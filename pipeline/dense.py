@@ -103,6 +103,8 @@ class DenseConfig:
     scheduler: str = field(default="", metadata={"hash": False})
     """A Dask scheduler address (tcp://HOST:8786) to compute the per-image SGBM depth on its workers (shared
     file system); empty: here. Not used by patch_match. The outputs are the same either way."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Show progress bars."""
 
 
 @dataclass
@@ -363,7 +365,7 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
                                     cfg, shared_path(depth_dir / f"{Path(name).stem}.png"))))
     jobs = [job for _, job in order if job is not None]
     done = dict(zip((job.name for job in jobs), map_tasks(pair_depth, jobs, cfg.scheduler or None, desc="dense",
-                                                           unit="image"), strict=True))
+                                                           progress=cfg.progress, unit="image"), strict=True))
     pairs, coverage, skipped, depths = {}, {}, [], {}
     for name, job in order:
         cover, depth = done[name] if job is not None else (0.0, None)

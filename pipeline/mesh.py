@@ -42,7 +42,7 @@ rotation terms, -texel size, x and y of the upper-left texel's centre).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +78,8 @@ class MeshConfig:
     takes ~6 s for 20k faces, ~130 s for 80k, on 2 cores; the texture carries the detail)."""
     max_texture_px: int = 4096
     """'tsdf': the atlas side in texels at most (the texel grows to fit)."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Show progress bars."""
 
 
 @dataclass
@@ -193,8 +195,8 @@ def _footprint_window(world_from_cam: np.ndarray, K: np.ndarray, width: int, hei
             slice(int(np.clip(c0, 0, shape[1])), int(np.clip(c1, 0, shape[1]))))
 
 
-def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend_power: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend_power: float,
+               progress: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Blended orthophoto (H,W,3) uint8 over the mesh bounds (row 0 = largest y) and its coverage
     mask (H,W); see the module docstring."""
     import cv2
@@ -213,7 +215,7 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
     half_diag = 0.5 * np.hypot(tracks.width, tracks.height)
     centre = np.array([(tracks.width - 1) / 2, (tracks.height - 1) / 2])
     z_range = (float(np.nanmin(z)), float(np.nanmax(z))) if np.isfinite(z).any() else (0.0, 0.0)
-    for k in tqdm(np.flatnonzero(tracks.registered), desc="texture", unit="image"):
+    for k in tqdm(np.flatnonzero(tracks.registered), desc="texture", unit="image", disable=not progress):
         pose = tracks.world_from_cam[k]
         rows, cols = _footprint_window(pose, K, tracks.width, tracks.height, z_range, (x0, y1), texel_m,
                                        (height, width))
@@ -328,7 +330,8 @@ def atlas_unwrap(vertices: np.ndarray, faces: np.ndarray, texel_m: float, max_te
 
 
 def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size: tuple[int, int], tracks,
-                  images_dir: Path, blend_power: float, grow_texels: int = 4) -> tuple[np.ndarray, np.ndarray]:
+                  images_dir: Path, blend_power: float, grow_texels: int = 4, progress: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Texture (H,W,3) uint8 of an unwrapped mesh and its coverage mask (see the module docstring)."""
     import cv2
     import open3d as o3d
@@ -359,7 +362,7 @@ def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size:
     half_diag = 0.5 * np.hypot(w_img, h_img)
     centre = np.array([(w_img - 1) / 2, (h_img - 1) / 2])
     acc, weight = np.zeros((len(points), 3)), np.zeros(len(points))
-    for k in tqdm(np.flatnonzero(tracks.registered), desc="texture", unit="image"):
+    for k in tqdm(np.flatnonzero(tracks.registered), desc="texture", unit="image", disable=not progress):
         pose = tracks.world_from_cam[k]
         pc = (points - pose[:3, 3]) @ pose[:3, :3]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -428,7 +431,8 @@ def tsdf_textured_mesh(mesh_ply: Path, tracks, images_dir: Path, texel_m: float,
     if len(faces) == 0:
         raise UserInputError(f"the fused mesh {mesh_ply} has no faces")
     vertices, faces, uv, size, texel = atlas_unwrap(vertices, faces, texel_m, cfg.max_texture_px)
-    texture, _ = atlas_texture(vertices, faces, uv, size, tracks, images_dir, cfg.blend_power)
+    texture, _ = atlas_texture(vertices, faces, uv, size, tracks, images_dir, cfg.blend_power,
+                               progress=cfg.progress)
     exports = export_textured(vertices, faces, np.column_stack([uv[:, 0], 1 - uv[:, 1]]), texture, out_dir)
     return exports, len(vertices), len(faces), texel
 
@@ -499,7 +503,7 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     ground_sampling = depth / float(tracks.K[0, 0])
     texel = cfg.texel_m or max(extent / 3000, ground_sampling / 2)
     mesh = mesh.on_texel_grid(texel)
-    mosaic, covered = orthophoto(mesh, texel, tracks, images_dir, cfg.blend_power)
+    mosaic, covered = orthophoto(mesh, texel, tracks, images_dir, cfg.blend_power, cfg.progress)
     kind = cfg.mesh_kind
     if kind == "auto":
         has_fused = dense_mesh_ply is not None and dense_mesh_ply.is_file()
