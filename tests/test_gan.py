@@ -366,8 +366,11 @@ def test_settle_matches_the_statistics_and_moves_only_the_physics():
     fresh.stack["gain"].set_values(k=[1.2])
     state = fresh.state(air, depth, None)
     fixed = {n: v.clone() for n, v in fresh.state_dict().items() if "convs" in n or "project" in n or "running" in n}
+    trains = {n: p.requires_grad for n, p in fresh.named_parameters()}
     before = settle_statistics(fresh, state, real, 0, 1000.0, seed=0)
     after = settle_statistics(fresh, state, real, 150, 1000.0, seed=0)
     assert after < 0.05 * before, (before, after)
     assert all(torch.equal(fresh.state_dict()[n], v) for n, v in fixed.items())
-    assert fresh.training  # its mode is given back
+    assert fresh.training  # its mode and which parameters train are given back
+    assert {n: p.requires_grad for n, p in fresh.named_parameters()} == trains
+    assert not all(trains.values())  # fixed settings stay fixed

@@ -11,17 +11,19 @@ with random flips and shifts a (``disc_augment``), a Gaussian blur b (``disc_blu
 noise n, n' ~ N(0, instance_noise_std^2), one-sided label smoothing (``real_label``) and the
 per-channel mean and texture contrast m of a batch weighted by w (``moment_weight``). The generator
 starts at the linear map from the in-air set's colour statistics to the survey's (``init_from_data``)
-with one gain for all channels (``gain_channels``). Adam (lr 2e-4, beta1 0.5) for the nets; the
-generator's few physical parameters use ``physics_lr``, the backscatter veil's level ``veil_lr`` and
-its spread ``veil_spread_lr`` (see :class:`GanConfig`). The geometry of every
-RGB-D view (range, points, normals) is computed once before training (see
+with one gain for all channels (``gain_channels``); after the last iteration ``settle_steps`` full-batch
+steps of the statistics term alone settle the physical parameters (:func:`settle_statistics`).
+Adam (lr 2e-4, beta1 0.5) for the nets; the generator's few physical parameters use ``physics_lr``,
+the backscatter veil's level ``veil_lr`` and its spread ``veil_spread_lr`` (see :class:`GanConfig`).
+The geometry of every RGB-D view (range, points, normals) is computed once before training (see
 :func:`~watergan.nets.generator.select_state`).
 
 Files written to ``out_dir``: ``checkpoint.pt`` (states of both nets and optimisers, step, stack
-configuration, RNG state; atomic), ``stack.json`` (the learned stack), ``train_log.jsonl`` (one line
-per iteration: losses and every learned physical parameter), ``samples/step_NNNNNN.png`` (in-air,
-generated and real rows), ``training.png`` (parameters over training, colour histograms) and
-``result.json``. A run resumed from its checkpoint continues exactly as if uninterrupted.
+configuration, RNG state, the generator before settling for a resume; atomic), ``stack.json`` (the
+learned stack), ``train_log.jsonl`` (one line per iteration: losses and every learned physical
+parameter), ``samples/step_NNNNNN.png`` (in-air, generated and real rows), ``training.png``
+(parameters over training, colour histograms) and ``result.json``. A run resumed from its checkpoint
+continues exactly as if uninterrupted.
 """
 
 from __future__ import annotations
@@ -317,9 +319,11 @@ def settle_statistics(generator: WaterGenerator, air_state: FormationState, real
 
     with every in-air view (one fixed noise vector z each) against every real frame x, m the
     per-channel mean and texture contrast (:func:`colour_moments`), batch norm on its running
-    statistics as at generation, Adam at SETTLE_LR decayed to 0 (cosine). Returns the final L."""
+    statistics as at generation, Adam at SETTLE_LR decayed to 0 (cosine); z is drawn from ``seed``.
+    The generator's mode and which parameters train are restored. Returns the final L."""
     physics = physical_parameters(generator)
     was_training = generator.training
+    trainable = {name: p.requires_grad for name, p in generator.named_parameters()}
     generator.eval()
     generator.requires_grad_(False)
     for param in physics:
@@ -336,7 +340,8 @@ def settle_statistics(generator: WaterGenerator, air_state: FormationState, real
         opt.step()
         schedule.step()
         loss = weight * (colour_moments(generator.render(state)) - target).square().sum()
-    generator.requires_grad_(True)
+    for name, param in generator.named_parameters():
+        param.requires_grad_(trainable[name])
     generator.train(was_training)
     return loss.item()
 
