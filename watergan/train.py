@@ -333,13 +333,13 @@ def settle_statistics(generator: WaterGenerator, air_state: FormationState, real
     target = colour_moments(real)
     opt = torch.optim.Adam(physics, SETTLE_LR)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1))
-    loss = weight * (colour_moments(generator.render(state)) - target).square().sum()
+    loss = moment_loss(generator.render(state), target, weight)
     for _ in range(steps):
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         schedule.step()
-        loss = weight * (colour_moments(generator.render(state)) - target).square().sum()
+        loss = moment_loss(generator.render(state), target, weight)
     for name, param in generator.named_parameters():
         param.requires_grad_(trainable[name])
     generator.train(was_training)
@@ -356,7 +356,7 @@ def _settle_step_seconds(generator: WaterGenerator, air_state: FormationState, r
     seconds = math.inf
     for _ in range(2):
         began = time.perf_counter()
-        loss = (colour_moments(generator.render(air_state.replace(z=z))) - colour_moments(real)).square().sum()
+        loss = moment_loss(generator.render(air_state.replace(z=z)), colour_moments(real))
         loss.backward()
         seconds = min(seconds, time.perf_counter() - began)
     generator.zero_grad(set_to_none=True)
@@ -367,6 +367,11 @@ def _settle_step_seconds(generator: WaterGenerator, air_state: FormationState, r
 def colour_moments(images: torch.Tensor) -> torch.Tensor:
     """(2,3): the per-channel mean and texture contrast (:func:`texture_contrast`) of a (B,3,H,W) batch."""
     return torch.stack([images.mean(dim=(0, 2, 3)), texture_contrast(images)])
+
+
+def moment_loss(images: torch.Tensor, target: torch.Tensor, weight: float = 1.0) -> torch.Tensor:
+    """The colour-statistics term w |m(images) - target|^2, m = :func:`colour_moments`, target (2,3)."""
+    return weight * (colour_moments(images) - target).square().sum()
 
 
 def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -704,7 +709,7 @@ def train_gan(config: GanConfig) -> GanResult:
                     for param in physics:
                         param.grad = None
                 if real_moments is not None:
-                    loss_moments = config.moment_weight * (colour_moments(fake) - real_moments).square().sum()
+                    loss_moments = moment_loss(fake, real_moments, config.moment_weight)
                     loss_moments.backward()
                     loss_g = loss_g + loss_moments
                 opt_g.step()

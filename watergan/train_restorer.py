@@ -329,6 +329,10 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     depth_u = torch.stack([F.adaptive_avg_pool2d(u.float()[None], config.depth_hw)[0] for u in data.underwater]) / 255
     small_u, small_a, depth_u = small_u.to(device), small_a.to(device), depth_u.to(device)
     depth_t = data.depth_small.to(device)
+    small_pos = position_maps(*config.core_hw, device)
+    full_pos = {hw: position_maps(*hw, device)[0] for hw in {tuple(u.shape[1:]) for u in data.underwater}}
+    contexts = torch.stack([image_context(F.avg_pool2d(u.float()[None] / 255, config.factor))[0]
+                            for u in data.underwater]).to(device)  # of whole images, as at correction time
 
     def batch_indices() -> list[int]:
         picks = torch.randint(len(train_idx), (config.batch_size,), generator=rng)
@@ -341,10 +345,6 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
                                                          dim=1))
         return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
 
-    small_pos = position_maps(*config.core_hw, device)
-    contexts = torch.stack([image_context(F.avg_pool2d(u.float()[None] / 255, config.factor))[0]
-                            for u in data.underwater]).to(device)  # of whole images, as at correction time
-
     def stage2_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         depth = model.depth_net.core(depth_u[idx])
         inputs, targets = [], []
@@ -354,7 +354,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
             x0 = int(torch.randint(w - crop + 1, (1,), generator=rng))
             d = F.interpolate(depth[k:k + 1].detach(), size=(h, w), mode="bilinear", align_corners=False)
             u = data.underwater[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255
-            position = position_maps(h, w, device)[0, :, y0:y0 + crop, x0:x0 + crop]
+            position = full_pos[(h, w)][:, y0:y0 + crop, x0:x0 + crop]
             inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop], position]))
             targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
         colour = model.colour_net(torch.stack(inputs), contexts[idx])
