@@ -1,0 +1,117 @@
+"""Where a trained restorer's corrections go wrong, on a simulated survey's workspace (no files written there).
+
+    .venv/bin/python benchmarks/diag_restorer.py --workspace WS [--out DIR] [--blur-px 8]
+
+WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``02_restorer``,
+``03_correct``, ``04_sfm``). Prints:
+
+- per frame, the linear mean of each channel of the corrected frame over that of the in-air truth:
+  its mean and standard deviation over frames, and its correlation with the frame's median true range
+  (a correction that does not know the frame's absolute range shows a strong correlation);
+- the raw/truth and corrected/truth ratios averaged over frames on an 8x6 grid of the image (a fixed
+  pattern, such as vignetting left in place, shows here);
+- colour consistency (mean variance of c/(R+G+B) across views on the SfM points, as Table II) of the raw
+  frames and of four corrections with the same model, written to ``--out``: the model as is; without
+  the skip layers' residual; with the affine fields blurred by ``--blur-px``; with a flat depth input
+  (each frame's mean estimated depth). Only for the affine head.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from eval.colour import consistency
+from pipeline.sfm import Tracks
+from watergan.data import read_image
+from watergan.nets.restorer import position_maps, restore
+from watergan.train import gaussian_blur
+from watergan.train_restorer import load_restorer
+
+
+def _linear_frames(folder: Path, names: list[str]) -> np.ndarray:
+    return np.stack([read_image(folder / n) for n in names])
+
+
+def frame_ratios(ws: Path, names: list[str]) -> None:
+    corrected = _linear_frames(ws / "03_correct" / "images", names)
+    truth = _linear_frames(ws / "00_survey" / "truth" / "inair", names)
+    ranges = np.array([np.median(r[r > 0]) for r in (cv2.imread(str(ws / "00_survey" / "truth" / "range" / n),
+                                                                cv2.IMREAD_UNCHANGED) for n in names)])
+    lit = truth.sum(-1) > 0.05
+    ratio = np.array([[c[..., k][m].mean() / t[..., k][m].mean() for k in range(3)]
+                      for c, t, m in zip(corrected, truth, lit, strict=True)])
+    print("per-frame corrected/truth, linear mean   R       G       B")
+    print(f"  mean over frames                     {ratio.mean(0).round(3)}")
+    print(f"  std over frames                      {ratio.std(0).round(3)}")
+    correlation = [round(float(np.corrcoef(ranges, ratio[:, k])[0, 1]), 2) for k in range(3)]
+    print(f"  correlation with the frame's range   {correlation}")
+
+    def cells(image: np.ndarray) -> np.ndarray:
+        return cv2.resize(image, (8, 6), interpolation=cv2.INTER_AREA)
+
+    raw = _linear_frames(ws / "00_survey" / "images", names)
+    raw_grid = np.mean([cells(r) / cells(t) for r, t in zip(raw, truth, strict=True)], axis=0)
+    raw_grid /= raw_grid.mean(axis=(0, 1), keepdims=True)
+    print("raw/truth over the image (8x6 cells, mean 1), R G B: "
+          + ", ".join(f"{raw_grid[..., k].min():.2f} .. {raw_grid[..., k].max():.2f}" for k in range(3)))
+    grid = np.mean([cells(c) / cells(t) for c, t in zip(corrected, truth, strict=True)], axis=0)
+    grid /= grid.mean(axis=(0, 1), keepdims=True)
+    for k, channel in enumerate("RGB"):
+        print(f"corrected/truth over the image (8x6 cells, mean 1), {channel}: "
+              f"{grid[..., k].min():.2f} .. {grid[..., k].max():.2f}")
+        print(np.array2string(grid[..., k], precision=2, max_line_width=120))
+
+
+@torch.no_grad()
+def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dict[str, Path]:
+    model = load_restorer(ws / "02_restorer")
+    net = model.colour_net
+    if net.head != "affine":
+        raise SystemExit("the variants need a restorer with the affine head")
+    folders = {v: out / v for v in ("model", "no skip residual", f"fields blurred {blur_px:g} px", "flat depth")}
+    for folder in folders.values():
+        folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        image = torch.from_numpy(cv2.imread(str(ws / "00_survey" / "images" / name))[..., ::-1].copy())
+        image = image.permute(2, 0, 1).float()[None] / 255
+        h, w = image.shape[-2:]
+        if h % model.multiple or w % model.multiple:
+            raise SystemExit(f"{name}: the variants need sides that are multiples of {model.multiple}")
+        depth = F.interpolate(model.depth_net(image), size=(h, w), mode="bilinear", align_corners=False)
+        x = torch.cat([image, depth, position_maps(h, w)], dim=1)
+        fields = net.up(net.run_core(F.avg_pool2d(x, net.factor)))
+        flat = torch.cat([image, depth.mean().expand_as(depth), position_maps(h, w)], dim=1)
+        outputs = (restore(model, image)[0], net.colours(fields, x),
+                   net.colours(gaussian_blur(fields, blur_px), x), net(flat))
+        for folder, rgb in zip(folders.values(), outputs, strict=True):
+            encoded = np.rint(rgb[0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+            cv2.imwrite(str(folder / name), encoded[..., ::-1])
+    return folders
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--workspace", required=True, type=Path)
+    parser.add_argument("--out", type=Path, default=Path("/tmp/diag_restorer"), help="variant images go here")
+    parser.add_argument("--blur-px", type=float, default=8.0)
+    args = parser.parse_args()
+    ws = args.workspace
+    torch.set_num_threads(2)
+    names = sorted(p.name for p in (ws / "03_correct" / "images").glob("*.png"))
+    frame_ratios(ws, names)
+    folders = {"raw": ws / "00_survey" / "images", **write_variants(ws, names, args.out, args.blur_px)}
+    tracks = Tracks.load(ws / "04_sfm" / "tracks.npz")
+    result = consistency(tracks, folders)
+    print(f"consistency on {result.n_points} points (mean variance of c/(R+G+B) across views; R G B)")
+    for name, score in result.scores.items():
+        print(f"  {name:>24}: {score.mean_variance:.3e}  {np.round(score.variance, 7).tolist()}")
+
+
+if __name__ == "__main__":
+    main()
