@@ -13,7 +13,12 @@ WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/tru
 - colour consistency (mean variance of c/(R+G+B) across views on the SfM points, as Table II) of the raw
   frames and of four corrections with the same model, written to ``--out``: the model as is; without
   the skip layers' residual; with the affine fields blurred by ``--blur-px``; with a flat depth input
-  (each frame's mean estimated depth). Only for the affine head.
+  (each frame's mean estimated depth); and, for a restorer that takes altitude, with the true altitude
+  (the median of the frame's true depth) in place of the navigation's. Only for the affine head;
+- where the corrected frames' inconsistency comes from: the error of each observation's normalised
+  colour against the in-air truth's at the same place, its variance across a point's views (averaged
+  over points, as the consistency), and what is left after removing the mean error of each frame, of
+  each place in the image (16x12 cells), and of both.
 """
 
 from __future__ import annotations
@@ -26,9 +31,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from eval.colour import consistency
+from eval.colour import consistency, observation_colours
 from pipeline.sfm import Tracks
-from watergan.data import read_image
+from watergan.data import read_depth, read_image, read_nav_altitudes
 from watergan.nets.restorer import position_maps, restore
 from watergan.train import gaussian_blur
 from watergan.train_restorer import load_restorer
@@ -74,7 +79,11 @@ def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dic
     net = model.colour_net
     if net.head != "affine":
         raise SystemExit("the variants need a restorer with the affine head")
-    folders = {v: out / v for v in ("model", "no skip residual", f"fields blurred {blur_px:g} px", "flat depth")}
+    variants = ["model", "no skip residual", f"fields blurred {blur_px:g} px", "flat depth"]
+    if model.altitude:
+        variants.append("true altitude")
+        nav = read_nav_altitudes(ws / "00_survey" / "survey.json", names)
+    folders = {v: out / v for v in variants}
     for folder in folders.values():
         folder.mkdir(parents=True, exist_ok=True)
     for name in names:
@@ -83,16 +92,50 @@ def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dic
         h, w = image.shape[-2:]
         if h % model.multiple or w % model.multiple:
             raise SystemExit(f"{name}: the variants need sides that are multiples of {model.multiple}")
+        altitude = torch.tensor([nav[name]]) if model.altitude else None
         depth = F.interpolate(model.depth_net(image), size=(h, w), mode="bilinear", align_corners=False)
         x = torch.cat([image, depth, position_maps(h, w)], dim=1)
-        fields = net.up(net.run_core(F.avg_pool2d(x, net.factor)))
+        fields = net.up(net.run_core(F.avg_pool2d(x, net.factor), None, altitude))
         flat = torch.cat([image, depth.mean().expand_as(depth), position_maps(h, w)], dim=1)
-        outputs = (restore(model, image)[0], net.colours(fields, x),
-                   net.colours(gaussian_blur(fields, blur_px), x), net(flat))
+        outputs = [restore(model, image, altitude)[0], net.colours(fields, x),
+                   net.colours(gaussian_blur(fields, blur_px), x), net(flat, None, altitude)]
+        if model.altitude:
+            true_depth = read_depth(ws / "00_survey" / "truth" / "depth" / name)
+            outputs.append(restore(model, image, torch.tensor([float(np.median(true_depth[true_depth > 0]))]))[0])
         for folder, rgb in zip(folders.values(), outputs, strict=True):
             encoded = np.rint(rgb[0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
             cv2.imwrite(str(folder / name), encoded[..., ::-1])
     return folders
+
+
+def _within_point_variance(point: np.ndarray, values: np.ndarray) -> float:
+    """Mean over points of the variance of ``values`` across the point's observations."""
+    n = np.bincount(point)
+    s1, s2 = np.bincount(point, values), np.bincount(point, values * values)
+    keep = n >= 3
+    return float(np.mean(s2[keep] / n[keep] - (s1[keep] / n[keep]) ** 2))
+
+
+def _minus_group_mean(values: np.ndarray, group: np.ndarray) -> np.ndarray:
+    return values - (np.bincount(group, values) / np.maximum(np.bincount(group), 1))[group]
+
+
+def error_decomposition(ws: Path, tracks: Tracks, folder: Path) -> None:
+    truth = observation_colours(tracks, ws / "00_survey" / "truth" / "inair")
+    ours = observation_colours(tracks, folder)
+    ok = np.isfinite(truth).all(1) & np.isfinite(ours).all(1)
+    ok &= np.bincount(tracks.obs_point[ok], minlength=len(tracks.xyz))[tracks.obs_point] >= 3
+    point, image, xy = tracks.obs_point[ok], tracks.obs_image[ok], tracks.obs_xy[ok]
+    h, w = cv2.imread(str(folder / str(tracks.image_names[image[0]]))).shape[:2]
+    cell = (np.clip(xy[:, 0] * 16 // w, 0, 15) + 16 * np.clip(xy[:, 1] * 12 // h, 0, 11)).astype(np.int64)
+    print("error of c/(R+G+B) against the in-air truth, variance across views (mean over points):")
+    for k, channel in enumerate("RGB"):
+        error = (ours - truth)[ok, k]
+        parts = {"all": error, "minus frame mean": _minus_group_mean(error, image),
+                 "minus place mean": _minus_group_mean(error, cell),
+                 "minus both": _minus_group_mean(_minus_group_mean(error, image), cell)}
+        print(f"  {channel}: " + ", ".join(f"{label} {_within_point_variance(point, v):.2e}"
+                                         for label, v in parts.items()))
 
 
 def main() -> None:
@@ -111,6 +154,7 @@ def main() -> None:
     print(f"consistency on {result.n_points} points (mean variance of c/(R+G+B) across views; R G B)")
     for name, score in result.scores.items():
         print(f"  {name:>24}: {score.mean_variance:.3e}  {np.round(score.variance, 7).tolist()}")
+    error_decomposition(ws, tracks, folders["model"])
 
 
 if __name__ == "__main__":

@@ -190,7 +190,7 @@ class _RangeSource:
         return fill_nearest(r)
 
 
-class _OracleGeometry:
+class OracleGeometry:
     """The simulator's true geometry and full stack: one formation state per frame (re-rendered)."""
 
     def __init__(self, survey: Path) -> None:
@@ -510,7 +510,7 @@ def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False) ->
 
     seconds = dict.fromkeys(job.methods, 0.0)
     if "oracle" in job.methods and geometry is None:
-        geometry = _OracleGeometry(job.oracle_survey)
+        geometry = OracleGeometry(job.oracle_survey)
     before = len(job.ranges.fallback) if job.ranges is not None else 0
     with single_torch_thread():  # the oracle's few element-wise renders: torch's pool only adds contention
         for name in tqdm(job.names, desc="baselines", unit="frame", disable=not progress):
@@ -588,7 +588,7 @@ def _inputs(ws, cfg: EvaluateConfig, survey: Path, tracks, simulated: bool):
     geometry = None
     if "oracle" in cfg.methods:
         if simulated:
-            geometry = _OracleGeometry(survey)
+            geometry = OracleGeometry(survey)
         else:
             skipped["oracle"] = "needs the simulator's truth (not a simulated survey)"
     methods = []

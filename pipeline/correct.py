@@ -9,9 +9,12 @@ restorer's multiple and cropped back) and written as::
     OUT/summary.json        counts and the files that could not be read
 
 The restorer works on the stored (sRGB-encoded) values scaled to 0..1, so the output keeps the
-input's encoding. Images already corrected (all three outputs present) are skipped unless ``force``.
-An unreadable or truncated image is reported and skipped. Every file is written atomically; the
-output folder may not be (or contain) the input folder's files.
+input's encoding. A restorer trained with ``altitude`` also takes each image's altitude above the
+seafloor (metres), the ``nav_altitude_m`` of a navigation file (:func:`watergan.data.read_nav_altitudes`;
+by default the ``survey.json`` beside the images folder); an image without one is an error before any
+work. Images already corrected (all three outputs present) are skipped unless ``force``. An unreadable
+or truncated image is reported and skipped. Every file is written atomically; the output folder may
+not be (or contain) the input folder's files.
 
 With ``scheduler`` (a Dask scheduler address, ``tcp://HOST:8786``) the images still to do are sent in
 chunks to the cluster's workers (:mod:`pipeline.parallel`), each chunk corrected with the model loaded
@@ -40,6 +43,7 @@ from watergan.data import (
     index_by_stem,
     list_files,
     read_image,
+    read_nav_altitudes,
 )
 from watergan.nets.restorer import restore
 from watergan.train import pick_device
@@ -101,6 +105,8 @@ class CorrectChunk:
     out_dir: Path
     batch_size: int
     device: str
+    altitude_m: tuple[float, ...] | None = None
+    """Per path, the altitude above the seafloor in metres (None: the model does not take it)."""
 
 
 @dataclass
@@ -120,22 +126,23 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
-    batch: list[tuple[str, np.ndarray, int]] = []
+    batch: list[tuple[str, np.ndarray, int, float]] = []
 
     def flush() -> None:
-        x = torch.from_numpy(np.stack([im for _, im, _ in batch]).transpose(0, 3, 1, 2)).float().to(dev)
+        x = torch.from_numpy(np.stack([im for _, im, _, _ in batch]).transpose(0, 3, 1, 2)).float().to(dev)
+        altitude = torch.tensor([a for *_, a in batch], device=dev) if chunk.altitude_m is not None else None
         with torch.no_grad():
-            rgb, depth = restore(model, x)
+            rgb, depth = restore(model, x, altitude)
         rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().double().numpy()
-        for k, (stem, _, bits) in enumerate(batch):
+        for k, (stem, _, bits, _) in enumerate(batch):
             _write(out, stem, rgb_np[k], depth_np[k], bits)
         result.corrected += len(batch)
         if bar is not None:
             bar.update(len(batch))
         batch.clear()
 
-    for path in chunk.paths:
+    for k, path in enumerate(chunk.paths):
         try:
             image = read_image(path, "linear")  # the stored values, 0..1
             bits = _bit_depth(path)
@@ -147,7 +154,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
             continue
         if batch and batch[0][1].shape != image.shape:
             flush()
-        batch.append((path.stem, image, bits))
+        batch.append((path.stem, image, bits, chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0))
         if len(batch) == chunk.batch_size:
             flush()
     if batch:
@@ -157,14 +164,17 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
 
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
                    batch_size: int = 4, device: str = "auto", progress: bool = True, scheduler=None,
-                   chunk_size: int = 64) -> CorrectResult:
+                   chunk_size: int = 64, navigation: str | Path | None = None) -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
     images of the same size are corrected together, ``batch_size`` at a time.
 
     ``scheduler``: empty or None corrects here, in one pass with the model loaded once; a Dask scheduler
     address (``tcp://HOST:8786``) or ``distributed.Client`` sends chunks of ``chunk_size`` images (rounded up
     to a multiple of ``batch_size``) to the cluster's workers, each loading the model once per chunk and
-    writing to ``out_dir`` on the shared file system (:mod:`pipeline.parallel`). Same files either way."""
+    writing to ``out_dir`` on the shared file system (:mod:`pipeline.parallel`). Same files either way.
+
+    ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
+    ``images_dir``), read only for a restorer trained with ``altitude``."""
     from pipeline.parallel import chunks, is_distributed, map_tasks, shared_path
 
     began = time.perf_counter()
@@ -184,21 +194,37 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     if not distributed or device not in ("auto", "cpu", "cuda"):
         pick_device(device)  # a bad device name fails here (a cluster's workers may have CUDA where this has none)
     model = load_restorer(model_dir)  # a missing or torn model fails here, before any work is sent
+    if model.altitude:
+        nav = Path(navigation) if navigation else images_dir.parent / "survey.json"
+        if not nav.is_file():
+            raise DataError(f"the restorer in {model_dir} takes each image's altitude above the seafloor, and there "
+                            f"is no navigation file {nav}: give one with nav_altitude_m per frame (--navigation), "
+                            f"or train a restorer with --no-altitude")
+        altitudes = read_nav_altitudes(nav, [p.name for p in files])
+        lacking = [p.name for p in files if p.name not in altitudes]
+        if lacking:
+            raise DataError(f"the navigation has no altitude for {len(lacking)} of the {len(files)} images "
+                            f"(e.g. {lacking[0]}): the restorer in {model_dir} needs one per image")
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
     result = CorrectResult(out, 0, 0)
     todo = [p for p in files if force or not all(p.is_file() for p in _outputs(out, p.stem))]
     result.already_done = len(files) - len(todo)
+
+    def altitude_of(paths: list[Path]) -> tuple[float, ...] | None:
+        return tuple(altitudes[p.name] for p in paths) if model.altitude else None
+
     if not distributed:
         with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
                   unit="img") as bar:
-            done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device), bar, model)
+            done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
+                                              altitude_of(todo)), bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
-                             batch_size, device) for part in chunks(todo, size)]
+                             batch_size, device, altitude_of(part)) for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):
             print(f"correct: skipped {message}", file=sys.stderr)

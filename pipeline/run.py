@@ -228,6 +228,12 @@ def run_report_stage(ws: Workspace, cfg) -> dict:
     return {"report": ws.relative(write_report(ws))}
 
 
+def _has_nav_altitude(ws: Workspace) -> bool:
+    """Whether the survey's navigation gives each frame's altitude (then the restorer takes it)."""
+    path = ws.stage_dir("survey") / "survey.json"
+    return path.is_file() and "nav_altitude_m" in json.loads(path.read_text())
+
+
 def _stage_plan(ws: Workspace, opts: RunOptions, survey: dict) -> list[tuple[str, Callable[[], Any], Callable]]:
     """(stage, config factory, function) in order; factories run when the stage is reached, so they
     can read the results of the stages before."""
@@ -250,7 +256,8 @@ def _stage_plan(ws: Workspace, opts: RunOptions, survey: dict) -> list[tuple[str
          run_gan_stage),
         ("restorer", lambda: RestorerConfig(data_dir=ws.stage_dir("gan") / "generated",
                                             out_dir=ws.stage_dir("restorer"), budget_min=opts.restorer_budget_min,
-                                            seed=opts.seed, progress=opts.progress), run_restorer_stage),
+                                            altitude=_has_nav_altitude(ws), seed=opts.seed, progress=opts.progress),
+         run_restorer_stage),
         ("correct", lambda: CorrectStage(images_dir=images, scheduler=opts.scheduler, progress=opts.progress),
          run_correct_stage),
         ("sfm", lambda: SfmConfig(images_dir=images, seed=opts.seed), None),

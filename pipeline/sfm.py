@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -500,8 +501,7 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
                 raise UserInputError("board scale needs a board file with pixel corners (--board) and its true size")
         elif method == "altitude":
             if has_altitude:
-                frames = survey.get("frames", list(tracks.image_names))
-                by_name = dict(zip(frames, survey["nav_altitude_m"], strict=False))
+                by_name = read_nav_altitudes(survey_path, [str(n) for n in tracks.image_names])
                 reg = [k for k in np.flatnonzero(tracks.registered) if tracks.image_names[k] in by_name]
                 if len(reg) >= 3:
                     alt = np.array([by_name[tracks.image_names[k]] for k in reg], float)

@@ -1,8 +1,11 @@
 """Correcting an image folder with a restorer (an untrained tiny one: only files and formats matter)."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from pipeline.correct import correct_folder
 from watergan.data import DataError
@@ -74,3 +77,31 @@ def test_shared_stems_are_an_error(tmp_path, model_dir, images):
     cv2.imwrite(str(images / "a8.jpg"), np.zeros((8, 8, 3), np.uint8))
     with pytest.raises(DataError, match="share the stem"):
         correct_folder(model_dir, images, tmp_path / "out", progress=False)
+
+
+def test_a_restorer_that_takes_altitude_reads_the_navigation(tmp_path):
+    """Without a navigation file, or with one that lacks an image, nothing is corrected and the error says
+    what to give; with altitudes, the same image corrected at another altitude comes out differently."""
+    model = Restorer(TINY, depth_hw=(16, 16), altitude=True).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+    save_restorer(tmp_path / "model" / "restorer.pt", model)
+    images = tmp_path / "survey" / "images"
+    images.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    with pytest.raises(DataError, match="no navigation file .*--no-altitude"):
+        correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
+    survey = tmp_path / "survey" / "survey.json"  # the default: beside the images folder
+    survey.write_text(json.dumps({"frames": ["a.png"], "nav_altitude_m": [2.0]}))
+    with pytest.raises(DataError, match="no altitude for 1 of the 2 images .e.g. b.png"):
+        correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+    survey.write_text(json.dumps({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0, 2.0]}))
+    assert correct_folder(tmp_path / "model", images, tmp_path / "near", progress=False).corrected == 2
+    far = tmp_path / "far.json"
+    far.write_text(json.dumps({"frames": ["b.png", "a.png"], "nav_altitude_m": [3.5, 3.5]}))
+    correct_folder(tmp_path / "model", images, tmp_path / "far", progress=False, navigation=far)
+    a_near, a_far = (cv2.imread(str(tmp_path / d / "images" / "a.png")).astype(int) for d in ("near", "far"))
+    assert np.abs(a_near - a_far).max() > 2

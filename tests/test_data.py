@@ -15,6 +15,7 @@ from watergan.data import (
     load_rgbd,
     load_underwater,
     read_depth,
+    read_nav_altitudes,
     resize_depth,
     srgb_to_linear,
     write_depth_mm,
@@ -215,3 +216,27 @@ def test_bad_underwater_image(tmp_path, case):
         load_underwater(tmp_path)
     data = load_underwater(tmp_path, skip_bad=True)
     assert data.images.shape[0] == 1 and len(data.skipped) == 1 and "bad" in data.skipped[0]
+
+
+def test_navigation_altitudes_by_frame_name(tmp_path):
+    path = tmp_path / "survey.json"
+    path.write_text(json.dumps({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.5, 3.0]}))
+    assert read_nav_altitudes(path) == {"a.png": 2.5, "b.png": 3.0}
+    path.write_text(json.dumps({"nav_altitude_m": [2.5, 3.0]}))  # no frames: the names given, in order
+    assert read_nav_altitudes(path, ["x.png", "y.png"]) == {"x.png": 2.5, "y.png": 3.0}
+
+
+@pytest.mark.parametrize("survey, message", [
+    ({"frames": ["a.png"]}, "no nav_altitude_m"),
+    ({"nav_altitude_m": [2.0]}, "no frames"),
+    ({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0]}, "1 nav_altitude_m values for 2 frames"),
+    ({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0, -1.0]}, "not a positive number for 1 frames .e.g. b.png"),
+    ({"frames": ["a.png"], "nav_altitude_m": [None]}, "not a positive number"),
+])
+def test_bad_navigation_is_named(tmp_path, survey, message):
+    path = tmp_path / "survey.json"
+    path.write_text(json.dumps(survey))
+    with pytest.raises(DataError, match=message):
+        read_nav_altitudes(path)
+    with pytest.raises(DataError, match="does not exist"):
+        read_nav_altitudes(tmp_path / "missing.json")

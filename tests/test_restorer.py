@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from watergan.data import read_depth
 from watergan.errors import UserInputError
 from watergan.nets.restorer import (
     Restorer,
@@ -21,7 +22,7 @@ from watergan.nets.restorer import (
     srgb_decode,
     srgb_encode,
 )
-from watergan.train_restorer import RestorerConfig, load_restorer, masked_mse, train_restorer
+from watergan.train_restorer import RestorerConfig, load_paired, load_restorer, masked_mse, train_restorer
 
 TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
 
@@ -148,6 +149,31 @@ def test_the_same_pixels_are_corrected_by_where_they_are():
         c, _ = model(image)  # its own maps: the crop is a whole image
     assert (a - b).abs().max() > 1e-3
     assert torch.equal(c, model(image, position_maps(64, 64))[0])
+
+
+def test_the_altitude_enters_the_colour_net():
+    """A restorer that takes altitude refuses to run without it, corrects the same image differently at
+    another altitude, and its configuration keeps the choice."""
+    torch.manual_seed(0)
+    model = Restorer(TINY, altitude=True).eval()
+    image = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+        with pytest.raises(ValueError, match="altitude"):
+            restore(model, image)
+        near, _ = restore(model, image, torch.tensor([1.5]))
+        far, _ = restore(model, image, torch.tensor([3.0]))
+    assert (near - far).abs().max() > 1e-3
+    assert Restorer.from_config(model.to_config()).altitude and not Restorer(TINY).altitude
+
+
+def test_a_training_frame_s_altitude_is_its_median_depth(tmp_path):
+    folder = write_generate_folder(tmp_path / "d", count=2)
+    depth = read_depth(folder / "depth" / "f01.png")
+    depth[:5] = 0  # holes are not part of the median
+    cv2.imwrite(str(folder / "depth" / "f01.png"), np.rint(depth * 1000).astype(np.uint16))
+    data = load_paired(folder)
+    assert data.altitude_m[1].item() == pytest.approx(np.median(depth[5:]), rel=1e-6)
 
 
 def test_unknown_head_is_refused(tmp_path):

@@ -261,6 +261,33 @@ def index_by_stem(files: list[Path], kind: str) -> dict[str, Path]:
     return out
 
 
+def read_nav_altitudes(survey_json: str | Path, names: list[str] | None = None) -> dict[str, float]:
+    """Image file name -> the navigation's altitude above the seafloor (metres) from a survey file
+    holding ``nav_altitude_m`` (one value per frame) and ``frames`` (the frames' file names; absent:
+    ``names``, in the same order). A missing file or key, a count that differs or a value that is not a
+    positive number is an error naming the file."""
+    path = Path(survey_json)
+    if not path.is_file():
+        raise DataError(f"navigation file {path} does not exist")
+    try:
+        survey = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"navigation file {path} is not valid JSON ({exc})") from exc
+    if "nav_altitude_m" not in survey:
+        raise DataError(f"navigation file {path} has no nav_altitude_m (the altimeter's reading per frame)")
+    frames = survey.get("frames", names)
+    if frames is None:
+        raise DataError(f"navigation file {path} has no frames (the file name of each nav_altitude_m value)")
+    altitudes = np.asarray(survey["nav_altitude_m"], dtype=np.float64).reshape(-1)
+    if len(altitudes) != len(frames):
+        raise DataError(f"navigation file {path}: {len(altitudes)} nav_altitude_m values for {len(frames)} frames")
+    bad = [str(f) for f, a in zip(frames, altitudes, strict=True) if not (np.isfinite(a) and a > 0)]
+    if bad:
+        raise DataError(f"navigation file {path}: nav_altitude_m is not a positive number for {len(bad)} frames "
+                        f"(e.g. {bad[0]})")
+    return {str(f): float(a) for f, a in zip(frames, altitudes, strict=True)}
+
+
 def rgbd_folders(folder: str | Path) -> tuple[Path, Path]:
     """The (rgb, depth) subfolders of an RGB-D folder (``DIR/rgb`` + ``DIR/depth``, or ``DIR/rgbd/...``)."""
     folder = Path(folder)

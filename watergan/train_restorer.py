@@ -3,8 +3,9 @@
 Data: a ``watergan generate`` folder (``underwater/``, ``inair/`` 8-bit sRGB PNGs and ``depth/``
 16-bit millimetre PNGs, paired by stem). Pixels are the stored sRGB values scaled to 0..1 (the
 restorer corrects stored images, as the paper's 8-bit ones); depth targets are relative,
-d_rel = d / max(d) per image, with 0 (no value) left out of the depth loss. The frames are split
-80/20 into training and validation by a seeded permutation.
+d_rel = d / max(d) per image, with 0 (no value) left out of the depth loss. A frame's altitude
+(``altitude=True``) is the median of its valid depth, what an altimeter reads over the scene of a
+downward-looking camera. The frames are split 80/20 into training and validation by a seeded permutation.
 
 Loss (Euclidean, per iteration on a batch drawn with replacement)::
 
@@ -13,8 +14,8 @@ Loss (Euclidean, per iteration on a batch drawn with replacement)::
 with u the underwater image, a the in-air one, D the depth net (at 56x56) and C the colour net; the
 estimated depth is detached where it enters C. The paper's two-level schedule: stage 1 trains C's
 core alone at ``core_hw`` (128x128: images area-averaged), stage 2 trains the whole colour net on
-full-resolution random crops of ``crop_px`` (each with the context and its part of the position maps
-of its whole image, see :mod:`watergan.nets.restorer`) with the core initialised from stage 1 (the depth net
+full-resolution random crops of ``crop_px`` (each with the context, altitude and its part of the position
+maps of its whole image, see :mod:`watergan.nets.restorer`) with the core initialised from stage 1 (the depth net
 trains in both). Adam, one optimiser per stage.
 
 Files in ``out_dir``: ``checkpoint.pt`` (stage, step, model and optimiser states, RNG, split;
@@ -67,6 +68,9 @@ class RestorerConfig:
     head: str = "affine"
     """What the colour core outputs: "affine" (per-channel gain and offset fields applied to the image,
     :func:`watergan.nets.restorer.apply_affine`) or "direct" (the colours, as the paper)."""
+    altitude: bool = True
+    """The colour net takes each image's altitude in metres (the median of its depth map here; the
+    navigation's ``nav_altitude_m`` when correcting); False: the image alone, as the paper."""
     factor: int = 4
     """Average-pool factor from full resolution to the colour core (even)."""
     depth_hw: tuple[int, int] = (56, 56)
@@ -133,12 +137,14 @@ class RestorerResult:
 @dataclass
 class PairedSet:
     """Paired frames in memory: full-resolution uint8 (3,H,W) underwater and in-air images (stored
-    sRGB values), relative depth at ``depth_hw``, and the depth file of each frame."""
+    sRGB values), relative depth at ``depth_hw``, the altitude and the depth file of each frame."""
 
     stems: list[str]
     underwater: list[torch.Tensor]
     inair: list[torch.Tensor]
     depth_small: torch.Tensor
+    altitude_m: torch.Tensor
+    """(N,) median of each frame's valid depth, metres."""
     depth_files: list[Path]
 
 
@@ -187,7 +193,7 @@ def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56)) -> P
     stems = sorted(p.stem for p in folders["underwater"].glob("*.png"))
     if len(stems) < 2:
         raise DataError(f"{folders['underwater']} holds {len(stems)} PNG images; training needs at least 2")
-    under, air, small, depth_files = [], [], [], []
+    under, air, small, altitude, depth_files = [], [], [], [], []
     for stem in stems:
         paths = {k: v / f"{stem}.png" for k, v in folders.items()}
         for p in paths.values():
@@ -198,6 +204,9 @@ def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56)) -> P
         if u.shape != a.shape or u.shape[1:] != d.shape:
             raise DataError(f"frame {stem}: underwater {tuple(u.shape[1:])}, inair {tuple(a.shape[1:])} and depth "
                             f"{d.shape} sizes differ")
+        if not (d > 0).any():
+            raise DataError(f"depth {paths['depth']} holds no value (all 0)")
+        altitude.append(float(np.median(d[d > 0])))
         d_t = torch.from_numpy(relative_depth(d)).float()[None, None]
         valid = (d_t > 0).float()
         total, weight = F.adaptive_avg_pool2d(d_t, depth_hw), F.adaptive_avg_pool2d(valid, depth_hw)
@@ -205,7 +214,7 @@ def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56)) -> P
         under.append(u)
         air.append(a)
         depth_files.append(paths["depth"])
-    return PairedSet(stems, under, air, torch.stack(small), depth_files)
+    return PairedSet(stems, under, air, torch.stack(small), torch.tensor(altitude), depth_files)
 
 
 def split_indices(count: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
@@ -267,7 +276,7 @@ def validate(model: Restorer, data: PairedSet, idx: list[int], device: torch.dev
     with torch.no_grad():
         for i in idx:
             u, a = _float(data.underwater, [i], device), _float(data.inair, [i], device)
-            rgb, depth = restore(model, u)
+            rgb, depth = restore(model, u, data.altitude_m[i:i + 1].to(device))
             sums["raw"] += ((u - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
             sums["restorer"] += ((rgb - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
             pixels += u.shape[-1] * u.shape[-2]
@@ -314,7 +323,8 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     elif config.resume:
         print(f"train-restorer: no checkpoint in {out}, starting from the beginning", file=sys.stderr)
     torch.manual_seed(config.seed)
-    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head).to(device)
+    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head,
+                     config.altitude).to(device)
     rng = torch.Generator().manual_seed(config.seed)
     stage, start = 1, 0
     if checkpoint is not None:
@@ -328,7 +338,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     small_a = torch.stack([F.adaptive_avg_pool2d(a.float()[None], config.core_hw)[0] for a in data.inair]) / 255
     depth_u = torch.stack([F.adaptive_avg_pool2d(u.float()[None], config.depth_hw)[0] for u in data.underwater]) / 255
     small_u, small_a, depth_u = small_u.to(device), small_a.to(device), depth_u.to(device)
-    depth_t = data.depth_small.to(device)
+    depth_t, altitudes = data.depth_small.to(device), data.altitude_m.to(device)
     small_pos = position_maps(*config.core_hw, device)
     full_pos = {hw: position_maps(*hw, device)[0] for hw in {tuple(u.shape[1:]) for u in data.underwater}}
     contexts = torch.stack([image_context(F.avg_pool2d(u.float()[None] / 255, config.factor))[0]
@@ -342,7 +352,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
         depth = model.depth_net.core(depth_u[idx])
         up = F.interpolate(depth.detach(), size=config.core_hw, mode="bilinear", align_corners=False)
         colour = model.colour_net.core_colours(torch.cat([small_u[idx], up, small_pos.expand(len(idx), -1, -1, -1)],
-                                                         dim=1))
+                                                         dim=1), altitudes[idx])
         return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
 
     def stage2_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -357,7 +367,7 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
             position = full_pos[(h, w)][:, y0:y0 + crop, x0:x0 + crop]
             inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop], position]))
             targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
-        colour = model.colour_net(torch.stack(inputs), contexts[idx])
+        colour = model.colour_net(torch.stack(inputs), contexts[idx], altitudes[idx])
         return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, depth_t[idx])
 
     def save_checkpoint(stage_now: int, step_now: int, opt_state: dict | None, stage1_steps: int) -> None:
