@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from watergan.data import srgb_to_linear
 from watergan.errors import UserInputError
 
 
@@ -49,7 +50,7 @@ def read_rgb(path: str | Path, linear: bool = True) -> np.ndarray:
         raw = np.repeat(raw[..., None], 3, axis=2)
     rgb = raw[..., 2::-1].astype(np.float32) / (65535.0 if raw.dtype == np.uint16 else 255.0)
     if linear:
-        rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+        rgb = srgb_to_linear(rgb).astype(np.float32)
     return rgb
 
 
@@ -232,7 +233,7 @@ def load_board_json(path: str | Path) -> Board:
                 colours.append(p["linear_rgb"])
             else:
                 v = np.asarray(p["srgb"], float)
-                colours.append(np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4))
+                colours.append(srgb_to_linear(v))
         quads = {name: np.array([q if q is not None else np.full((4, 2), np.nan) for q in per], float)
                  for name, per in data["images"].items()}
     except (KeyError, TypeError) as exc:

@@ -177,17 +177,25 @@ def run_survey(ws: Workspace, cfg: SurveyStage) -> dict:
 
 
 # ------------------------------------------------------------------------------------ the stages
-def run_gan_stage(ws: Workspace, cfg) -> dict:
+@dataclass(frozen=True)
+class GanStage:
+    """WaterGAN's training and the rendering of the paired set: both settings enter the stage's hash."""
+
+    train: Any
+    """A :class:`watergan.train.GanConfig`."""
+    generate: Any
+    """A :class:`watergan.generate.GenerateConfig` (its model folder is the training's output)."""
+
+
+def run_gan_stage(ws: Workspace, cfg: GanStage) -> dict:
     """Train WaterGAN, then render the paired set (in-air, depth, underwater) for the restorer."""
-    from watergan.generate import GenerateConfig, generate
+    from watergan.generate import generate
     from watergan.train import train_gan
 
-    result = train_gan(cfg)
-    out = ws.stage_dir("gan") / "generated"
-    gen = generate(GenerateConfig(model_dir=cfg.out_dir, rgbd_dir=cfg.rgbd_dir, out_dir=out, seed=cfg.seed,
-                                  progress=cfg.progress))
-    return {"train": result.to_json(), "generated": ws.relative(out), "generated_count": gen.count,
-            "generate_seconds": gen.seconds}
+    result = train_gan(cfg.train)
+    gen = generate(cfg.generate)
+    return {"train": result.to_json(), "generated": ws.relative(Path(cfg.generate.out_dir)),
+            "generated_count": gen.count, "generate_seconds": gen.seconds}
 
 
 def run_restorer_stage(ws: Workspace, cfg) -> dict:
@@ -240,6 +248,7 @@ def _stage_plan(ws: Workspace, opts: RunOptions, survey: dict) -> list[tuple[str
     from eval.diagnose import DiagnoseConfig
     from eval.diagnose_measure import MeasureConfig
     from eval.tables import EvaluateConfig
+    from watergan.generate import GenerateConfig
     from watergan.train import GanConfig
     from watergan.train_restorer import RestorerConfig
 
@@ -250,9 +259,12 @@ def _stage_plan(ws: Workspace, opts: RunOptions, survey: dict) -> list[tuple[str
     images = str(ws.stage_dir("survey") / "images")
     effects = tuple(dict.fromkeys(opts.effects + opts.add))
     return [
-        ("gan", lambda: GanConfig(rgbd_dir=Path(survey["rgbd_dir"]), underwater_dir=Path(images),
-                                  out_dir=ws.stage_dir("gan") / "model", effects=effects,
-                                  budget_min=opts.gan_budget_min, seed=opts.seed, progress=opts.progress),
+        ("gan", lambda: GanStage(
+            GanConfig(rgbd_dir=Path(survey["rgbd_dir"]), underwater_dir=Path(images),
+                      out_dir=ws.stage_dir("gan") / "model", effects=effects, budget_min=opts.gan_budget_min,
+                      seed=opts.seed, progress=opts.progress),
+            GenerateConfig(model_dir=ws.stage_dir("gan") / "model", rgbd_dir=Path(survey["rgbd_dir"]),
+                           out_dir=ws.stage_dir("gan") / "generated", seed=opts.seed, progress=opts.progress)),
          run_gan_stage),
         ("restorer", lambda: RestorerConfig(data_dir=ws.stage_dir("gan") / "generated",
                                             out_dir=ws.stage_dir("restorer"), budget_min=opts.restorer_budget_min,

@@ -1,6 +1,7 @@
 """`watergan run` / `watergan demo`: every stage end to end on a small simulated survey, resume,
 --force, the options file, and bad survey folders refused before any training starts."""
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -149,3 +150,18 @@ def test_survey_stage_links_without_copying(tmp_path):
     assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "b" / "images").resolve()
     assert summary["rgbd_dir"] == str((tmp_path / "b" / "rgbd").resolve())
     assert sorted(p.name for p in (tmp_path / "a" / "images").iterdir()) == ["f0.png", "f1.png", "f2.png", "f3.png"]
+
+
+def test_the_gan_stage_reruns_when_the_rendering_of_the_pairs_changes(tmp_path):
+    """The gan stage's configuration holds the paired set's rendering too: another recolouring changes its
+    hash (the stage reruns), a progress bar does not."""
+    from pipeline.run import GanStage
+    from pipeline.workspace import config_hash
+    from watergan.generate import GenerateConfig
+    from watergan.train import GanConfig
+
+    train = GanConfig(rgbd_dir=tmp_path / "rgbd", underwater_dir=tmp_path / "images", out_dir=tmp_path / "model")
+    pairs = GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=tmp_path / "rgbd", out_dir=tmp_path / "generated")
+    base = config_hash(GanStage(train, pairs))
+    assert config_hash(GanStage(train, dataclasses.replace(pairs, recolour_fraction=0.0))) != base
+    assert config_hash(GanStage(train, dataclasses.replace(pairs, progress=False))) == base

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -78,9 +78,9 @@ class GenerateConfig:
     """Skip (and report) bad or unpaired files instead of stopping with an error."""
     recolour_fraction: float = 0.5
     """Fraction of the in-air images recoloured (:func:`recolour`, seeded) before rendering; 0: none."""
-    device: str = "auto"
+    device: str = field(default="auto", metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
-    progress: bool = True
+    progress: bool = field(default=True, metadata={"hash": False})
     """Show a progress bar."""
 
 

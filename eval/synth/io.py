@@ -11,22 +11,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from watergan.data import linear_to_srgb, srgb_to_linear
+
 #: Largest depth a 16-bit millimetre PNG holds, metres.
 MAX_DEPTH_PNG_M = 65.535
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """sRGB transfer function (IEC 61966-2-1) on values clipped to 0..1:
-    V = 12.92 L for L <= 0.0031308, else 1.055 L^(1/2.4) - 0.055."""
+    """sRGB transfer function (IEC 61966-2-1) on values clipped to 0..1 (:func:`watergan.data.linear_to_srgb`;
+    float32 stays float32, anything else becomes float64)."""
     x = np.asarray(linear)
-    x = np.clip(x if x.dtype in (np.float32, np.float64) else x.astype(np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, x.dtype.type(1 / 2.4)) - 0.055)
+    return linear_to_srgb(x if x.dtype in (np.float32, np.float64) else x.astype(np.float64))
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`srgb_encode`: L = V / 12.92 for V <= 0.04045, else ((V + 0.055)/1.055)^2.4."""
-    v = np.clip(np.asarray(encoded, dtype=np.float64), 0.0, 1.0)
-    return np.where(v <= 0.04045, v / 12.92, np.power((v + 0.055) / 1.055, 2.4))
+    """Inverse of :func:`srgb_encode`, in float64 (:func:`watergan.data.srgb_to_linear`)."""
+    return srgb_to_linear(np.asarray(encoded, dtype=np.float64))
 
 
 def quantise(values: np.ndarray, bit_depth: int) -> np.ndarray:

@@ -46,7 +46,7 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   leave the absolute range ambiguous (a dim red frame may be far or of dark sediment), and the
   inverse's gain exp(eta r) depends on it: without it a demo restorer's red varied 6.1 % over frames,
   correlated -0.91 with the frame's range; with it 3.8 %, correlated 0.27, and the colour-board error
-  fell from 0.091 to 0.064. Training frames take the median of their depth map.
+  fell from 0.091 to 0.059-0.064. Training frames take the median of their depth map.
 
   Position: the colour net's input also holds each pixel's place in the whole image
   (:func:`position_maps`: u, v in [-1, 1] and the squared radius, 1 at a corner), since vignetting
