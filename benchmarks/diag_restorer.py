@@ -120,13 +120,13 @@ def _minus_group_mean(values: np.ndarray, group: np.ndarray) -> np.ndarray:
     return values - (np.bincount(group, values) / np.maximum(np.bincount(group), 1))[group]
 
 
-def error_decomposition(ws: Path, tracks: Tracks, folder: Path) -> None:
+def error_decomposition(ws: Path, tracks: Tracks, ours: np.ndarray) -> None:
+    """``ours``: the corrected frames' normalised colour at every observation (:func:`observation_colours`)."""
     truth = observation_colours(tracks, ws / "00_survey" / "truth" / "inair")
-    ours = observation_colours(tracks, folder)
     ok = np.isfinite(truth).all(1) & np.isfinite(ours).all(1)
     ok &= np.bincount(tracks.obs_point[ok], minlength=len(tracks.xyz))[tracks.obs_point] >= 3
     point, image, xy = tracks.obs_point[ok], tracks.obs_image[ok], tracks.obs_xy[ok]
-    h, w = cv2.imread(str(folder / str(tracks.image_names[image[0]]))).shape[:2]
+    h, w = tracks.height, tracks.width
     cell = (np.clip(xy[:, 0] * 16 // w, 0, 15) + 16 * np.clip(xy[:, 1] * 12 // h, 0, 11)).astype(np.int64)
     print("error of c/(R+G+B) against the in-air truth, variance across views (mean over points):")
     for k, channel in enumerate("RGB"):
@@ -150,11 +150,12 @@ def main() -> None:
     frame_ratios(ws, names)
     folders = {"raw": ws / "00_survey" / "images", **write_variants(ws, names, args.out, args.blur_px)}
     tracks = Tracks.load(ws / "04_sfm" / "tracks.npz")
-    result = consistency(tracks, folders)
+    colours = {name: observation_colours(tracks, folder) for name, folder in folders.items()}  # sampled once for both
+    result = consistency(tracks, folders, colours=colours)
     print(f"consistency on {result.n_points} points (mean variance of c/(R+G+B) across views; R G B)")
     for name, score in result.scores.items():
         print(f"  {name:>24}: {score.mean_variance:.3e}  {np.round(score.variance, 7).tolist()}")
-    error_decomposition(ws, tracks, folders["model"])
+    error_decomposition(ws, tracks, colours["model"])
 
 
 if __name__ == "__main__":

@@ -480,12 +480,13 @@ def _config_json(config: GanConfig) -> dict:
 def _save_checkpoint(path: Path, step: int, generator, discriminator, opt_g, opt_d, rng: torch.Generator,
                      config: GanConfig, depth_scale_m: float, trained_generator: dict | None = None) -> None:
     """``trained_generator``: the generator's state before :func:`settle_statistics`, which a resumed run
-    trains on from (``generator`` is then the settled one, which ``generate`` uses)."""
+    trains on from (``generator`` is then the settled one, which ``generate`` uses); without it a resume
+    trains on from ``generator``."""
     buffer = io.BytesIO()
     torch.save({
         "step": step,
         "generator": generator.state_dict(),
-        "generator_trained": trained_generator if trained_generator is not None else generator.state_dict(),
+        **({"generator_trained": trained_generator} if trained_generator is not None else {}),
         "discriminator": discriminator.state_dict(),
         "opt_g": opt_g.state_dict(),
         "opt_d": opt_d.state_dict(),
