@@ -18,8 +18,8 @@ images (``needs_image``), has learned layers, needs a state field the measuremen
 identically on every view of a point (then the per-point albedo absorbs it and multi-view colour
 cannot see it). Each candidate is inserted by ``rank`` into the model *as configured* and the
 whole stack is refitted (albedos start from the base fit; a declared light rig is held; effects
-with many local minima start from the best point of a grid, :data:`START_GRIDS`, also when added
-with ``--add``). Relative held-out change
+with many local minima start from the best point of the grid their class declares, ``start_grid``,
+also when added with ``--add``). Relative held-out change
 d = RMSE_candidate / RMSE_base - 1; its significance is a paired bootstrap over held-out points
 (p = fraction of resamples with d >= 0). A candidate is accepted when p < ``alpha`` and
 d <= -``min_improvement``; the best accepted one is the verdict. Axes whose structure score
@@ -66,16 +66,6 @@ from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residu
 
 DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 LEDGER_NAME = "model_ledger.jsonl"
-#: Parameters of ``artificial_light`` that survey.json declares (the rig is known, not fitted).
-LIGHT_GEOMETRY = ("offset_m", "tilt_deg", "beam_deg")
-#: Starting values tried for candidates whose fit has many local minima: {effect: {param: values}}.
-#: Caustics is a moving periodic pattern: its fit finds the cell size and drift only from within
-#: about a quarter cycle of phase over the survey, so the grid is uniform in spatial frequency
-#: (0.5 to 10 cycles/m in steps of 0.1, cells 0.1 to 2 m) and drift (0 to 0.3 m/frame in 1 cm steps).
-#: An effect class may declare its own ``start_grid`` (same form), e.g. in a plugin.
-START_GRIDS: dict[str, dict[str, np.ndarray]] = {
-    "caustics": {"wavelength_m": 1.0 / np.arange(0.5, 10.01, 0.1), "drift_m_per_frame": np.arange(0.0, 0.301, 0.01)},
-}
 #: Training observations on which the start grid is evaluated.
 START_GRID_OBS = 300
 
@@ -160,26 +150,27 @@ class DiagnoseResult:
     seconds: float
 
 
-#: Hidden parameters of the small survey other than HIDDEN_DEFAULTS: caustics' cell size and drift
-#: away from the effect's initial values (0.4 m, 0.07 m/frame), so that the fit has to find them.
+#: Hidden parameters of the small survey other than the effects' ``simulation_params``: caustics' cell
+#: size and drift away from the effect's initial values (0.4 m, 0.07 m/frame), so that the fit has to
+#: find them.
 SMALL_SURVEY_HIDDEN = {"caustics": {"wavelength_m": 0.6, "drift_m_per_frame": 0.05}}
 
 
 def small_survey_config(hidden: list | tuple = (), seed: int = 1, width_px: int = 160):
     """The small simulated survey the diagnosis is tested and benchmarked on: the ``tiny`` preset
     with 2 lines of 8 frames (``width_px`` x 3/4, 70 degrees wide, 80% forward overlap), one
-    camera, a 2-view RGB-D set, and 40 mm texels. ``hidden``: effect names (parameters from
-    HIDDEN_DEFAULTS, then SMALL_SURVEY_HIDDEN) or ``{"name", "params"}`` entries.
+    camera, a 2-view RGB-D set, and 40 mm texels. ``hidden``: effect names (parameters from the
+    class's ``simulation_params``, then SMALL_SURVEY_HIDDEN) or ``{"name", "params"}`` entries.
 
     Why 40 mm texels: the renderer casts one ray per pixel, so the preset's 5 mm texels seen at
     ~22 mm per pixel alias, a view-dependent colour noise (held-out RMSE about 0.01 on a survey with
     nothing hidden) that a real camera, which integrates over each pixel, does not record; at
     40 mm the floor is about 0.003, near the sensor noise."""
-    from eval.synth import HIDDEN_DEFAULTS, make_config
+    from eval.synth import make_config
     from eval.synth.camera import CameraConfig
     from eval.synth.rgbd import RGBDConfig
 
-    entries = tuple({"name": h, "params": {**HIDDEN_DEFAULTS.get(h, {}), **SMALL_SURVEY_HIDDEN.get(h, {})}}
+    entries = tuple({"name": h, "params": {**get(h).simulation_params, **SMALL_SURVEY_HIDDEN.get(h, {})}}
                     if isinstance(h, str) else dict(h) for h in hidden)
     for entry in entries:
         get(entry["name"])
@@ -196,44 +187,48 @@ def default_stack(survey: Path, effects: tuple[str, ...]) -> Stack:
     """The model to diagnose: the named effects (initial values), or the survey's visible stack with
     its parameters when simulated, or attenuation, backscatter, vignetting and gain."""
     if effects:
-        for name in effects:
-            get(name)
-        return Stack.from_config(sorted(({"name": n} for n in effects), key=lambda e: get(e["name"]).rank))
+        return Stack.ordered(list(effects))
     truth_effects = survey / "truth" / "effects.json"
     if truth_effects.is_file():
         return Stack.from_config(json.loads(truth_effects.read_text())["visible"])
     return Stack.from_names(list(DEFAULT_EFFECTS))
 
 
-def light_settings(meas: Measurements) -> dict:
-    """Initial values of ``artificial_light`` from the lights survey.json declares (empty if none)."""
-    if not meas.lights:
+def declared_rig(effect, meas: Measurements) -> tuple[str, ...]:
+    """The ``rig_params`` of an effect (class or instance) that every light survey.json declares gives."""
+    return tuple(k for k in effect.rig_params if meas.lights and all(k in light for light in meas.lights))
+
+
+def rig_settings(cls, meas: Measurements) -> dict:
+    """Initial values of an effect from the light rig survey.json declares (empty without lights or
+    ``rig_params``): the declared rig parameters, one row per light, and the effect's other per-light
+    parameters (any number of rows, e.g. ``artificial_light``'s power) at their first initial row."""
+    if not meas.lights or not cls.rig_params:
         return {}
-    settings = {key: [light[key] for light in meas.lights] for key in LIGHT_GEOMETRY
-                if all(key in light for light in meas.lights)}
-    power = next(p for p in get("artificial_light").params if p.name == "power")
-    return settings | {"power": [power.init[0]] * len(meas.lights)}
+    settings = {key: [light[key] for light in meas.lights] for key in declared_rig(cls, meas)}
+    per_light = [p for p in cls.params if p.name not in cls.rig_params and any(s[:1] == (-1,) for s in p.shapes)]
+    return settings | {p.name: [p.init[0]] * len(meas.lights) for p in per_light}
 
 
 def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ...]]:
-    """Known settings that are not fitted: the declared light rig."""
-    if meas.lights and "artificial_light" in stack.names:
-        return {"artificial_light": tuple(k for k in LIGHT_GEOMETRY if all(k in light for light in meas.lights))}
-    return {}
+    """Known settings that are not fitted: the declared light rig (``rig_params``)."""
+    if not meas.lights:
+        return {}
+    return {e.name: declared_rig(e, meas) for e in stack.effects if e.rig_params}
 
 
 def make_effect(name: str, meas: Measurements):
-    """A candidate effect at its initial values (the declared light rig for artificial_light)."""
+    """A candidate effect at its initial values (the declared light rig for one with ``rig_params``)."""
     cls = get(name)
-    return cls(**light_settings(meas)) if name == "artificial_light" else cls()
+    return cls(**rig_settings(cls, meas))
 
 
 def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:
     """Set the starting values of candidate ``name`` in ``trial`` (in place) to the best point of its
-    start grid (``start_grid`` of the class, else START_GRIDS; nothing without one): each combination
+    start grid (``start_grid`` of the class; nothing without one): each combination
     is scored by the soft-L1 loss of the base fit (parameters and albedos) with the candidate added,
     on ``START_GRID_OBS`` random training observations; the lowest wins. See :func:`grid_losses`."""
-    grid = getattr(get(name), "start_grid", None) or START_GRIDS.get(name)
+    grid = get(name).start_grid
     if not grid:
         return
     rng = np.random.default_rng([config.fit.seed, 17])
@@ -294,7 +289,7 @@ def start_added(stack: Stack, added: list[str], meas: Measurements, split, confi
     a candidate gets them: the grid is scored against a fit of the model without them (one more fit),
     in place. Without this an added caustics effect would start from its initial cell size and drift
     and stay in the wrong minimum."""
-    gridded = [n for n in added if getattr(get(n), "start_grid", None) or n in START_GRIDS]
+    gridded = [n for n in added if get(n).start_grid]
     if not gridded:
         return
     without = Stack([e for e in copy_stack(stack).effects if e.name not in gridded])

@@ -177,10 +177,8 @@ def copy_stack(stack: Stack) -> Stack:
 
 
 def insert_by_rank(stack: Stack, effect: Effect) -> Stack:
-    """A new stack with ``effect`` inserted after every effect of lower or equal rank."""
-    effects = list(copy_stack(stack).effects)
-    at = sum(1 for e in effects if e.rank <= effect.rank)
-    return Stack([*effects[:at], effect, *effects[at:]])
+    """A copy of ``stack`` with ``effect`` inserted by rank (see :meth:`Stack.with_effect`)."""
+    return copy_stack(stack).with_effect(effect)
 
 
 def fitted_names(stack: Stack, config: FitConfig, frozen: dict[str, tuple[str, ...]]) -> list[str]:

@@ -122,11 +122,11 @@ def _truth_state(j: np.ndarray, depth_m: float = 2.5):
 def test_oracle_recovers_the_truth_to_noise_level(extra):
     j, _ = _scene(48, 64)
     state = _truth_state(j)
-    stack = Stack.from_config(sorted([
+    stack = Stack.ordered([
         {"name": "attenuation", "params": {"eta_per_m": ETA.tolist()}},
         {"name": "backscatter", "params": {"b_inf": B_INF.tolist(), "beta_per_m": BETA.tolist()}},
         {"name": "vignetting", "params": {"a_margin": 0.35, "b": 0.0, "c": 0.05}},
-        {"name": "gain", "params": {"k": [0.9]}}, *extra], key=lambda e: _rank(e["name"])))
+        {"name": "gain", "params": {"k": [0.9]}}, *extra])
     with torch.no_grad():
         clean = stack.render(state)[0].permute(1, 2, 0).double().numpy()
     assert clean.max() < 0.75  # nothing saturates (the sensor curve's saturation is 0.8): J is recoverable
@@ -136,12 +136,6 @@ def test_oracle_recovers_the_truth_to_noise_level(extra):
     error = np.sqrt(np.mean((out - j) ** 2))
     assert error < 0.03, error  # noise 0.002 amplified by 1 / (k exp(-eta r) V) ~ 2 to 5 (and the sensor curve)
     assert np.sqrt(np.mean((raw(noisy) - j) ** 2)) > 5 * error
-
-
-def _rank(name: str) -> int:
-    from watergan.formation import get
-
-    return get(name).rank
 
 
 def test_registry_lists_every_baseline_with_its_needs():

@@ -17,6 +17,7 @@ from watergan.formation import (
     Stack,
     UnknownEffectError,
     available,
+    builtin_effects,
     get,
     load_plugin,
 )
@@ -27,6 +28,10 @@ BUILTINS = [
     "vignetting_offcentre", "artificial_light", "sensor_response", "forward_scatter",
     "backscatter_coefficient", "wideband_attenuation", "caustics", "ambient_depth", "marine_snow",
 ]
+#: The effect tests run over every built-in in the registry (one module each in
+#: watergan/formation/effects/), so a new built-in is tested without touching this file; plugins that
+#: other test modules register are left out.
+EFFECTS = list(builtin_effects())
 
 
 def run(effect: Effect, state):
@@ -40,7 +45,7 @@ def test_all_fourteen_builtins_registered():
     names = available()
     assert set(BUILTINS) <= set(names)
     assert len(BUILTINS) == 14
-    for name in BUILTINS:
+    for name in EFFECTS:
         cls = names[name]
         assert cls.summary and cls.signature, name
         assert cls.axis in Effect.AXES, name
@@ -51,7 +56,7 @@ def test_all_fourteen_builtins_registered():
         assert any(f.__doc__ and "=" in f.__doc__ for f in funcs), f"{name}: no pure function stating its equation"
 
 
-@pytest.mark.parametrize("name", BUILTINS)
+@pytest.mark.parametrize("name", EFFECTS)
 def test_smoke_and_shapes(name):
     state = make_state(dtype=torch.float32)
     effect = get(name)()
@@ -66,7 +71,7 @@ def test_smoke_and_shapes(name):
     assert out.range_m is state.range_m and out.pixel_uv is state.pixel_uv
 
 
-@pytest.mark.parametrize("name", BUILTINS)
+@pytest.mark.parametrize("name", EFFECTS)
 def test_identity_at_neutral(name):
     state = make_state()
     effect = get(name)().double()
@@ -76,7 +81,7 @@ def test_identity_at_neutral(name):
     assert torch.allclose(out.image, before.image, atol=1e-6), name
 
 
-@pytest.mark.parametrize("name", [n for n in BUILTINS if n != "gain"])  # gain starts at k = 1, the identity
+@pytest.mark.parametrize("name", [n for n in EFFECTS if n != "gain"])  # gain starts at k = 1, the identity
 def test_not_identity_at_initial_values(name):
     """The converse of the identity test: at its initial values every effect changes the image."""
     state = make_state()
@@ -87,7 +92,7 @@ def test_not_identity_at_initial_values(name):
     assert (out.image - before.image).abs().max() > 1e-3, name
 
 
-@pytest.mark.parametrize("name", BUILTINS)
+@pytest.mark.parametrize("name", EFFECTS)
 def test_gradcheck_float64(name):
     torch.manual_seed(0)
     state = make_state(batch=2, height=5, width=6)
@@ -123,7 +128,7 @@ def test_gradcheck_float64(name):
     assert torch.autograd.gradcheck(f, tuple(inputs), eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
-@pytest.mark.parametrize("name", BUILTINS)
+@pytest.mark.parametrize("name", EFFECTS)
 def test_bounds_hold_for_random_raw_parameters(name):
     g = torch.Generator().manual_seed(1)
     effect = get(name)()
@@ -164,12 +169,12 @@ def test_vignetting_is_monotonic_and_constrained():
 
 
 def test_stack_json_round_trip_every_effect():
-    stack = Stack.from_names(BUILTINS)
+    stack = Stack.from_names(EFFECTS)
     config = stack.to_config()
     text = json.dumps(config)
     again = Stack.from_config(json.loads(text)).to_config()
     assert again == config
-    assert [c["name"] for c in again] == BUILTINS
+    assert [c["name"] for c in again] == EFFECTS
 
 
 def test_user_config_round_trips_unchanged():
@@ -265,6 +270,37 @@ def test_bad_parameter_is_a_clear_error(params, match):
 def test_repeated_effect_is_refused():
     with pytest.raises(ParameterError, match="repeated"):
         Stack.from_names(["gain", "gain"])
+
+
+def test_every_module_of_the_effects_folder_is_a_registered_builtin():
+    from pathlib import Path
+
+    import watergan.formation.effects as effects
+
+    files = {p.stem for p in Path(effects.__file__).parent.glob("*.py") if p.stem != "__init__"}
+    assert {cls.__module__.rsplit(".", 1)[1] for cls in builtin_effects().values()} == files
+
+
+def test_stack_orders_by_rank_and_inserts_by_rank():
+    entries = ["gain", {"name": "vignetting"}, "attenuation", "vignetting_offcentre", "artificial_light"]
+    assert Stack.rank_order(entries) == ["artificial_light", "attenuation", {"name": "vignetting"},
+                                         "vignetting_offcentre", "gain"]  # stable among equal ranks
+    assert Stack.ordered(entries).names == ["artificial_light", "attenuation", "vignetting",
+                                            "vignetting_offcentre", "gain"]
+    base = Stack.from_names(["attenuation", "vignetting", "gain"])
+    grown = base.with_effect(get("vignetting_offcentre")()).with_effect(get("caustics")())
+    assert grown.names == ["caustics", "attenuation", "vignetting", "vignetting_offcentre", "gain"]
+    assert grown["gain"] is base["gain"] and base.names == ["attenuation", "vignetting", "gain"]
+
+
+def test_effect_declarations_default_to_nothing_declared():
+    assert Effect.start_grid == {} and Effect.simulation_params == {} and Effect.rig_params == ()
+    light = get("artificial_light")
+    assert set(light.rig_params) <= {p.name for p in light.params}
+    for name, cls in builtin_effects().items():
+        spec = {p.name for p in cls.params}
+        assert set(cls.start_grid) <= spec and set(cls.simulation_params) <= spec, name
+        cls(**cls.simulation_params)  # the simulated values are valid
 
 
 def test_plugin_registers_a_user_effect(tmp_path):

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
-from watergan.formation import FormationState, Stack, get
+from watergan.formation import FormationState, Stack
 
 from .io import quantise, srgb_encode
 
@@ -26,7 +26,7 @@ def full_stack_config(visible: list[dict] | tuple[dict, ...], hidden: list[dict]
     for entry in hidden:
         if entry["name"] in visible_names:
             raise ValueError(f"hidden effect '{entry['name']}' is already in the visible stack {visible_names}")
-    return sorted([*visible, *hidden], key=lambda e: get(e["name"]).rank)
+    return Stack.rank_order([*visible, *hidden])
 
 
 def build_stacks(visible, hidden) -> tuple[Stack, Stack, Stack]:

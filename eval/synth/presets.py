@@ -16,31 +16,24 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from watergan.formation import get
+from watergan.formation import builtin_effects, get
 
 from .camera import CameraConfig
-from .config import SimulationConfig
+from .config import SimulationConfig, default_visible_stack
 from .rgbd import RGBDConfig
 from .scene import SceneConfig
 from .survey import SimulationError
 from .trajectory import TrajectoryConfig
 
-#: Parameters the simulator gives each hidden effect ({} = the effect's own initial values): strong
-#: enough to be found by the diagnosis on the demo survey, within what real surveys show.
-HIDDEN_DEFAULTS: dict[str, dict] = {
-    "vignetting_offcentre": {"centre_uv": [0.61, 0.44], "a_margin": 0.5, "c": 0.1, "strength": [1.0, 0.9, 0.8]},
-    "artificial_light": {"offset_m": [[0.35, 0.0, 0.0]], "power": [6.0], "ambient": 0.3},
-    "sensor_response": {"gamma": 1.4, "saturation": 0.8},
-    "forward_scatter": {"mix": 0.4, "sigma_frac_per_m": 0.004},
-    "backscatter_coefficient": {},
-    "wideband_attenuation": {},
-    "caustics": {"contrast": 0.6, "decay_per_m": 0.02},
-    "ambient_depth": {"kappa_per_m": [0.46, 0.2, 0.39]},  # Jerlov 3C Kd at 650, 525, 450 nm
-    "marine_snow": {"brightness": 0.3, "density_per_mpx": 3000.0},
-}
-
 #: Effects that cannot be hidden: learned ones have no physical parameters to simulate from.
 NOT_SIMULATED = {"backscatter_conv": "it is a learned network (WaterGAN's G-II), not a physical model to render"}
+
+#: The parameters the simulator gives each built-in effect it can hide (those not in the visible stack
+#: nor in NOT_SIMULATED): each class's ``simulation_params`` ({} = the effect's own initial values).
+HIDDEN_DEFAULTS: dict[str, dict] = {
+    name: dict(cls.simulation_params) for name, cls in builtin_effects().items()
+    if name not in NOT_SIMULATED and name not in {e["name"] for e in default_visible_stack()}
+}
 
 PRESETS: dict[str, SimulationConfig] = {
     "demo": SimulationConfig(
@@ -66,15 +59,16 @@ PRESETS["small"] = replace(
 
 
 def make_config(preset: str = "demo", hidden: list[str] | tuple[str, ...] = (), seed: int = 0) -> SimulationConfig:
-    """The named preset with the given hidden effects (parameters from HIDDEN_DEFAULTS) and seed."""
+    """The named preset with the given hidden effects (parameters: each class's ``simulation_params``)
+    and seed."""
     if preset not in PRESETS:
         raise SimulationError(f"unknown preset '{preset}'; choose one of {', '.join(PRESETS)}")
     base = PRESETS[preset]
     entries = []
     for name in hidden:
-        get(name)  # a clear error listing the registered effects for an unknown name
+        cls = get(name)  # a clear error listing the registered effects for an unknown name
         if name in NOT_SIMULATED:
             raise SimulationError(f"effect '{name}' cannot be hidden in a simulation: {NOT_SIMULATED[name]}")
-        entries.append({"name": name, "params": dict(HIDDEN_DEFAULTS.get(name, {}))})
+        entries.append({"name": name, "params": dict(cls.simulation_params)})
     return replace(base, seed=seed, formation=replace(base.formation, hidden=tuple(entries)))
 

@@ -42,9 +42,6 @@ from .rgbd import write_rgbd_set
 from .scene import BOARD, build_scene
 from .trajectory import Trajectory, lawnmower
 
-#: Light-rig parameters of ``artificial_light`` that a user knows (written to survey.json).
-LIGHT_GEOMETRY = ("offset_m", "tilt_deg", "beam_deg")
-
 
 class SimulationError(UserInputError):
     """The simulation cannot run as asked (output folder, configuration); the message says what to do."""
@@ -271,9 +268,10 @@ def _write_frame_truth(truth: Path, name: str, view: View) -> None:
 
 
 def _lights(full) -> list[dict]:
-    """The light rig a user knows (positions, aims, beam widths), if the scene is lit artificially."""
-    for entry in full.to_config():
-        if entry["name"] == "artificial_light":
-            p = entry["params"]
-            return [{key: p[key][i] for key in LIGHT_GEOMETRY if key in p} for i in range(len(p["offset_m"]))]
+    """The light rig a user knows (``artificial_light``'s ``rig_params``: positions, aims, beam widths),
+    if the scene is lit artificially."""
+    for effect in full.effects:
+        if effect.name == "artificial_light":
+            p = effect.to_config()["params"]
+            return [{key: p[key][i] for key in effect.rig_params if key in p} for i in range(len(p["offset_m"]))]
     return []

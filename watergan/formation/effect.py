@@ -37,6 +37,14 @@ class Effect(nn.Module):
     rank:        position in the scene-to-sensor chain (see RANK_*).
     needs_image: True when the effect acts on neighbourhoods of whole images (blur, learned masks),
                  so it cannot act on per-point observation columns.
+    start_grid:  starting values the diagnosis tries before fitting the effect, {param: values} (the
+                 best combination wins), for effects whose fit has many local minima; empty: the fit
+                 starts from the initial values.
+    simulation_params: the values the simulator gives the effect when it hides it in a survey,
+                 {param: value} (partial; the rest take their initial values): strong enough to be
+                 found by the diagnosis on the demo survey, within what real surveys show.
+    rig_params:  parameters that a declared rig fixes (survey.json's lights): known settings, set
+                 from the declaration and held, not fitted, by the diagnosis.
     """
 
     AXES: ClassVar[tuple[str, ...]] = (
@@ -51,6 +59,9 @@ class Effect(nn.Module):
     neutral: ClassVar[dict[str, object]] = {}
     rank: ClassVar[int] = RANK_WATER
     needs_image: ClassVar[bool] = False
+    start_grid: ClassVar[dict[str, tuple[float, ...]]] = {}
+    simulation_params: ClassVar[dict[str, object]] = {}
+    rig_params: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, **values) -> None:
         super().__init__()

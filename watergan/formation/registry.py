@@ -75,6 +75,14 @@ def available() -> dict[str, type[Effect]]:
     return dict(sorted(_REGISTRY.items()))
 
 
+def builtin_effects() -> dict[str, type[Effect]]:
+    """The built-in effects (one per module of :mod:`watergan.formation.effects`) by name, sorted."""
+    from . import effects
+
+    modules = {module.__name__ for module in effects.MODULES}
+    return {name: cls for name, cls in sorted(_REGISTRY.items()) if cls.__module__ in modules}
+
+
 def get(name: str) -> type[Effect]:
     """The effect class registered as ``name``, or an error listing the close matches."""
     effects = available()

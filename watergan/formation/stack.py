@@ -54,6 +54,24 @@ class Stack(nn.Module):
         """Each named effect at its initial parameters."""
         return cls.from_config([{"name": n} for n in names])
 
+    @staticmethod
+    def rank_order(entries: list[dict | str] | tuple[dict | str, ...]) -> list[dict | str]:
+        """Stack entries (``{name, params}`` or names) in scene-to-sensor order: a stable sort by
+        their class ``rank``, so entries of equal rank keep the given order."""
+        return sorted(entries, key=lambda e: get(e if isinstance(e, str) else e["name"]).rank)
+
+    @classmethod
+    def ordered(cls, entries: list[dict | str] | tuple[dict | str, ...]) -> Stack:
+        """The stack of ``entries`` (``{name, params}`` or names) placed by rank (see :meth:`rank_order`)."""
+        return cls.from_config(cls.rank_order(entries))
+
+    def with_effect(self, effect: Effect) -> Stack:
+        """A new stack of these effects (the same modules) with ``effect`` inserted after every effect of
+        lower or equal rank: in a stack ordered by rank, where :meth:`rank_order` would place it."""
+        effects = list(self.effects)
+        at = sum(1 for e in effects if e.rank <= effect.rank)
+        return type(self)([*effects[:at], effect, *effects[at:]])
+
     @classmethod
     def load(cls, path: str | Path) -> Stack:
         return cls.from_config(json.loads(Path(path).read_text()))

@@ -16,7 +16,7 @@ import dataclasses
 import torch
 from torch import nn
 
-from ..formation import FormationState, Stack, get, pixel_grid, state_from_rgbd
+from ..formation import FormationState, Stack, pixel_grid, state_from_rgbd
 from ..formation.effects.backscatter_conv import BackscatterConv
 
 DEFAULT_EFFECTS = ("attenuation", "backscatter_conv", "vignetting", "gain")
@@ -35,7 +35,7 @@ def generator_stack_config(effects: tuple[str, ...] | list[str] = DEFAULT_EFFECT
     ``gain`` with ``gain_channels`` values (1: one exposure factor, as the paper; 3: per channel)."""
     if gain_channels not in (1, 3):
         raise ValueError(f"gain_channels must be 1 or 3, got {gain_channels}")
-    names = sorted(dict.fromkeys(effects), key=lambda name: get(name).rank)
+    names = Stack.rank_order(list(dict.fromkeys(effects)))
     config = []
     for name in names:
         params: dict[str, float] = {}

@@ -1,18 +1,8 @@
-"""The built-in effects, one per file. Importing this package registers them."""
+"""The built-in effects, one per file. Importing this package imports every module in its folder,
+whose ``@register`` decorators register the built-ins: a new built-in is one new file here."""
 
-from . import (  # noqa: F401
-    ambient_depth,
-    artificial_light,
-    attenuation,
-    backscatter,
-    backscatter_coefficient,
-    backscatter_conv,
-    caustics,
-    forward_scatter,
-    gain,
-    marine_snow,
-    sensor_response,
-    vignetting,
-    vignetting_offcentre,
-    wideband_attenuation,
-)
+import importlib
+import pkgutil
+
+#: The modules of the built-in effects (every module in this folder), imported.
+MODULES = tuple(importlib.import_module(f"{__name__}.{info.name}") for info in pkgutil.iter_modules(__path__))

@@ -27,6 +27,7 @@ class AmbientDepth(Effect):
     signature = "height: points lower on the seafloor are darker and bluer than points higher up"
     axis = "height"
     rank = RANK_ILLUMINATION + 1
+    simulation_params = {"kappa_per_m": [0.46, 0.2, 0.39]}  # Jerlov 3C Kd at 650, 525, 450 nm
     params = (
         Param("kappa_per_m", (0.36, 0.07, 0.04), 0.0, 2.0, "1/m", "diffuse attenuation Kd per channel"),
         Param("reference_depth_m", 20.0, 0.0, 11000.0, "m", "depth where J's illumination holds",

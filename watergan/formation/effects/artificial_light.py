@@ -52,6 +52,8 @@ class ArtificialLight(Effect):
     signature = "light distance: brightness falls with distance from the light and off its beam axis"
     axis = "light_distance"
     rank = RANK_ILLUMINATION
+    simulation_params = {"offset_m": [[0.35, 0.0, 0.0]], "power": [6.0], "ambient": 0.3}
+    rig_params = ("offset_m", "tilt_deg", "beam_deg")  # survey.json declares the light rig
     params = (
         Param("offset_m", ((0.4, 0.0, 0.0),), -3.0, 3.0, "m", "light positions in the camera frame",
               shapes=((-1, 3),)),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from ..effect import RANK_ILLUMINATION, Effect
@@ -50,6 +51,12 @@ class Caustics(Effect):
     signature = "frame: a bright-dark pattern on the seafloor that changes between frames of the same point"
     axis = "frame"
     rank = RANK_ILLUMINATION
+    simulation_params = {"contrast": 0.6, "decay_per_m": 0.02}
+    #: A moving periodic pattern: the fit finds the cell size and drift only from within about a quarter
+    #: cycle of phase over the survey, so the grid is uniform in spatial frequency (0.5 to 10 cycles/m in
+    #: steps of 0.1, cells 0.1 to 2 m) and drift (0 to 0.3 m/frame in 1 cm steps).
+    start_grid = {"wavelength_m": tuple((1.0 / np.arange(0.5, 10.01, 0.1)).tolist()),
+                  "drift_m_per_frame": tuple(np.arange(0.0, 0.301, 0.01).tolist())}
     params = (
         Param("contrast", 0.5, 0.0, 1.0, "", "pattern contrast at the surface"),
         Param("decay_per_m", 0.05, 0.0, 2.0, "1/m", "contrast decay with water depth"),

@@ -56,6 +56,7 @@ class ForwardScatter(Effect):
     signature = "spatial frequency: fine texture loses contrast with range, edges soften"
     axis = "spatial_frequency"
     rank = RANK_BLUR
+    simulation_params = {"mix": 0.4, "sigma_frac_per_m": 0.004}
     needs_image = True
     params = (
         Param("mix", 0.3, 0.0, 1.0, "", "fraction of the direct signal that is forward scattered"),

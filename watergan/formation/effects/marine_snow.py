@@ -50,6 +50,7 @@ class MarineSnow(Effect):
     signature = "frame and spatial frequency: isolated bright outliers in single views of a point"
     axis = "frame"
     rank = RANK_SCATTER + 2
+    simulation_params = {"brightness": 0.3, "density_per_mpx": 3000.0}
     needs_image = True
     params = (
         Param("brightness", 0.05, 0.0, 10.0, "linear radiance m^2", "particle radiance at 1 m"),

@@ -26,6 +26,7 @@ class SensorResponse(Effect):
     signature = "intensity: residual that bends with predicted brightness and flattens at the top"
     axis = "intensity"
     rank = RANK_SENSOR + 1  # after the linear gain
+    simulation_params = {"gamma": 1.4, "saturation": 0.8}
     params = (
         Param("gamma", 1.2, 0.2, 5.0, "", "curve exponent (1: linear)"),
         Param("saturation", 1.0, 0.05, 10.0, "linear radiance", "clipping level"),

@@ -28,6 +28,7 @@ class VignettingOffcentre(Effect):
     signature = "image position: darkening that is radially symmetric about a point other than the centre"
     axis = "image_position"
     rank = RANK_OPTICS
+    simulation_params = {"centre_uv": [0.61, 0.44], "a_margin": 0.5, "c": 0.1, "strength": [1.0, 0.9, 0.8]}
     params = (
         Param("centre_uv", (0.5, 0.5), 0.0, 1.0, "image fraction", "falloff centre (u across, v down)"),
         *VIGNETTING_PARAMS,
