@@ -1,0 +1,768 @@
+"""The site's water from the survey's own geometry, and the physics correction with each pixel's range.
+
+``estimate_water(frames, K, ...)`` fits a formation stack (default ``attenuation``, ``backscatter``,
+``vignetting``, ``gain``; any registered effect may be added) to the raw frames of one survey, their poses and
+their dense range maps; ``correct_physics(image, range_m, stack)`` inverts that stack pixel by pixel with the
+pixel's range. Both are functions of arrays: the pipeline's ``water`` stage reads the workspace and calls them.
+
+Model. Every built-in effect of the default stack is affine in the in-air colour J, so an observation o (a
+surface point p seen in frame f at pixel x_o with range r_o) records per channel c
+
+    y_oc = A_c(x_o, r_o; theta) J_pc + C_c(x_o, r_o; theta)
+    (default stack: A = k_c exp(-eta_c r) / V(x),  C = k_c B_inf,c (1 - exp(-beta_c r)) / V(x)),
+
+with A = render(J = 1) - render(J = 0) and C = render(J = 0) of the stack (so added effects need no special
+code). Per point the albedo J_p is projected out in closed form (weighted least squares over its views,
+clamped at 0); the stack's bounded parameters theta are fitted by L-BFGS on a soft-L1 loss of the residuals.
+
+Measurements, from the inputs alone:
+
+- dense correspondences: ``samples_per_frame`` pixels of every frame with range (a quarter of them among the
+  frame's darkest 5 %) are lifted to 3D with the range and the pose and projected into every other frame; a
+  projection counts as a view of the same surface point when it lands inside the image and that frame's own
+  range agrees with the point's distance within ``range_tolerance`` (occlusion test). Colours are read from
+  the images blurred by ``blur_px`` (bilinear), so a pixel of misregistration costs little;
+- SfM tracks (optional): each sparse point's observations, colour read at the feature positions;
+- the board (optional, :class:`eval.colour.Board`: true linear colours and per frame pixel quads): the patch
+  means of each visible patch with its known J, range from the frame's range map.
+
+What pins what (and what does not):
+
+- attenuation eta_c: the same point seen at several ranges; the ratio of its views falls as exp(-eta_c dr).
+  Frames flown at different altitudes see a point at one image position at different ranges, which separates
+  eta from the vignetting (at one altitude, range and image position are tied for a flat seafloor and a
+  common change of eta is nearly undone by the vignetting polynomial); channel differences of eta are pinned
+  even without that, since the centred vignetting and the range are the same for the three channels.
+- backscatter B_inf,c: the offset of each view (C above) that no albedo explains: points seen at several ranges
+  give C(r2) - (A2/A1) C(r1), which for beta near eta is B_inf (1 - exp(-eta dr)): the asymptote is pinned by
+  the multi-range views of many points of different albedo. Dark pixels (J clamped at 0; a quarter of the
+  samples are the darkest pixels of each frame, Sea-thru's prior) record C alone. The board pins C at its
+  ranges outright (known J, the black patch).
+- backscatter beta_c: only through the curvature of C over the survey's range span (2-4 m on the demo); the
+  family J_p + d, B(r) - d exp(-eta r) is close to the model's, so beta is weakly pinned, and more weakly
+  the closer beta is to eta. Its interval says so.
+- vignetting (a, b, c): the same point at different image positions; ``vignetting_offcentre`` (added) also
+  its centre and per-channel strength.
+- gain k_c: exactly degenerate with the albedos' overall scale per channel (k J = (k s)(J / s)), and B_inf
+  carries the same factor (C = k B_inf ...). With a board, the board's known J pins k (and with it B_inf's
+  absolute level). Without one, ``gain`` keeps its configured value (1) and is reported as fixed: B_inf and
+  the corrected colours are then in units of that gain (their ratios between channels are still free of it
+  only if the gain is grey, which a white balance need not be).
+
+Uncertainty: a bootstrap over frames (``bootstrap`` replicates; frames drawn with replacement, the frames that
+see the board and the others drawn separately so that every replicate keeps the board; a point's views weigh
+as many times as their frame was drawn); each replicate is refitted from the full fit. Intervals are the
+estimate +- 1.96 bootstrap standard deviations (clipped to the bounds); the bootstrap percentiles are kept
+too. Pairs of parameters whose bootstrap correlation exceeds 0.95 are reported as trade-offs.
+
+Bad input: fewer than ``min_frames`` frames with a pose and range, range on too small a part of the frames,
+or too few points seen at different ranges raise :class:`WaterInputError`, saying what to give.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from watergan.errors import UserInputError
+from watergan.formation import FormationState, Stack, get
+
+#: The water stack fitted by default: the simulator's visible physics (WaterGAN's learned backscatter
+#: network is replaced by its analytic counterpart, which has physical parameters to estimate).
+DEFAULT_WATER_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
+
+
+class WaterInputError(UserInputError):
+    """The survey does not hold what the water estimate needs; the message says what to give."""
+
+
+@dataclass(frozen=True)
+class WaterFrame:
+    """One survey frame as the estimator sees it.
+
+    name:           the image's file name (the board's quads are keyed by it).
+    image:          (H,W,3) raw linear RGB, 0..1 (sRGB-decoded).
+    range_m:        (H,W) ray length from the camera centre to the scene, metres; NaN or <= 0 = no value.
+                    (The dense stage writes camera z in millimetres; r = z |K^-1 (x, y, 1)|.)
+    world_from_cam: (4,4) camera-to-world pose (OpenCV camera axes), same metric frame for every frame;
+                    None: the frame has no pose (it takes no part).
+    """
+
+    name: str
+    image: np.ndarray
+    range_m: np.ndarray
+    world_from_cam: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class SparseTracks:
+    """SfM points and their observations. ``obs_frame`` indexes the ``frames`` list given to estimate_water
+    (map SfM image indices to it first); xy in pixels, OpenCV centres."""
+
+    xyz: np.ndarray        # (P,3) world, same frame as the poses
+    obs_point: np.ndarray  # (M,)
+    obs_frame: np.ndarray  # (M,)
+    obs_xy: np.ndarray     # (M,2)
+
+
+@dataclass(frozen=True)
+class WaterConfig:
+    """How the water is estimated."""
+
+    effects: tuple[str, ...] = DEFAULT_WATER_EFFECTS
+    """Effects of the stack (any registered name), placed in scene-to-sensor order by their rank."""
+    initial: tuple[dict, ...] = ()
+    """Optional {name, params} entries giving starting (or, for fixed effects, held) values."""
+    fixed_effects: tuple[str, ...] = ()
+    """Effects whose parameters are held at their starting values. ``gain`` is added without a board."""
+    samples_per_frame: int = 600
+    """Pixels lifted to 3D per frame (dense correspondences)."""
+    dark_fraction: float = 0.25
+    """Fraction of those samples drawn among the frame's darkest 5 % of pixels (the dark-pixel prior)."""
+    blur_px: float = 1.0
+    """Smallest Gaussian blur (sigma, pixels) of the images colours are read from (0: no blur)."""
+    footprint_m: float = 0.015
+    """Colours are read from the image blurred by this sigma on the surface (metres), i.e. fx x this / depth
+    pixels (clamped to the blur pyramid, blur_px x 1.5^0..5), so every view of a point averages the same patch of
+    the scene whatever its range (a fixed pixel blur averages more texture in far views, which biases the
+    attenuation). 0: blur_px everywhere."""
+    margin_px: int = 6
+    """Projections closer than this to the image border are not used."""
+    range_tolerance: float = 0.02
+    """Occlusion test: |frame's range - point distance| <= this x the distance."""
+    max_views: int = 12
+    """Views per point at most (the nearest frames in index order are kept first)."""
+    board_inset: float = 0.3
+    """Board patch quads are shrunk towards their centre by this fraction before averaging."""
+    board_weight: float = 1.0
+    """Weight of the board term (mean over board observations) beside the correspondence term."""
+    loss_scale: float = 0.01
+    """Soft-L1 scale, linear colour units."""
+    iterations: int = 150
+    """L-BFGS iterations of the full fit."""
+    bootstrap: int = 30
+    """Bootstrap replicates over frames (0: none; intervals then absent)."""
+    bootstrap_iterations: int = 40
+    """L-BFGS iterations of each replicate (from the full fit)."""
+    min_frames: int = 4
+    """Frames with a pose and range needed."""
+    min_range_coverage: float = 0.2
+    """Mean fraction of pixels with range needed."""
+    min_points: int = 200
+    """Points seen in two views whose ranges differ by >= 0.1 m needed."""
+    threads: int = 1
+    """Torch threads of the fit."""
+    seed: int = 0
+    """Seed of the pixel sampling and the bootstrap."""
+
+
+# --------------------------------------------------------------------------------- observations
+
+
+@dataclass
+class Observations:
+    """The measurement table (one row per view): colour, geometry, point and frame; plus the board rows."""
+
+    colour: np.ndarray      # (N,3) linear
+    range_m: np.ndarray     # (N,)
+    depth_m: np.ndarray     # (N,)
+    pixel_uv: np.ndarray    # (N,2) (x + 0.5)/W, (y + 0.5)/H
+    points_cam: np.ndarray  # (N,3)
+    point: np.ndarray       # (N,) point index
+    frame: np.ndarray       # (N,) frame index
+    n_points: int
+    image_wh: tuple[int, int]
+    board_colour: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    board_albedo: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    board_range_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    board_depth_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    board_pixel_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    board_points_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    board_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def _rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(H,W,3) K^-1 (x, y, 1) (z = 1)."""
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+
+
+def _clean_range(r: np.ndarray) -> np.ndarray:
+    r = np.asarray(r, np.float64)
+    return np.where(np.isfinite(r) & (r > 0), r, np.nan)
+
+
+def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Values of (H,W[,C]) at sub-pixel positions (M,2) (OpenCV centres; positions inside the image)."""
+    h, w = image.shape[:2]
+    x = np.clip(xy[:, 0], 0, w - 1.001)
+    y = np.clip(xy[:, 1], 0, h - 1.001)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    if image.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    return ((1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x0 + 1])
+            + fy * ((1 - fx) * image[y0 + 1, x0] + fx * image[y0 + 1, x0 + 1]))
+
+
+def _check_inputs(frames: list[WaterFrame], K: np.ndarray, config: WaterConfig) -> list[int]:
+    usable, coverage = [], []
+    for k, f in enumerate(frames):
+        if f.image.ndim != 3 or f.image.shape[2] != 3:
+            raise WaterInputError(f"frame {f.name}: image must be (H,W,3) linear RGB, got {f.image.shape}")
+        if f.range_m.shape != f.image.shape[:2]:
+            raise WaterInputError(f"frame {f.name}: range map {f.range_m.shape} and image {f.image.shape[:2]} differ")
+        cover = float(np.mean(np.isfinite(f.range_m) & (f.range_m > 0)))
+        if f.world_from_cam is not None and np.isfinite(f.world_from_cam).all() and cover > 0:
+            usable.append(k)
+            coverage.append(cover)
+    if len(usable) < config.min_frames:
+        raise WaterInputError(
+            f"only {len(usable)} of {len(frames)} frames have both an SfM pose and a dense range map (need "
+            f"{config.min_frames}): give stereo frames (right/ with baseline_m in camera.json) or more overlap "
+            f"between frames so SfM registers them, and nav_altitude_m in survey.json for a monocular survey's scale")
+    if float(np.mean(coverage)) < config.min_range_coverage:
+        raise WaterInputError(
+            f"dense range covers {100 * np.mean(coverage):.0f} % of the pixels of the registered frames (need "
+            f"{100 * config.min_range_coverage:.0f} %): give stereo frames, more overlap, or textured scenes the "
+            f"dense stage can match")
+    return usable
+
+
+def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
+            config: WaterConfig = WaterConfig()) -> Observations:
+    """The measurement table of the module docstring (dense correspondences, tracks, board)."""
+    import cv2
+
+    K = np.asarray(K, np.float64)
+    usable = _check_inputs(frames, K, config)
+    h, w = frames[usable[0]].image.shape[:2]
+    rays = _rays(K, h, w)
+    ray_norm = np.linalg.norm(rays, axis=-1)
+    rng = np.random.default_rng([config.seed, 17])
+    m = config.margin_px
+    inner = np.zeros((h, w), bool)
+    inner[m:h - m, m:w - m] = True
+
+    # 1. lift samples of every frame to world points
+    points = []
+    for k in usable:
+        f = frames[k]
+        r = _clean_range(f.range_m)
+        ok = inner & np.isfinite(r)
+        idx = np.flatnonzero(ok)
+        if len(idx) == 0:
+            continue
+        n = min(config.samples_per_frame, len(idx))
+        n_dark = int(round(config.dark_fraction * n))
+        lum = f.image.reshape(-1, 3)[idx].sum(1)
+        dark = idx[lum <= np.quantile(lum, 0.05)]
+        chosen = np.concatenate([rng.choice(idx, n - n_dark, replace=False),
+                                 rng.choice(dark, min(n_dark, len(dark)), replace=False)])
+        yy, xx = np.unravel_index(chosen, (h, w))
+        pc = rays[yy, xx] / ray_norm[yy, xx, None] * r[yy, xx, None]
+        pose = np.asarray(f.world_from_cam, np.float64)
+        points.append(pc @ pose[:3, :3].T + pose[:3, 3])
+    if not points:
+        raise WaterInputError("no frame has a pixel with range inside the image margin")
+    xyz = np.concatenate(points)
+
+    # 2. views of every point in every frame (occlusion test with that frame's own range)
+    rows = {key: [] for key in ("colour", "range", "depth", "uv", "pc", "point", "frame")}
+    sigmas = (config.blur_px * 1.5 ** np.arange(6)) if config.blur_px > 0 else np.zeros(1)
+    fx = float(K[0, 0])
+    cache: dict[int, list[np.ndarray]] = {}
+
+    def pyramid(k: int) -> list[np.ndarray]:
+        if k not in cache:
+            img = np.asarray(frames[k].image, np.float32)
+            cache.clear()
+            cache[k] = [cv2.GaussianBlur(img, (0, 0), float(s)) if s > 0 else img for s in sigmas]
+        return cache[k]
+
+    def sample(k: int, xy: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Colour at xy blurred by the footprint's size in pixels (interpolated between pyramid levels)."""
+        levels = pyramid(k)
+        if len(levels) == 1:
+            return _bilinear(levels[0], xy).astype(np.float64)
+        want = config.footprint_m * fx / depth if config.footprint_m > 0 else np.full(len(xy), sigmas[0])
+        pos = np.clip(np.log(np.maximum(want, 1e-6) / sigmas[0]) / np.log(1.5), 0, len(sigmas) - 1.001)
+        lo = np.floor(pos).astype(int)
+        t = (pos - lo)[:, None]
+        out = np.zeros((len(xy), 3))
+        for i in np.unique(lo):
+            sel = lo == i
+            out[sel] = (1 - t[sel]) * _bilinear(levels[i], xy[sel]) + t[sel] * _bilinear(levels[i + 1], xy[sel])
+        return out
+
+    def add(k: int, pid: np.ndarray, pc: np.ndarray, xy: np.ndarray) -> None:
+        rows["colour"].append(sample(k, xy, pc[:, 2]))
+        rows["range"].append(np.linalg.norm(pc, axis=1))
+        rows["depth"].append(pc[:, 2])
+        rows["uv"].append(np.stack([(xy[:, 0] + 0.5) / w, (xy[:, 1] + 0.5) / h], 1))
+        rows["pc"].append(pc)
+        rows["point"].append(pid)
+        rows["frame"].append(np.full(len(pid), k, np.int64))
+
+    for k in usable:
+        f = frames[k]
+        pose = np.asarray(f.world_from_cam, np.float64)
+        pc = (xyz - pose[:3, 3]) @ pose[:3, :3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = K[0, 0] * pc[:, 0] / z + K[0, 2]
+            y = K[1, 1] * pc[:, 1] / z + K[1, 2]
+        inside = (z > 0) & (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
+        sel = np.flatnonzero(inside)
+        if len(sel) == 0:
+            continue
+        xy = np.stack([x[sel], y[sel]], 1)
+        dist = np.linalg.norm(pc[sel], axis=1)
+        r_map = _clean_range(f.range_m)[np.rint(xy[:, 1]).astype(int), np.rint(xy[:, 0]).astype(int)]
+        seen = np.abs(r_map - dist) <= config.range_tolerance * dist
+        sel, xy = sel[seen], xy[seen]
+        if len(sel):
+            add(k, sel, pc[sel], xy)
+
+    n_dense = len(xyz)
+    # 3. SfM tracks: their own observations (points appended after the dense ones)
+    if tracks is not None and len(tracks.xyz):
+        use = np.isin(tracks.obs_frame, usable)
+        for k in np.unique(tracks.obs_frame[use]):
+            sel = np.flatnonzero(use & (tracks.obs_frame == k))
+            pose = np.asarray(frames[k].world_from_cam, np.float64)
+            pc = (np.asarray(tracks.xyz, np.float64)[tracks.obs_point[sel]] - pose[:3, 3]) @ pose[:3, :3]
+            xy = np.asarray(tracks.obs_xy[sel], np.float64)
+            ok = (pc[:, 2] > 0) & (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
+            if ok.any():
+                add(int(k), n_dense + tracks.obs_point[sel][ok], pc[ok], xy[ok])
+        n_total = n_dense + len(tracks.xyz)
+    else:
+        n_total = n_dense
+    cache.clear()
+
+    cat = {key: np.concatenate(v) for key, v in rows.items()}
+    # keep points with >= 2 views, at most max_views each; drop views with clipped colour
+    good = (cat["colour"] > 0.002).all(1) & (cat["colour"] < 0.98).all(1)
+    order = np.lexsort((cat["frame"], cat["point"]))
+    order = order[good[order]]
+    pts = cat["point"][order]
+    first = np.r_[0, np.flatnonzero(np.diff(pts)) + 1]
+    rank = np.arange(len(pts)) - np.repeat(first, np.diff(np.r_[first, len(pts)]))
+    order = order[rank < config.max_views]
+    counts = np.bincount(cat["point"][order], minlength=n_total)
+    order = order[counts[cat["point"][order]] >= 2]
+    remap = np.full(n_total, -1, np.int64)
+    used = np.unique(cat["point"][order])
+    remap[used] = np.arange(len(used))
+    obs = Observations(colour=cat["colour"][order], range_m=cat["range"][order], depth_m=cat["depth"][order],
+                       pixel_uv=cat["uv"][order], points_cam=cat["pc"][order], point=remap[cat["point"][order]],
+                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h))
+    if board is not None:
+        _add_board(obs, frames, usable, board, K, rays, ray_norm, config)
+    _check_diversity(obs, config)
+    return obs
+
+
+def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], board, K: np.ndarray,
+               rays: np.ndarray, ray_norm: np.ndarray, config: WaterConfig) -> None:
+    """Board rows: per frame and visible patch, the mean raw colour inside the shrunk quad, its centroid and
+    the median range there (patches with range on fewer than half their pixels are skipped)."""
+    import cv2
+
+    w, h = obs.image_wh
+    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "frame")}
+    for k in usable:
+        f = frames[k]
+        quads = board.quads.get(f.name)
+        if quads is None:
+            continue
+        r = _clean_range(f.range_m)
+        for p, quad in enumerate(np.asarray(quads, np.float64)):
+            if not np.isfinite(quad).all():
+                continue
+            centre = quad.mean(0)
+            shrunk = centre + (1 - config.board_inset) * (quad - centre)
+            mask = np.zeros((h, w), np.uint8)
+            cv2.fillConvexPoly(mask, np.rint(shrunk * 16).astype(np.int32), 1, shift=4)
+            inside = mask.astype(bool)
+            if inside.sum() < 9 or np.isfinite(r[inside]).mean() < 0.5:
+                continue
+            colour = f.image[inside].mean(0)
+            if (colour >= 0.98).any():
+                continue
+            ys, xs = np.nonzero(inside)
+            xc, yc = xs.mean(), ys.mean()
+            rr = float(np.nanmedian(r[inside]))
+            ray = np.array([(xc - K[0, 2]) / K[0, 0], (yc - K[1, 2]) / K[1, 1], 1.0])
+            pc = ray / np.linalg.norm(ray) * rr
+            rows["colour"].append(colour)
+            rows["albedo"].append(board.true_linear_rgb[p])
+            rows["range"].append(rr)
+            rows["depth"].append(pc[2])
+            rows["uv"].append([(xc + 0.5) / w, (yc + 0.5) / h])
+            rows["pc"].append(pc)
+            rows["frame"].append(k)
+    if rows["colour"]:
+        obs.board_colour = np.array(rows["colour"], np.float64)
+        obs.board_albedo = np.array(rows["albedo"], np.float64)
+        obs.board_range_m = np.array(rows["range"], np.float64)
+        obs.board_depth_m = np.array(rows["depth"], np.float64)
+        obs.board_pixel_uv = np.array(rows["uv"], np.float64)
+        obs.board_points_cam = np.array(rows["pc"], np.float64)
+        obs.board_frame = np.array(rows["frame"], np.int64)
+
+
+def _check_diversity(obs: Observations, config: WaterConfig) -> None:
+    lo = np.full(obs.n_points, np.inf)
+    hi = np.full(obs.n_points, -np.inf)
+    np.minimum.at(lo, obs.point, obs.range_m)
+    np.maximum.at(hi, obs.point, obs.range_m)
+    n = int(((hi - lo) >= 0.1).sum())
+    if n < config.min_points:
+        raise WaterInputError(
+            f"only {n} surface points are seen from ranges 0.1 m or more apart (need {config.min_points}): the "
+            f"attenuation cannot be told from the albedo. Give more overlap between frames, frames at several "
+            f"altitudes, or stereo frames so more pixels have range")
+
+
+# ------------------------------------------------------------------------------------------ fit
+
+
+def build_stack(config: WaterConfig) -> Stack:
+    """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``."""
+    given = {e["name"]: dict(e.get("params", {})) for e in config.initial}
+    names = sorted(dict.fromkeys(list(config.effects) + list(given)), key=lambda n: get(n).rank)
+    return Stack.from_config([{"name": n, "params": given.get(n, {})} for n in names]).to(torch.float64)
+
+
+def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh) -> FormationState:
+    n = len(range_m)
+
+    def col(a):
+        return torch.from_numpy(np.ascontiguousarray(np.asarray(a, np.float64).reshape(n, -1, 1, 1)))
+
+    return FormationState(direct=torch.ones(n, 3, 1, 1, dtype=torch.float64), range_m=col(range_m),
+                          depth_m=col(depth_m), pixel_uv=col(pixel_uv), image_wh=tuple(image_wh),
+                          points_cam=col(points_cam), frame_index=torch.from_numpy(np.asarray(frame, np.int64)))
+
+
+def _affine_images(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
+    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0."""
+    c = stack.render(state.replace(direct=torch.zeros_like(state.direct), backscatter=None))
+    a = stack.render(state.replace(direct=torch.ones_like(state.direct), backscatter=None)) - c
+    return a, c
+
+
+def _affine(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
+    """(A, C) of y = A J + C per observation (a batch of 1x1 images), (N,3)."""
+    a, c = _affine_images(stack, state)
+    return a[:, :, 0, 0], c[:, :, 0, 0]
+
+
+def _soft_l1(e: torch.Tensor, scale: float) -> torch.Tensor:
+    return 2.0 * scale * scale * (torch.sqrt(1.0 + (e / scale) ** 2) - 1.0)
+
+
+class _Problem:
+    """The loss of the stack's free parameters given the observations and per-frame weights."""
+
+    def __init__(self, stack: Stack, obs: Observations, config: WaterConfig, fixed: tuple[str, ...]) -> None:
+        self.stack, self.obs, self.config = stack, obs, config
+        self.state = _state(obs.range_m, obs.depth_m, obs.pixel_uv, obs.points_cam, obs.frame, obs.image_wh)
+        self.y = torch.from_numpy(obs.colour)
+        self.point = torch.from_numpy(obs.point)
+        self.has_board = len(obs.board_colour) > 0
+        if self.has_board:
+            self.board_state = _state(obs.board_range_m, obs.board_depth_m, obs.board_pixel_uv,
+                                      obs.board_points_cam, obs.board_frame, obs.image_wh)
+            self.board_y = torch.from_numpy(obs.board_colour)
+            self.board_j = torch.from_numpy(obs.board_albedo)
+        self.names = []
+        for i, effect in enumerate(stack.effects):
+            if effect.name in fixed:
+                continue
+            for p in effect.params:
+                if p.learnable:
+                    self.names.append(f"effects.{i}.raw.{p.name}")
+        by_name = dict(stack.named_parameters())
+        self.theta = [by_name[n] for n in self.names]
+        for p in stack.parameters():
+            p.requires_grad_(False)
+        for p in self.theta:
+            p.requires_grad_(True)
+
+    def albedo(self, a: torch.Tensor, c: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        n = self.obs.n_points
+        num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.point, w[:, None] * a * (self.y - c))
+        den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.point, w[:, None] * a * a)
+        return (num / den.clamp_min(1e-12)).clamp_min(0.0)
+
+    def loss(self, frame_weight: torch.Tensor) -> torch.Tensor:
+        w = frame_weight[torch.from_numpy(self.obs.frame)]
+        a, c = _affine(self.stack, self.state)
+        j = self.albedo(a, c, w)
+        e = self.y - (a * j[self.point] + c)
+        total = (w[:, None] * _soft_l1(e, self.config.loss_scale)).sum() / w.sum().clamp_min(1e-12)
+        if self.has_board:
+            wb = frame_weight[torch.from_numpy(self.obs.board_frame)]
+            ab, cb = _affine(self.stack, self.board_state)
+            eb = self.board_y - (ab * self.board_j + cb)
+            total = total + self.config.board_weight * (wb[:, None] * _soft_l1(eb, self.config.loss_scale)).sum() \
+                / wb.sum().clamp_min(1e-12)
+        return total
+
+    def minimise(self, frame_weight: torch.Tensor, iterations: int) -> float:
+        with torch.no_grad():
+            scale = abs(float(self.loss(frame_weight))) + 1e-30
+        opt = torch.optim.LBFGS(self.theta, lr=1.0, max_iter=iterations, history_size=20,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-9 * scale)
+
+        def closure():
+            opt.zero_grad(set_to_none=True)
+            loss = self.loss(frame_weight)
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        with torch.no_grad():
+            return float(self.loss(frame_weight))
+
+    def get_raw(self) -> list[torch.Tensor]:
+        return [p.detach().clone() for p in self.theta]
+
+    def set_raw(self, values: list[torch.Tensor]) -> None:
+        with torch.no_grad():
+            for p, v in zip(self.theta, values, strict=True):
+                p.copy_(v)
+
+    def physical(self) -> dict[str, np.ndarray]:
+        """{"effect.param": value} of the free parameters."""
+        out = {}
+        for name in self.names:
+            i, pname = int(name.split(".")[1]), name.rsplit(".", 1)[1]
+            effect = self.stack.effects[i]
+            out[f"{effect.name}.{pname}"] = effect.param(pname).detach().numpy().copy()
+        return out
+
+
+def _start_inside(problem: _Problem, margin: float = 0.01) -> None:
+    limit = math.log(margin) - math.log1p(-margin)
+    with torch.no_grad():
+        for name, raw in zip(problem.names, problem.theta, strict=True):
+            spec = problem.stack.effects[int(name.split(".")[1])]._spec(name.rsplit(".", 1)[1])
+            raw.clamp_(limit, -limit) if spec.bounded_above else raw.clamp_(min=limit)
+
+
+#: Which measurement pins each parameter of the built-in effects (for the JSON; see the module docstring).
+PINNED_BY = {
+    "attenuation.eta_per_m": "same point at several ranges (dense correspondences, tracks), altitude diversity",
+    "backscatter.b_inf": "offsets that no albedo explains across ranges; dark pixels; the board (absolute level)",
+    "backscatter.beta_per_m": "curvature of the offset over the survey's range span (weak)",
+    "vignetting.a_margin": "same point at different image positions",
+    "vignetting.b": "same point at different image positions",
+    "vignetting.c": "same point at different image positions",
+    "vignetting_offcentre.centre_uv": "same point at different image positions",
+    "vignetting_offcentre.strength": "same point at different image positions, per channel",
+    "gain.k": "the board's known colours (without a board: degenerate with the albedo scale, held fixed)",
+}
+
+
+@dataclass
+class WaterEstimate:
+    """The fitted stack and every parameter's estimate with its 95 % interval.
+
+    stack:        the fitted stack (use :meth:`Stack.to_config` to save it).
+    params:       {"effect.param": {"value", "low", "high", "std", "p2_5", "p97_5", "units", "fitted",
+                  "pinned_by"}}; fixed parameters have value only.
+    fixed:        effects held at their values (e.g. gain without a board) and why.
+    tradeoffs:    [(a, b, correlation)] free parameter components whose bootstrap |correlation| > 0.95.
+    n_points, n_observations, n_board, n_frames: sizes of the measurement table.
+    rmse:         RMS residual of the views (linear colour).
+    seconds:      wall time (measuring, fitting, bootstrap).
+    """
+
+    stack: Stack
+    params: dict
+    fixed: dict
+    tradeoffs: list
+    n_points: int
+    n_observations: int
+    n_board: int
+    n_frames: int
+    rmse: float
+    seconds: dict
+
+    def to_json(self) -> dict:
+        return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed,
+                "tradeoffs": self.tradeoffs, "n_points": self.n_points, "n_observations": self.n_observations,
+                "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
+                "interval": "95 %: estimate +- 1.96 x the standard deviation of a bootstrap over frames"}
+
+    def summary(self) -> str:
+        """One line: eta and B_inf with their intervals."""
+        parts = []
+        for key in ("attenuation.eta_per_m", "backscatter.b_inf"):
+            if key in self.params and self.params[key].get("low") is not None:
+                p = self.params[key]
+                parts.append(f"{key.split('.')[1]} " + "/".join(
+                    f"{v:.3f}[{lo:.3f},{hi:.3f}]" for v, lo, hi in zip(p["value"], p["low"], p["high"], strict=True)))
+        return "water: " + "; ".join(parts) + f" (rmse {self.rmse:.4f}, {self.n_points} points)"
+
+
+def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> WaterEstimate:
+    """Fit the stack to a measurement table and bootstrap over frames (see the module docstring)."""
+    t0 = time.perf_counter()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(1, config.threads))
+    try:
+        stack = build_stack(config)
+        fixed = {name: "held at its configured value" for name in config.fixed_effects}
+        if len(obs.board_colour) == 0 and "gain" in stack.names:
+            fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
+        problem = _Problem(stack, obs, config, tuple(fixed))
+        _start_inside(problem)
+        frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
+        n_frames_total = int(frames.max()) + 1
+        ones = torch.zeros(n_frames_total, dtype=torch.float64)
+        ones[torch.from_numpy(frames)] = 1.0
+        problem.minimise(ones, config.iterations)
+        best_raw = problem.get_raw()
+        best = problem.physical()
+        t_fit = time.perf_counter() - t0
+
+        samples = []
+        rng = np.random.default_rng([config.seed, 29])
+        board_frames = np.unique(obs.board_frame)
+        other = np.setdiff1d(frames, board_frames)
+        for _ in range(config.bootstrap):
+            wts = np.zeros(n_frames_total)
+            for group in (board_frames, other):
+                if len(group):
+                    np.add.at(wts, rng.choice(group, len(group), replace=True), 1.0)
+            problem.set_raw(best_raw)
+            problem.minimise(torch.from_numpy(wts), config.bootstrap_iterations)
+            samples.append(problem.physical())
+        problem.set_raw(best_raw)
+        with torch.no_grad():
+            a, c = _affine(stack, problem.state)
+            j = problem.albedo(a, c, ones[torch.from_numpy(obs.frame)])
+            rmse = float(torch.sqrt(((problem.y - (a * j[problem.point] + c)) ** 2).mean()))
+        for p in stack.parameters():
+            p.requires_grad_(False)
+        params, tradeoffs = _describe(stack, best, samples, fixed)
+        return WaterEstimate(stack=stack, params=params, fixed=fixed, tradeoffs=tradeoffs, n_points=obs.n_points,
+                             n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),
+                             rmse=rmse, seconds={"fit": round(t_fit, 2),
+                                                 "bootstrap": round(time.perf_counter() - t0 - t_fit, 2)})
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict) -> tuple[dict, list]:
+    params = {}
+    for effect in stack.effects:
+        for p in effect.params:
+            key = f"{effect.name}.{p.name}"
+            value = effect.param(p.name).detach().numpy()
+            entry = {"value": np.round(value, 6).tolist(), "units": p.units, "fitted": key in best,
+                     "pinned_by": PINNED_BY.get(key, "")}
+            if key in best and samples:
+                stack_s = np.stack([s[key] for s in samples])
+                std = stack_s.std(0, ddof=1) if len(samples) > 1 else np.zeros_like(value)
+                entry.update(std=np.round(std, 6).tolist(),
+                             low=np.round(np.clip(value - 1.96 * std, p.lower, p.upper), 6).tolist(),
+                             high=np.round(np.clip(value + 1.96 * std, p.lower, p.upper), 6).tolist(),
+                             p2_5=np.round(np.percentile(stack_s, 2.5, 0), 6).tolist(),
+                             p97_5=np.round(np.percentile(stack_s, 97.5, 0), 6).tolist())
+            params[key] = entry
+    tradeoffs = []
+    if len(samples) > 2:
+        keys = sorted(best)
+        cols, labels = [], []
+        for key in keys:
+            flat = np.stack([np.atleast_1d(s[key]).ravel() for s in samples])
+            for i in range(flat.shape[1]):
+                cols.append(flat[:, i])
+                labels.append(f"{key}[{i}]" if flat.shape[1] > 1 else key)
+        mat = np.stack(cols, 1)
+        sd = mat.std(0)
+        ok = sd > 1e-12
+        if ok.sum() > 1:
+            corr = np.corrcoef(mat[:, ok].T)
+            lab = [lab for lab, keep in zip(labels, ok, strict=True) if keep]
+            for i in range(len(lab)):
+                for j in range(i + 1, len(lab)):
+                    if abs(corr[i, j]) > 0.95:
+                        tradeoffs.append([lab[i], lab[j], round(float(corr[i, j]), 3)])
+    return params, tradeoffs
+
+
+def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
+                   config: WaterConfig = WaterConfig()) -> WaterEstimate:
+    """The site's water (see the module docstring).
+
+    frames:  the survey's frames (raw linear image, range map in metres, pose; see :class:`WaterFrame`).
+    K:       (3,3) pinhole intrinsics of the images, pixels (OpenCV centres).
+    tracks:  optional SfM tracks (:class:`SparseTracks`, frame indices into ``frames``).
+    board:   optional :class:`eval.colour.Board` (true linear colours; pixel quads per frame name): pins the gain.
+    Raises :class:`WaterInputError` when the frames cannot pin the water (too few registered frames, too
+    little range, too few points seen at different ranges)."""
+    t0 = time.perf_counter()
+    obs = measure(frames, K, tracks, board, config)
+    t_measure = time.perf_counter() - t0
+    estimate = fit_observations(obs, config)
+    estimate.seconds = {"measure": round(t_measure, 2), **estimate.seconds,
+                        "total": round(time.perf_counter() - t0, 2)}
+    return estimate
+
+
+# ----------------------------------------------------------------------------------- correction
+
+
+def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[dict],
+                    K: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
+    J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
+    J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
+
+    image:   (H,W,3) raw linear RGB.
+    range_m: (H,W) metres along the ray; NaN or <= 0 = no range.
+    stack:   a :class:`Stack` or its configuration (e.g. ``WaterEstimate.stack``).
+    K:       (3,3) intrinsics; gives effects the camera-frame points and depth (needed by e.g.
+             ``artificial_light``); without it depth = range and no points.
+    Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
+    without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
+    if not isinstance(stack, Stack):
+        stack = Stack.from_config(stack)
+    image = np.asarray(image, np.float64)
+    h, w = image.shape[:2]
+    r = _clean_range(range_m)
+    valid = np.isfinite(r)
+    r_filled = np.where(valid, r, 1.0)
+    from watergan.formation import pixel_grid
+
+    fields = {}
+    if K is not None:
+        rays = _rays(np.asarray(K, np.float64), h, w)
+        pc = rays / np.linalg.norm(rays, axis=-1, keepdims=True) * r_filled[..., None]
+        fields["points_cam"] = torch.from_numpy(pc.transpose(2, 0, 1)[None].copy())
+        fields["depth_m"] = torch.from_numpy(pc[..., 2][None, None].copy())
+    else:
+        fields["depth_m"] = torch.from_numpy(r_filled[None, None].copy())
+    state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=torch.float64),
+                           range_m=torch.from_numpy(r_filled[None, None].copy()),
+                           pixel_uv=pixel_grid(h, w, 1, torch.float64), image_wh=(w, h),
+                           valid=torch.from_numpy(valid)[None, None], **fields)
+    stack = stack.to(torch.float64)
+    with torch.no_grad():
+        a, c = _affine_images(stack, state)
+    a, c = a[0].permute(1, 2, 0).numpy(), c[0].permute(1, 2, 0).numpy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = (image - c) / a
+    out[~valid] = np.nan
+    return out.astype(np.float32), valid
