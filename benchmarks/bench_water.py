@@ -86,6 +86,162 @@ def load_inputs(ws_root: Path):
     return frames, K, sparse, truth_board(survey), tracks
 
 
+def truth_params(survey: Path) -> dict[str, list | float]:
+    """{"effect.param": value} of the survey's full true stack."""
+    full = json.loads((survey / "truth" / "effects.json").read_text())["full"]
+    return {f"{e['name']}.{k}": v for e in full for k, v in e["params"].items()}
+
+
+def compare(estimate, truth: dict) -> dict:
+    """Per parameter: estimate, truth, relative error, interval, covered."""
+    rows = {}
+    for key, p in estimate.params.items():
+        if key not in truth:
+            continue
+        value, true = np.atleast_1d(p["value"]).astype(float), np.atleast_1d(truth[key]).astype(float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(np.abs(true) > 1e-9, (value - true) / np.abs(true), np.nan)
+        row = {"estimate": value.tolist(), "truth": true.tolist(), "rel_error": np.round(rel, 4).tolist(),
+               "fitted": p["fitted"]}
+        if p.get("low") is not None:
+            low, high = np.atleast_1d(p["low"]), np.atleast_1d(p["high"])
+            row.update(low=low.tolist(), high=high.tolist(),
+                       covered=[bool(lo <= t <= hi) for lo, t, hi in zip(low, true, high, strict=True)])
+        rows[key] = row
+    return rows
+
+
+def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
+    """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the dense range
+    ('physics'), the true stack with the dense range ('true_water_dense_range') and the oracle (true stack,
+    true geometry). Dense range holes are filled with the nearest valid pixel's range (fraction reported)."""
+    import torch
+
+    from eval.baselines import oracle
+    from eval.tables import OracleGeometry, fill_nearest
+    from eval.water import correct_physics
+    from watergan.data import write_srgb8
+    from watergan.formation import Stack
+
+    survey = ws_root / "00_survey"
+    geometry = OracleGeometry(survey)
+    true_stack = Stack.from_config(geometry.truth.effects["full"])
+    folders = {name: out / name for name in ("physics", "true_water_dense_range", "oracle")}
+    for folder in folders.values():
+        folder.mkdir(parents=True, exist_ok=True)
+    filled, seconds = [], 0.0
+    torch.set_num_threads(1)
+    for f in frames:
+        r = f.range_m
+        filled.append(float(np.mean(~np.isfinite(r))))
+        r_full = fill_nearest(np.asarray(r, np.float64))
+        t = time.perf_counter()
+        corrected, _ = correct_physics(f.image, r_full, stack, K)
+        seconds += time.perf_counter() - t
+        write_srgb8(folders["physics"] / f.name, np.clip(np.nan_to_num(corrected), 0, 1))
+        corrected, _ = correct_physics(f.image, r_full, true_stack, K)
+        write_srgb8(folders["true_water_dense_range"] / f.name, np.clip(np.nan_to_num(corrected), 0, 1))
+        write_srgb8(folders["oracle"] / f.name, oracle(f.image.astype(np.float64), geometry.state(f.name),
+                                                       geometry.stack))
+    return {"folders": folders, "filled_fraction": float(np.mean(filled)),
+            "physics_seconds_per_frame": seconds / max(len(frames), 1)}
+
+
+def measure_corrections(ws_root: Path, tracks, board, folders: dict[str, Path], names: list[str]) -> dict:
+    from eval.colour import board_accuracy, consistency
+    from eval.tables import fidelity
+
+    survey = ws_root / "00_survey"
+    all_folders = {"raw": survey / "images", **folders}
+    cons = consistency(tracks, all_folders)
+    rows = {}
+    for label, folder in all_folders.items():
+        b = board_accuracy(folder, board)
+        psnr, ssim = fidelity(folder, survey / "truth" / "inair", names)
+        rows[label] = {"board_ciede2000": b.mean_ciede2000, "board_distance": b.mean_distance,
+                       "consistency": cons.scores[label].variance, "psnr_db": psnr, "ssim": ssim}
+    rows["consistency_points"] = cons.n_points
+    return rows
+
+
+def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
+    from eval.water import estimate_water
+
+    t = time.perf_counter()
+    ws_root = prepare(root, name)
+    prep_seconds = time.perf_counter() - t
+    t = time.perf_counter()
+    frames, K, sparse, board, tracks = load_inputs(ws_root)
+    load_seconds = time.perf_counter() - t
+    t = time.perf_counter()
+    estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config)
+    water_seconds = time.perf_counter() - t
+    truth = truth_params(ws_root / "00_survey")
+    params = compare(estimate, truth)
+    print(f"\n== {name}: {estimate.summary()}")
+    print(f"   water estimate {water_seconds:.1f} s (+ {load_seconds:.1f} s reading frames and range; "
+          f"{estimate.seconds}); {estimate.n_points} points, {estimate.n_observations} views, "
+          f"{estimate.n_board} board patch views, {estimate.n_frames} frames")
+    for key, row in params.items():
+        cover = "".join("y" if c else "N" for c in row.get("covered", [])) or "-"
+        est = " ".join(f"{v:.4f}" for v in row["estimate"])
+        tru = " ".join(f"{v:.4f}" for v in row["truth"])
+        rel = " ".join(f"{100 * v:+.1f}%" if np.isfinite(v) else "n/a" for v in row["rel_error"])
+        print(f"   {key:32s} est {est:30s} truth {tru:30s} err {rel:24s} covered {cover}")
+    if estimate.tradeoffs:
+        print("   bootstrap trade-offs:", estimate.tradeoffs)
+    out = root / name / "water_bench"
+    corr = correct_folders(ws_root, frames, K, estimate.stack, out)
+    names = [f.name for f in frames]
+    metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
+    print(f"   correction (dense range, {100 * corr['filled_fraction']:.1f} % of pixels filled from the nearest "
+          f"range; physics {corr['physics_seconds_per_frame']:.2f} s/frame); consistency on "
+          f"{metrics['consistency_points']} points")
+    for label in ("raw", "physics", "true_water_dense_range", "oracle"):
+        m = metrics[label]
+        print(f"   {label:24s} board CIEDE2000 {m['board_ciede2000']:6.3f}  consistency x1e-5 "
+              + "/".join(f"{1e5 * v:.2f}" for v in m["consistency"]) + f"  PSNR {m['psnr_db']:.2f} dB")
+    o, p = metrics["oracle"], metrics["physics"]
+    targets = {
+        "eta_within_10pct": all(abs(v) <= 0.10 for v in params["attenuation.eta_per_m"]["rel_error"]),
+        "b_inf_within_20pct": all(abs(v) <= 0.20 for v in params["backscatter.b_inf"]["rel_error"]),
+        "eta_b_inf_covered": all(params[k].get("covered", [False]) and all(params[k]["covered"])
+                                 for k in ("attenuation.eta_per_m", "backscatter.b_inf")),
+        "board_ciede_le_2x_oracle": p["board_ciede2000"] <= 2 * o["board_ciede2000"],
+        "consistency_le_1_5x_oracle": all(a <= 1.5 * b for a, b in zip(p["consistency"], o["consistency"], strict=True)),
+        "psnr_within_3db": p["psnr_db"] >= o["psnr_db"] - 3.0,
+        "water_le_90s": water_seconds + load_seconds <= 90.0,
+    }
+    print("   targets:", targets)
+    return {"params": params, "estimate": estimate.to_json(), "correction": metrics,
+            "filled_fraction": corr["filled_fraction"], "targets": targets,
+            "seconds": {"prepare": round(prep_seconds, 1), "load": round(load_seconds, 2),
+                        "water": round(water_seconds, 2), "physics_per_frame": round(corr["physics_seconds_per_frame"], 3)}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("/tmp/bench_water"), help="workspaces (reused when present)")
+    parser.add_argument("--surveys", default=",".join(SURVEYS), help=f"comma-separated, of {', '.join(SURVEYS)}")
+    parser.add_argument("--bootstrap", type=int, default=None, help="bootstrap replicates (default: WaterConfig's)")
+    parser.add_argument("--tracks", action="store_true", help="also give the SfM tracks to the estimator")
+    parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "water.json")
+    args = parser.parse_args(argv)
+
+    from eval.water import WaterConfig
+
+    config = WaterConfig() if args.bootstrap is None else WaterConfig(bootstrap=args.bootstrap)
+    results = {}
+    for name in args.surveys.split(","):
+        results[name] = run_survey(args.out, name, config, args.tracks)
+    report = {"command": "benchmarks/bench_water.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+              "config": {k: v for k, v in config.__dict__.items()}, "surveys": results}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    print(f"\nwrote {args.json}")
+    return 0
+
+
 if __name__ == "__main__" and __import__("sys").argv[1:2] == ["--prepare-only"]:
     import sys
 
@@ -93,3 +249,5 @@ if __name__ == "__main__" and __import__("sys").argv[1:2] == ["--prepare-only"]:
         t = time.perf_counter()
         prepare(Path(sys.argv[2]), n)
         print(n, "prepared in", round(time.perf_counter() - t, 1), "s", flush=True)
+elif __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,190 @@
+"""eval.water: the site-water estimator recovers the parameters it rendered with, and the physics correction
+inverts a rendered image exactly.
+
+The survey is made here: a flat seafloor with a smooth albedo (and a colour board of known patches), seen
+straight down from 12 frames at altitudes 1.8-3.2 m, rendered with the effect library at known parameters."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from eval.colour import Board
+from eval.water import (
+    DEFAULT_WATER_EFFECTS,
+    SparseTracks,
+    WaterConfig,
+    WaterFrame,
+    WaterInputError,
+    correct_physics,
+    estimate_water,
+)
+from watergan.formation import FormationState, Stack, pixel_grid
+
+W, H, F = 96, 72, 60.0
+K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
+TRUE = [
+    {"name": "attenuation", "params": {"eta_per_m": [0.45, 0.14, 0.2]}},
+    {"name": "backscatter", "params": {"b_inf": [0.03, 0.16, 0.19], "beta_per_m": [0.45, 0.32, 0.32]}},
+    {"name": "vignetting", "params": {"a_margin": 0.35, "b": 0.0, "c": 0.05}},
+    {"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}},
+]
+BOARD_ORIGIN, PATCH = np.array([-0.75, -0.5]), 0.25  # board: 6 x 4 patches of 0.25 m from this corner (world x, y)
+#: Colours are read at a 6 cm footprint (1.1-2 px here): every view of a point then averages the same patch of
+#: the seafloor. A footprint below the 1 px blur gives far views more blur than near ones, which biases eta by
+#: several % on the board's sharp patch edges.
+FOOTPRINT_M = 0.06
+BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
+
+
+def albedo(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A smooth in-air colour (..., 3) of the seafloor, 0.02-0.75, with the board's patches at the origin."""
+    out = np.stack([0.38 + 0.3 * np.sin(2.1 * x + 0.3) * np.cos(1.7 * y) + 0.05 * np.sin(5 * x - 3 * y + c)
+                    for c in (0.0, 1.3, 2.6)], -1)
+    i = np.floor((x - BOARD_ORIGIN[0]) / PATCH).astype(int)
+    j = np.floor((y - BOARD_ORIGIN[1]) / PATCH).astype(int)
+    on = (i >= 0) & (i < 6) & (j >= 0) & (j < 4)
+    out[on] = BOARD_RGB[(j * 6 + i)[on]]
+    return out
+
+
+def pose(cx: float, cy: float, altitude: float) -> np.ndarray:
+    """A camera looking straight down (camera x = world x, camera y = world -y)."""
+    m = np.eye(4)
+    m[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    m[:3, 3] = [cx, cy, altitude]
+    return m
+
+
+def render(world_from_cam: np.ndarray, stack: Stack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(raw linear image, range, in-air J) of the flat seafloor z = 0."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = np.stack([(xs - K[0, 2]) / F, (ys - K[1, 2]) / F, np.ones_like(xs)], -1) @ world_from_cam[:3, :3].T
+    t = -world_from_cam[2, 3] / rays[..., 2]
+    points = world_from_cam[:3, 3] + t[..., None] * rays
+    rng = np.linalg.norm(points - world_from_cam[:3, 3], axis=-1)
+    j = albedo(points[..., 0], points[..., 1])
+    state = FormationState(direct=torch.from_numpy(j.transpose(2, 0, 1)[None].copy()),
+                           range_m=torch.from_numpy(rng[None, None].copy()),
+                           pixel_uv=pixel_grid(H, W, 1, torch.float64), image_wh=(W, H))
+    with torch.no_grad():
+        image = stack.to(torch.float64).render(state)[0].permute(1, 2, 0).numpy()
+    return image, rng, j
+
+
+def board_quads(world_from_cam: np.ndarray) -> np.ndarray:
+    quads = np.full((24, 4, 2), np.nan)
+    for p in range(24):
+        i, j = p % 6, p // 6
+        x0, y0 = BOARD_ORIGIN + PATCH * np.array([i, j])
+        corners = np.array([[x0, y0, 0], [x0 + PATCH, y0, 0], [x0 + PATCH, y0 + PATCH, 0], [x0, y0 + PATCH, 0]])
+        pc = (corners - world_from_cam[:3, 3]) @ world_from_cam[:3, :3]
+        uv = np.stack([F * pc[:, 0] / pc[:, 2] + K[0, 2], F * pc[:, 1] / pc[:, 2] + K[1, 2]], -1)
+        if (uv >= 2).all() and (uv[:, 0] <= W - 3).all() and (uv[:, 1] <= H - 3).all():
+            quads[p] = uv
+    return quads
+
+
+def make_survey():
+    stack = Stack.from_config(TRUE)
+    rng = np.random.default_rng(0)
+    frames, quads = [], {}
+    for k, (cx, cy) in enumerate([(x, y) for y in (-0.5, 0.0, 0.5) for x in (-0.9, -0.3, 0.3, 0.9)]):
+        m = pose(cx, cy, 1.8 + 1.4 * ((k * 5) % 12) / 11)
+        image, r, _ = render(m, stack)
+        image = np.clip(image + rng.normal(0, 0.002, image.shape), 0, 1).astype(np.float32)
+        name = f"{k:06d}.png"
+        frames.append(WaterFrame(name=name, image=image, range_m=r.astype(np.float32), world_from_cam=m))
+        quads[name] = board_quads(m)
+    board = Board(names=[f"p{i}" for i in range(24)], true_linear_rgb=BOARD_RGB, quads=quads)
+    return frames, board
+
+
+@pytest.fixture(scope="module")
+def survey():
+    return make_survey()
+
+
+def _value(estimate, key):
+    return np.asarray(estimate.params[key]["value"], float)
+
+
+def test_estimate_recovers_the_rendered_water(survey):
+    frames, board = survey
+    config = WaterConfig(samples_per_frame=250, bootstrap=8, margin_px=4, footprint_m=FOOTPRINT_M)
+    est = estimate_water(frames, K, board=board, config=config)
+    assert est.stack.names == list(DEFAULT_WATER_EFFECTS)
+    assert est.n_board > 20 and est.n_frames == 12
+    np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), [0.45, 0.14, 0.2], rtol=0.05)
+    np.testing.assert_allclose(_value(est, "backscatter.b_inf"), [0.03, 0.16, 0.19], rtol=0.15)
+    np.testing.assert_allclose(_value(est, "gain.k"), [1.5] * 3, rtol=0.03)
+    # the vignetting as a function (its coefficients trade among themselves)
+    v = est.stack["vignetting"]
+    a, b, c = (float(t) for t in v.coefficients())
+    r = np.linspace(0, 1, 5)
+    np.testing.assert_allclose(1 + a * r**2 + b * r**4 + c * r**6, 1 + 0.35 * r**2 + 0.05 * r**6, atol=0.02)
+    eta = est.params["attenuation.eta_per_m"]
+    assert all(lo <= v <= hi for lo, v, hi in zip(eta["low"], eta["value"], eta["high"], strict=True))
+    assert all(h > lo for lo, h in zip(eta["low"], eta["high"], strict=True))
+    assert est.fixed == {}
+    assert "eta" in est.summary()
+
+
+def test_without_a_board_the_gain_is_held_and_said(survey):
+    frames, _ = survey
+    config = WaterConfig(samples_per_frame=150, bootstrap=0, margin_px=4, iterations=80, footprint_m=FOOTPRINT_M,
+                         initial=({"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}},))
+    est = estimate_water(frames, K, config=config)
+    assert "gain" in est.fixed and not est.params["gain.k"]["fitted"]
+    np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), [0.45, 0.14, 0.2], rtol=0.05)
+
+
+def test_tracks_add_points(survey):
+    frames, board = survey
+    # two world points seen by every frame that sees them, at their true projections
+    xyz = np.array([[0.2, 0.1, 0.0], [-0.5, 0.3, 0.0]])
+    obs_point, obs_frame, obs_xy = [], [], []
+    for k, f in enumerate(frames):
+        pc = (xyz - f.world_from_cam[:3, 3]) @ f.world_from_cam[:3, :3]
+        uv = np.stack([F * pc[:, 0] / pc[:, 2] + K[0, 2], F * pc[:, 1] / pc[:, 2] + K[1, 2]], -1)
+        for p in np.flatnonzero((uv[:, 0] > 8) & (uv[:, 0] < W - 9) & (uv[:, 1] > 8) & (uv[:, 1] < H - 9)):
+            obs_point.append(p)
+            obs_frame.append(k)
+            obs_xy.append(uv[p])
+    tracks = SparseTracks(xyz=xyz, obs_point=np.array(obs_point), obs_frame=np.array(obs_frame),
+                          obs_xy=np.array(obs_xy))
+    from eval.water import measure
+
+    config = WaterConfig(samples_per_frame=50, margin_px=4)
+    with_tracks = measure(frames, K, tracks, board, config)
+    without = measure(frames, K, None, board, config)
+    assert with_tracks.n_points == without.n_points + 2
+
+
+def test_correct_physics_inverts_the_stack_exactly(survey):
+    frames, _ = survey
+    stack = Stack.from_config(TRUE)
+    image, r, j = render(pose(0.1, -0.2, 2.6), stack)
+    r = r.copy()
+    r[:5, :7] = np.nan
+    r[10, 10] = 0.0
+    corrected, valid = correct_physics(image, r, stack, K)
+    assert corrected.dtype == np.float32 and valid.shape == (H, W)
+    assert not valid[:5, :7].any() and not valid[10, 10] and valid.sum() == H * W - 36
+    assert np.isnan(corrected[~valid]).all()
+    np.testing.assert_allclose(corrected[valid], j[valid], atol=1e-5)
+    # the configuration form gives the same
+    again, _ = correct_physics(image, r, TRUE)
+    np.testing.assert_allclose(again[valid], corrected[valid], atol=1e-6)
+
+
+def test_too_little_input_is_refused_with_what_to_give(survey):
+    frames, _ = survey
+    no_pose = [WaterFrame(f.name, f.image, f.range_m, None) for f in frames[:10]] + frames[10:]
+    with pytest.raises(WaterInputError, match="stereo frames"):
+        estimate_water(no_pose, K, config=WaterConfig(bootstrap=0))
+    sparse_range = [WaterFrame(f.name, f.image, np.where(np.random.default_rng(0).random(f.range_m.shape) < 0.05,
+                                                         f.range_m, np.nan), f.world_from_cam) for f in frames]
+    with pytest.raises(WaterInputError, match="dense range covers"):
+        estimate_water(sparse_range, K, config=WaterConfig(bootstrap=0))
