@@ -33,9 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     from eval.colour import board_accuracy, consistency, truth_board
     from eval.depth import read_depth
     from eval.synth import load_truth, make_config, simulate_survey
-    from pipeline.dense import DenseConfig, run_dense
-    from pipeline.mesh import MeshConfig, height_mesh, render_back, run_mesh
-    from pipeline.sfm import SfmConfig, Tracks, run_sfm, similarity_align
+    from pipeline.dense import DenseConfig
+    from pipeline.mesh import MeshConfig, height_mesh, render_back
+    from pipeline.sfm import SfmConfig, Tracks, similarity_align
     from pipeline.workspace import Workspace
 
     ws = Workspace(args.out)
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     index = {name: k for k, name in enumerate(truth.frames)}
 
     t = time.perf_counter()
-    sfm = ws.run("sfm", SfmConfig(), run_sfm, force=not args.reuse_sfm)["result"]
+    sfm = ws.run("sfm", SfmConfig(), force=not args.reuse_sfm)["result"]
     seconds["sfm"] = time.perf_counter() - t
     tracks = Tracks.load(ws.path(sfm["tracks"]))
     figures["registered_pct"] = 100 * sfm["n_registered"] / sfm["n_images"]
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     figures["scale_method"] = sfm["scale_method"]
 
     t = time.perf_counter()
-    dense = ws.run("dense", DenseConfig(), run_dense, force=True)["result"]
+    dense = ws.run("dense", DenseConfig(), force=True)["result"]
     seconds["dense"] = time.perf_counter() - t
     coverage, abs_err = [], []
     for name in dense["pairs"]:
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
 
     t = time.perf_counter()
     inair = survey / "truth" / "inair"
-    mesh_result = ws.run("mesh", MeshConfig(images_dir=str(inair)), run_mesh, force=True)["result"]
+    mesh_result = ws.run("mesh", MeshConfig(images_dir=str(inair)), force=True)["result"]
     seconds["mesh"] = time.perf_counter() - t
     import open3d as o3d
 

@@ -45,10 +45,10 @@ def survey_dir(cache: Path, survey: str, case: str, geometry: str) -> Path:
             else make_config("demo", hidden=hidden, seed=0)
         simulate_survey(target, config, force=True, progress=False)
     if geometry == "sfm":
-        from pipeline.sfm import SfmConfig, run_sfm
+        from pipeline.sfm import SfmConfig
         from pipeline.workspace import Workspace
 
-        Workspace(root).run("sfm", SfmConfig(), run_sfm)
+        Workspace(root).run("sfm", SfmConfig())
         return root
     return target
 

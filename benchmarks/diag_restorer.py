@@ -32,10 +32,10 @@ import torch
 import torch.nn.functional as F
 
 from eval.colour import consistency, observation_colours
-from pipeline.sfm import Tracks
+from eval.tracks import Tracks
 from watergan.data import read_depth, read_image, read_nav_altitudes
+from watergan.imaging import gaussian_blur
 from watergan.nets.restorer import position_maps, restore
-from watergan.train import gaussian_blur
 from watergan.train_restorer import load_restorer
 
 

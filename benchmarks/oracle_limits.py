@@ -32,7 +32,7 @@ import torch
 from eval.baselines import oracle
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tables import OracleGeometry, fill_nearest, z_to_range
-from pipeline.sfm import Tracks
+from eval.tracks import Tracks
 from watergan.data import read_depth, read_image, read_nav_altitudes, write_srgb8
 from watergan.formation import Stack
 

@@ -13,7 +13,7 @@ is averaged over points. The same points and observations are used for every ima
 (raw, corrected, in-air truth, ...): an observation counts only if its patch is valid in all of
 them, so the comparison is like for like. A constant image has zero variance: report consistency
 beside a fidelity measure (the board accuracy, or PSNR against in-air truth). The sampling is per
-image and can run on a Dask cluster (``scheduler``, :mod:`pipeline.parallel`) with the same values.
+image and can run on a Dask cluster (``scheduler``, :mod:`watergan.parallel`) with the same values.
 
 Board accuracy, per patch and view: the patch quad (corners projected from the world with the
 poses and intrinsics, or given in pixels) is shrunk towards its centre by ``inset`` and the pixels
@@ -102,9 +102,9 @@ def observation_colours(tracks, folder: str | Path, patch_px: int = 5, linear: b
     ``folder`` (same file names as the SfM images); NaN where the patch leaves the image.
 
     ``scheduler``: empty or None samples here, image by image; a Dask scheduler address or
-    ``distributed.Client`` samples ``chunk_size`` images per task on the cluster (:mod:`pipeline.parallel`;
+    ``distributed.Client`` samples ``chunk_size`` images per task on the cluster (:mod:`watergan.parallel`;
     the images must be on a file system the workers share). The values are the same either way."""
-    from pipeline.parallel import chunks, is_distributed, map_tasks, rows_by_label, shared_path
+    from watergan.parallel import chunks, is_distributed, map_tasks, rows_by_label, shared_path
 
     folder = Path(folder)
     out = np.full((len(tracks.obs_xy), 3), np.nan)
@@ -378,23 +378,3 @@ def parse_folders(items: tuple[str, ...] | list[str]) -> dict[str, str]:
             raise UserInputError(f"image folder {path} (for '{name}') does not exist")
         out[name] = path
     return out
-
-
-def run_colour_eval(ws, cfg: ColourEvalConfig) -> ColourEvalResult:
-    """Workspace stage: tracks from ``04_sfm/tracks.npz``; writes ``06_eval/colour.json``."""
-    from pipeline.sfm import Tracks
-    from pipeline.workspace import atomic_write_json
-
-    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
-    folders = parse_folders(cfg.folders)
-    result = ColourEvalResult(consistency=consistency(tracks, folders, cfg.patch_px, cfg.min_views, cfg.linear,
-                                                      progress=True, scheduler=cfg.scheduler or None))
-    board = load_board_json(cfg.board_json) if cfg.board_json else truth_board(cfg.truth_dir) if cfg.truth_dir \
-        else None
-    if board is not None:
-        result.board = {name: board_accuracy(path, board, cfg.board_inset, linear=cfg.linear)
-                        for name, path in folders.items()}
-    out = ws.stage_dir("eval") / "colour.json"
-    atomic_write_json(out, result)
-    result.table = ws.relative(out)
-    return result

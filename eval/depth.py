@@ -16,7 +16,8 @@ and the record says which was used. On the aligned depth ``d`` (metres, as the r
     coverage    = valid pixels (both maps) / all pixels
 
 Depth maps are read from 16-bit PNGs in millimetres (0 = no value, the simulator's and the dense
-stage's format) or ``.npy`` float arrays in metres (non-finite or <= 0 = no value).
+stage's format) or ``.npy`` float arrays in metres (0 = no value), read by :func:`watergan.io.read_depth`
+(NaN in memory marks no value).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import atomic_write_bytes, atomic_write_json, read_depth, write_depth_png  # noqa: F401
 
 DEPTH_SUFFIXES = (".png", ".npy")
 
@@ -51,40 +53,6 @@ class DepthMetrics:
     """Pixels valid in both maps / all pixels."""
     n_valid: int
     """Number of pixels compared."""
-
-
-def read_depth(path: str | Path) -> np.ndarray:
-    """A depth map in metres (float64) with NaN where there is no value."""
-    path = Path(path)
-    if path.suffix == ".npy":
-        depth = np.load(path).astype(np.float64)
-    elif path.suffix == ".png":
-        import cv2
-
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise UserInputError(f"cannot read depth map {path}: not a readable PNG")
-        if raw.ndim != 2 or raw.dtype != np.uint16:
-            raise UserInputError(f"depth map {path} must be a single-channel 16-bit PNG of millimetres")
-        depth = raw.astype(np.float64) / 1000.0
-    else:
-        raise UserInputError(f"depth map {path}: use a 16-bit PNG (millimetres) or a .npy array (metres)")
-    depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
-    return depth
-
-
-def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
-    """Metres as a 16-bit PNG of millimetres (NaN or <= 0 -> 0, capped at 65.535 m), written atomically."""
-    import cv2
-
-    from pipeline.workspace import atomic_write_bytes
-
-    valid = np.isfinite(depth_m) & (depth_m > 0)
-    mm = np.where(valid, np.clip(np.rint(np.where(valid, depth_m, 0) * 1000.0), 1, 65535), 0).astype(np.uint16)
-    ok, data = cv2.imencode(".png", mm)
-    if not ok:
-        raise OSError(f"could not encode depth PNG {path}")
-    atomic_write_bytes(Path(path), data.tobytes())
 
 
 def fit_scale_shift(pred: np.ndarray, ref: np.ndarray, with_shift: bool) -> tuple[float, float]:
@@ -135,7 +103,6 @@ def error_map_png(path: str | Path, error_m: np.ndarray, max_abs_m: float) -> No
     import cv2
     from matplotlib import colormaps
 
-    from pipeline.workspace import atomic_write_bytes
 
     valid = np.isfinite(error_m)
     level = np.clip(np.abs(np.where(valid, error_m, 0)) / max(max_abs_m, 1e-9), 0, 1)
@@ -194,7 +161,6 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
                           cfg: DepthCompareConfig) -> DepthCompareResult:
     """Per-image and pooled metrics of every prediction that has a reference of the same stem;
     writes ``out_dir/errors/<stem>.png`` and ``out_dir/metrics.json``."""
-    from pipeline.workspace import atomic_write_json
 
     pred_files, ref_files = _depth_files(Path(pred_dir)), _depth_files(Path(ref_dir))
     out_dir = Path(out_dir)
@@ -240,14 +206,4 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
     result = DepthCompareResult(alignment=alignment, overall=overall, per_image=per_image, skipped=sorted(skipped),
                                 error_maps=maps, table=str(out_dir / "metrics.json"))
     atomic_write_json(out_dir / "metrics.json", result)
-    return result
-
-
-def run_depth_compare(ws, cfg: DepthCompareConfig) -> DepthCompareResult:
-    """Workspace stage: reference defaults to the dense stage's depth maps; outputs in ``06_eval/depth``."""
-    ref_dir = Path(cfg.ref_dir) if cfg.ref_dir else ws.stage_dir("dense") / "depth"
-    out_dir = ws.stage_dir("eval") / "depth"
-    result = compare_depth_folders(cfg.pred_dir, ref_dir, out_dir, cfg)
-    result.error_maps = [ws.relative(p) for p in result.error_maps]
-    result.table = ws.relative(result.table)
     return result

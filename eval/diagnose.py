@@ -1,7 +1,7 @@
 """The discovery loop: fit the formation model to multi-view measurements, show where it fails,
 name the missing effect, and keep a ledger of model versions.
 
-    from eval.diagnose import DiagnoseConfig, run_diagnose
+    from pipeline.diagnose import run_diagnose       # a workspace or a survey folder
     result = run_diagnose("WORKSPACE_OR_SURVEY", DiagnoseConfig(effects=("attenuation", ...)))
     print(result.verdict)
 
@@ -11,7 +11,8 @@ Pieces (each usable alone):
   SfM tracks of a workspace or from the simulator's truth.
 - :mod:`eval.diagnose_fit`: fit a stack with per-point albedos; held-out error; Laplace uncertainties.
 - :mod:`eval.diagnose_residuals`: residuals binned along every axis, structure scores, plots, PLY.
-- this module: candidate ranking, verdict, ledger, and :func:`run_diagnose` (the stage).
+- this module: candidate ranking, verdict, ledger, and :func:`diagnose` (all of it on one survey);
+  the workspace stage is :func:`pipeline.diagnose.run_diagnose_stage`.
 
 Candidate ranking: every registered effect not in the stack is a candidate unless it needs whole
 images (``needs_image``), has learned layers, needs a state field the measurements lack, or acts
@@ -29,7 +30,7 @@ residual RMSE after the verdict's model are reported as unexplained.
 Ledger (``model_ledger.jsonl`` in the workspace, or SURVEY/diagnose/): one JSON record per fit with
 time, kind ("model" or "candidate"), stack, fitted values, held-out and training RMSE, the number of
 observations and the geometry source; model records of a workspace also carry, when
-``06_eval/colour.json`` exists (``watergan consistency``), the colour consistency of each measured
+``watergan consistency`` measured the image folders (its ``colour.json``), the colour consistency of each measured
 image folder (``consistency``: mean over points of the per-channel variance of c / (R + G + B)
 across views) and its colour-board error (``board_ciede2000``: mean CIEDE2000 over patches), so a
 model version can be read beside what its corrected images achieve.
@@ -41,15 +42,16 @@ import itertools
 import json
 import time
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.workspace import Workspace, atomic_write_json, atomic_write_text
 from watergan.errors import UserInputError
 from watergan.formation import MissingInputError, Stack, available, get
+from watergan.io import atomic_write_json, atomic_write_text
 
 from .diagnose_fit import (
     FitConfig,
@@ -61,7 +63,7 @@ from .diagnose_fit import (
     observation_state,
     soft_l1,
 )
-from .diagnose_measure import MeasureConfig, Measurements, choose_geometry, measure_survey, resolve_survey
+from .diagnose_measure import MeasureConfig, Measurements, check_survey_folder, measure_survey
 from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
 
 DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
@@ -70,12 +72,20 @@ LEDGER_NAME = "model_ledger.jsonl"
 START_GRID_OBS = 300
 
 
+class GeometrySource(StrEnum):
+    """Where the diagnosis's 3D points and views come from."""
+
+    auto = "auto"
+    truth = "truth"
+    sfm = "sfm"
+
+
 @dataclass(frozen=True)
 class DiagnoseConfig:
     """The diagnose stage."""
 
-    geometry: str = "auto"
-    """Where the 3D points and their views come from: "sfm" (the workspace's 04_sfm/tracks.npz),
+    geometry: GeometrySource = GeometrySource.auto
+    """Where the 3D points and their views come from: "sfm" (the sfm stage's tracks),
     "truth" (the simulator's depth maps and poses) or "auto" (sfm when the workspace has tracks, else
     truth when the survey is simulated)."""
     effects: tuple[str, ...] = ()
@@ -105,6 +115,8 @@ class DiagnoseConfig:
     patches) score above 3 without mattering."""
     plots: bool = True
     """Write residual plots and the PLY."""
+    progress: bool | None = field(default=None, metadata={"hash": False})
+    """Progress bars (None: when the output is a terminal)."""
 
 
 @dataclass(frozen=True)
@@ -429,43 +441,10 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
     return line
 
 
-def output_dir(target: str | Path) -> tuple[Path, Path]:
-    """(output folder, ledger folder): WORKSPACE/08_diagnose and WORKSPACE for a workspace,
-    SURVEY/diagnose for a bare survey folder."""
-    root = Path(target)
-    survey = resolve_survey(root)
-    if survey != root:
-        return Workspace(root).stage_dir("diagnose"), root
-    out = root / "diagnose"
-    out.mkdir(exist_ok=True)
-    return out, out
-
-
 def append_ledger(folder: Path, record: dict) -> None:
     """Append one JSON line to ``folder/model_ledger.jsonl``."""
     with open(folder / LEDGER_NAME, "a") as f:
         f.write(json.dumps(record) + "\n")
-
-
-def colour_summary(workspace: Path) -> dict:
-    """From ``workspace/06_eval/colour.json`` (eval.colour's run_colour_eval), per image folder: the
-    colour consistency (mean normalised-colour variance across views) and, when a board was
-    measured, its mean CIEDE2000. Empty without the file."""
-    path = Path(workspace) / "06_eval" / "colour.json"
-    if not path.is_file():
-        return {}
-    out = {}
-    try:
-        data = json.loads(path.read_text())
-        scores = (data.get("consistency") or {}).get("scores") or {}
-        if scores:
-            out["consistency"] = {name: float(s["mean_variance"]) for name, s in scores.items()}
-        board = data.get("board") or {}
-        if board:
-            out["board_ciede2000"] = {name: float(b["mean_ciede2000"]) for name, b in board.items()}
-    except (ValueError, KeyError, TypeError, AttributeError):
-        return {}  # another layout: the ledger simply goes without the colour fields
-    return out
 
 
 def find_ledger(target: str | Path) -> Path:
@@ -539,27 +518,30 @@ def _ledger_record(fit: FitResult, kind: str, meas: Measurements, colour: dict) 
             "geometry": meas.source, "seconds": round(fit.seconds, 3), **colour}
 
 
-def run_diagnose(target: str | Path, config: DiagnoseConfig = DiagnoseConfig(),
-                 progress: bool | None = None) -> DiagnoseResult:
-    """Measure, fit the model, analyse residuals, rank candidates, write everything to the output
-    folder (see :func:`output_dir`) and append the fits to the ledger. Torch runs on one thread: the
-    tensors are small (observations x 3), and a thread pool competing with other processes for the
-    cores made a fit 30 times slower (150 s instead of 5 s on the demo survey)."""
+def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig = DiagnoseConfig(),
+             tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None) -> DiagnoseResult:
+    """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), fit
+    the model, analyse residuals, rank candidates, write everything to ``out`` and append the fits
+    to the ledger in ``ledger_dir`` (with ``colour``, the image folders' consistency and board error
+    when they were measured). Torch runs on one thread: the tensors are small (observations x 3), and
+    a thread pool competing with other processes for the cores made a fit 30 times slower (150 s
+    instead of 5 s on the demo survey)."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():
-        return _run_diagnose(target, config, progress)
+        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {})
 
 
-def _run_diagnose(target: str | Path, config: DiagnoseConfig, progress: bool | None) -> DiagnoseResult:
+def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig, tracks: Path | None, scale: str,
+              colour: dict) -> DiagnoseResult:
     start = time.perf_counter()
-    survey = resolve_survey(target)
+    progress = config.progress
+    survey = check_survey_folder(survey)
     stack = default_stack(survey, config.effects)
     for name in config.add:
         get(name)
-    geometry = choose_geometry(target, config.geometry)
-    out, ledger_dir = output_dir(target)
-    meas = measure_survey(target, config.measure, geometry)
+    out.mkdir(parents=True, exist_ok=True)
+    meas = measure_survey(survey, config.measure, config.geometry, tracks, scale)
     added = [name for name in config.add if name not in stack.names]
     for name in added:
         stack = insert_by_rank(stack, make_effect(name, meas))
@@ -582,8 +564,7 @@ def _run_diagnose(target: str | Path, config: DiagnoseConfig, progress: bool | N
     if config.plots:
         plot_residuals(analysis, out, f"{'+'.join(stack.names)}")
         write_residual_ply(meas, base.residual, out / "points_residual.ply")
-    append_ledger(ledger_dir, _ledger_record(base, "model", meas, colour_summary(ledger_dir) if ledger_dir != out
-                                             else {}))
+    append_ledger(ledger_dir, _ledger_record(base, "model", meas, colour))
 
     names, skipped = candidate_names(stack, meas, config.candidates)
     ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress)
@@ -608,13 +589,8 @@ def _run_diagnose(target: str | Path, config: DiagnoseConfig, progress: bool | N
                                              "candidates": ranking_json, "skipped": skipped})
     atomic_write_text(out / "verdict.txt", verdict + "\n")
     plot_ledger(read_ledger(ledger_dir / LEDGER_NAME), out / "ledger.png")
-    result = DiagnoseResult(out_dir=str(out), stack=stack.names, heldout_rmse=base.heldout_rmse,
-                            n_points=meas.n_points, n_obs=meas.n_obs, verdict=verdict,
-                            best=best.name if best else None, ranking=ranking_json, skipped=skipped,
-                            unexplained_axes=unexplained, scores=base_scores, geometry=meas.source,
-                            seconds=time.perf_counter() - start)
-    if ledger_dir != out:
-        Workspace(ledger_dir).save("diagnose", config, replace(result, ranking=[]))
-    else:
-        atomic_write_json(out / "result.json", replace(result, ranking=[]))
-    return result
+    return DiagnoseResult(out_dir=str(out), stack=stack.names, heldout_rmse=base.heldout_rmse,
+                          n_points=meas.n_points, n_obs=meas.n_obs, verdict=verdict,
+                          best=best.name if best else None, ranking=ranking_json, skipped=skipped,
+                          unexplained_axes=unexplained, scores=base_scores, geometry=meas.source,
+                          seconds=time.perf_counter() - start)

@@ -6,7 +6,7 @@ and every derived quantity are then read from the survey's images by :func:`meas
 
 Geometry sources are plain functions returning :class:`Geometry`:
 
-- :func:`geometry_from_tracks`: the SfM reconstruction (``WORKSPACE/04_sfm/tracks.npz``), what a
+- :func:`geometry_from_tracks`: the SfM reconstruction (the sfm stage's ``tracks.npz``), what a
   real survey has. Points are the sparse points, observations their feature positions (within
   ``max_reprojection_px`` of the point's projection); normals from the neighbouring sparse points.
 - :func:`geometry_from_truth`: the simulator's truth (depth maps and poses), for tests and
@@ -15,8 +15,8 @@ Geometry sources are plain functions returning :class:`Geometry`:
   image (with the patch margin) and the frame's true depth there agrees with its camera z within
   ``depth_tol_m``.
 
-:func:`measure_survey` picks the source (``geometry="auto"``: the tracks of a workspace that has
-them, else the truth of a simulated survey); :func:`measure` needs nothing but the
+:func:`measure_survey` picks the source (``geometry="auto"``: the SfM tracks when given, else the
+truth of a simulated survey); :func:`measure` needs nothing but the
 :class:`Geometry`.
 
 Observed colour is the mean of a ``patch_px`` x ``patch_px`` patch of the sRGB-decoded (linear)
@@ -93,8 +93,6 @@ class Geometry:
     water_depth_m: np.ndarray | None = None
 
 
-#: Where ``geometry="auto"`` finds a workspace's reconstruction.
-TRACKS_RELATIVE = Path("04_sfm") / "tracks.npz"
 GEOMETRY_SOURCES = ("auto", "truth", "sfm")
 
 
@@ -173,16 +171,15 @@ class Measurements:
         return cls(**arrays, **meta)
 
 
-def resolve_survey(target: str | Path) -> Path:
-    """The survey folder of a workspace (``WORKSPACE/00_survey``) or a bare survey folder."""
-    root = Path(target)
+def check_survey_folder(survey: str | Path) -> Path:
+    """``survey`` as a Path when it is a survey folder (camera.json + images/), else a clear error."""
+    root = Path(survey)
     if not root.is_dir():
         raise UserInputError(f"{root} does not exist or is not a folder: give a workspace or a survey folder")
-    for candidate in (root / "00_survey", root):
-        if (candidate / "camera.json").is_file() and (candidate / "images").is_dir():
-            return candidate
-    raise UserInputError(f"{root} is neither a survey folder (camera.json + images/) nor a workspace with "
-                         f"00_survey/: simulate one with `watergan simulate` or copy the survey there")
+    if (root / "camera.json").is_file() and (root / "images").is_dir():
+        return root
+    raise UserInputError(f"{root} is neither a survey folder (camera.json + images/) nor a workspace with a "
+                         f"survey: simulate one with `watergan simulate` or run `watergan run` on it")
 
 
 def geometry_from_truth(survey: Path, config: MeasureConfig) -> Geometry:
@@ -275,25 +272,6 @@ def drop_observations(geometry: Geometry, keep: np.ndarray, min_views: int) -> t
                    obs_px=geometry.obs_px[index], water_depth_m=depth), index
 
 
-def tracks_file(source: str | Path) -> Path:
-    """The tracks.npz of a workspace (``04_sfm/tracks.npz``), of an SfM folder, or the file itself."""
-    source = Path(source)
-    for path in (source, source / "tracks.npz", source / TRACKS_RELATIVE):
-        if path.is_file():
-            return path
-    raise UserInputError(f"no SfM tracks at {source} (looked for {source / TRACKS_RELATIVE}): run "
-                         f"`watergan sfm --workspace WORKSPACE` first, or diagnose on the simulator's truth "
-                         f"(--geometry truth)")
-
-
-def sfm_scale_method(tracks_path: Path) -> str:
-    """The SfM stage's ``scale_method`` from ``result.json`` beside the tracks ("unknown" without one)."""
-    result = tracks_path.parent / "result.json"
-    if not result.is_file():
-        return "unknown"
-    return str(json.loads(result.read_text()).get("result", {}).get("scale_method", "unknown"))
-
-
 def pca_normals(points: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
     """(P,3) unit normals of a point cloud: the direction of least variance of each point's
     ``neighbours`` nearest points (the eigenvector of the smallest eigenvalue of their covariance),
@@ -311,10 +289,11 @@ def pca_normals(points: np.ndarray, centres: np.ndarray, neighbours: int) -> np.
     return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
-def geometry_from_tracks(source: str | Path, survey: Path, config: MeasureConfig) -> Geometry:
-    """Points and their views from the SfM reconstruction (:class:`pipeline.sfm.Tracks`).
+def geometry_from_tracks(tracks_path: str | Path, survey: Path, config: MeasureConfig,
+                         scale: str = "unknown") -> Geometry:
+    """Points and their views from the SfM reconstruction (:class:`eval.tracks.Tracks`).
 
-    ``source``: a workspace, its ``04_sfm`` folder or a tracks.npz. An observation of sparse point X
+    ``tracks_path``: the sfm stage's tracks.npz; ``scale``: its ``scale_method``. An observation of sparse point X
     in registered image k at feature pixel x_f is kept when the patch fits inside the image and
     |x_f - pi_k(X)| <= ``max_reprojection_px`` (pi_k the projection). Of the points with at least
     ``min_views`` kept observations, ``n_points`` are drawn at random (all when fewer). Normals:
@@ -323,10 +302,9 @@ def geometry_from_tracks(source: str | Path, survey: Path, config: MeasureConfig
     point's views of d_k + (C_k - X) . z (the survey frame's z is up, metric when the SfM scale is);
     else site_depth_m - z. The scale (``Geometry.scale``) is the SfM stage's ``scale_method``.
     """
-    from pipeline.sfm import Tracks
+    from eval.tracks import Tracks
 
-    path = tracks_file(source)
-    tracks = Tracks.load(path)
+    tracks = Tracks.load(tracks_path)
     K = np.asarray(tracks.K, float)
     intr = Intrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
                       width=int(tracks.width), height=int(tracks.height))
@@ -357,7 +335,7 @@ def geometry_from_tracks(source: str | Path, survey: Path, config: MeasureConfig
     normals = pca_normals(tracks.xyz, centre_sum / seen, config.normal_neighbours)
 
     geometry = _keep_multiview(tracks.xyz, normals, obs_point[ok], obs_frame[ok], px[ok], poses, intr, frames,
-                               config.min_views, scale=sfm_scale_method(path))
+                               config.min_views, scale=scale)
     return replace(geometry, water_depth_m=_navigation_water_depth(survey, geometry))
 
 
@@ -458,32 +436,33 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
         clipped_obs=int(clipped.sum()))
 
 
-def choose_geometry(target: str | Path, geometry: str = "auto") -> str:
-    """"truth" or "sfm" for ``geometry`` = "auto" | "truth" | "sfm": auto takes the reconstruction of a
-    workspace that has ``04_sfm/tracks.npz``, else the simulator's truth when the survey has it."""
+def choose_geometry(survey: Path, geometry: str = "auto", tracks: Path | None = None) -> str:
+    """"truth" or "sfm" for ``geometry`` = "auto" | "truth" | "sfm": auto takes the SfM ``tracks`` when
+    given, else the simulator's truth when the survey has it."""
     if geometry not in GEOMETRY_SOURCES:
         raise UserInputError(f"geometry must be one of {', '.join(GEOMETRY_SOURCES)}, not '{geometry}'")
+    if geometry == "sfm" and tracks is None:
+        raise UserInputError("no SfM tracks: run `watergan sfm --workspace WORKSPACE` first and diagnose the "
+                             "workspace, or diagnose on the simulator's truth (--geometry truth)")
     if geometry != "auto":
         return geometry
-    root = Path(target)
-    if (root / TRACKS_RELATIVE).is_file():
+    if tracks is not None:
         return "sfm"
-    if (resolve_survey(root) / "truth" / "poses.json").is_file():
+    if (survey / "truth" / "poses.json").is_file():
         return "truth"
-    raise UserInputError(f"{root} has no reconstruction ({TRACKS_RELATIVE}) and no simulator truth: copy the survey "
-                         f"into a workspace's 00_survey/, run `watergan sfm --workspace WORKSPACE` and diagnose the "
-                         f"workspace")
+    raise UserInputError(f"{survey} has no reconstruction and no simulator truth: run `watergan sfm --workspace "
+                         f"WORKSPACE` on it (its survey is linked into the workspace) and diagnose the workspace")
 
 
-def measure_survey(target: str | Path, config: MeasureConfig = MeasureConfig(), geometry: str = "auto",
-                   tracks: str | Path | None = None) -> Measurements:
-    """Measurements of a survey folder or a workspace (its ``00_survey``), the geometry from the
-    source :func:`choose_geometry` picks (``tracks``: another tracks.npz than the workspace's)."""
+def measure_survey(survey: str | Path, config: MeasureConfig = MeasureConfig(), geometry: str = "auto",
+                   tracks: str | Path | None = None, scale: str = "unknown") -> Measurements:
+    """Measurements of a survey folder, the geometry from the source :func:`choose_geometry` picks
+    (``tracks``: the SfM stage's tracks.npz, ``scale`` its ``scale_method``)."""
     if config.patch_px < 1 or config.patch_px % 2 == 0:
         raise UserInputError(f"patch_px must be a positive odd number of pixels, got {config.patch_px}")
-    survey = resolve_survey(target)
-    source = "sfm" if tracks is not None else choose_geometry(target, geometry)
-    if source == "sfm":
-        geo = geometry_from_tracks(tracks if tracks is not None else target, survey, config)
+    survey = check_survey_folder(survey)
+    tracks = Path(tracks) if tracks is not None else None
+    if choose_geometry(survey, geometry, tracks) == "sfm":
+        geo = geometry_from_tracks(tracks, survey, config, scale)
         return measure(survey, geo, config, source=f"sfm (scale: {geo.scale})")
     return measure(survey, geometry_from_truth(survey, config), config, source="truth")

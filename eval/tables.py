@@ -1,7 +1,6 @@
-"""The evaluation stage: every baseline and the restorer measured on the same SfM points and board,
-and the paper's tables side by side (``watergan evaluate``).
-
-``run_evaluate(ws, cfg)`` (run as ``ws.run("eval", cfg, run_evaluate)``) writes under ``06_eval/``:
+"""The evaluation's measuring: every baseline and the restorer measured on the same SfM points and
+board, and the paper's tables side by side. The workspace stage that chains these is
+:func:`pipeline.evaluate.run_evaluate` (``watergan evaluate``); it writes under the eval stage's folder:
 
     baselines/<method>/<image name>   each baseline's corrected survey frames (8-bit sRGB PNG)
     consistency_points.npz            per method, the per-point variance (P,3) behind Table II
@@ -35,16 +34,16 @@ Tables (as in the paper; lower is better unless said):
 
 With ``EvaluateConfig.scheduler`` (a Dask scheduler address) the baselines (chunks of frames, every
 method) and the colour sampling at the SfM observations run on the cluster's workers
-(:mod:`pipeline.parallel`; the survey and the workspace on a file system they share); the files and
+(:mod:`watergan.parallel`; the survey and the workspace on a file system they share); the files and
 numbers are the same as a local run's. The board, fidelity and depth measurements run here.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +55,14 @@ OURS = "ours"
 INAIR = "inair"
 LABELS = {**{name: b.label for name, b in BASELINES.items()}, OURS: "ours", INAIR: "in-air truth"}
 RANGE_SOURCES = ("auto", "truth", "dense")
+
+
+class RangeChoice(StrEnum):
+    """Where the range-based baselines' range comes from."""
+
+    auto = "auto"
+    truth = "truth"
+    dense = "dense"
 
 
 @dataclass(frozen=True)
@@ -70,7 +77,7 @@ class EvaluateConfig:
     """Baselines to run (names of eval.baselines.BASELINES)."""
     ours_dir: str = ""
     """The restorer's corrected frames; empty: ``03_correct/images`` when present."""
-    range_source: str = "auto"
+    range_source: RangeChoice = RangeChoice.auto
     """Range for Jaffe-McGlamery and Sea-thru: 'dense', 'truth' or 'auto' (dense, else truth)."""
     jaffe_stack: str = ""
     """A formation-stack JSON ([{name, params}]) with the Jaffe-McGlamery coefficients; empty: the
@@ -116,7 +123,7 @@ class EvaluateResult:
 
 
 def _camera_K(survey: Path, tracks) -> np.ndarray:
-    from pipeline.sfm import read_camera_json
+    from watergan.io import read_camera_json
 
     cam = read_camera_json(survey / "camera.json")
     if cam is None:
@@ -142,12 +149,12 @@ def fill_nearest(values: np.ndarray) -> np.ndarray:
     return values[tuple(idx)]
 
 
-class _RangeSource:
+class RangeSource:
     """Range (H,W) metres per frame name from the dense stage or the simulator's truth."""
 
-    def __init__(self, kind: str, ws, survey: Path, tracks) -> None:
+    def __init__(self, kind: str, dense_dir: Path | None, survey: Path, tracks) -> None:
         self.kind = kind
-        self.dense_dir = (ws.root / "05_dense" / "depth").resolve()  # absolute: also read on a cluster's workers
+        self.dense_dir = Path(dense_dir).resolve() if dense_dir else None  # absolute: also read on a cluster's workers
         self.truth_dir = (survey / "truth" / "range").resolve()
         self.K = _camera_K(survey, tracks)
         self.fallback: list[str] = []
@@ -158,14 +165,15 @@ class _RangeSource:
         self.sparse_all_m = float(np.median(depths)) if len(depths) else 1.0
 
     @staticmethod
-    def choose(requested: str, ws, survey: Path) -> str:
+    def choose(requested: str, dense_dir: Path | None, survey: Path) -> str:
+        """The range source to use; ``dense_dir``: the dense stage's depth maps (None: it did not run)."""
         if requested not in RANGE_SOURCES:
             raise UserInputError(f"range source must be one of {', '.join(RANGE_SOURCES)}, got '{requested}'")
-        dense = (ws.root / "05_dense" / "depth").is_dir() and any((ws.root / "05_dense" / "depth").glob("*.png"))
+        dense = dense_dir is not None and Path(dense_dir).is_dir() and any(Path(dense_dir).glob("*.png"))
         truth = (survey / "truth" / "range").is_dir()
         if requested == "dense" and not dense:
-            raise UserInputError(f"no dense depth in {ws.root / '05_dense' / 'depth'}: run `watergan dense` first "
-                                 f"or use --range truth on a simulated survey")
+            raise UserInputError(f"no dense depth maps ({dense_dir or 'the dense stage did not run'}): run "
+                                 f"`watergan dense` first or use --range truth on a simulated survey")
         if requested == "truth" and not truth:
             raise UserInputError(f"no simulator range in {survey / 'truth' / 'range'}: --range truth needs a "
                                  f"simulated survey; use --range dense")
@@ -174,7 +182,7 @@ class _RangeSource:
         return requested
 
     def __call__(self, name: str, shape: tuple[int, int]) -> np.ndarray:
-        from eval.depth import read_depth
+        from watergan.io import read_depth
 
         if self.kind == "truth":
             r = read_depth(self.truth_dir / name)
@@ -224,16 +232,16 @@ def _write_srgb8(path: Path, linear: np.ndarray) -> None:
     import cv2
 
     from eval.synth.io import quantise, srgb_encode
-    from pipeline.workspace import atomic_write_bytes
+    from watergan.io import atomic_write_bytes
 
     rgb = quantise(srgb_encode(linear), 8)
-    ok, data = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(rgb[..., ::-1]))
+    ok, data = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(rgb[..., ::-1]))  # the frame's own format
     if not ok:
         raise OSError(f"could not encode {path}")
     atomic_write_bytes(path, data.tobytes())
 
 
-def _missing(folder: Path, names: list[str]) -> list[str]:
+def missing_files(folder: Path, names: list[str]) -> list[str]:
     return [n for n in names if not (folder / n).is_file()]
 
 
@@ -279,7 +287,7 @@ def fidelity(folder: Path, truth_dir: Path, names: list[str]) -> tuple[float, fl
     return float(np.mean(psnr)), float(np.mean(ssim))
 
 
-def _ours_seconds(correct_dir: Path) -> float | None:
+def ours_seconds(correct_dir: Path) -> float | None:
     """Seconds per frame of ``watergan correct`` (its summary.json: wall time / frames corrected)."""
     for path in (correct_dir / "summary.json", correct_dir / "result.json"):
         if path.is_file():
@@ -291,7 +299,7 @@ def _ours_seconds(correct_dir: Path) -> float | None:
     return None
 
 
-def _example_frames(names: list[str], board, count: int) -> list[str]:
+def example_frames(names: list[str], board, count: int) -> list[str]:
     """The frame with the most visible board patches, then frames spread evenly over the rest."""
     if count <= 0 or not names:
         return []
@@ -417,7 +425,7 @@ def verdict_lines(metrics: list[tuple[str, dict[str, float], str]], methods: lis
     return losses + wins
 
 
-def _board_table(board_results: dict, methods: list[str], reference: tuple[str, ...]) -> dict:
+def board_table(board_results: dict, methods: list[str], reference: tuple[str, ...]) -> dict:
     columns = [m for m in [*methods, *reference] if m in board_results]
     names = [p.name for p in next(iter(board_results.values())).patches]
     rows = []
@@ -436,7 +444,7 @@ def _board_table(board_results: dict, methods: list[str], reference: tuple[str, 
                       f"{first.inset:.0%}.")
 
 
-def _consistency_table(result, methods: list[str], reference: tuple[str, ...]) -> dict:
+def consistency_table(result, methods: list[str], reference: tuple[str, ...]) -> dict:
     columns = [m for m in [*methods, *reference] if m in result.scores]
     rows = [{"label": ch, "values": [result.scores[m].variance[k] for m in columns], "better": "lower"}
             for k, ch in enumerate("RGB")]
@@ -493,7 +501,7 @@ class BaselineChunk:
     images: Path
     methods: tuple[str, ...]
     out_dir: Path
-    ranges: _RangeSource | None
+    ranges: RangeSource | None
     """Range per frame (plain data; the frames that fell back to a constant range are returned)."""
     coefficients: dict | None
     oracle_survey: Path | None
@@ -526,10 +534,10 @@ def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: P
     the seconds per frame of each method's correction alone.
 
     ``scheduler``: empty or None runs here, frame by frame; a Dask scheduler address or
-    ``distributed.Client`` sends ``chunk_size`` frames per task to the cluster (:mod:`pipeline.parallel`;
+    ``distributed.Client`` sends ``chunk_size`` frames per task to the cluster (:mod:`watergan.parallel`;
     folders on a file system the workers share; the oracle's geometry is rebuilt once per chunk). The
     files are the same either way. ``ranges.fallback`` lists the frames that had no usable range."""
-    from pipeline.parallel import chunks, is_distributed, map_tasks, shared_path
+    from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     needs_range = any(BASELINES[m].needs_range for m in methods)
     frame_ranges = ranges if needs_range else None
@@ -569,11 +577,12 @@ def _correct_frame(name: str, images: Path, methods: list[str], out_dir: Path, s
         _write_srgb8(out_dir / m / name, corrected)
 
 
-def _inputs(ws, cfg: EvaluateConfig, survey: Path, tracks, simulated: bool):
-    """(methods that can run, skipped method -> why, range source or None, Jaffe coefficients, oracle geometry)."""
+def method_inputs(cfg: EvaluateConfig, survey: Path, tracks, simulated: bool, dense_dir: Path | None):
+    """(methods that can run, skipped method -> why, range source or None, Jaffe coefficients, oracle geometry).
+    ``dense_dir``: the dense stage's depth maps, None when it did not run."""
     skipped: dict[str, str] = {}
-    range_kind = _RangeSource.choose(cfg.range_source, ws, survey)
-    ranges = _RangeSource(range_kind, ws, survey, tracks) if range_kind != "none" else None
+    range_kind = RangeSource.choose(cfg.range_source, dense_dir, survey)
+    ranges = RangeSource(range_kind, dense_dir, survey, tracks) if range_kind != "none" else None
     coefficients = None
     if "jaffe" in cfg.methods:
         if cfg.jaffe_stack:
@@ -602,7 +611,7 @@ def _inputs(ws, cfg: EvaluateConfig, survey: Path, tracks, simulated: bool):
     return methods, skipped, ranges, coefficients, geometry
 
 
-def _measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -> tuple[object, dict, str]:
+def measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -> tuple[object, dict, str]:
     """(board or None, method -> BoardResult, why there is none)."""
     from eval.colour import board_accuracy, load_board_json, truth_board
 
@@ -619,144 +628,3 @@ def _measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) 
         return board, {m: board_accuracy(p, board, cfg.board_inset) for m, p in folders.items()}, ""
     except UserInputError as exc:
         return board, {}, str(exc)
-
-
-def _depth_compare(ws, correct_dir: Path) -> str:
-    """Run the monocular-vs-stereo comparison when both depths exist and it was not run; '' or why it failed."""
-    from eval.depth import DepthCompareConfig, run_depth_compare
-
-    if (ws.root / "06_eval" / "depth" / "metrics.json").is_file():
-        return ""
-    if not (correct_dir / "depth").is_dir() or not (ws.root / "05_dense" / "depth").is_dir():
-        return ""
-    try:
-        run_depth_compare(ws, DepthCompareConfig(pred_dir=str(correct_dir / "depth")))
-    except UserInputError as exc:
-        return f"depth comparison failed: {exc}"
-    return ""
-
-
-def run_evaluate(ws, cfg: EvaluateConfig) -> EvaluateResult:
-    """Workspace stage (see the module docstring)."""
-    from eval.colour import consistency, observation_colours
-    from pipeline.sfm import Tracks, image_files
-    from pipeline.workspace import atomic_write_bytes, atomic_write_json, atomic_write_text
-
-    began = time.perf_counter()
-    unknown = [m for m in cfg.methods if m not in BASELINES]
-    if unknown:
-        raise UserInputError(f"unknown method(s) {unknown}; choose from {', '.join(BASELINES)}")
-    survey = Path(cfg.survey_dir) if cfg.survey_dir else ws.root / "00_survey"
-    images = Path(cfg.images_dir) if cfg.images_dir else survey / "images"
-    tracks = Tracks.load(ws.root / "04_sfm" / "tracks.npz")
-    names = [str(n) for n in tracks.image_names]  # the frames SfM ran on: what every method is measured on
-    image_files(images)
-    if _missing(images, names):
-        raise UserInputError(f"{images} lacks SfM images (e.g. {_missing(images, names)[0]}): give the folder "
-                             f"SfM ran on with --images")
-    simulated = (survey / "truth" / "effects.json").is_file()
-    out = ws.stage_dir("eval")
-    methods, skipped, ranges, coefficients, geometry = _inputs(ws, cfg, survey, tracks, simulated)
-    scheduler = cfg.scheduler or None
-    per_frame: dict[str, float | None] = run_baselines(names, images, methods, out / "baselines", ranges,
-                                                       coefficients, geometry, scheduler, progress=cfg.progress)
-    folders = {m: out / "baselines" / m for m in methods}
-
-    correct_dir = Path(cfg.ours_dir).parent if cfg.ours_dir else ws.root / "03_correct"
-    ours_dir = Path(cfg.ours_dir) if cfg.ours_dir else correct_dir / "images"
-    if not ours_dir.is_dir():
-        skipped[OURS] = f"no corrected images in {ours_dir} (run `watergan correct` into 03_correct)"
-    elif _missing(ours_dir, names):
-        skipped[OURS] = (f"{ours_dir} lacks {len(_missing(ours_dir, names))} of the SfM images "
-                         f"(e.g. {_missing(ours_dir, names)[0]})")
-    else:
-        folders[OURS] = ours_dir
-        per_frame[OURS] = _ours_seconds(correct_dir)
-    methods = [m for m in [*methods, OURS] if m != "oracle" and m in folders] + \
-        (["oracle"] if "oracle" in folders else [])
-    reference: tuple[str, ...] = ()
-    if simulated and (survey / "truth" / "inair").is_dir():
-        folders[INAIR] = survey / "truth" / "inair"
-        reference = (INAIR,)
-    folders = {m: folders[m] for m in [*methods, *reference]}
-
-    # measurements on the same points, observations and board for every method
-    colours = {m: observation_colours(tracks, p, cfg.patch_px, progress=cfg.progress, scheduler=scheduler)
-               for m, p in folders.items()}  # sampled once for both
-    cons = consistency(tracks, folders, cfg.patch_px, cfg.min_views, colours=colours)
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in
-                                   point_variances(tracks, folders, cfg.patch_px, cfg.min_views, colours).items()})
-    atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
-    board, board_results, board_note = _measure_board(cfg, survey, folders)
-    fid = {m: fidelity(folders[m], folders[INAIR], names) for m in methods} if reference else {}
-    depth_note = _depth_compare(ws, correct_dir)
-    if depth_note:
-        skipped["depth comparison"] = depth_note
-
-    tables = [_board_table(board_results, methods, reference) if board_results else
-              make_table("table1", "Table I: colour-board accuracy", [], [], status=f"not measured: {board_note}"),
-              _consistency_table(cons, methods, reference), restorer_table(ws.root / "02_restorer")]
-    if fid:
-        tables.append(make_table("fidelity", "Fidelity against the in-air truth (higher is better)", methods, [
-            {"label": "PSNR (dB)", "values": [fid[m][0] for m in methods], "better": "higher"},
-            {"label": "SSIM", "values": [fid[m][1] for m in methods], "better": "higher"}], "row",
-            note=f"sRGB-encoded frames against truth/inair, mean over {len(names)} frames. Methods that cannot "
-                 f"know the exposure (all but Jaffe-McGlamery and the oracle) are not rescaled."))
-    else:
-        tables.append(make_table("fidelity", "Fidelity against the in-air truth", [], [],
-                                 status="not measured: not a simulated survey (no truth/inair)"))
-    tables.append(depth_table(out / "depth"))
-    tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
-        {"label": "seconds per frame", "values": [per_frame.get(m) for m in methods], "better": "lower"}], "row",
-        note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "
-             "`watergan correct`'s wall time per corrected frame, model loading and files included."))
-
-    metrics = []
-    if board_results:
-        metrics += [("mean board distance", {m: board_results[m].mean_distance for m in methods}, "lower"),
-                    ("mean board CIEDE2000", {m: board_results[m].mean_ciede2000 for m in methods}, "lower")]
-    metrics += [(f"{ch} consistency", {m: cons.scores[m].variance[k] for m in methods}, "lower")
-                for k, ch in enumerate("RGB")]
-    if fid:
-        metrics += [("PSNR", {m: fid[m][0] for m in methods}, "higher"),
-                    ("SSIM", {m: fid[m][1] for m in methods}, "higher")]
-    verdict = verdict_lines(metrics, methods)
-    if OURS in skipped:
-        verdict.insert(0, f"ours not measured: {skipped[OURS]}")
-    elif board_results and "oracle" in board_results:
-        ratio = board_results[OURS].mean_distance / max(board_results["oracle"].mean_distance, 1e-12)
-        verdict.append(f"ours' mean board distance is {ratio:.2f}x the oracle's "
-                       f"({'within' if ratio <= 2 else 'more than'} 2x)")
-    sfm = ws.load_result("sfm") or {}
-    if ranges is not None and ranges.kind == "dense" and sfm.get("result", {}).get("scale_method") == "none":
-        verdict.append("the dense depth is not metric (SfM found no scale): Jaffe-McGlamery's coefficients (1/m) "
-                       "and Sea-thru's fitted ones are in survey units")
-    if ranges is not None and ranges.fallback:
-        verdict.append(f"{len(ranges.fallback)} frames had no {ranges.kind} range; the range baselines used a "
-                       f"constant range there (the frame's median SfM depth)")
-    verdict += [f"{LABELS.get(m, m)} not run: {why}" for m, why in skipped.items() if m != OURS]
-
-    range_kind = ranges.kind if ranges is not None else "none"
-    examples = _example_frames(names, board, cfg.example_frames)
-    data = {"methods": methods, "labels": {m: LABELS.get(m, m) for m in [*methods, *reference]},
-            "reference": list(reference), "folders": {m: _maybe_relative(ws, p) for m, p in folders.items()},
-            "skipped": skipped, "range_source": range_kind, "simulated": simulated, "example_frames": examples,
-            "tables": tables, "verdict": verdict}
-    atomic_write_json(out / "tables.json", data)
-    md = ["# Evaluation", "", f"Methods: {', '.join(LABELS.get(m, m) for m in methods)}; range from {range_kind}.",
-          ""] + [table_markdown(t) for t in tables] + ["## Verdict", ""] + [f"- {line}" for line in verdict]
-    atomic_write_text(out / "tables.md", "\n".join(md) + "\n")
-    return EvaluateResult(
-        tables_json=ws.relative(out / "tables.json"), tables_md=ws.relative(out / "tables.md"),
-        baselines_dir=ws.relative(out / "baselines"), methods=methods, skipped=skipped, range_source=range_kind,
-        mean_board_distance={m: r.mean_distance for m, r in board_results.items()},
-        consistency_variance={m: s.variance for m, s in cons.scores.items()}, verdict=verdict,
-        example_frames=examples, seconds=time.perf_counter() - began)
-
-
-def _maybe_relative(ws, path: Path) -> str:
-    try:
-        return ws.relative(path)
-    except ValueError:
-        return str(Path(path).resolve())

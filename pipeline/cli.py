@@ -1,7 +1,7 @@
 """The `watergan` console script.
 
     watergan effects                      list every registered effect, its parameters and signature
-    watergan simulate --out DIR [--preset demo|tiny] [--hidden NAME[,NAME]] [--seed N] [--force]
+    watergan simulate --out DIR [--preset demo|tiny|small] [--hidden NAME[,NAME]] [--seed N] [--force]
     watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py)
     watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
     watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
@@ -10,7 +10,9 @@
     watergan diagnose / ledger            the discovery loop (see pipeline/cli_diagnose.py)
     watergan evaluate / report            baselines, tables and the HTML report (see pipeline/cli_report.py)
 
-Every command takes ``--plugin FILE.py`` (repeatable) to register a user's own effects first.
+Every command takes ``--plugin FILE.py`` (repeatable) to register a user's own effects first. The
+options of each command are generated from its configuration dataclass (:mod:`pipeline.cliargs`):
+``watergan COMMAND --help`` lists them with their defaults and the fields' docstrings.
 """
 
 from __future__ import annotations
@@ -19,9 +21,11 @@ import argparse
 import sys
 import time
 import zlib  # noqa: F401  load before pycolmap: importing pycolmap first makes Python's zlib corrupt the heap
+from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 
-from .cliargs import name_list
+from .cliargs import add_config, config_from_args
 
 PLUGIN_HELP = "a Python file that registers effects with @watergan.formation.register (repeatable)"
 
@@ -45,25 +49,49 @@ def cmd_effects(args: argparse.Namespace) -> int:
     return 0
 
 
-def _simulate(out: Path, preset: str, hidden: list[str], seed: int, force: bool) -> int:
+class Preset(StrEnum):
+    """The simulator's built-in surveys (eval.synth.presets)."""
+
+    demo = "demo"
+    tiny = "tiny"
+    small = "small"
+
+
+@dataclass(frozen=True)
+class SimulateOptions:
+    """``watergan simulate``."""
+
+    out: Path
+    """Output folder (must not exist or be empty, unless --force)."""
+    preset: Preset = Preset.demo
+    """demo: 44 stereo frames of 640x480; tiny: a few small frames for tests; small: 10 frames of 320x240."""
+    hidden: tuple[str, ...] = ()
+    """Effects applied to the images but left out of the visible model."""
+    seed: int = 0
+    """Random seed (same seed: same bytes)."""
+    force: bool = False
+    """Replace an existing output folder."""
+
+
+def simulate(opts: SimulateOptions) -> int:
     from eval.synth import make_config, simulate_survey
     from watergan.formation import get
 
-    for name in hidden:
+    for name in opts.hidden:
         get(name)  # unknown names fail here, before any rendering
-    config = make_config(preset, hidden=hidden, seed=seed)
+    config = make_config(opts.preset.value, hidden=list(opts.hidden), seed=opts.seed)
     start = time.perf_counter()
-    summary = simulate_survey(out, config, force=force)
+    summary = simulate_survey(opts.out, config, force=opts.force)
     seconds = time.perf_counter() - start
     print(f"simulated {summary.frames} frames of {summary.width}x{summary.height} "
-          f"({preset}, hidden: {', '.join(hidden) or 'none'}, seed {seed}) in {seconds:.1f} s")
-    print(f"survey:  {out / 'images'}  (what a user has: images, camera.json, survey.json, rgbd/)")
-    print(f"truth:   {out / 'truth'}  (in-air images, depth, range, poses, effects incl. hidden, board)")
+          f"({opts.preset.value}, hidden: {', '.join(opts.hidden) or 'none'}, seed {opts.seed}) in {seconds:.1f} s")
+    print(f"survey:  {opts.out / 'images'}  (what a user has: images, camera.json, survey.json, rgbd/)")
+    print(f"truth:   {opts.out / 'truth'}  (in-air images, depth, range, poses, effects incl. hidden, board)")
     return 0
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    return _simulate(Path(args.out), args.preset, name_list(args.hidden), args.seed, args.force)
+    return simulate(config_from_args(SimulateOptions, args))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,13 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_effects)
 
     p = sub.add_parser("simulate", parents=[plugin], help="render a simulated survey with known truth")
-    p.add_argument("--out", required=True, help="output folder (must not exist or be empty, unless --force)")
-    p.add_argument("--preset", choices=["demo", "tiny", "small"], default="demo",
-                   help="demo: 44 frames of 640x480; tiny: a few small frames for tests")
-    p.add_argument("--hidden", default="", metavar="NAME[,NAME]",
-                   help="effects applied to the images but left out of the visible model")
-    p.add_argument("--seed", type=int, default=0, help="random seed (same seed: same bytes)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_config(p, SimulateOptions)
     p.set_defaults(func=cmd_simulate)
 
     from . import cli_3d, cli_diagnose, cli_gan, cli_report, cli_restorer, cli_run

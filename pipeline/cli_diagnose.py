@@ -1,7 +1,8 @@
-"""The diagnosis commands of the `watergan` console script.
+"""The diagnosis commands of the `watergan` console script (options:
+:class:`eval.diagnose.DiagnoseConfig`, nested ones prefixed: ``--measure-n-points``, ``--fit-iterations``).
 
-    watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|truth|sfm] [--effects A,B,...] [--add NAME]
-                      [--candidates A,B,...] [--points N] [--iterations N] [--seed N] [--no-plots]
+    watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|truth|sfm] [--effects A,B,...] [--add NAME[,NAME]]
+                      [--candidates A,B,...] [--measure-n-points N] [--fit-iterations N] [--no-plots] [--force]
     watergan ledger WORKSPACE
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``; ``--plugin FILE.py`` (from the
@@ -12,23 +13,18 @@ from __future__ import annotations
 
 import argparse
 
-from .cliargs import name_list
+from .cliargs import add_config, config_from_args
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from eval.diagnose import DiagnoseConfig, run_diagnose
-    from eval.diagnose_fit import FitConfig
-    from eval.diagnose_measure import MeasureConfig
+    from eval.diagnose import DiagnoseConfig
+    from pipeline.diagnose import run_diagnose
     from watergan.formation import get
 
-    effects, add, candidates = name_list(args.effects), args.add, name_list(args.candidates)
-    for name in (*effects, *add, *candidates):
+    config = config_from_args(DiagnoseConfig, args)
+    for name in (*config.effects, *config.add, *config.candidates):
         get(name)  # unknown names fail before any data is read
-    config = DiagnoseConfig(geometry=args.geometry, effects=tuple(effects), add=tuple(add),
-                            candidates=tuple(candidates),
-                            measure=MeasureConfig(n_points=args.points, seed=args.seed),
-                            fit=FitConfig(iterations=args.iterations, seed=args.seed), plots=not args.no_plots)
-    result = run_diagnose(args.target, config)
+    result = run_diagnose(args.target, config, force=args.force)
     print(f"model: {' -> '.join(result.stack)}")
     print(f"{result.n_points} points, {result.n_obs} observations (geometry: {result.geometry}); "
           f"held-out RMSE {result.heldout_rmse:.5f} (linear)")
@@ -63,26 +59,15 @@ def cmd_ledger(args: argparse.Namespace) -> int:
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``diagnose`` and ``ledger`` to the subparsers ``sub``."""
+    from eval.diagnose import DiagnoseConfig
+
     p = sub.add_parser("diagnose", parents=parents,
                        help="fit the formation model to multi-view measurements and name the missing effect")
     p.add_argument("target", metavar="WORKSPACE_OR_SURVEY",
-                   help="a workspace (its 00_survey/ is used, output in 08_diagnose/) or a survey folder "
+                   help="a workspace (its survey; output in its diagnose stage's folder) or a survey folder "
                         "(output in SURVEY/diagnose/)")
-    p.add_argument("--geometry", choices=("auto", "truth", "sfm"), default="auto",
-                   help="3D points and views from the workspace's SfM tracks (sfm), the simulator's truth (truth), "
-                        "or auto: sfm when WORKSPACE/04_sfm/tracks.npz exists, else truth (default)")
-    p.add_argument("--effects", default="", metavar="A,B,...",
-                   help="the model's effects (default: the survey's visible stack when simulated, else "
-                        "attenuation,backscatter,vignetting,gain)")
-    p.add_argument("--add", action="append", default=[], metavar="NAME",
-                   help="add an effect to the model (repeatable; placed by its rank): the next model version")
-    p.add_argument("--candidates", default="", metavar="A,B,...",
-                   help="candidate effects to try (default: every registered effect that can act on points)")
-    p.add_argument("--points", type=int, default=3000, help="3D points to sample (default 3000)")
-    p.add_argument("--iterations", type=int, default=100,
-                   help="L-BFGS iterations per fit, albedos projected out (default 100)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the point sampling and held-out split")
-    p.add_argument("--no-plots", action="store_true", help="skip the residual plots and PLY")
+    p.add_argument("--force", action="store_true", help="rerun in a workspace even when done with the same options")
+    add_config(p, DiagnoseConfig)
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("ledger", parents=parents, help="print the model ledger and plot the error per model version")

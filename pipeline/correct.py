@@ -17,7 +17,7 @@ or truncated image is reported and skipped. Every file is written atomically; th
 not be (or contain) the input folder's files.
 
 With ``scheduler`` (a Dask scheduler address, ``tcp://HOST:8786``) the images still to do are sent in
-chunks to the cluster's workers (:mod:`pipeline.parallel`), each chunk corrected with the model loaded
+chunks to the cluster's workers (:mod:`watergan.parallel`), each chunk corrected with the model loaded
 once on its worker (CUDA when the worker has it) and written to the shared file system; the files are
 the ones a local run writes.
 """
@@ -45,8 +45,8 @@ from watergan.data import (
     read_image,
     read_nav_altitudes,
 )
+from watergan.device import pick_device
 from watergan.nets.restorer import restore
-from watergan.train import pick_device
 from watergan.train_restorer import load_restorer
 
 SUMMARY = "summary.json"
@@ -171,11 +171,11 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     ``scheduler``: empty or None corrects here, in one pass with the model loaded once; a Dask scheduler
     address (``tcp://HOST:8786``) or ``distributed.Client`` sends chunks of ``chunk_size`` images (rounded up
     to a multiple of ``batch_size``) to the cluster's workers, each loading the model once per chunk and
-    writing to ``out_dir`` on the shared file system (:mod:`pipeline.parallel`). Same files either way.
+    writing to ``out_dir`` on the shared file system (:mod:`watergan.parallel`). Same files either way.
 
     ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
     ``images_dir``), read only for a restorer trained with ``altitude``."""
-    from pipeline.parallel import chunks, is_distributed, map_tasks, shared_path
+    from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     began = time.perf_counter()
     images_dir, out = Path(images_dir), Path(out_dir)
@@ -236,3 +236,65 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                "failed": len(result.failed), "failed_files": result.failed, "seconds": round(result.seconds, 3)}
     atomic_write_bytes(out / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
     return result
+
+
+@dataclass(frozen=True)
+class CorrectStage:
+    """The workspace's correct stage: every survey frame through the restorer the restorer stage trained."""
+
+    images_dir: str = ""
+    """Frames to correct; empty: the survey's images."""
+    batch_size: int = 4
+    """Images per batch."""
+    scheduler: str = field(default="", metadata={"hash": False})
+    """Dask scheduler address (tcp://HOST:8786) for the per-image work; empty: this machine."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Progress bars."""
+
+
+@dataclass
+class CorrectStageResult:
+    corrected: int
+    failed: list[str]
+    seconds: float
+    images: str
+    """Workspace-relative folder of the corrected frames."""
+    depth: str
+    """Workspace-relative folder of the relative depth maps."""
+    fps: float
+    """Frames per second, file I/O and model loading included."""
+
+
+def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
+    """Correct the survey's frames with the restorer stage's model into the stage's folder."""
+    restorer = ws.require("restorer", "correct")
+    images = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
+    out = ws.stage_dir("correct")
+    result = correct_folder(restorer.out_dir, images, out, force=True, batch_size=cfg.batch_size,
+                            progress=cfg.progress, scheduler=cfg.scheduler or None)
+    return CorrectStageResult(corrected=result.corrected, failed=result.failed, seconds=result.seconds,
+                              images=ws.relative(out / "images"), depth=ws.relative(out / "depth"),
+                              fps=result.corrected / max(result.seconds, 1e-9))
+
+
+@dataclass(frozen=True)
+class CorrectConfig:
+    """``watergan correct``: a folder of frames through a trained restorer (see :func:`correct_folder`)."""
+
+    model_dir: Path
+    """The train-restorer output folder."""
+    images_dir: Path
+    """Folder of images to correct (PNG, JPEG, TIFF)."""
+    out_dir: Path
+    """Output folder (images/, depth/, summary.json)."""
+    navigation: Path | None = None
+    """Survey file with nav_altitude_m per frame, for a restorer that takes altitude (default: survey.json
+    beside the images folder)."""
+    force: bool = False
+    """Redo images already corrected."""
+    batch_size: int = 4
+    """Images per batch."""
+    device: str = "auto"
+    """auto: CUDA when available, else CPU; or cpu, cuda."""
+    scheduler: str = ""
+    """Dask scheduler address (tcp://HOST:8786) to run the per-image work on its workers (shared file system)."""

@@ -55,11 +55,28 @@ import shutil
 import time
 import zlib  # noqa: F401  must load before pycolmap (see pipeline.sfm)
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 
 from watergan.errors import UserInputError
+
+
+class DenseMethod(StrEnum):
+    """How the dense depth maps are computed."""
+
+    auto = "auto"
+    sgbm = "sgbm"
+    patch_match = "patch_match"
+
+
+class PairSource(StrEnum):
+    """Which frames pair for stereo."""
+
+    auto = "auto"
+    rig = "rig"
+    neighbours = "neighbours"
 
 
 @dataclass(frozen=True)
@@ -70,9 +87,9 @@ class DenseConfig:
     """Images to match (raw or corrected; same names as SfM's); empty: ``00_survey/images``."""
     right_dir: str = ""
     """The stereo rig's right frames; empty: ``right`` beside the images folder when it exists."""
-    method: str = "auto"
+    method: DenseMethod = DenseMethod.auto
     """'sgbm' (OpenCV, CPU), 'patch_match' (pycolmap, needs CUDA) or 'auto' (patch_match when pycolmap has CUDA)."""
-    pairs: str = "auto"
+    pairs: PairSource = PairSource.auto
     """'rig' (stereo rig pairs), 'neighbours' (SfM neighbours) or 'auto' (rig when present)."""
     target_baseline_ratio: float = 0.12
     """Neighbour pairs: preferred baseline / median sparse depth."""
@@ -260,7 +277,7 @@ def choose_neighbour(k: int, tracks, median_depth: float, cfg: DenseConfig,
                      rows: list[np.ndarray] | None = None) -> int | None:
     """The registered image whose baseline / median depth is nearest the target (within bounds),
     preferring images that share more sparse points with image k. ``rows``: per image, its observations'
-    indices (``pipeline.parallel.rows_by_label(tracks.obs_image, range(n_images))``), to avoid rescanning."""
+    indices (``watergan.parallel.rows_by_label(tracks.obs_image, range(n_images))``), to avoid rescanning."""
     def observations(i: int) -> np.ndarray:
         return rows[i] if rows is not None else np.flatnonzero(tracks.obs_image == i)
 
@@ -326,9 +343,9 @@ def pair_depth(job: PairJob) -> tuple[float, np.ndarray | None]:
 def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: DenseConfig,
                      baseline_m: float | None = None, right_dir: Path | None = None) -> DenseResult:
     """Depth maps for the registered images of ``tracks`` and their fusion (see module docstring). With
-    ``cfg.scheduler`` the per-image depth runs on that Dask cluster (:mod:`pipeline.parallel`); the
+    ``cfg.scheduler`` the per-image depth runs on that Dask cluster (:mod:`watergan.parallel`); the
     fusion runs here."""
-    from pipeline.parallel import map_tasks, rows_by_label, shared_path
+    from watergan.parallel import map_tasks, rows_by_label, shared_path
 
     start = time.perf_counter()
     images_dir, out_dir = Path(images_dir), Path(out_dir)
@@ -480,23 +497,23 @@ def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: P
 
 
 def run_dense(ws, cfg: DenseConfig) -> DenseResult:
-    """Workspace stage: tracks from ``04_sfm``; outputs in ``05_dense``."""
-    from pipeline.sfm import Tracks
+    """Workspace stage: tracks and model from the sfm stage's result; outputs in the stage's folder."""
+    from eval.tracks import Tracks
 
     method = dense_method(cfg.method)
-    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
-    sfm_result = (ws.load_result("sfm") or {}).get("result", {})
+    sfm = ws.require("sfm", "dense")
+    tracks = Tracks.load(ws.path(sfm.tracks))
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     right_dir = Path(cfg.right_dir) if cfg.right_dir else images_dir.parent / "right"
     if method == "patch_match":
-        result = run_patch_match_folder(tracks, ws.stage_dir("sfm") / "sparse", images_dir, ws.stage_dir("dense"), cfg)
+        result = run_patch_match_folder(tracks, ws.path(sfm.model_dir), images_dir, ws.stage_dir("dense"), cfg)
         result.depth_dir = ws.relative(result.depth_dir)
         if result.points_ply:
             result.points_ply, result.mesh_ply = ws.relative(result.points_ply), ws.relative(result.mesh_ply)
         return result
     camera_path = images_dir.parent / "camera.json"
     baseline_m = json.loads(camera_path.read_text()).get("baseline_m") if camera_path.is_file() else None
-    if baseline_m and cfg.pairs != "neighbours" and sfm_result.get("scale_method") == "none":
+    if baseline_m and cfg.pairs != "neighbours" and sfm.scale_method == "none":
         raise UserInputError("the SfM model has no metric scale, so the rig baseline cannot be placed in it: "
                              "rerun sfm with --scale stereo/altitude or use --pairs neighbours")
     result = run_dense_folder(tracks, images_dir, ws.stage_dir("dense"), cfg, baseline_m,

@@ -43,11 +43,28 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 
 from watergan.errors import UserInputError
+
+
+class PointSource(StrEnum):
+    """Points the mesh is built from."""
+
+    auto = "auto"
+    dense = "dense"
+    sparse = "sparse"
+
+
+class MeshKind(StrEnum):
+    """Kind of mesh."""
+
+    auto = "auto"
+    height_field = "2.5d"
+    tsdf = "tsdf"
 
 
 @dataclass(frozen=True)
@@ -56,7 +73,7 @@ class MeshConfig:
 
     images_dir: str = ""
     """Images that colour the texture (raw or corrected; SfM's names); empty: ``00_survey/images``."""
-    source: str = "auto"
+    source: PointSource = PointSource.auto
     """Points to mesh: 'dense' (05_dense/fused_points.ply), 'sparse' (SfM points) or 'auto' (dense when present)."""
     cell_m: float = 0.0
     """Height-field grid cell, survey units (metres when scaled); 0: automatic (about 150 cells across)."""
@@ -68,7 +85,7 @@ class MeshConfig:
     (image -> texture -> view): on the demo survey the render-back PSNR drops from ~32.6 to ~27 dB."""
     blend_power: float = 8.0
     """Exponent p of the view weight (1 - rho^2)^p."""
-    mesh_kind: str = "auto"
+    mesh_kind: MeshKind = MeshKind.auto
     """'2.5d' (height-field Delaunay, planar UVs), 'tsdf' (the dense stage's fused mesh, xatlas UVs) or
     'auto' (tsdf when the points are not a height field and a fused mesh exists)."""
     height_field_fraction: float = 0.8
@@ -245,7 +262,7 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
 
 def write_world_file(path: Path, texel_m: float, upper_left_centre_xy: tuple[float, float]) -> None:
     """ESRI world file: A (x size), D, B (rotation, 0), E (-y size), C, F (upper-left texel centre)."""
-    from pipeline.workspace import atomic_write_text
+    from watergan.io import atomic_write_text
 
     x, y = upper_left_centre_xy
     atomic_write_text(path, f"{texel_m:.10f}\n0.0\n0.0\n{-texel_m:.10f}\n{x:.10f}\n{y:.10f}\n")
@@ -268,7 +285,7 @@ def export_textured(vertices: np.ndarray, faces: np.ndarray, uv_image: np.ndarra
     import trimesh
     from PIL import Image
 
-    from pipeline.workspace import atomic_write_bytes
+    from watergan.io import atomic_write_bytes
 
     image = Image.fromarray(texture)
     h, w = texture.shape[:2]
@@ -477,7 +494,7 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     """Mesh, texture, exports and mosaic (see the module docstring)."""
     import cv2
 
-    from pipeline.workspace import atomic_write_bytes
+    from watergan.io import atomic_write_bytes
 
     start = time.perf_counter()
     images_dir, out_dir = Path(images_dir), Path(out_dir)
@@ -528,14 +545,15 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
 
 
 def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
-    """Workspace stage: tracks from ``04_sfm``, dense points from ``05_dense``; outputs in ``07_mesh``."""
-    from pipeline.sfm import Tracks
+    """Workspace stage: tracks from the sfm stage, fused points and mesh from the dense stage when it ran;
+    outputs in the stage's folder."""
+    from eval.tracks import Tracks
 
-    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
+    tracks = Tracks.load(ws.path(ws.require("sfm", "mesh").tracks))
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
-    dense = ws.stage_dir("dense")
-    result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, dense / "fused_points.ply",
-                             dense / "fused_mesh.ply")
+    dense = ws.result("dense")
+    points, mesh = (ws.path(dense.points_ply), ws.path(dense.mesh_ply)) if dense and dense.points_ply else (None, None)
+    result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, points, mesh)
     for name in ("glb", "obj", "ply", "mosaic_png", "world_file"):
         setattr(result, name, ws.relative(getattr(result, name)))
     return result

@@ -38,14 +38,33 @@ import shutil
 import time
 import zlib  # noqa: F401  must load before pycolmap: pycolmap first makes Python's zlib corrupt the heap
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 
+from eval.tracks import Tracks
 from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
+from watergan.io import image_files, read_camera_json
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+class Matching(StrEnum):
+    """Feature matching of SfM."""
+
+    auto = "auto"
+    sequential = "sequential"
+    exhaustive = "exhaustive"
+
+
+class ScaleSource(StrEnum):
+    """Where SfM's metric scale comes from."""
+
+    auto = "auto"
+    stereo = "stereo"
+    board = "board"
+    altitude = "altitude"
+    none = "none"
 
 
 @dataclass(frozen=True)
@@ -59,7 +78,7 @@ class SfmConfig:
     ``camera.json`` beside the images folder. Missing file: intrinsics are estimated."""
     fix_intrinsics: bool = True
     """Hold the known PINHOLE intrinsics fixed (True) or refine them in bundle adjustment."""
-    matching: str = "auto"
+    matching: Matching = Matching.auto
     """'sequential' (ordered sequence, quadratic overlap), 'exhaustive' (all pairs), or 'auto':
     exhaustive up to ``exhaustive_max_images`` images, else sequential."""
     sequential_overlap: int = 10
@@ -74,7 +93,7 @@ class SfmConfig:
     wide baselines; seafloor surveys at 80 % overlap have about 10 degrees between neighbours)."""
     min_registered_fraction: float = 0.5
     """Fewer registered images than this fraction of all images is an error."""
-    scale: str = "auto"
+    scale: ScaleSource = ScaleSource.auto
     """Metric scale from 'stereo', 'board' (known board size), 'altitude' (navigation), 'none', or 'auto'
     (stereo, else board when ``board_json`` is given, else altitude, else none)."""
     board_json: str = ""
@@ -119,84 +138,6 @@ class SfmResult:
     """Median absolute deviation / median of the per-sample scale estimates (0 for 'none')."""
     seconds: float
     """Wall time of the stage."""
-
-
-@dataclass
-class Tracks:
-    """The sparse reconstruction as arrays (the contents of ``tracks.npz``). Image index k refers to
-    ``image_names[k]``; unregistered images have ``registered[k] = False`` and a NaN pose."""
-
-    image_names: np.ndarray
-    """(N,) file names in the images folder, sorted."""
-    registered: np.ndarray
-    """(N,) bool."""
-    world_from_cam: np.ndarray
-    """(N,4,4) camera-to-world poses in the survey frame (OpenCV camera axes: x right, y down, z forward)."""
-    K: np.ndarray
-    """(3,3) pinhole intrinsics, OpenCV pixel convention."""
-    width: int
-    height: int
-    point_id: np.ndarray
-    """(P,) COLMAP point3D id."""
-    xyz: np.ndarray
-    """(P,3) point positions, survey frame (metres when scaled)."""
-    rgb: np.ndarray
-    """(P,3) uint8 colour COLMAP extracted from the raw images."""
-    obs_point: np.ndarray
-    """(M,) row of the observed point in ``xyz``."""
-    obs_image: np.ndarray
-    """(M,) index of the observing image."""
-    obs_xy: np.ndarray
-    """(M,2) pixel position of the observation (OpenCV convention), float32."""
-
-    def save(self, path: str | Path) -> None:
-        import io
-
-        from pipeline.workspace import atomic_write_bytes
-
-        buffer = io.BytesIO()
-        np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in self.__dict__.items()})
-        atomic_write_bytes(Path(path), buffer.getvalue())
-
-    @classmethod
-    def load(cls, path: str | Path) -> Tracks:
-        path = Path(path)
-        if not path.is_file():
-            raise UserInputError(f"no sparse tracks at {path}: run the sfm stage first")
-        with np.load(path, allow_pickle=False) as data:
-            values = {k: data[k] for k in data.files}
-        values["width"], values["height"] = int(values["width"]), int(values["height"])
-        return cls(**values)
-
-    def track_lengths(self) -> np.ndarray:
-        """(P,) observations per point."""
-        return np.bincount(self.obs_point, minlength=len(self.xyz))
-
-    def depths(self) -> np.ndarray:
-        """(M,) camera z of each observation's point in its image, p_c = R^T (p_w - t)."""
-        pose = self.world_from_cam[self.obs_image]
-        rel = self.xyz[self.obs_point] - pose[:, :3, 3]
-        return np.einsum("mi,mi->m", rel, pose[:, :3, 2])
-
-
-def image_files(folder: Path) -> list[str]:
-    """Sorted image file names in a folder (clear error when there are none)."""
-    if not folder.is_dir():
-        raise UserInputError(f"image folder {folder} does not exist")
-    names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if not names:
-        raise UserInputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
-    return names
-
-
-def read_camera_json(path: Path) -> dict | None:
-    if not path.is_file():
-        return None
-    cam = json.loads(path.read_text())
-    missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
-    if missing:
-        raise UserInputError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height")
-    return cam
 
 
 def _pose_matrix(image) -> np.ndarray:
@@ -380,19 +321,42 @@ def _build_tracks(rec, names: list[str], K: np.ndarray, width: int, height: int)
 
 
 def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) -> SfmResult:
-    """SfM on a folder of images; outputs in ``out_dir`` (see the module docstring)."""
-    import pycolmap
-
+    """SfM on a folder of images; outputs in ``out_dir`` (see the module docstring): features, matches,
+    incremental mapping, the survey frame and scale, then the model and tracks written."""
     start = time.perf_counter()
     images_dir, out_dir = Path(images_dir), Path(out_dir)
-    names = image_files(images_dir)
-    survey_root = images_dir.parent
-    cam = read_camera_json(Path(cfg.camera_json) if cfg.camera_json else survey_root / "camera.json")
-    if len(names) < 3:
-        raise UserInputError(f"{images_dir} holds {len(names)} images; SfM needs at least 3 overlapping images")
-
+    names, cam = _sfm_inputs(images_dir, cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     database = out_dir / "database.db"
+    _extract_features(database, images_dir, names, cam, cfg)
+    matching = _match_features(database, names, cfg)
+    raw_dir = out_dir / "colmap_raw"
+    rec, n_reg = _map_incrementally(database, images_dir, raw_dir, names, cam, cfg)
+    tracks, method, scale, spread = _to_survey_frame(rec, names, images_dir, cam, cfg)
+    model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)
+    return SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
+                     n_registered=n_reg, n_points=len(tracks.xyz),
+                     mean_track_length=float(rec.compute_mean_track_length()),
+                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+                     matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
+                     seconds=time.perf_counter() - start)
+
+
+def _sfm_inputs(images_dir: Path, cfg: SfmConfig) -> tuple[list[str], dict | None]:
+    """The folder's image names (at least 3) and the camera (``cfg.camera_json``, else ``camera.json`` beside
+    the folder; None: none)."""
+    names = image_files(images_dir)
+    cam = read_camera_json(Path(cfg.camera_json) if cfg.camera_json else images_dir.parent / "camera.json")
+    if len(names) < 3:
+        raise UserInputError(f"{images_dir} holds {len(names)} images; SfM needs at least 3 overlapping images")
+    return names, cam
+
+
+def _extract_features(database: Path, images_dir: Path, names: list[str], cam: dict | None, cfg: SfmConfig) -> None:
+    """SIFT features (at most ``max_features`` per image, seeded) into a new ``database``: one PINHOLE camera
+    from ``cam`` (COLMAP's pixel-centre convention), else one SIMPLE_RADIAL camera to estimate."""
+    import pycolmap
+
     database.unlink(missing_ok=True)
     if cam is not None:
         reader = pycolmap.ImageReaderOptions(
@@ -406,6 +370,12 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
     pycolmap.extract_features(database, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
 
+
+def _match_features(database: Path, names: list[str], cfg: SfmConfig) -> str:
+    """Match the database's features, exhaustively or sequentially (``cfg.matching``; "auto": exhaustive up
+    to ``exhaustive_max_images``); returns the matching used."""
+    import pycolmap
+
     matching = cfg.matching
     if matching == "auto":
         matching = "exhaustive" if len(names) <= cfg.exhaustive_max_images else "sequential"
@@ -416,6 +386,15 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
         pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
     else:
         raise UserInputError(f"matching must be 'auto', 'sequential' or 'exhaustive', not '{cfg.matching}'")
+    return matching
+
+
+def _map_incrementally(database: Path, images_dir: Path, raw_dir: Path, names: list[str], cam: dict | None,
+                       cfg: SfmConfig):
+    """Incremental mapping (seeded; intrinsics held when known and ``fix_intrinsics``) into a fresh
+    ``raw_dir``; returns the model with the most registered images and their count (an error naming what
+    to try when fewer than ``min_registered_fraction`` of the images, or 3, are registered)."""
+    import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = cfg.seed
@@ -428,7 +407,6 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
     options.ba_refine_principal_point = False
     options.mapper.abs_pose_refine_focal_length = not fixed
     options.mapper.abs_pose_refine_extra_params = not fixed
-    raw_dir = out_dir / "colmap_raw"
     shutil.rmtree(raw_dir, ignore_errors=True)
     raw_dir.mkdir()
     models = pycolmap.incremental_mapping(database, images_dir, raw_dir, options)
@@ -439,36 +417,46 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
                 "a lower --init-min-tri-angle-deg, more features, or images with more overlap and texture")
         raise UserInputError(f"SfM registered only {n_reg} of {len(names)} images "
                              f"(need {max(3, int(np.ceil(cfg.min_registered_fraction * len(names))))}): {hint}")
+    return rec, n_reg
 
+
+def _camera_matrix(rec) -> tuple[np.ndarray, int, int]:
+    """The model's (first) camera as an OpenCV pinhole K (pixel centres at integers) and its width, height."""
     cam_model = rec.cameras[next(iter(rec.cameras))]
     fx, fy, cx, cy = (cam_model.focal_length_x, cam_model.focal_length_y,
                       cam_model.principal_point_x - 0.5, cam_model.principal_point_y - 0.5)
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-    tracks = _build_tracks(rec, names, K, cam_model.width, cam_model.height)
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), cam_model.width, cam_model.height
 
-    # survey frame, unscaled; then the scale
+
+def _to_survey_frame(rec, names: list[str], images_dir: Path, cam: dict | None,
+                     cfg: SfmConfig) -> tuple[Tracks, str, float, float]:
+    """Move ``rec`` into the survey frame (:func:`survey_frame`, from points seen in >= 3 views when there
+    are 10) and scale it (:func:`_choose_scale`); returns its tracks and the scale's method, factor and spread."""
+    import pycolmap
+
+    K, width, height = _camera_matrix(rec)
+    tracks = _build_tracks(rec, names, K, width, height)
     centres = tracks.world_from_cam[tracks.registered, :3, 3]
     good = tracks.track_lengths() >= 3
     R, origin = survey_frame(tracks.xyz[good] if good.sum() >= 10 else tracks.xyz, centres)
     rotated = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), -R @ origin)
     rec.transform(rotated)
-    tracks = _build_tracks(rec, names, K, cam_model.width, cam_model.height)
+    tracks = _build_tracks(rec, names, K, width, height)
     method, scale, spread = _choose_scale(cfg, tracks, images_dir, cam, good)
     rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
-    tracks = _build_tracks(rec, names, K, cam_model.width, cam_model.height)
+    return _build_tracks(rec, names, K, width, height), method, scale, spread
 
+
+def _write_sfm(rec, tracks: Tracks, out_dir: Path, raw_dir: Path) -> Path:
+    """Write ``sparse/`` (the COLMAP binary model) and ``tracks.npz``; remove the mapper's ``raw_dir``.
+    Returns the model folder."""
     model_dir = out_dir / "sparse"
     shutil.rmtree(model_dir, ignore_errors=True)
     model_dir.mkdir()
     rec.write_binary(str(model_dir))
     shutil.rmtree(raw_dir, ignore_errors=True)
     tracks.save(out_dir / "tracks.npz")
-    return SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
-                     n_registered=n_reg, n_points=len(tracks.xyz),
-                     mean_track_length=float(rec.compute_mean_track_length()),
-                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
-                     matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
-                     seconds=time.perf_counter() - start)
+    return model_dir
 
 
 def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None,

@@ -2,92 +2,45 @@
 
 ```
 WORKSPACE/
-  00_survey/  01_gan/  02_restorer/  03_correct/  04_sfm/  05_dense/  06_eval/  07_mesh/  08_diagnose/  report/
-  <stage>/config.json    the stage's configuration (a frozen dataclass, as JSON) and its hash
+  <stage folder>/        one per stage of the stage table (pipeline/stages.py): 00_survey/ 01_gan/ ...
+  <stage>/config.json    the stage's configuration (a frozen dataclass, as JSON), its upstream and hash
   <stage>/result.json    the stage's result: workspace-relative paths and summary numbers
 ```
 
-A stage whose ``result.json`` records the hash of the same configuration is finished and is
-skipped unless forced. Every file is written atomically (a temporary file renamed into place), so
-an interrupted run never leaves a half-written output that looks finished.
+A stage's hash covers its configuration and the hashes of the result records of the stages it
+reads (``reads`` in the stage table), so a standalone stage command (``watergan sfm``) and
+``watergan run`` recognise each other's results, and a rerun upstream reruns the stages after it.
+A stage whose ``result.json`` records the same hash is finished and is skipped unless forced.
+Every file is written atomically (a temporary file renamed into place), so an interrupted run
+never leaves a half-written output that looks finished.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
-import os
-import tempfile
-from collections.abc import Callable
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from watergan.errors import UserInputError
+from watergan.io import atomic_write_json, from_jsonable, to_jsonable
 
-STAGE_DIRS: dict[str, str] = {
-    "survey": "00_survey",
-    "gan": "01_gan",
-    "restorer": "02_restorer",
-    "correct": "03_correct",
-    "sfm": "04_sfm",
-    "dense": "05_dense",
-    "eval": "06_eval",
-    "mesh": "07_mesh",
-    "diagnose": "08_diagnose",
-    "report": "report",
-}
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def _jsonable(value: Any, for_hash: bool = False) -> Any:
-    """Dataclasses as dicts, paths as strings; ``for_hash`` leaves out dataclass fields marked
-    ``metadata={"hash": False}`` (where work runs, progress bars: not what a stage computes)."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name), for_hash) for f in dataclasses.fields(value)
-                if not (for_hash and f.metadata.get("hash") is False)}
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v, for_hash) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v, for_hash) for v in value]
-    return value
-
-
-def atomic_write_json(path: Path, value: Any) -> None:
-    """JSON (dataclasses and paths converted) with sorted keys: the same value gives the same bytes."""
-    atomic_write_text(path, json.dumps(_jsonable(value), indent=2, sort_keys=True) + "\n")
-
+if TYPE_CHECKING:
+    from .stages import Stage
 
 def config_hash(config: Any) -> str:
     """SHA-256 (first 16 hex digits) of the configuration's canonical JSON (fields marked
     ``metadata={"hash": False}`` left out)."""
-    text = json.dumps(_jsonable(config, for_hash=True), sort_keys=True, separators=(",", ":"))
+    text = json.dumps(to_jsonable(config, for_hash=True), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
 class Workspace:
-    """A run folder. ``Workspace(path)`` creates it when missing."""
+    """A run folder. ``Workspace(path)`` creates it when missing. ``stages`` is the stage table
+    (default: :data:`pipeline.stages.STAGES`; a test may give its own)."""
 
-    def __init__(self, root: str | Path) -> None:
+    def __init__(self, root: str | Path, stages: Mapping[str, Stage] | None = None) -> None:
         self.root = Path(root)
         if self.root.exists() and not self.root.is_dir():
             raise UserInputError(f"workspace {self.root} exists and is not a folder: choose another path")
@@ -96,11 +49,17 @@ class Workspace:
         except OSError as exc:
             raise UserInputError(f"cannot create workspace {self.root}: {exc.strerror}; "
                                  f"choose a folder you can write to") from exc
+        if stages is None:
+            from .stages import STAGES as stages
+        self.stages = stages
+
+    def stage(self, name: str) -> Stage:
+        if name not in self.stages:
+            raise KeyError(f"unknown stage '{name}'; stages: {', '.join(self.stages)}")
+        return self.stages[name]
 
     def stage_dir(self, stage: str) -> Path:
-        if stage not in STAGE_DIRS:
-            raise KeyError(f"unknown stage '{stage}'; stages: {', '.join(STAGE_DIRS)}")
-        path = self.root / STAGE_DIRS[stage]
+        path = self.root / self.stage(stage).folder
         path.mkdir(parents=True, exist_ok=True)
         return path
 
@@ -112,30 +71,55 @@ class Workspace:
         """The workspace-relative form of a path inside the workspace."""
         return str(Path(path).resolve().relative_to(self.root.resolve()))
 
-    def load_result(self, stage: str) -> dict | None:
-        path = self.root / STAGE_DIRS[stage] / "result.json"
+    def record(self, stage: str) -> dict | None:
+        """The stage's ``result.json`` as saved (stage, config_hash, upstream, result), None before it ran."""
+        path = self.root / self.stage(stage).folder / "result.json"
         if not path.is_file():
             return None
         return json.loads(path.read_text())
 
+    def result(self, stage: str) -> Any:
+        """The stage's result as its typed dataclass (the stage table's ``result``), None before it ran."""
+        record = self.record(stage)
+        return None if record is None else from_jsonable(self.stage(stage).result_type, record["result"])
+
+    def require(self, stage: str, what: str) -> Any:
+        """The result of ``stage``, or a clear error saying that ``what`` needs it run first."""
+        result = self.result(stage)
+        if result is None:
+            raise UserInputError(f"{what} needs the {stage} stage: run `watergan {stage} --workspace {self.root}` "
+                                 f"(or `watergan run`) first")
+        return result
+
+    def upstream(self, stage: str) -> dict[str, str]:
+        """Per stage that ``stage`` reads: the hash of its whole result record, which changes whenever it
+        reran (its timings differ), so a rerun upstream reruns the stages that read it."""
+        return {s: config_hash(self.record(s) or {}) for s in self.stage(stage).reads}
+
+    def stage_hash(self, stage: str, config: Any) -> str:
+        """The hash a finished ``stage`` records: its configuration and the results it read."""
+        return config_hash({"config": config, "upstream": self.upstream(stage)})
+
     def is_done(self, stage: str, config: Any) -> bool:
-        """True when the stage finished with this very configuration."""
-        result = self.load_result(stage)
-        return result is not None and result.get("config_hash") == config_hash(config)
+        """True when the stage finished with this very configuration on the same upstream results."""
+        record = self.record(stage)
+        return record is not None and record.get("config_hash") == self.stage_hash(stage, config)
 
     def save(self, stage: str, config: Any, result: Any) -> dict:
         """Record a finished stage: config.json, then result.json (written last: it marks completion)."""
         folder = self.stage_dir(stage)
-        digest = config_hash(config)
-        atomic_write_json(folder / "config.json", {"config": config, "config_hash": digest})
-        record = {"stage": stage, "config_hash": digest, "result": _jsonable(result)}
+        upstream = self.upstream(stage)
+        digest = self.stage_hash(stage, config)
+        atomic_write_json(folder / "config.json", {"config": config, "config_hash": digest, "upstream": upstream})
+        record = {"stage": stage, "config_hash": digest, "upstream": upstream, "result": to_jsonable(result)}
         atomic_write_json(folder / "result.json", record)
         return record
 
-    def run(self, stage: str, config: Any, fn: Callable[[Workspace, Any], Any], force: bool = False) -> dict:
-        """Run ``fn(ws, config)`` unless the stage is already done with this configuration."""
-        if not force and self.is_done(stage, config):
-            return self.load_result(stage)
-        result_path = self.root / STAGE_DIRS[stage] / "result.json"
-        result_path.unlink(missing_ok=True)  # a rerun is unfinished until it saves again
-        return self.save(stage, config, fn(self, config))
+    def run(self, stage: str, config: Any, force: bool = False) -> Any:
+        """Run the stage's function ``fn(ws, config)`` unless it is already done with this configuration
+        on the same upstream results; returns its typed result."""
+        if force or not self.is_done(stage, config):
+            result_path = self.root / self.stage(stage).folder / "result.json"
+            result_path.unlink(missing_ok=True)  # a rerun is unfinished until it saves again
+            self.save(stage, config, self.stage(stage).fn(self, config))
+        return self.result(stage)

@@ -11,10 +11,10 @@ from eval.colour import (
     normalise,
     patch_means,
     project_board,
-    run_colour_eval,
     truth_board,
 )
-from pipeline.sfm import Tracks
+from eval.tracks import Tracks
+from pipeline.evaluate import run_colour_eval
 from watergan.errors import UserInputError
 
 
@@ -25,7 +25,7 @@ def sfm():
 
 def test_inair_truth_is_more_consistent_than_raw(sfm):
     survey, ws, record = sfm
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     result = consistency(tracks, {"raw": survey / "images", "inair": survey / "truth" / "inair"})
     assert result.n_points > 300 and result.patch_px == 5
     raw, inair = result.scores["raw"], result.scores["inair"]
@@ -47,9 +47,9 @@ def test_workspace_colour_eval_writes_json(sfm):
     survey, ws, _ = sfm
     cfg = ColourEvalConfig(folders=(f"raw={survey / 'images'}", f"inair={survey / 'truth' / 'inair'}"),
                            truth_dir=str(survey))
-    record = ws.run("eval", cfg, run_colour_eval)
-    assert ws.path(record["result"]["table"]).is_file()
-    assert set(record["result"]["board"]) == {"raw", "inair"}
+    result = run_colour_eval(ws, cfg)
+    assert ws.path(result.table).is_file()
+    assert set(result.board) == {"raw", "inair"}
 
 
 def test_patch_means_and_normalisation():

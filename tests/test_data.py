@@ -18,7 +18,7 @@ from watergan.data import (
     read_nav_altitudes,
     resize_depth,
     srgb_to_linear,
-    write_depth_mm,
+    write_depth_png,
     write_srgb8,
 )
 from watergan.errors import UserInputError
@@ -107,12 +107,12 @@ def test_srgb_round_trip_and_writers(tmp_path):
     x = np.linspace(0, 1, 101)
     np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-12)
     depth = _depth_m(0)
-    write_depth_mm(tmp_path / "d.png", depth)
+    write_depth_png(tmp_path / "d.png", depth)
     np.testing.assert_allclose(read_depth(tmp_path / "d.png"), depth, atol=5e-4)
     write_srgb8(tmp_path / "i.png", np.full((4, 5, 3), 0.5))
     assert list(tmp_path.glob(".*tmp*")) == []
     with pytest.raises(DataError, match="65.535"):
-        write_depth_mm(tmp_path / "far.png", np.full((2, 2), 70.0))
+        write_depth_png(tmp_path / "far.png", np.full((2, 2), 70.0))
 
 
 def test_resize_depth_ignores_holes():

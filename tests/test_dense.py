@@ -5,6 +5,7 @@ import pytest
 from test_sfm import survey_and_sfm
 
 from eval.depth import read_depth
+from eval.tracks import Tracks
 from pipeline.dense import (
     DenseConfig,
     rectified_pair_depth,
@@ -13,7 +14,6 @@ from pipeline.dense import (
     run_dense,
     run_dense_folder,
 )
-from pipeline.sfm import Tracks
 
 
 @pytest.fixture(scope="module")
@@ -34,18 +34,18 @@ def _errors(survey, depth_dir, names):
 
 def test_rig_sgbm_coverage_and_error(sfm):
     survey, ws, _ = sfm
-    record = ws.run("dense", DenseConfig(), run_dense)
-    result = record["result"]
-    assert set(result["pairs"].values()) == {"rig"} and not result["skipped"]
-    coverage, rel = _errors(survey, ws.path(result["depth_dir"]), result["pairs"])
-    assert coverage > 0.7 and result["mean_coverage"] == pytest.approx(coverage, abs=0.01)
+    record = ws.run("dense", DenseConfig())
+    result = record
+    assert set(result.pairs.values()) == {"rig"} and not result.skipped
+    coverage, rel = _errors(survey, ws.path(result.depth_dir), result.pairs)
+    assert coverage > 0.7 and result.mean_coverage == pytest.approx(coverage, abs=0.01)
     assert np.median(rel) < 0.005  # about 0.05 px of disparity at 11 px (SGBM alone: ~0.015)
-    assert result["n_fused_points"] > 1000 and ws.path(result["mesh_ply"]).is_file()
+    assert result.n_fused_points > 1000 and ws.path(result.mesh_ply).is_file()
 
 
 def test_neighbour_pairs_without_rig(sfm, tmp_path):
     survey, ws, record = sfm
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     result = run_dense_folder(tracks, survey / "images", tmp_path, DenseConfig(pairs="neighbours", fuse=False))
     assert all(partner != "rig" and partner != name for name, partner in result.pairs.items())
     coverage, rel = _errors(survey, tmp_path / "depth", result.pairs)

@@ -21,15 +21,17 @@ import numpy as np
 import pytest
 import torch
 
-from eval.diagnose import DiagnoseConfig, find_ledger, ledger_table, read_ledger, run_diagnose, small_survey_config
+from eval.diagnose import DiagnoseConfig, find_ledger, ledger_table, read_ledger, small_survey_config
 from eval.diagnose_fit import FitConfig, fit_stack, make_split
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
 from eval.synth import load_truth, simulate_survey
 from eval.synth.config import default_visible_stack
 from eval.synth.presets import NOT_SIMULATED
-from pipeline.workspace import Workspace, atomic_write_json
+from pipeline.diagnose import measure_target, run_diagnose
+from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.formation import Stack, available
+from watergan.io import atomic_write_json
 
 #: Candidates: the effects registered when the tests are collected (a plugin that another test module
 #: registers later in the same process must not join the ranking).
@@ -132,9 +134,10 @@ def test_measurements_are_multiview_and_consistent(clean, tmp_path):
 
 
 def _tracks_from_truth(survey: Path, ws: Path, scale_method: str = "stereo"):
-    """A tracks.npz (and 04_sfm/result.json) in ``ws`` holding the truth geometry's points and views,
+    """A tracks.npz (and the sfm stage's record) in ``ws`` holding the truth geometry's points and views,
     as pipeline.sfm writes them: what an ideal reconstruction would give."""
-    from pipeline.sfm import Tracks
+    from eval.tracks import Tracks
+    from pipeline.sfm import SfmConfig, SfmResult
 
     geo = geometry_from_truth(survey, MeasureConfig(n_points=800))
     n = len(geo.points_world)
@@ -143,9 +146,14 @@ def _tracks_from_truth(survey: Path, ws: Path, scale_method: str = "stereo"):
                     height=geo.intrinsics.height, point_id=np.arange(n), xyz=geo.points_world,
                     rgb=np.zeros((n, 3), np.uint8), obs_point=geo.obs_point, obs_image=geo.obs_frame.astype(np.int32),
                     obs_xy=geo.obs_px.astype(np.float32))
-    sfm = Workspace(ws).stage_dir("sfm")
+    workspace = Workspace(ws)
+    sfm = workspace.stage_dir("sfm")
     tracks.save(sfm / "tracks.npz")
-    atomic_write_json(sfm / "result.json", {"stage": "sfm", "result": {"scale_method": scale_method}})
+    workspace.save("sfm", SfmConfig(), SfmResult(
+        model_dir=workspace.relative(sfm), tracks=workspace.relative(sfm / "tracks.npz"), n_images=len(geo.frames),
+        n_registered=len(geo.frames), n_points=n, mean_track_length=len(geo.obs_point) / n,
+        mean_reprojection_error_px=0.0, matching="truth", scale_method=scale_method, scale_factor=1.0,
+        scale_spread=0.0, seconds=0.0))
     return geo
 
 
@@ -154,7 +162,7 @@ def test_tracks_geometry_reads_the_reconstruction(clean, tmp_path):
     Workspace(ws)
     (ws / "00_survey").symlink_to(clean)
     geo = _tracks_from_truth(clean, ws)
-    m = measure_survey(ws, MeasureConfig(n_points=800))  # auto: the workspace has tracks
+    m = measure_target(ws, MeasureConfig(n_points=800))  # auto: the workspace has tracks
     assert m.source == "sfm (scale: stereo)"
     truth = measure_survey(clean, MeasureConfig(n_points=800))  # the same points and views, from truth
     assert m.n_points == truth.n_points and m.n_obs == truth.n_obs
@@ -167,7 +175,7 @@ def test_tracks_geometry_reads_the_reconstruction(clean, tmp_path):
     assert np.median(np.degrees(np.arccos(cos))) < 8.0
     # water depth from the navigation depths (10 mm noise) against the site datum
     assert np.abs(m.water_depth_m - (20.0 - m.height_m)).max() < 0.05
-    assert measure_survey(ws, MeasureConfig(n_points=400), geometry="truth").source == "truth"
+    assert measure_target(ws, MeasureConfig(n_points=400), geometry="truth").source == "truth"
 
 
 def test_fit_recovers_attenuation_when_nothing_is_hidden(clean):
@@ -311,7 +319,8 @@ def test_plugin_effect_is_found_from_its_file(tmp_path):
     subprocess.run([sys.executable, "-c", simulate, str(plugin), str(survey)], check=True, capture_output=True,
                    env={**os.environ, "OMP_NUM_THREADS": "1"})
     out = subprocess.run([sys.executable, "-m", "pipeline.cli", "--plugin", str(plugin), "diagnose", str(survey),
-                          "--points", "600", "--iterations", "60", "--no-plots"], capture_output=True, text=True,
+                          "--measure-n-points", "600", "--fit-iterations", "60", "--no-plots"],
+                         capture_output=True, text=True,
                          env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert out.returncode == 0, out.stderr
     assert "\nmissing: brightness_gradient" in out.stdout, out.stdout
@@ -356,15 +365,16 @@ def test_add_appends_a_model_version_and_cli_prints_ledger(surveys, tmp_path):
 def test_end_to_end_on_sfm_geometry(tmp_path):
     """Simulate -> SfM (pycolmap, altitude scale) -> colour consistency -> diagnose on the tracks:
     the hidden effect is found from the reconstruction alone, and the ledger carries the colour."""
-    from eval.colour import ColourEvalConfig, run_colour_eval
-    from pipeline.sfm import SfmConfig, run_sfm
+    from eval.colour import ColourEvalConfig
+    from pipeline.evaluate import run_colour_eval
+    from pipeline.sfm import SfmConfig
 
     ws = Workspace(tmp_path / "ws")
     survey = small_survey(ws.stage_dir("survey"), ["vignetting_offcentre"], width_px=320)
-    sfm = ws.run("sfm", SfmConfig(), run_sfm)["result"]
-    assert sfm["n_registered"] == 16 and sfm["scale_method"] == "altitude"
-    ws.run("eval", ColourEvalConfig(folders=(f"raw={survey / 'images'}", f"inair={survey / 'truth' / 'inair'}"),
-                                    truth_dir=str(survey)), run_colour_eval)
+    sfm = ws.run("sfm", SfmConfig())
+    assert sfm.n_registered == 16 and sfm.scale_method == "altitude"
+    run_colour_eval(ws, ColourEvalConfig(folders=(f"raw={survey / 'images'}", f"inair={survey / 'truth' / 'inair'}"),
+                                         truth_dir=str(survey)))
     result = run_diagnose(ws.root, replace(FAST, measure=MeasureConfig(n_points=3000)), progress=False)
     assert result.geometry == "sfm (scale: altitude)" and result.n_points > 200
     assert result.best == "vignetting_offcentre", result.verdict

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from watergan.data import PinholeIntrinsics, read_depth, write_depth_mm, write_srgb8
+from watergan.data import PinholeIntrinsics, read_depth, write_depth_png, write_srgb8
 from watergan.errors import UserInputError
 from watergan.formation import Effect, Param, Stack, register
 from watergan.formation.effects.vignetting import vignetting_coefficients
@@ -58,7 +58,7 @@ def data_dir(tmp_path_factory):
         rgb = blocks(i, 48, 64)
         depth = 1.0 + 3.0 * np.linspace(0, 1, 64)[None, :].repeat(48, 0) + 0.5 * (i % 3)
         write_srgb8(root / "rgbd" / "rgb" / f"{i:03d}.png", rgb)
-        write_depth_mm(root / "rgbd" / "depth" / f"{i:03d}.png", depth)
+        write_depth_png(root / "rgbd" / "depth" / f"{i:03d}.png", depth)
         generator = WaterGenerator(truth)
         with torch.no_grad():
             water = generator(torch.from_numpy(blocks(i + 100, 48, 64).transpose(2, 0, 1)).float()[None],
@@ -238,17 +238,17 @@ def test_cli_train_and_generate(data_dir, tmp_path):
 
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command", required=True), [])
-    args = parser.parse_args(["train-gan", "--rgbd", str(data_dir / "rgbd"), "--underwater", str(data_dir / "water"),
-                              "--out", str(tmp_path / "m"), "--iterations", "1", "--batch-size", "4",
-                              "--disc-width", "4", "--add", "test_gan_tint"])
+    args = parser.parse_args(["train-gan", "--rgbd-dir", str(data_dir / "rgbd"),
+                              "--underwater-dir", str(data_dir / "water"), "--out-dir", str(tmp_path / "m"),
+                              "--iterations", "1", "--batch-size", "4", "--disc-width", "4", "--add", "test_gan_tint"])
     assert args.func(args) == 0
     assert "test_gan_tint" in (tmp_path / "m" / "stack.json").read_text()
-    args = parser.parse_args(["generate", "--model", str(tmp_path / "m"), "--rgbd", str(data_dir / "rgbd"),
-                              "--out", str(tmp_path / "g"), "--size", "30x40"])
+    args = parser.parse_args(["generate", "--model-dir", str(tmp_path / "m"), "--rgbd-dir", str(data_dir / "rgbd"),
+                              "--out-dir", str(tmp_path / "g"), "--size-hw", "30x40"])
     assert args.func(args) == 0
     assert cv2.imread(str(tmp_path / "g" / "underwater" / "000.png")).shape == (30, 40, 3)
     with pytest.raises(SystemExit):
-        parser.parse_args(["generate", "--model", "m", "--rgbd", "r", "--out", "o", "--size", "big"])
+        parser.parse_args(["generate", "--model-dir", "m", "--rgbd-dir", "r", "--out-dir", "o", "--size-hw", "big"])
 
 
 def test_augment_is_a_flip_and_shift_of_each_image():

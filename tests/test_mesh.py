@@ -6,8 +6,8 @@ import pytest
 import trimesh
 from test_sfm import survey_and_sfm
 
-from pipeline.mesh import MeshConfig, height_mesh, render_back, run_mesh, surface_heights
-from pipeline.sfm import Tracks
+from eval.tracks import Tracks
+from pipeline.mesh import MeshConfig, height_mesh, render_back, surface_heights
 
 
 @pytest.fixture(scope="module")
@@ -18,29 +18,29 @@ def sfm():
 @pytest.fixture(scope="module")
 def meshed(sfm):
     survey, ws, _ = sfm
-    return survey, ws, ws.run("mesh", MeshConfig(source="sparse"), run_mesh)["result"]
+    return survey, ws, ws.run("mesh", MeshConfig(source="sparse"))
 
 
 def test_textured_glb_loads_back(meshed):
     _, ws, result = meshed
-    scene = trimesh.load(ws.path(result["glb"]))
+    scene = trimesh.load(ws.path(result.glb))
     geometry = next(iter(scene.geometry.values()))
-    assert len(geometry.faces) == result["n_faces"] > 100
+    assert len(geometry.faces) == result.n_faces > 100
     assert geometry.visual.kind == "texture" and geometry.visual.material.baseColorTexture is not None
     assert geometry.visual.uv.min() >= 0 and geometry.visual.uv.max() <= 1
 
 
 def test_obj_ply_and_mosaic_files(meshed):
     _, ws, result = meshed
-    obj = ws.path(result["obj"])
+    obj = ws.path(result.obj)
     assert {p.suffix for p in obj.parent.iterdir()} >= {".obj", ".mtl", ".png"}
     assert "mtllib mesh.mtl" in obj.read_text()
-    ply = trimesh.load(ws.path(result["ply"]))
-    assert ply.visual.kind == "vertex" and len(ply.visual.vertex_colors) == result["n_vertices"]
-    mosaic = cv2.imread(str(ws.path(result["mosaic_png"])))
-    assert mosaic is not None and result["mosaic_coverage"] > 0.2
-    world = [float(x) for x in ws.path(result["world_file"]).read_text().split()]
-    assert len(world) == 6 and world[0] == pytest.approx(result["texel_m"]) and world[3] == -world[0]
+    ply = trimesh.load(ws.path(result.ply))
+    assert ply.visual.kind == "vertex" and len(ply.visual.vertex_colors) == result.n_vertices
+    mosaic = cv2.imread(str(ws.path(result.mosaic_png)))
+    assert mosaic is not None and result.mosaic_coverage > 0.2
+    world = [float(x) for x in ws.path(result.world_file).read_text().split()]
+    assert len(world) == 6 and world[0] == pytest.approx(result.texel_m) and world[3] == -world[0]
 
 
 def test_render_back_matches_an_image(meshed):
@@ -48,10 +48,10 @@ def test_render_back_matches_an_image(meshed):
     tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
     points = tracks.xyz[tracks.track_lengths() >= 3]
     extent = float((np.percentile(points[:, :2], 99, 0) - np.percentile(points[:, :2], 1, 0)).max())
-    mesh = height_mesh(points, extent / 150).on_texel_grid(result["texel_m"])
-    texture = cv2.imread(str(ws.path(result["mosaic_png"])))[..., ::-1]
-    assert texture.shape[:2] == (round((mesh.bounds[1, 1] - mesh.bounds[0, 1]) / result["texel_m"]) + 1,
-                                 round((mesh.bounds[1, 0] - mesh.bounds[0, 0]) / result["texel_m"]) + 1)
+    mesh = height_mesh(points, extent / 150).on_texel_grid(result.texel_m)
+    texture = cv2.imread(str(ws.path(result.mosaic_png)))[..., ::-1]
+    assert texture.shape[:2] == (round((mesh.bounds[1, 1] - mesh.bounds[0, 1]) / result.texel_m) + 1,
+                                 round((mesh.bounds[1, 0] - mesh.bounds[0, 0]) / result.texel_m) + 1)
     k = 4
     rendered = render_back(mesh, texture, tracks.world_from_cam[k], tracks.K, tracks.width, tracks.height)
     image = cv2.imread(str(survey / "images" / str(tracks.image_names[k])))[..., ::-1].astype(float)
@@ -83,8 +83,8 @@ def test_cli_commands_on_the_workspace(meshed, capsys):
     add_commands(parser.add_subparsers(dest="command", required=True), [])
     for argv in (["sfm", "--workspace", str(ws.root)],
                  ["mosaic", "--workspace", str(ws.root), "--source", "sparse"],
-                 ["consistency", "--workspace", str(ws.root), "--folder", f"raw={survey / 'images'}",
-                  "--folder", f"inair={survey / 'truth' / 'inair'}", "--truth", str(survey)]):
+                 ["consistency", "--workspace", str(ws.root), "--folders", f"raw={survey / 'images'}",
+                  "--folders", f"inair={survey / 'truth' / 'inair'}", "--truth-dir", str(survey)]):
         args = parser.parse_args(argv)
         assert args.func(args) == 0
     out = capsys.readouterr().out
@@ -109,11 +109,11 @@ def test_texel_grid_and_exported_uvs_follow_the_texel_centres(tmp_path):
 
 
 def test_tsdf_mesh_with_atlas_uvs(sfm, tmp_path):
-    from pipeline.dense import DenseConfig, run_dense
+    from pipeline.dense import DenseConfig
     from pipeline.mesh import is_height_field, run_mesh_folder
 
     survey, ws, _ = sfm
-    ws.run("dense", DenseConfig(), run_dense)  # skipped when tests/test_dense.py made it already
+    ws.run("dense", DenseConfig())  # skipped when tests/test_dense.py made it already
     tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
     dense = ws.stage_dir("dense")
     result = run_mesh_folder(tracks, survey / "images", tmp_path, MeshConfig(mesh_kind="tsdf"),

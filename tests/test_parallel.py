@@ -17,14 +17,15 @@ import pytest
 from test_sfm import survey_and_sfm
 
 from eval.colour import observation_colours
-from eval.tables import EvaluateConfig, run_evaluate
+from eval.tables import EvaluateConfig
+from eval.tracks import Tracks
 from pipeline.correct import correct_folder
 from pipeline.dense import DenseConfig, run_dense_folder
-from pipeline.parallel import chunks, map_tasks, rows_by_label
-from pipeline.sfm import Tracks
+from pipeline.evaluate import run_evaluate
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.nets.restorer import Restorer, RestorerWidths
+from watergan.parallel import chunks, map_tasks, rows_by_label
 from watergan.train_restorer import save_restorer
 
 TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
@@ -97,7 +98,7 @@ def test_correction_on_the_cluster_matches_local(cluster, tmp_path):
 def test_dense_depth_on_the_cluster_matches_local(cluster, tmp_path):
     _, address = cluster
     survey, ws, record = survey_and_sfm()
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     baseline = json.loads((survey / "camera.json").read_text())["baseline_m"]
     args = (tracks, survey / "images")
     local = run_dense_folder(*args, tmp_path / "local", DenseConfig(fuse=False), baseline, survey / "right")
@@ -112,7 +113,7 @@ def test_dense_depth_on_the_cluster_matches_local(cluster, tmp_path):
 def test_baselines_and_colour_sampling_on_the_cluster_match_local(cluster):
     client, address = cluster
     survey, shared, record = survey_and_sfm()
-    tracks = Tracks.load(shared.path(record["result"]["tracks"]))
+    tracks = Tracks.load(shared.path(record.tracks))
     runs = {}
     for label, scheduler in (("local", ""), ("remote", address)):
         ws = Workspace(Path(tempfile.mkdtemp(prefix=f"watergan-par-{label}-")) / "ws")

@@ -22,14 +22,14 @@ from test_sfm import survey_and_sfm
 
 from eval.tables import (
     EvaluateConfig,
-    _RangeSource,
+    RangeSource,
     best_cells,
     make_table,
-    run_evaluate,
     table_markdown,
     verdict_lines,
     z_to_range,
 )
+from pipeline.evaluate import run_evaluate
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 
@@ -50,8 +50,11 @@ def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
 @pytest.fixture(scope="module")
 def evaluated():
     """A workspace with every input the evaluation and the report use, evaluated."""
-    from eval.depth import read_depth, write_depth_png
-    from pipeline.mesh import MeshConfig, run_mesh
+    from pipeline.correct import CorrectStage, CorrectStageResult
+    from pipeline.dense import DenseConfig, DenseResult
+    from pipeline.mesh import MeshConfig
+    from watergan.io import read_depth, write_depth_png
+    from watergan.train_restorer import RestorerConfig, RestorerResult
 
     survey, ws = _copy_workspace("watergan-eval-")
     shutil.copytree(survey / "images", ws.root / "03_correct" / "images")  # "ours" stands in as the raw frames
@@ -63,14 +66,23 @@ def evaluated():
     for path in sorted((survey / "truth" / "depth").glob("*.png")):
         shutil.copy(path, ws.root / "05_dense" / "depth" / path.name)
         write_depth_png(ws.root / "03_correct" / "depth" / path.name, 0.5 * read_depth(path))
-    ws.run("mesh", MeshConfig(source="sparse"), run_mesh)
+    # the stand-ins' records, as their stages would save them
+    ws.save("restorer", RestorerConfig(data_dir=Path("generated"), out_dir=ws.root / "02_restorer"),
+            RestorerResult(out_dir=ws.root / "02_restorer", steps=(0, 0), seconds=0.0, loss=0.0, validation={},
+                           train_count=0, val_count=2))
+    ws.save("correct", CorrectStage(), CorrectStageResult(corrected=10, failed=[], seconds=2.5,
+                                                          images="03_correct/images", depth="03_correct/depth",
+                                                          fps=4.0))
+    ws.save("dense", DenseConfig(), DenseResult(depth_dir="05_dense/depth", pairs={}, coverage={},
+                                                mean_coverage=1.0))
+    ws.run("mesh", MeshConfig(source="sparse"))
     (ws.root / "model_ledger.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (
         {"time": "2026-01-01 00:00:00", "kind": "model", "heldout_rmse": 0.02, "stack": ["attenuation", "gain"]},
         {"time": "2026-01-01 00:01:00", "kind": "candidate", "heldout_rmse": 0.012,
          "stack": ["attenuation", "gain", "vignetting_offcentre"]})))
-    record = ws.run("eval", EvaluateConfig(range_source="dense"), run_evaluate)
+    record = ws.run("eval", EvaluateConfig(range_source="dense"))
     tables = json.loads((ws.root / "06_eval" / "tables.json").read_text())
-    return survey, ws, record["result"], tables
+    return survey, ws, record, tables
 
 
 def _table(tables: dict, table_id: str) -> dict:
@@ -85,8 +97,8 @@ def _row(table: dict, label: str) -> dict:
 @pytest.mark.slow
 def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
     survey, ws, result, tables = evaluated
-    assert result["methods"] == ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "ours", "oracle"]
-    assert result["range_source"] == "dense" and result["skipped"] == {}
+    assert result.methods == ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "ours", "oracle"]
+    assert result.range_source == "dense" and result.skipped == {}
     for m in ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "oracle"]:
         files = sorted(p.name for p in (ws.root / "06_eval" / "baselines" / m).iterdir())
         assert files == sorted(p.name for p in (survey / "images").iterdir()), m
@@ -110,7 +122,7 @@ def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
 @pytest.mark.slow
 def test_verdict_says_plainly_where_ours_loses(evaluated):
     _, ws, result, tables = evaluated
-    verdict = result["verdict"]
+    verdict = result.verdict
     mean = _row(_table(tables, "table1"), "mean distance")
     assert f"ours loses to oracle on mean board distance: {mean['ours']:.3g} vs {mean['oracle']:.3g}" in verdict
     assert any(line.startswith("ours loses to Jaffe-McGlamery on mean board distance") for line in verdict)
@@ -135,12 +147,12 @@ def test_restorer_depth_and_speed_tables(evaluated):
 
 @pytest.mark.slow
 def test_dense_depth_becomes_the_true_range(evaluated):
-    from eval.depth import read_depth
+    from eval.tracks import Tracks
+    from watergan.io import read_depth
 
     survey, ws, _, _ = evaluated
-    from pipeline.sfm import Tracks
-
-    source = _RangeSource("dense", ws, survey, Tracks.load(ws.root / "04_sfm" / "tracks.npz"))
+    dense = ws.path(ws.result("dense").depth_dir)
+    source = RangeSource("dense", dense, survey, Tracks.load(ws.path(ws.result("sfm").tracks)))
     name = sorted(p.name for p in (survey / "images").iterdir())[3]
     true = read_depth(survey / "truth" / "range" / name)
     estimate = source(name, true.shape)
@@ -155,14 +167,14 @@ def test_missing_inputs_are_skipped_with_reasons(tmp_path):
     shutil.copytree(survey / "images", plain / "images")
     shutil.copy(survey / "camera.json", plain / "camera.json")
     cfg = EvaluateConfig(survey_dir=str(plain), methods=("raw", "gray_world", "jaffe", "seathru", "oracle"))
-    result = ws.run("eval", cfg, run_evaluate)["result"]
-    assert result["methods"] == ["raw", "gray_world"] and result["range_source"] == "none"
-    assert set(result["skipped"]) == {"jaffe", "seathru", "oracle", "ours"}
-    assert result["verdict"][0].startswith("ours not measured")
+    result = ws.run("eval", cfg)
+    assert result.methods == ["raw", "gray_world"] and result.range_source == "none"
+    assert set(result.skipped) == {"jaffe", "seathru", "oracle", "ours"}
+    assert result.verdict[0].startswith("ours not measured")
     tables = json.loads((ws.root / "06_eval" / "tables.json").read_text())
     assert _table(tables, "table1")["status"].startswith("not measured")
     assert _table(tables, "fidelity")["status"].startswith("not measured")
-    assert ws.run("eval", cfg, run_evaluate)["result"]["seconds"] == result["seconds"]  # done: skipped
+    assert ws.run("eval", cfg).seconds == result.seconds  # done: skipped
     with pytest.raises(UserInputError, match="range"):
         run_evaluate(ws, EvaluateConfig(survey_dir=str(plain), range_source="truth"))
 
@@ -221,7 +233,7 @@ NO_CHROMIUM = "Chromium is not installed at /usr/bin/chromium (Debian package 'c
 
 @pytest.mark.slow
 def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
-    from eval.report import write_report
+    from pipeline.report import write_report
 
     _, ws, _, _ = evaluated
     path = write_report(ws)
@@ -267,9 +279,9 @@ def test_evaluate_command_parses_and_needs_sfm(tmp_path):
 
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command", required=True), [])
-    args = parser.parse_args(["evaluate", "--workspace", str(tmp_path / "ws"), "--range", "truth",
+    args = parser.parse_args(["evaluate", "--workspace", str(tmp_path / "ws"), "--range-source", "truth",
                               "--methods", "raw,clahe"])
-    assert args.range == "truth" and args.methods == "raw,clahe"
+    assert args.range_source == "truth" and args.methods == ["raw", "clahe"]
     with pytest.raises(UserInputError, match="sfm"):
         args.func(args)
     bad = parser.parse_args(["evaluate", "--workspace", str(tmp_path / "ws"), "--methods", "raw,magic"])
@@ -284,8 +296,8 @@ def test_evaluate_command_prints_the_verdict_of_the_finished_stage(evaluated, ca
     _, ws, result, _ = evaluated
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command", required=True), [])
-    args = parser.parse_args(["evaluate", "--workspace", str(ws.root), "--range", "dense"])
+    args = parser.parse_args(["evaluate", "--workspace", str(ws.root), "--range-source", "dense"])
     assert args.func(args) == 0  # the same options as the fixture's stage: skipped, its result printed
     printed = capsys.readouterr().out
-    assert f"{result['seconds']:.1f} s" in printed and "ours loses to oracle on mean board distance" in printed
+    assert f"{result.seconds:.1f} s" in printed and "ours loses to oracle on mean board distance" in printed
     assert str(ws.root / "06_eval" / "tables.md") in printed

@@ -12,10 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.run import RunOptions, check_survey, load_options_file, run_all
+from pipeline.run import RunOptions, check_survey, load_options_file, run_all, run_options, stage_plan
+from pipeline.survey import SurveyConfig, SurveyResult
 from watergan.errors import UserInputError
 
-FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--diagnose-points", "200",
+FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--diagnose-measure-n-points", "200",
         "--diagnose-candidates", "vignetting_offcentre,sensor_response", "--no-progress"]
 
 
@@ -55,6 +56,11 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     ran = {s["stage"] for s in json.loads((out / "run_summary.json").read_text())["stages"] if not s["skipped"]}
     assert ran == {"correct", "eval", "mesh", "report"}  # correct and the stages that read it
     assert (out / "02_restorer" / "result.json").stat().st_mtime_ns == restorer_mtime
+    assert (out / "04_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
+
+    # a standalone stage command recognises what `watergan run` wrote: printed, not rerun
+    alone = watergan("sfm", "--workspace", str(out))
+    assert alone.returncode == 0 and "registered 10 of 10" in alone.stdout, alone.stderr[-3000:]
     assert (out / "04_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
 
 
@@ -137,25 +143,25 @@ def test_unknown_effect_and_stage_fail_first(tmp_path):
 
 
 def test_survey_stage_links_without_copying(tmp_path):
-    from pipeline.run import SurveyStage, run_survey
+    from pipeline.survey import SurveyConfig, run_survey
     from pipeline.workspace import Workspace
 
     for name in ("a", "b"):
         _survey(tmp_path / name)
         (tmp_path / name / "rgbd" / "rgb").mkdir(parents=True)
     ws = Workspace(tmp_path / "ws")
-    run_survey(ws, SurveyStage(str(tmp_path / "a"), "", 0))
+    run_survey(ws, SurveyConfig(str(tmp_path / "a")))
     assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "a" / "images").resolve()
-    summary = run_survey(ws, SurveyStage(str(tmp_path / "b"), "", 0))  # the workspace moved to another survey
+    summary = run_survey(ws, SurveyConfig(str(tmp_path / "b")))  # the workspace moved to another survey
     assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "b" / "images").resolve()
-    assert summary["rgbd_dir"] == str((tmp_path / "b" / "rgbd").resolve())
+    assert summary.rgbd_dir == str((tmp_path / "b" / "rgbd").resolve())
     assert sorted(p.name for p in (tmp_path / "a" / "images").iterdir()) == ["f0.png", "f1.png", "f2.png", "f3.png"]
 
 
 def test_the_gan_stage_reruns_when_the_rendering_of_the_pairs_changes(tmp_path):
     """The gan stage's configuration holds the paired set's rendering too: another recolouring changes its
     hash (the stage reruns), a progress bar does not."""
-    from pipeline.run import GanStage
+    from pipeline.gan import GanStage
     from pipeline.workspace import config_hash
     from watergan.generate import GenerateConfig
     from watergan.train import GanConfig
@@ -165,3 +171,50 @@ def test_the_gan_stage_reruns_when_the_rendering_of_the_pairs_changes(tmp_path):
     base = config_hash(GanStage(train, pairs))
     assert config_hash(GanStage(train, dataclasses.replace(pairs, recolour_fraction=0.0))) != base
     assert config_hash(GanStage(train, dataclasses.replace(pairs, progress=False))) == base
+
+
+def test_a_standalone_sfm_is_what_run_would_do(tmp_path):
+    """`watergan sfm --workspace W --survey S` writes the record `watergan run S --workspace W` takes as done:
+    the same configuration on the same upstream (the survey stage), so run skips sfm."""
+    from eval.synth import make_config, simulate_survey
+    from pipeline.workspace import Workspace
+
+    survey, ws = tmp_path / "survey", tmp_path / "ws"
+    simulate_survey(survey, make_config("small"), force=True)
+    out = watergan("sfm", "--workspace", str(ws), "--survey", str(survey))
+    assert out.returncode == 0 and "registered" in out.stdout, out.stderr[-3000:]
+    sfm_record = (ws / "04_sfm" / "result.json").read_text()
+
+    workspace = Workspace(ws)
+    opts = run_options({"survey_dir": str(survey), "workspace": str(ws), "progress": False})
+    survey_result = workspace.run("survey", SurveyConfig(str(survey), opts.rgbd_dir, opts.seed))  # as run_all does
+    assert workspace.is_done("sfm", stage_plan(workspace, opts, survey_result)["sfm"]())
+    assert (ws / "04_sfm" / "result.json").read_text() == sfm_record
+    other = run_options({"survey_dir": str(survey), "workspace": str(ws), "sfm_matching": "exhaustive"})
+    assert not workspace.is_done("sfm", stage_plan(workspace, other, survey_result)["sfm"]())
+
+
+def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
+    from pipeline.cli import build_parser
+    from pipeline.cli_run import _options
+    from pipeline.workspace import Workspace
+
+    toml = tmp_path / "run.toml"
+    toml.write_text('restorer_head = "direct"\nadd = ["vignetting_offcentre"]\ngan_budget_min = 1.5\n')
+    args = build_parser().parse_args(["run", "S", "--workspace", str(tmp_path / "ws"), "--config", str(toml),
+                                      "--restorer-widths", "paper", "--no-restorer-skip", "--gan-budget-min", "2",
+                                      "--diagnose-effects", "attenuation,backscatter", "--add", "gain"])
+    opts = _options(args, "S", str(tmp_path / "ws"))
+    assert opts.add == ("gain",)  # the command line wins over the file
+    assert opts.stages["restorer"] == {("head",): "direct", ("widths",): "paper", ("skip",): False}
+    assert opts.stages["gan"] == {("budget_min",): 2.0}
+    ws = Workspace(tmp_path / "ws")
+    survey = SurveyResult(n_images=3, width=8, height=6, stereo=False, simulated=False, rgbd_dir=str(tmp_path),
+                          survey_dir="S", navigation=True)
+    plan = stage_plan(ws, opts, survey)
+    assert plan["diagnose"]().effects == ("attenuation", "backscatter") and plan["diagnose"]().add == ("gain",)
+    assert plan["gan"]().train.budget_min == 2.0 and plan["gan"]().train.effects[-1] == "gain"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["run", "S", "--workspace", "W", "--restorer-head", "magic"])
+    with pytest.raises(UserInputError, match="unknown option.*restorer_hed"):
+        run_options({"survey_dir": "S", "workspace": "W", "restorer_hed": "direct"})

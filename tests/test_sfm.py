@@ -29,7 +29,7 @@ def survey_and_sfm() -> tuple[Path, Workspace, dict]:
     ws = Workspace(Path(tempfile.mkdtemp(prefix="watergan-3d-")) / "ws")
     survey = ws.stage_dir("survey")
     simulate_survey(survey, config, force=True)
-    record = ws.run("sfm", SfmConfig(), run_sfm)
+    record = ws.run("sfm", SfmConfig())
     return survey, ws, record
 
 
@@ -47,21 +47,21 @@ def _truth_index(survey: Path) -> tuple[dict, np.ndarray]:
 
 def test_all_frames_register_with_stereo_scale(sfm):
     _, ws, record = sfm
-    result = record["result"]
-    assert result["n_registered"] == result["n_images"] == 10
-    assert result["scale_method"] == "stereo" and result["scale_spread"] < 0.05
-    assert result["n_points"] > 500 and result["mean_track_length"] > 3
-    assert (ws.path(result["model_dir"]) / "points3D.bin").is_file()
-    tracks = Tracks.load(ws.path(result["tracks"]))
+    result = record
+    assert result.n_registered == result.n_images == 10
+    assert result.scale_method == "stereo" and result.scale_spread < 0.05
+    assert result.n_points > 500 and result.mean_track_length > 3
+    assert (ws.path(result.model_dir) / "points3D.bin").is_file()
+    tracks = Tracks.load(ws.path(result.tracks))
     assert tracks.registered.all() and len(tracks.obs_xy) == len(tracks.obs_point) == len(tracks.obs_image)
     # the stage is skipped when run again with the same configuration
-    assert ws.run("sfm", SfmConfig(), run_sfm)["result"]["seconds"] == result["seconds"]
+    assert ws.run("sfm", SfmConfig()).seconds == result.seconds
 
 
 def test_camera_centres_match_truth_after_similarity(sfm):
     survey, ws, record = sfm
     truth, index = _truth_index(survey)
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     est = tracks.world_from_cam[:, :3, 3]
     true = truth.world_from_cam[[index[str(n)] for n in tracks.image_names], :3, 3]
     s, R, t = similarity_align(est, true)
@@ -74,7 +74,7 @@ def test_camera_centres_match_truth_after_similarity(sfm):
 def test_sparse_depth_matches_rendered_depth(sfm):
     survey, ws, record = sfm
     truth, index = _truth_index(survey)
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     depth = tracks.depths()
     ratios = []
     for k, name in enumerate(tracks.image_names):
@@ -90,7 +90,7 @@ def test_altitude_scale_agrees_with_stereo_scale(sfm):
     survey, ws, record = sfm
     import json
 
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     nav = json.loads((survey / "survey.json").read_text())
     by_name = dict(zip(nav["frames"], nav["nav_altitude_m"], strict=True))
     altitudes = np.array([by_name[str(n)] for n in tracks.image_names])
@@ -158,7 +158,7 @@ def test_board_scale_agrees_with_stereo_scale(sfm, tmp_path, outline):
     from pipeline.sfm import _choose_scale
 
     survey, ws, record = sfm
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))  # already metric (stereo): expect s = 1
+    tracks = Tracks.load(ws.path(record.tracks))  # already metric (stereo): expect s = 1
     cfg = SfmConfig(scale="board", board_json=str(_board_clicks(survey, tmp_path, outline)))
     cam = json.loads((survey / "camera.json").read_text())
     method, s, spread = _choose_scale(cfg, tracks, survey / "images", cam, tracks.track_lengths() >= 3)
@@ -169,6 +169,6 @@ def test_board_scale_without_a_board_file_is_a_clear_error(sfm):
     from pipeline.sfm import _choose_scale
 
     survey, ws, record = sfm
-    tracks = Tracks.load(ws.path(record["result"]["tracks"]))
+    tracks = Tracks.load(ws.path(record.tracks))
     with pytest.raises(UserInputError, match="board scale needs"):
         _choose_scale(SfmConfig(scale="board"), tracks, survey / "images", None, tracks.track_lengths() >= 3)

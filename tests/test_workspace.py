@@ -4,8 +4,10 @@ from dataclasses import dataclass
 
 import pytest
 
-from pipeline.workspace import Workspace, atomic_write_text, config_hash
+from pipeline.stages import STAGES, Stage
+from pipeline.workspace import Workspace, config_hash
 from watergan.errors import UserInputError
+from watergan.io import atomic_write_text
 
 
 @dataclass(frozen=True)
@@ -14,34 +16,53 @@ class Cfg:
     name: str = "a"
 
 
+def _table(**fns) -> dict[str, Stage]:
+    """A stage table of toy stages: a -> b (b reads a)."""
+    return {"a": Stage("a", "00_a", Cfg, dict, fns["a"], (), "first"),
+            "b": Stage("b", "01_b", Cfg, dict, fns.get("b", lambda w, c: {"ok": 1}), ("a",), "second")}
+
+
 def test_stage_runs_once_per_configuration(tmp_path):
-    ws = Workspace(tmp_path / "ws")
     calls = []
 
     def stage(ws_, cfg):
         calls.append(cfg)
-        (ws_.stage_dir("sfm") / "out.txt").write_text(cfg.name)
-        return {"out": "04_sfm/out.txt", "points": 3}
+        (ws_.stage_dir("a") / "out.txt").write_text(cfg.name)
+        return {"out": "00_a/out.txt", "points": 3}
 
-    first = ws.run("sfm", Cfg(), stage)
-    again = ws.run("sfm", Cfg(), stage)
-    assert len(calls) == 1 and again == first and first["result"]["points"] == 3
-    ws.run("sfm", Cfg(name="b"), stage)          # configuration changed: runs again
-    ws.run("sfm", Cfg(name="b"), stage, force=True)
+    ws = Workspace(tmp_path / "ws", _table(a=stage))
+    first = ws.run("a", Cfg())
+    again = ws.run("a", Cfg())
+    assert len(calls) == 1 and again == first and first["points"] == 3
+    ws.run("a", Cfg(name="b"))          # configuration changed: runs again
+    ws.run("a", Cfg(name="b"), force=True)
     assert len(calls) == 3
-    assert ws.path(first["result"]["out"]).read_text() == "b"
+    assert ws.path(first["out"]).read_text() == "b"
+
+
+def test_a_rerun_upstream_reruns_the_stages_that_read_it(tmp_path):
+    calls = []
+    ws = Workspace(tmp_path / "ws", _table(a=lambda w, c: {"n": len(calls)}, b=lambda w, c: calls.append(c) or {}))
+    ws.run("a", Cfg())
+    ws.run("b", Cfg())
+    ws.run("b", Cfg())
+    assert len(calls) == 1 and ws.is_done("b", Cfg())
+    ws.run("a", Cfg(), force=True)  # a new record upstream (its result differs): b is no longer done
+    assert not ws.is_done("b", Cfg())
+    ws.run("b", Cfg())
+    assert len(calls) == 2
 
 
 def test_failed_stage_is_not_marked_done(tmp_path):
-    ws = Workspace(tmp_path)
-
     def broken(ws_, cfg):
         raise RuntimeError("boom")
 
-    ws.run("dense", Cfg(), lambda w, c: {"ok": 1})
+    ws = Workspace(tmp_path, _table(a=lambda w, c: {"ok": 1}))
+    ws.run("a", Cfg())
+    ws = Workspace(tmp_path, _table(a=broken))
     with pytest.raises(RuntimeError):
-        ws.run("dense", Cfg(), broken, force=True)
-    assert not ws.is_done("dense", Cfg())
+        ws.run("a", Cfg(), force=True)
+    assert not ws.is_done("a", Cfg())
 
 
 def test_hash_depends_on_values_only():
@@ -57,3 +78,15 @@ def test_workspace_on_a_file_is_a_clear_error(tmp_path):
     (tmp_path / "f").write_text("")
     with pytest.raises(UserInputError, match="not a folder"):
         Workspace(tmp_path / "f")
+
+
+def test_every_stage_is_declared_once_and_resolves():
+    """The stage table names real configuration and result dataclasses and functions, one folder each."""
+    import dataclasses
+
+    folders = [s.folder for s in STAGES.values()]
+    assert len(set(folders)) == len(folders)
+    for name, stage in STAGES.items():
+        assert dataclasses.is_dataclass(stage.config_type) and dataclasses.is_dataclass(stage.result_type), name
+        assert callable(stage.fn) and set(stage.reads) < set(STAGES), name
+        assert list(STAGES).index(name) > max((list(STAGES).index(r) for r in stage.reads), default=-1), name

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,18 +31,25 @@ import cv2
 import numpy as np
 import torch
 
-from .errors import UserInputError
+from .io import (  # noqa: F401  (the data formats' readers and writers, re-exported for their users)
+    DEPTH_SUFFIXES,
+    ENCODINGS,
+    IMAGE_SUFFIXES,
+    DataError,
+    atomic_write_bytes,
+    depth_or_zero,
+    encode_png,
+    linear_to_srgb,
+    read_depth,
+    read_image,
+    srgb_to_linear,
+    write_depth_png,
+    write_srgb8,
+)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
-DEPTH_SUFFIXES = (".png", ".npy", ".mat")
-ENCODINGS = ("srgb", "linear")
 RGB_FOLDER_NAMES = ("rgb", "color")
 #: Training size of WaterGAN (height, width), pixels.
 TRAIN_HW = (48, 64)
-
-
-class DataError(UserInputError):
-    """A dataset folder or file that cannot be used; the message names it."""
 
 
 @dataclass(frozen=True)
@@ -126,100 +132,9 @@ class ImageSet:
     skipped: list[str] = field(default_factory=list)
 
 
-def srgb_to_linear(v: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 decoding: L = V / 12.92 for V <= 0.04045, else ((V + 0.055) / 1.055)^2.4."""
-    v = np.clip(v, 0.0, 1.0)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 encoding: V = 12.92 L for L <= 0.0031308, else 1.055 L^(1/2.4) - 0.055."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def _check_encoding(encoding: str) -> None:
     if encoding not in ENCODINGS:
         raise DataError(f"image encoding must be one of {ENCODINGS}, got {encoding!r}")
-
-
-def _is_complete(path: Path, data: bytes) -> bool:
-    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker (truncated)."""
-    suffix = path.suffix.lower()
-    if suffix == ".png":
-        return data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82")
-    if suffix in (".jpg", ".jpeg"):
-        return data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9")
-    return True
-
-
-def read_image(path: Path, encoding: str = "srgb") -> np.ndarray:
-    """An RGB image file (8- or 16-bit PNG, JPEG or TIFF) as (H,W,3) float64 linear radiance 0..1."""
-    _check_encoding(encoding)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise DataError(f"cannot read image {path}: {exc}") from exc
-    if not _is_complete(path, data):
-        raise DataError(f"image {path} is truncated (no end marker); re-export or remove it")
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DataError(f"image {path} is not a readable PNG, JPEG or TIFF file")
-    if image.ndim != 3 or image.shape[2] not in (3, 4):
-        raise DataError(f"image {path} has shape {image.shape}; expected a colour (RGB) image")
-    if image.dtype == np.uint8:
-        scale = 255.0
-    elif image.dtype == np.uint16:
-        scale = 65535.0
-    else:
-        raise DataError(f"image {path} has sample type {image.dtype}; expected 8- or 16-bit integers")
-    rgb = image[..., 2::-1].astype(np.float64) / scale  # BGR(A) -> RGB
-    return srgb_to_linear(rgb) if encoding == "srgb" else rgb
-
-
-def read_depth(path: Path) -> np.ndarray:
-    """A depth file as (H,W) float64 metres: 16-bit PNG in millimetres, ``.npy`` in metres or ``.mat``
-    with the key ``depth`` in metres. 0 marks pixels without a value; NaN or negative values are errors."""
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".png":
-            data = path.read_bytes()
-            if not _is_complete(path, data):
-                raise DataError(f"depth {path} is truncated (no PNG end chunk)")
-            raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-            if raw is None:
-                raise DataError(f"depth {path} is not a readable PNG")
-            if raw.dtype != np.uint16 or raw.ndim != 2:
-                raise DataError(f"depth {path} is a {raw.dtype} PNG of shape {raw.shape}; expected a "
-                                f"single-channel 16-bit PNG in millimetres")
-            depth = raw.astype(np.float64) / 1000.0
-        elif suffix == ".npy":
-            depth = np.load(path, allow_pickle=False)
-        elif suffix == ".mat":
-            import scipy.io
-
-            mat = scipy.io.loadmat(path)
-            if "depth" not in mat:
-                keys = sorted(k for k in mat if not k.startswith("__"))
-                raise DataError(f"depth {path} has no key 'depth' (keys: {keys})")
-            depth = mat["depth"]
-        else:
-            raise DataError(f"depth {path}: unsupported format {suffix} (use {', '.join(DEPTH_SUFFIXES)})")
-    except DataError:
-        raise
-    except (OSError, ValueError, NotImplementedError, TypeError) as exc:
-        raise DataError(f"cannot read depth {path}: {type(exc).__name__}: {exc}") from exc
-    depth = np.asarray(depth)
-    if depth.ndim == 3 and depth.shape[2] == 1:
-        depth = depth[..., 0]
-    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
-        raise DataError(f"depth {path} has shape {depth.shape} and type {depth.dtype}; expected an (H,W) number array")
-    depth = depth.astype(np.float64)
-    if not np.isfinite(depth).all():
-        raise DataError(f"depth {path} contains NaN or infinite values; use 0 for pixels without depth")
-    if (depth < 0).any():
-        raise DataError(f"depth {path} contains negative values (min {depth.min():.3g} m)")
-    return depth
 
 
 def resize_image(image: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
@@ -321,9 +236,9 @@ def find_rgbd_pairs(folder: str | Path, skip_bad: bool = False) -> tuple[list[Rg
 
 
 def read_pair(pair: RgbdPair, encoding: str = "srgb") -> tuple[np.ndarray, np.ndarray]:
-    """One frame at its native size: (H,W,3) linear rgb and (H,W) depth in metres, sizes checked."""
+    """One frame at its native size: (H,W,3) linear rgb and (H,W) depth in metres (0: no value), sizes checked."""
     rgb = read_image(pair.rgb, encoding)
-    depth = read_depth(pair.depth)
+    depth = depth_or_zero(read_depth(pair.depth))  # the generator takes 0 for "no value"
     if rgb.shape[:2] != depth.shape:
         raise DataError(f"size mismatch: rgb {pair.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but depth "
                         f"{pair.depth} is {depth.shape[1]}x{depth.shape[0]} (width x height)")
@@ -400,34 +315,3 @@ def load_underwater(folder: str | Path, size_hw: tuple[int, int] = TRAIN_HW, enc
     if not images:
         raise DataError(f"underwater image folder {folder}: every image was bad ({len(skipped)} skipped)")
     return ImageSet(_to_tensor(images), paths, skipped)
-
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write a file so that readers see the old or the new content, never a partial one
-    (a temporary file in the same folder, then ``os.replace``)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
-def encode_png(image: np.ndarray) -> bytes:
-    """PNG bytes of an (H,W) or (H,W,3) RGB uint8/uint16 array."""
-    data = image[..., ::-1] if image.ndim == 3 else image
-    ok, buffer = cv2.imencode(".png", np.ascontiguousarray(data))
-    if not ok:
-        raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as PNG")
-    return buffer.tobytes()
-
-
-def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
-    """Linear (H,W,3) 0..1 as an 8-bit sRGB PNG, atomically."""
-    atomic_write_bytes(path, encode_png(np.rint(linear_to_srgb(linear_rgb) * 255.0).astype(np.uint8)))
-
-
-def write_depth_mm(path: str | Path, depth_m: np.ndarray) -> None:
-    """(H,W) metres as a 16-bit PNG of millimetres (0 = no value; at most 65.535 m), atomically."""
-    if depth_m.max(initial=0.0) > 65.535:
-        raise DataError(f"depth above 65.535 m cannot be stored in the 16-bit millimetre PNG {path}")
-    atomic_write_bytes(path, encode_png(np.rint(depth_m * 1000.0).astype(np.uint16)))

@@ -46,12 +46,13 @@ from .data import (
     read_pair,
     resize_depth,
     resize_image,
-    write_depth_mm,
+    write_depth_png,
     write_srgb8,
 )
+from .device import pick_device
 from .errors import UserInputError
 from .nets.generator import WaterGenerator
-from .train import CHECKPOINT, STACK_JSON, load_checkpoint, pick_device
+from .train import CHECKPOINT, STACK_JSON, load_checkpoint
 
 MANIFEST = "manifest.json"
 
@@ -177,7 +178,7 @@ def generate(config: GenerateConfig) -> GenerateResult:
             underwater = generator(rgb_t, depth_t, z.to(device), intrinsics)[0].cpu().double().numpy()
         name = f"{pair.stem}.png"
         write_srgb8(out / "inair" / name, rgb)
-        write_depth_mm(out / "depth" / name, depth)
+        write_depth_png(out / "depth" / name, depth)
         write_srgb8(out / "underwater" / name, underwater.transpose(1, 2, 0))
         items.append({"stem": pair.stem, "inair": f"inair/{name}", "depth": f"depth/{name}",
                       "underwater": f"underwater/{name}", "source_rgb": str(pair.rgb),

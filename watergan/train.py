@@ -51,9 +51,11 @@ from .data import (
     load_rgbd,
     load_underwater,
 )
+from .device import pick_device
 from .errors import UserInputError
 from .formation import FormationState
 from .formation.effects.backscatter_conv import BackscatterConv
+from .imaging import gaussian_blur
 from .nets.discriminator import Discriminator
 from .nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
 
@@ -266,17 +268,6 @@ def _check_config(config: GanConfig) -> None:
         raise UserInputError(f"GanConfig.depth_scale_m must be positive, got {config.depth_scale_m}")
 
 
-def pick_device(name: str) -> torch.device:
-    """"auto": CUDA when available, else CPU; "cpu" or "cuda" as asked."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise UserInputError("device 'cuda' requested but CUDA is not available")
-    if name not in ("cpu", "cuda"):
-        raise UserInputError(f"device must be auto, cpu or cuda, got {name!r}")
-    return torch.device(name)
-
-
 def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: float,
                            veil_lr: float | None = None, veil_spread_lr: float | None = None) -> list[dict]:
     """Optimiser groups: each effect's bounded physical (``raw``) parameters at ``physics_lr``, the
@@ -374,21 +365,6 @@ def moment_loss(images: torch.Tensor, target: torch.Tensor, weight: float = 1.0)
     return weight * (colour_moments(images) - target).square().sum()
 
 
-def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Separable Gaussian blur of (B,C,H,W) images (reflect padding, kernel radius 3 sigma)."""
-    if sigma_px <= 0:
-        return images
-    radius = max(1, int(math.ceil(3.0 * sigma_px)))
-    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-    kernel = torch.exp(-0.5 * (x / sigma_px) ** 2)
-    kernel = kernel / kernel.sum()
-    c = images.shape[1]
-    out = F.conv2d(F.pad(images, (radius, radius, 0, 0), mode="reflect"), kernel.view(1, 1, 1, -1).repeat(c, 1, 1, 1),
-                   groups=c)
-    return F.conv2d(F.pad(out, (0, 0, radius, radius), mode="reflect"), kernel.view(1, 1, -1, 1).repeat(c, 1, 1, 1),
-                    groups=c)
-
-
 def augment(images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     """Per image: a random left-right and up-down flip and a random shift of up to 1/8 of each side
     (reflected border); see ``GanConfig.disc_augment``."""
@@ -477,25 +453,26 @@ def _config_json(config: GanConfig) -> dict:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
 
 
-def _save_checkpoint(path: Path, step: int, generator, discriminator, opt_g, opt_d, rng: torch.Generator,
-                     config: GanConfig, depth_scale_m: float, trained_generator: dict | None = None) -> None:
-    """``trained_generator``: the generator's state before :func:`settle_statistics`, which a resumed run
+def _save_checkpoint(run: GanRun, step: int, trained_generator: dict | None = None) -> None:
+    """Checkpoint: ``out/checkpoint.pt`` (atomic) with the states of both nets, their optimisers and the
+    batch generator at ``step``, the stack configuration and the run's configuration.
+    ``trained_generator``: the generator's state before :func:`settle_statistics`, which a resumed run
     trains on from (``generator`` is then the settled one, which ``generate`` uses); without it a resume
     trains on from ``generator``."""
     buffer = io.BytesIO()
     torch.save({
         "step": step,
-        "generator": generator.state_dict(),
+        "generator": run.generator.state_dict(),
         **({"generator_trained": trained_generator} if trained_generator is not None else {}),
-        "discriminator": discriminator.state_dict(),
-        "opt_g": opt_g.state_dict(),
-        "opt_d": opt_d.state_dict(),
-        "stack": generator.to_config(),
-        "rng": rng.get_state(),
-        "depth_scale_m": depth_scale_m,
-        "config": _config_json(config),
+        "discriminator": run.discriminator.state_dict(),
+        "opt_g": run.opt_g.state_dict(),
+        "opt_d": run.opt_d.state_dict(),
+        "stack": run.generator.to_config(),
+        "rng": run.rng.get_state(),
+        "depth_scale_m": run.depth_scale_m,
+        "config": _config_json(run.config),
     }, buffer)
-    atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_bytes(run.out / CHECKPOINT, buffer.getvalue())
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -507,6 +484,30 @@ def load_checkpoint(path: str | Path) -> dict:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # a torn or foreign file: say which
         raise UserInputError(f"checkpoint {path} cannot be read ({type(exc).__name__}: {exc})") from exc
+
+
+def _read_resume_checkpoint(config: GanConfig, out: Path) -> dict | None:
+    """Checkpoint: the one to resume from, ``out/checkpoint.pt`` when ``config.resume`` and it exists;
+    else None (said on stderr when a resume was asked for)."""
+    path = out / CHECKPOINT
+    checkpoint = load_checkpoint(path) if config.resume and path.is_file() else None
+    if config.resume and checkpoint is None:
+        print(f"train-gan: no checkpoint in {out}, starting from iteration 0", file=sys.stderr)
+    return checkpoint
+
+
+def _resume(checkpoint: dict | None, generator: WaterGenerator, discriminator: Discriminator,
+            opt_g: torch.optim.Optimizer, opt_d: torch.optim.Optimizer, rng: torch.Generator) -> int:
+    """Checkpoint: restore both nets (the generator as it was before settling when the checkpoint holds
+    that), both optimisers and the batch generator; returns the iteration to go on from (0 without one)."""
+    if checkpoint is None:
+        return 0
+    generator.load_state_dict(checkpoint.get("generator_trained", checkpoint["generator"]))
+    discriminator.load_state_dict(checkpoint["discriminator"])
+    opt_g.load_state_dict(checkpoint["opt_g"])
+    opt_d.load_state_dict(checkpoint["opt_d"])
+    rng.set_state(checkpoint["rng"])
+    return int(checkpoint["step"])
 
 
 def _srgb8(linear: torch.Tensor) -> np.ndarray:
@@ -591,39 +592,71 @@ def _log_lines_up_to(path: Path, step: int) -> str:
 
 
 def train_gan(config: GanConfig) -> GanResult:
-    """Train a WaterGAN on in-air RGB-D and underwater images (see the module docstring)."""
+    """Train a WaterGAN on in-air RGB-D and underwater images (see the module docstring): build the run,
+    iterate :func:`gan_step` up to a limit (checkpoints and samples on the way), settle the physical
+    parameters, write the last checkpoint and the result files."""
     _check_config(config)
+    run = build_gan(config)
+    log_path = _start_log(run)
+    began = time.perf_counter()
+    with log_path.open("a") as log:
+        step, d_loss, g_loss, stopped_by = _train_iterations(run, log, began)
+    trained, settle_loss = _settle(run)
+    seconds = time.perf_counter() - began
+    _save_checkpoint(run, step, trained)
+    return write_gan_result(run, step=step, seconds=seconds, stopped_by=stopped_by, d_loss=d_loss, g_loss=g_loss,
+                            settle_loss=settle_loss)
+
+
+@dataclass
+class GanRun:
+    """What a ``train_gan`` run trains with (made by :func:`build_gan`)."""
+
+    config: GanConfig
+    out: Path
+    device: torch.device
+    generator: WaterGenerator
+    discriminator: Discriminator
+    opt_g: torch.optim.Optimizer
+    opt_d: torch.optim.Optimizer
+    physics: list[torch.nn.Parameter]
+    """The generator's physical parameters (:func:`physical_parameters`)."""
+    rng: torch.Generator
+    """Draws batches, noise vectors, instance noise and augmentations; checkpointed, so a resume goes on
+    with the same draws."""
+    air: torch.Tensor
+    """(N,3,H,W) in-air views, linear, on the device."""
+    depth: torch.Tensor
+    """(N,1,H,W) their depth, metres."""
+    real: torch.Tensor
+    """(M,3,H,W) the survey's frames, linear."""
+    air_state: FormationState
+    """The geometry of every in-air view, computed once (see :func:`~watergan.nets.generator.select_state`)."""
+    intrinsics: tuple[float, float, float, float] | None
+    depth_scale_m: float
+    start: int
+    """Iterations done before this run: 0, or the checkpoint's on a resume."""
+    resumed: bool
+    """The nets and optimisers came from the checkpoint."""
+    skipped: list[str]
+    """Files left out with ``skip_bad``."""
+
+
+# ---------------------------------------------------------------------------------------------- build
+def build_gan(config: GanConfig) -> GanRun:
+    """Build a run: the output folders, the device and the data (:func:`_load_gan_data`); under
+    ``torch.manual_seed(config.seed)`` the generator (:func:`_build_generator`) and the discriminator;
+    their Adam optimisers (:func:`generator_param_groups`) and the batch generator seeded by ``config.seed``;
+    on a resume the states of all of these from the checkpoint (:func:`_resume`)."""
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / SAMPLES).mkdir(exist_ok=True)
     device = pick_device(config.device)
+    rgbd, water, skipped, intrinsics = _load_gan_data(config)
 
-    rgbd = load_rgbd(config.rgbd_dir, config.image_hw, config.encoding, config.skip_bad)
-    water = load_underwater(config.underwater_dir, config.image_hw, config.encoding, config.skip_bad)
-    skipped = rgbd.skipped + water.skipped
-    if skipped:
-        print(f"train-gan: skipped {len(skipped)} bad file(s):\n  " + "\n  ".join(skipped), file=sys.stderr)
-    intrinsics = rgbd.intrinsics.as_tuple() if (config.use_intrinsics and rgbd.intrinsics) else None
-
-    ckpt_path = out / CHECKPOINT
-    checkpoint = load_checkpoint(ckpt_path) if config.resume and ckpt_path.is_file() else None
-    if config.resume and checkpoint is None:
-        print(f"train-gan: no checkpoint in {out}, starting from iteration 0", file=sys.stderr)
+    checkpoint = _read_resume_checkpoint(config, out)
     torch.manual_seed(config.seed)
-    if checkpoint is not None:
-        generator = WaterGenerator.from_config(checkpoint["stack"])
-        if generator.stack.names != [c["name"] for c in generator_stack_config(config.effects)]:
-            raise UserInputError(f"checkpoint {ckpt_path} holds effects {generator.stack.names}, not "
-                                 f"{list(config.effects)}: resume with the same effects or use a new --out")
-        depth_scale_m = float(checkpoint["depth_scale_m"])
-    else:
-        depth_scale_m = config.depth_scale_m or float(rgbd.depth_m.max())
-        if not depth_scale_m > 0:
-            raise DataError(f"every depth in {config.rgbd_dir} is 0: no depth to learn the water from")
-        generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw,
-                                         config.gain_channels)
-        if config.init_from_data:
-            init_from_data(generator, rgbd.rgb, rgbd.depth_m, water.images, intrinsics)
+    generator, depth_scale_m = _build_generator(config, checkpoint, rgbd, water, intrinsics, out / CHECKPOINT)
     discriminator = Discriminator(config.disc_width, config.image_hw)
     generator.to(device).train()
     discriminator.to(device).train()
@@ -633,129 +666,227 @@ def train_gan(config: GanConfig) -> GanResult:
     opt_g = torch.optim.Adam(groups, config.lr, betas)
     opt_d = torch.optim.Adam(discriminator.parameters(), config.lr, betas)
     rng = torch.Generator().manual_seed(config.seed)
-    start = 0
-    if checkpoint is not None:
-        generator.load_state_dict(checkpoint.get("generator_trained", checkpoint["generator"]))
-        discriminator.load_state_dict(checkpoint["discriminator"])
-        opt_g.load_state_dict(checkpoint["opt_g"])
-        opt_d.load_state_dict(checkpoint["opt_d"])
-        rng.set_state(checkpoint["rng"])
-        start = int(checkpoint["step"])
+    start = _resume(checkpoint, generator, discriminator, opt_g, opt_d, rng)
 
-    air, depth, real_all = rgbd.rgb.to(device), rgbd.depth_m.to(device), water.images.to(device)
+    air, depth, real = rgbd.rgb.to(device), rgbd.depth_m.to(device), water.images.to(device)
     with torch.no_grad():  # the geometry of every RGB-D view, once (see select_state)
         air_state = generator.state(air, depth, None, intrinsics)
-    n_air, n_water, batch = air.shape[0], real_all.shape[0], config.batch_size
-    iters_per_epoch = max(1, min(n_air, n_water) // batch)
+    return GanRun(config=config, out=out, device=device, generator=generator, discriminator=discriminator,
+                  opt_g=opt_g, opt_d=opt_d, physics=physics, rng=rng, air=air, depth=depth, real=real,
+                  air_state=air_state, intrinsics=intrinsics, depth_scale_m=depth_scale_m, start=start,
+                  resumed=checkpoint is not None, skipped=skipped)
+
+
+def _load_gan_data(config: GanConfig):
+    """Build: the in-air RGB-D set and the survey's frames at ``image_hw`` (bad files skipped and reported
+    with ``skip_bad``), the skipped files and the RGB-D camera intrinsics (None: range = depth)."""
+    rgbd = load_rgbd(config.rgbd_dir, config.image_hw, config.encoding, config.skip_bad)
+    water = load_underwater(config.underwater_dir, config.image_hw, config.encoding, config.skip_bad)
+    skipped = rgbd.skipped + water.skipped
+    if skipped:
+        print(f"train-gan: skipped {len(skipped)} bad file(s):\n  " + "\n  ".join(skipped), file=sys.stderr)
+    intrinsics = rgbd.intrinsics.as_tuple() if (config.use_intrinsics and rgbd.intrinsics) else None
+    return rgbd, water, skipped, intrinsics
+
+
+def _build_generator(config: GanConfig, checkpoint: dict | None, rgbd, water, intrinsics,
+                     ckpt_path: Path) -> tuple[WaterGenerator, float]:
+    """Build: the generator and its range normaliser, metres. On a resume the checkpoint's stack (which
+    must hold ``config.effects``); else a new stack of ``config.effects`` started from the data
+    (:func:`init_from_data`) when ``init_from_data``."""
+    if checkpoint is not None:
+        generator = WaterGenerator.from_config(checkpoint["stack"])
+        if generator.stack.names != [c["name"] for c in generator_stack_config(config.effects)]:
+            raise UserInputError(f"checkpoint {ckpt_path} holds effects {generator.stack.names}, not "
+                                 f"{list(config.effects)}: resume with the same effects or use a new --out")
+        return generator, float(checkpoint["depth_scale_m"])
+    depth_scale_m = config.depth_scale_m or float(rgbd.depth_m.max())
+    if not depth_scale_m > 0:
+        raise DataError(f"every depth in {config.rgbd_dir} is 0: no depth to learn the water from")
+    generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw,
+                                     config.gain_channels)
+    if config.init_from_data:
+        init_from_data(generator, rgbd.rgb, rgbd.depth_m, water.images, intrinsics)
+    return generator, depth_scale_m
+
+
+# ----------------------------------------------------------------------------------------------- step
+def gan_step(run: GanRun) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One training iteration (see the module docstring): a batch (:func:`_draw_batch`), one step on D
+    (:func:`_discriminator_step`), ``gen_steps_per_disc_step`` steps on G (:func:`_generator_steps`).
+    Returns D's loss, G's last loss and D's logits on the real and the generated batch."""
+    state_b, real_b, noise_real, noise_fake = _draw_batch(run)
+    loss_d, d_real, d_fake = _discriminator_step(run, state_b, real_b, noise_real, noise_fake)
+    loss_g = _generator_steps(run, state_b, real_b, noise_fake)
+    return loss_d, loss_g, d_real, d_fake
+
+
+def _draw_batch(run: GanRun) -> tuple[FormationState, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Step: from ``run.rng``, in this order, ``batch_size`` in-air views and real frames (with replacement),
+    noise vectors z uniform in [-1, 1] and the instance noise of the real and the generated batch."""
+    config, rng, device, batch = run.config, run.rng, run.device, run.config.batch_size
+    i_air = torch.randint(run.air.shape[0], (batch,), generator=rng).to(device)
+    i_water = torch.randint(run.real.shape[0], (batch,), generator=rng).to(device)
+    z = (torch.rand(batch, run.generator.z_dim, generator=rng) * 2 - 1).to(device)
+    state_b, real_b = select_state(run.air_state, i_air, z=z), run.real[i_water]
+    noise_real, noise_fake = (config.instance_noise_std * torch.randn(2, *real_b.shape, generator=rng)).to(device)
+    return state_b, real_b, noise_real, noise_fake
+
+
+def _disc_input(run: GanRun, images: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """Step: what the discriminator sees: augmented (``disc_augment``, drawn from ``run.rng``), blurred, with
+    instance noise."""
+    images = augment(images, run.rng) if run.config.disc_augment else images
+    return gaussian_blur(images, run.config.disc_blur_px) + noise
+
+
+def _discriminator_step(run: GanRun, state_b: FormationState, real_b: torch.Tensor, noise_real: torch.Tensor,
+                        noise_fake: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Step: one Adam step on D, BCE of its logits against ``real_label`` on real and 0 on generated
+    images. Returns the loss and the logits on both."""
+    batch, device = run.config.batch_size, run.device
+    fake = run.generator.render(state_b)
+    d_real = run.discriminator(_disc_input(run, real_b, noise_real))
+    d_fake = run.discriminator(_disc_input(run, fake.detach(), noise_fake))
+    real_target = torch.full((batch,), run.config.real_label, device=device)
+    loss_d = (F.binary_cross_entropy_with_logits(d_real, real_target)
+              + F.binary_cross_entropy_with_logits(d_fake, torch.zeros(batch, device=device)))
+    run.opt_d.zero_grad(set_to_none=True)
+    loss_d.backward()
+    run.opt_d.step()
+    return loss_d, d_real, d_fake
+
+
+def _generator_steps(run: GanRun, state_b: FormationState, real_b: torch.Tensor,
+                     noise_fake: torch.Tensor) -> torch.Tensor:
+    """Step: ``gen_steps_per_disc_step`` Adam steps on G (D frozen): BCE against 1 plus the colour-statistics
+    term (:func:`moment_loss`, with ``moment_weight`` > 0); without ``adversarial_physics`` the physical
+    parameters get the statistics term's gradient alone. Returns the last loss."""
+    config = run.config
+    ones = torch.ones(config.batch_size, device=run.device)
+    run.discriminator.requires_grad_(False)
+    real_moments = colour_moments(real_b) if config.moment_weight > 0 else None
+    for _ in range(config.gen_steps_per_disc_step):
+        fake = run.generator.render(state_b)
+        loss_g = F.binary_cross_entropy_with_logits(run.discriminator(_disc_input(run, fake, noise_fake)), ones)
+        run.opt_g.zero_grad(set_to_none=True)
+        loss_g.backward(retain_graph=real_moments is not None)
+        if not config.adversarial_physics:  # the physical parameters follow the statistics alone
+            for param in run.physics:
+                param.grad = None
+        if real_moments is not None:
+            loss_moments = moment_loss(fake, real_moments, config.moment_weight)
+            loss_moments.backward()
+            loss_g = loss_g + loss_moments
+        run.opt_g.step()
+    run.discriminator.requires_grad_(True)
+    return loss_g
+
+
+def _stop_plan(config: GanConfig, n_air: int, n_water: int) -> tuple[int | None, str]:
+    """Step: the iteration to stop at (the lower of ``iterations`` and ``epochs`` of
+    max(1, min(N_rgbd, N_underwater) // batch_size) iterations; None: the budget alone) and its name."""
+    iters_per_epoch = max(1, min(n_air, n_water) // config.batch_size)
     limits = {"iterations": config.iterations,
               "epochs": None if config.epochs is None else config.epochs * iters_per_epoch}
     target = min((v for v in limits.values() if v is not None), default=None)
     stopped_by = min((k for k, v in limits.items() if v is not None), key=lambda k: limits[k], default="budget")
+    return target, stopped_by
+
+
+def _will_settle(config: GanConfig) -> bool:
+    """Whether :func:`settle_statistics` runs after training."""
+    return config.moment_weight > 0 and config.settle_steps > 0
+
+
+def _train_iterations(run: GanRun, log, began: float) -> tuple[int, float, float, str]:
+    """Iterate :func:`gan_step` from ``run.start`` up to the iteration or epoch limit or the time budget
+    (less the time :func:`settle_statistics` will take, measured ``SETTLE_TIMING_STEP`` iterations in);
+    a log line every iteration, a checkpoint every ``checkpoint_every``, samples every ``sample_every``.
+    Returns the iteration reached, the last D and G losses and what stopped it."""
+    config = run.config
+    target, stopped_by = _stop_plan(config, run.air.shape[0], run.real.shape[0])
     budget_s = None if config.budget_min is None else 60.0 * config.budget_min
-    will_settle = config.moment_weight > 0 and config.settle_steps > 0
     settle_reserve_s = 0.0  # time kept for settle_statistics inside the budget, measured once warm
-
-    sample_z = torch.rand(SAMPLE_COUNT, generator.z_dim, generator=torch.Generator().manual_seed(config.seed + 1))
-    sample_z = sample_z.mul(2).sub(1).to(device)
-    sample_air, sample_depth = air[:SAMPLE_COUNT], depth[:SAMPLE_COUNT]
-    sample_real = real_all[:SAMPLE_COUNT]
-
-    def write_samples(step: int) -> None:
-        fake = _render_eval(generator, sample_air, sample_depth, sample_z[:sample_air.shape[0]], intrinsics)
-        atomic_write_bytes(out / SAMPLES / f"step_{step:06d}.png",
-                           encode_png(_sample_grid([sample_air, fake, sample_real])))
-
-    log_path = out / TRAIN_LOG
-    atomic_write_bytes(log_path, _log_lines_up_to(log_path, start).encode() if checkpoint is not None else b"")
-    ones, zeros = torch.ones(batch, device=device), torch.zeros(batch, device=device)
-    real_target = torch.full((batch,), config.real_label, device=device)
-    bce = F.binary_cross_entropy_with_logits
-
-    def disc_input(images: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """What the discriminator sees: augmented (``disc_augment``), blurred, with instance noise."""
-        images = augment(images, rng) if config.disc_augment else images
-        return gaussian_blur(images, config.disc_blur_px) + noise
-
-    began = time.perf_counter()
-    step, d_loss, g_loss = start, float("nan"), float("nan")
-    bar = tqdm(total=target, initial=start, disable=not config.progress, desc="train-gan", unit="it")
-    with log_path.open("a") as log:
-        while target is None or step < target:
-            if budget_s is not None and time.perf_counter() - began + settle_reserve_s >= budget_s:
-                stopped_by = "budget"
-                break
-            i_air = torch.randint(n_air, (batch,), generator=rng).to(device)
-            i_water = torch.randint(n_water, (batch,), generator=rng).to(device)
-            z = (torch.rand(batch, generator.z_dim, generator=rng) * 2 - 1).to(device)
-            state_b, real_b = select_state(air_state, i_air, z=z), real_all[i_water]
-            noise_real, noise_fake = (config.instance_noise_std * torch.randn(2, *real_b.shape, generator=rng)
-                                      ).to(device)
-
-            fake = generator.render(state_b)
-            d_real = discriminator(disc_input(real_b, noise_real))
-            d_fake = discriminator(disc_input(fake.detach(), noise_fake))
-            loss_d = bce(d_real, real_target) + bce(d_fake, zeros)
-            opt_d.zero_grad(set_to_none=True)
-            loss_d.backward()
-            opt_d.step()
-
-            discriminator.requires_grad_(False)
-            real_moments = colour_moments(real_b) if config.moment_weight > 0 else None
-            for _ in range(config.gen_steps_per_disc_step):
-                fake = generator.render(state_b)
-                loss_g = bce(discriminator(disc_input(fake, noise_fake)), ones)
-                opt_g.zero_grad(set_to_none=True)
-                loss_g.backward(retain_graph=real_moments is not None)
-                if not config.adversarial_physics:  # the physical parameters follow the statistics alone
-                    for param in physics:
-                        param.grad = None
-                if real_moments is not None:
-                    loss_moments = moment_loss(fake, real_moments, config.moment_weight)
-                    loss_moments.backward()
-                    loss_g = loss_g + loss_moments
-                opt_g.step()
-            discriminator.requires_grad_(True)
-
-            step += 1
-            if will_settle and budget_s is not None and step == start + SETTLE_TIMING_STEP:
-                settle_reserve_s = config.settle_steps * _settle_step_seconds(generator, air_state, real_all)
-            d_loss, g_loss = loss_d.item(), loss_g.item()
-            log.write(json.dumps({"step": step, "d_loss": d_loss, "g_loss": g_loss,
-                                  "d_real": torch.sigmoid(d_real).mean().item(),
-                                  "d_fake": torch.sigmoid(d_fake).mean().item(),
-                                  "seconds": round(time.perf_counter() - began, 3),
-                                  "params": _json_ready(generator.physical_values())}) + "\n")
-            bar.update(1)
-            bar.set_postfix(d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
-            if step % config.checkpoint_every == 0:
-                log.flush()
-                _save_checkpoint(ckpt_path, step, generator, discriminator, opt_g, opt_d, rng, config, depth_scale_m)
-            if step % config.sample_every == 0:
-                write_samples(step)
+    step, d_loss, g_loss = run.start, float("nan"), float("nan")
+    bar = tqdm(total=target, initial=run.start, disable=not config.progress, desc="train-gan", unit="it")
+    while target is None or step < target:
+        if budget_s is not None and time.perf_counter() - began + settle_reserve_s >= budget_s:
+            stopped_by = "budget"
+            break
+        loss_d, loss_g, d_real, d_fake = gan_step(run)
+        step += 1
+        if _will_settle(config) and budget_s is not None and step == run.start + SETTLE_TIMING_STEP:
+            settle_reserve_s = config.settle_steps * _settle_step_seconds(run.generator, run.air_state, run.real)
+        d_loss, g_loss = loss_d.item(), loss_g.item()
+        log.write(json.dumps({"step": step, "d_loss": d_loss, "g_loss": g_loss,
+                              "d_real": torch.sigmoid(d_real).mean().item(),
+                              "d_fake": torch.sigmoid(d_fake).mean().item(),
+                              "seconds": round(time.perf_counter() - began, 3),
+                              "params": _json_ready(run.generator.physical_values())}) + "\n")
+        bar.update(1)
+        bar.set_postfix(d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
+        if step % config.checkpoint_every == 0:
+            log.flush()
+            _save_checkpoint(run, step)
+        if step % config.sample_every == 0:
+            write_gan_samples(run, step)
     bar.close()
-    trained, settle_loss = None, None
-    if will_settle:
-        trained = {name: value.clone() for name, value in generator.state_dict().items()}
-        settle_loss = settle_statistics(generator, air_state, real_all, config.settle_steps, config.moment_weight,
-                                        config.seed + 3)
-    seconds = time.perf_counter() - began
+    return step, d_loss, g_loss, stopped_by
 
-    _save_checkpoint(ckpt_path, step, generator, discriminator, opt_g, opt_d, rng, config, depth_scale_m, trained)
+
+def _settle(run: GanRun) -> tuple[dict | None, float | None]:
+    """Step: :func:`settle_statistics` when it runs (:func:`_will_settle`), noise from ``seed + 3``. Returns
+    the generator's state before it (for the checkpoint) and the final statistics term; else (None, None)."""
+    config = run.config
+    if not _will_settle(config):
+        return None, None
+    trained = {name: value.clone() for name, value in run.generator.state_dict().items()}
+    return trained, settle_statistics(run.generator, run.air_state, run.real, config.settle_steps,
+                                      config.moment_weight, config.seed + 3)
+
+
+# ---------------------------------------------------------------------------------------------- write
+def _start_log(run: GanRun) -> Path:
+    """Write: ``train_log.jsonl`` cut to the iterations before this run (emptied on a fresh start)."""
+    log_path = run.out / TRAIN_LOG
+    atomic_write_bytes(log_path, _log_lines_up_to(log_path, run.start).encode() if run.resumed else b"")
+    return log_path
+
+
+def write_gan_samples(run: GanRun, step: int) -> None:
+    """Write ``samples/step_NNNNNN.png``: rows of the first ``SAMPLE_COUNT`` in-air views, the generator's
+    output for them (inference mode; fixed noise vectors drawn from ``seed + 1``) and the first real frames."""
+    sample_z = torch.rand(SAMPLE_COUNT, run.generator.z_dim,
+                          generator=torch.Generator().manual_seed(run.config.seed + 1))
+    sample_z = sample_z.mul(2).sub(1).to(run.device)
+    sample_air, sample_depth = run.air[:SAMPLE_COUNT], run.depth[:SAMPLE_COUNT]
+    fake = _render_eval(run.generator, sample_air, sample_depth, sample_z[:sample_air.shape[0]], run.intrinsics)
+    atomic_write_bytes(run.out / SAMPLES / f"step_{step:06d}.png",
+                       encode_png(_sample_grid([sample_air, fake, run.real[:SAMPLE_COUNT]])))
+
+
+def write_gan_result(run: GanRun, *, step: int, seconds: float, stopped_by: str, d_loss: float, g_loss: float,
+                     settle_loss: float | None) -> GanResult:
+    """Write the result files: ``stack.json``, the last samples, ``training.png`` (with histograms of the
+    generator's output for every in-air view, noise from ``seed + 2``) and ``result.json``; returns the result."""
+    out, generator, real = run.out, run.generator, run.real
     atomic_write_bytes(out / STACK_JSON, (generator.stack.to_json() + "\n").encode())
-    write_samples(step)
-    stats_z = torch.rand(n_air, generator.z_dim, generator=torch.Generator().manual_seed(config.seed + 2))
-    generated = _render_eval(generator, air, depth, stats_z.mul(2).sub(1).to(device), intrinsics)
-    plot_training(log_path, generated, real_all, out / PLOT)
+    write_gan_samples(run, step)
+    stats_z = torch.rand(run.air.shape[0], generator.z_dim,
+                         generator=torch.Generator().manual_seed(run.config.seed + 2))
+    generated = _render_eval(generator, run.air, run.depth, stats_z.mul(2).sub(1).to(run.device), run.intrinsics)
+    plot_training(out / TRAIN_LOG, generated, real, out / PLOT)
     result = GanResult(
-        out_dir=out, steps=step, seconds=seconds, iterations_per_s=(step - start) / max(seconds, 1e-9),
+        out_dir=out, steps=step, seconds=seconds, iterations_per_s=(step - run.start) / max(seconds, 1e-9),
         stopped_by=stopped_by, d_loss=d_loss, g_loss=g_loss, params=_json_ready(generator.physical_values()),
         colour_mean={
             "generated": generated.mean(dim=(0, 2, 3)).tolist(),
-            "real": real_all.mean(dim=(0, 2, 3)).tolist()},
+            "real": real.mean(dim=(0, 2, 3)).tolist()},
         colour_std={
             "generated": generated.std(dim=(0, 2, 3)).tolist(),
-            "real": real_all.std(dim=(0, 2, 3)).tolist()},
-        skipped=skipped, settle_loss=settle_loss,
+            "real": real.std(dim=(0, 2, 3)).tolist()},
+        skipped=run.skipped, settle_loss=settle_loss,
     )
     atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
     return result

@@ -40,10 +40,10 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .data import DataError, atomic_write_bytes, read_depth, read_image
+from .data import DataError, atomic_write_bytes, depth_or_zero, read_depth, read_image
+from .device import pick_device
 from .errors import UserInputError
 from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, image_context, position_maps, restore
-from .train import pick_device
 
 CHECKPOINT = "checkpoint.pt"
 MODEL = "restorer.pt"
@@ -200,7 +200,7 @@ def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56)) -> P
             if not p.is_file():
                 raise DataError(f"{p} is missing: every underwater image needs an inair and a depth file")
         u, a = _stored(paths["underwater"]), _stored(paths["inair"])
-        d = read_depth(paths["depth"])
+        d = depth_or_zero(read_depth(paths["depth"]))
         if u.shape != a.shape or u.shape[1:] != d.shape:
             raise DataError(f"frame {stem}: underwater {tuple(u.shape[1:])}, inair {tuple(a.shape[1:])} and depth "
                             f"{d.shape} sizes differ")
@@ -280,7 +280,7 @@ def validate(model: Restorer, data: PairedSet, idx: list[int], device: torch.dev
             sums["raw"] += ((u - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
             sums["restorer"] += ((rgb - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
             pixels += u.shape[-1] * u.shape[-2]
-            truth = torch.from_numpy(relative_depth(read_depth(data.depth_files[i]))).to(device)
+            truth = torch.from_numpy(relative_depth(depth_or_zero(read_depth(data.depth_files[i])))).to(device)
             valid = truth > 0
             depth_sq += float(((depth[0, 0].double() - truth) ** 2)[valid].sum())
             depth_n += int(valid.sum())
@@ -303,37 +303,113 @@ def validation_markdown(table: dict, val_count: int, skip: bool) -> str:
 
 
 def train_restorer(config: RestorerConfig) -> RestorerResult:
-    """Train the depth and colour nets on a ``generate`` folder (see the module docstring)."""
+    """Train the depth and colour nets on a ``generate`` folder (see the module docstring): build the run,
+    train stage 1 then stage 2 (:func:`train_stage`, checkpoints on the way), write the model, the
+    validation tables and the result."""
     _check_config(config)
+    run = build_restorer(config)
+    log_path = _start_log(run)
+    began = time.perf_counter()
+    steps, loss_value = [run.stage1_steps, 0], float("nan")
+    with log_path.open("a") as log:
+        for current, target in ((1, config.stage1_iterations), (2, config.stage2_iterations)):
+            if current < run.stage:
+                continue
+            steps[current - 1], last_loss = train_stage(run, current, target, log, began, steps[0])
+            loss_value = loss_value if last_loss is None else last_loss
+    seconds = time.perf_counter() - began
+    return write_restorer_result(run, steps, seconds, loss_value)
+
+
+@dataclass
+class TrainingViews:
+    """The training frames at the sizes the two stages use, on the device (made by :func:`_training_views`)."""
+
+    small_u: torch.Tensor
+    """(N,3,h,w) underwater images area-averaged to ``core_hw``, 0..1."""
+    small_a: torch.Tensor
+    """(N,3,h,w) in-air images at ``core_hw``."""
+    depth_u: torch.Tensor
+    """(N,3,h,w) underwater images at ``depth_hw`` (the depth net's input)."""
+    depth_t: torch.Tensor
+    """(N,1,h,w) relative depth targets at ``depth_hw``."""
+    altitudes: torch.Tensor
+    """(N,) each frame's altitude, metres."""
+    small_pos: torch.Tensor
+    """Position maps at ``core_hw``."""
+    full_pos: dict[tuple[int, int], torch.Tensor]
+    """Position maps at each full image size."""
+    contexts: torch.Tensor
+    """Context of each whole image (as at correction time)."""
+
+
+@dataclass
+class RestorerRun:
+    """What a ``train_restorer`` run trains with (made by :func:`build_restorer`)."""
+
+    config: RestorerConfig
+    out: Path
+    device: torch.device
+    data: PairedSet
+    train_idx: list[int]
+    val_idx: list[int]
+    crop: int
+    """Side of the stage-2 crops, pixels."""
+    model: Restorer
+    rng: torch.Generator
+    """Draws batches and crops; checkpointed, so a resume goes on with the same draws."""
+    views: TrainingViews
+    stage: int
+    """The stage to start in: 1, or the checkpoint's on a resume."""
+    start: int
+    """Iterations of that stage done before this run."""
+    stage1_steps: int
+    """Stage-1 iterations done before this run."""
+    resume_opt: dict | None
+    """The optimiser state to go on with in stage ``stage`` (None: a fresh optimiser)."""
+    resumed: bool
+    """The model came from the checkpoint."""
+
+
+# ---------------------------------------------------------------------------------------------- build
+def build_restorer(config: RestorerConfig) -> RestorerRun:
+    """Build a run: the output folder, the device, the paired data and its seeded train/validation split,
+    the stage-2 crop side (:func:`_crop_side`), the model under ``torch.manual_seed(config.seed)``, the
+    batch generator seeded by ``config.seed``, both restored on a resume (:func:`_resume`), and the
+    training views (:func:`_training_views`)."""
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(config.device)
     data = load_paired(config.data_dir, config.depth_hw)
     train_idx, val_idx = split_indices(len(data.stems), config.val_fraction, config.seed)
+    crop = _crop_side(config, data)
+
+    checkpoint = _read_resume_checkpoint(config, out)
+    torch.manual_seed(config.seed)
+    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head,
+                     config.altitude).to(device)
+    rng = torch.Generator().manual_seed(config.seed)
+    stage, start, stage1_steps, resume_opt = _resume(checkpoint, model, rng, val_idx, out / CHECKPOINT)
+    return RestorerRun(config=config, out=out, device=device, data=data, train_idx=train_idx, val_idx=val_idx,
+                       crop=crop, model=model, rng=rng, views=_training_views(config, data, device), stage=stage,
+                       start=start, stage1_steps=stage1_steps, resume_opt=resume_opt,
+                       resumed=checkpoint is not None)
+
+
+def _crop_side(config: RestorerConfig, data: PairedSet) -> int:
+    """Build: the stage-2 crop side, ``crop_px`` reduced to a multiple of factor * 8 that fits the smallest
+    image (an error when none does)."""
     min_side = min(min(u.shape[1:]) for u in data.underwater)
     mult = config.factor * 8
     crop = min(config.crop_px, min_side // mult * mult)
     if crop < mult:
         raise DataError(f"the smallest image of {config.data_dir} is {min_side} px; training needs >= {mult} px")
+    return crop
 
-    ckpt_path = out / CHECKPOINT
-    checkpoint = None
-    if config.resume and ckpt_path.is_file():
-        checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-    elif config.resume:
-        print(f"train-restorer: no checkpoint in {out}, starting from the beginning", file=sys.stderr)
-    torch.manual_seed(config.seed)
-    model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head,
-                     config.altitude).to(device)
-    rng = torch.Generator().manual_seed(config.seed)
-    stage, start = 1, 0
-    if checkpoint is not None:
-        if checkpoint["model_config"] != model.to_config() or checkpoint["val_idx"] != val_idx:
-            raise UserInputError(f"checkpoint {ckpt_path} was made with other nets or data: use a new --out")
-        model.load_state_dict(checkpoint["model"])
-        rng.set_state(checkpoint["rng"])
-        stage, start = int(checkpoint["stage"]), int(checkpoint["step"])
 
+def _training_views(config: RestorerConfig, data: PairedSet, device: torch.device) -> TrainingViews:
+    """Build: every frame at the sizes the stages train at, with its depth target, altitude, position maps
+    and whole-image context, on the device."""
     small_u = torch.stack([F.adaptive_avg_pool2d(u.float()[None], config.core_hw)[0] for u in data.underwater]) / 255
     small_a = torch.stack([F.adaptive_avg_pool2d(a.float()[None], config.core_hw)[0] for a in data.inair]) / 255
     depth_u = torch.stack([F.adaptive_avg_pool2d(u.float()[None], config.depth_hw)[0] for u in data.underwater]) / 255
@@ -343,96 +419,162 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     full_pos = {hw: position_maps(*hw, device)[0] for hw in {tuple(u.shape[1:]) for u in data.underwater}}
     contexts = torch.stack([image_context(F.avg_pool2d(u.float()[None] / 255, config.factor))[0]
                             for u in data.underwater]).to(device)  # of whole images, as at correction time
+    return TrainingViews(small_u=small_u, small_a=small_a, depth_u=depth_u, depth_t=depth_t, altitudes=altitudes,
+                         small_pos=small_pos, full_pos=full_pos, contexts=contexts)
 
-    def batch_indices() -> list[int]:
-        picks = torch.randint(len(train_idx), (config.batch_size,), generator=rng)
-        return [train_idx[int(k)] for k in picks]
 
-    def stage1_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        depth = model.depth_net.core(depth_u[idx])
-        up = F.interpolate(depth.detach(), size=config.core_hw, mode="bilinear", align_corners=False)
-        colour = model.colour_net.core_colours(torch.cat([small_u[idx], up, small_pos.expand(len(idx), -1, -1, -1)],
-                                                         dim=1), altitudes[idx])
-        return F.mse_loss(colour, small_a[idx]), masked_mse(depth, depth_t[idx])
-
-    def stage2_loss(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        depth = model.depth_net.core(depth_u[idx])
-        inputs, targets = [], []
-        for k, i in enumerate(idx):
-            h, w = data.underwater[i].shape[1:]
-            y0 = int(torch.randint(h - crop + 1, (1,), generator=rng))
-            x0 = int(torch.randint(w - crop + 1, (1,), generator=rng))
-            d = F.interpolate(depth[k:k + 1].detach(), size=(h, w), mode="bilinear", align_corners=False)
-            u = data.underwater[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255
-            position = full_pos[(h, w)][:, y0:y0 + crop, x0:x0 + crop]
-            inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop], position]))
-            targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
-        colour = model.colour_net(torch.stack(inputs), contexts[idx], altitudes[idx])
-        return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, depth_t[idx])
-
-    def save_checkpoint(stage_now: int, step_now: int, opt_state: dict | None, stage1_steps: int) -> None:
-        buffer = io.BytesIO()
-        torch.save({"stage": stage_now, "step": step_now, "stage1_steps": stage1_steps,
-                    "model_config": model.to_config(), "model": model.state_dict(), "opt": opt_state,
-                    "rng": rng.get_state(), "val_idx": val_idx}, buffer)
-        atomic_write_bytes(ckpt_path, buffer.getvalue())
-
-    log_path = out / TRAIN_LOG
-    atomic_write_bytes(log_path, _log_lines_up_to(log_path, stage, start).encode() if checkpoint else b"")
-    began = time.perf_counter()
+# ----------------------------------------------------------------------------------------------- step
+def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
+                stage1_steps: int) -> tuple[int, float | None]:
+    """Train stage ``current`` (1 or 2) with its own Adam (:func:`_stage_optimiser`) up to ``target``
+    iterations or the stage's end in the budget (stage 1: ``stage1_budget_share`` of it); a log line every
+    iteration, a checkpoint every ``checkpoint_every`` and at the end (after stage 1: stage 2 at its step 0,
+    so a resume goes on from there). Returns the iterations done and the last loss (None: none done)."""
+    config = run.config
+    opt = _stage_optimiser(run, current)
+    step = run.start if current == run.stage else 0
     budget_s = None if config.budget_min is None else 60.0 * config.budget_min
-    steps, loss_value = [0, 0], float("nan")
-    if checkpoint is not None:
-        steps[0] = int(checkpoint["stage1_steps"])
-    with log_path.open("a") as log:
-        for current, target, loss_fn in ((1, config.stage1_iterations, stage1_loss),
-                                         (2, config.stage2_iterations, stage2_loss)):
-            if current < stage:
-                continue
-            params = (list(model.depth_net.parameters()) +
-                      list((model.colour_net.core if current == 1 else model.colour_net).parameters()))
-            opt = torch.optim.Adam(params, config.lr)
-            step = start if current == stage else 0
-            if checkpoint is not None and current == stage and checkpoint["opt"] is not None:
-                opt.load_state_dict(checkpoint["opt"])
-            stage_end_s = None if budget_s is None else (
-                budget_s * config.stage1_budget_share if current == 1 else budget_s)
-            model.train()
-            bar = tqdm(total=target, initial=step, disable=not config.progress, desc=f"restorer stage {current}",
-                       unit="it")
-            while step < target:
-                if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
-                    break
-                colour_loss, depth_loss = loss_fn(batch_indices())
-                loss = colour_loss + depth_loss
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                step += 1
-                loss_value = loss.item()
-                log.write(json.dumps({"stage": current, "step": step, "loss": loss_value,
-                                      "colour_loss": colour_loss.item(), "depth_loss": depth_loss.item(),
-                                      "seconds": round(time.perf_counter() - began, 3)}) + "\n")
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss_value:.4f}")
-                if step % config.checkpoint_every == 0:
-                    log.flush()
-                    save_checkpoint(current, step, opt.state_dict(), step if current == 1 else steps[0])
-            bar.close()
+    stage_end_s = None if budget_s is None else (budget_s * config.stage1_budget_share if current == 1 else budget_s)
+    run.model.train()
+    bar = tqdm(total=target, initial=step, disable=not config.progress, desc=f"restorer stage {current}", unit="it")
+    loss_value = None
+    while step < target:
+        if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
+            break
+        loss, colour_loss, depth_loss = restorer_step(run, current, opt)
+        step += 1
+        loss_value = loss.item()
+        log.write(json.dumps({"stage": current, "step": step, "loss": loss_value,
+                              "colour_loss": colour_loss.item(), "depth_loss": depth_loss.item(),
+                              "seconds": round(time.perf_counter() - began, 3)}) + "\n")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss_value:.4f}")
+        if step % config.checkpoint_every == 0:
             log.flush()
-            steps[current - 1] = step
-            if current == 1:  # a stage-2 checkpoint at its step 0 (fresh optimiser): a resume goes on from there
-                save_checkpoint(2, 0, None, step)
-            else:
-                save_checkpoint(2, step, opt.state_dict(), steps[0])
-    seconds = time.perf_counter() - began
+            _save_checkpoint(run, current, step, opt.state_dict(), step if current == 1 else stage1_steps)
+    bar.close()
+    log.flush()
+    if current == 1:  # a stage-2 checkpoint at its step 0 (fresh optimiser): a resume goes on from there
+        _save_checkpoint(run, 2, 0, None, step)
+    else:
+        _save_checkpoint(run, 2, step, opt.state_dict(), stage1_steps)
+    return step, loss_value
 
-    table = validate(model, data, val_idx, device)
+
+def _stage_optimiser(run: RestorerRun, current: int) -> torch.optim.Adam:
+    """Step: Adam at ``lr`` on the depth net and the colour core (stage 1) or the whole colour net (stage 2),
+    restored from the checkpoint in the stage a resume starts in."""
+    model = run.model
+    params = (list(model.depth_net.parameters()) +
+              list((model.colour_net.core if current == 1 else model.colour_net).parameters()))
+    opt = torch.optim.Adam(params, run.config.lr)
+    if current == run.stage and run.resume_opt is not None:
+        opt.load_state_dict(run.resume_opt)
+    return opt
+
+
+def restorer_step(run: RestorerRun, current: int,
+                  opt: torch.optim.Optimizer) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One training iteration of stage ``current``: a batch of training frames drawn with replacement from
+    ``run.rng``, the stage's loss (:func:`_stage1_loss`, :func:`_stage2_loss`), one Adam step. Returns
+    the loss and its colour and depth terms."""
+    picks = torch.randint(len(run.train_idx), (run.config.batch_size,), generator=run.rng)
+    idx = [run.train_idx[int(k)] for k in picks]
+    colour_loss, depth_loss = (_stage1_loss if current == 1 else _stage2_loss)(run, idx)
+    loss = colour_loss + depth_loss
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss, colour_loss, depth_loss
+
+
+def _stage1_loss(run: RestorerRun, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step: the colour core's MSE at ``core_hw`` (fed the detached, upsampled depth estimate) and the depth
+    net's masked MSE, of frames ``idx``."""
+    views, model, core_hw = run.views, run.model, run.config.core_hw
+    depth = model.depth_net.core(views.depth_u[idx])
+    up = F.interpolate(depth.detach(), size=core_hw, mode="bilinear", align_corners=False)
+    colour = model.colour_net.core_colours(torch.cat([views.small_u[idx], up,
+                                                      views.small_pos.expand(len(idx), -1, -1, -1)], dim=1),
+                                           views.altitudes[idx])
+    return F.mse_loss(colour, views.small_a[idx]), masked_mse(depth, views.depth_t[idx])
+
+
+def _stage2_loss(run: RestorerRun, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step: the whole colour net's MSE on a full-resolution random crop of each frame (offsets drawn from
+    ``run.rng``, frame by frame) and the depth net's masked MSE, of frames ``idx``."""
+    views, model, data, crop, device = run.views, run.model, run.data, run.crop, run.device
+    depth = model.depth_net.core(views.depth_u[idx])
+    inputs, targets = [], []
+    for k, i in enumerate(idx):
+        h, w = data.underwater[i].shape[1:]
+        y0 = int(torch.randint(h - crop + 1, (1,), generator=run.rng))
+        x0 = int(torch.randint(w - crop + 1, (1,), generator=run.rng))
+        d = F.interpolate(depth[k:k + 1].detach(), size=(h, w), mode="bilinear", align_corners=False)
+        u = data.underwater[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255
+        position = views.full_pos[(h, w)][:, y0:y0 + crop, x0:x0 + crop]
+        inputs.append(torch.cat([u, d[0, :, y0:y0 + crop, x0:x0 + crop], position]))
+        targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
+    colour = model.colour_net(torch.stack(inputs), views.contexts[idx], views.altitudes[idx])
+    return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, views.depth_t[idx])
+
+
+# ----------------------------------------------------------------------------------------- checkpoint
+def _read_resume_checkpoint(config: RestorerConfig, out: Path) -> dict | None:
+    """Checkpoint: the one to resume from, ``out/checkpoint.pt`` when ``config.resume`` and it exists;
+    else None (said on stderr when a resume was asked for)."""
+    ckpt_path = out / CHECKPOINT
+    if config.resume and ckpt_path.is_file():
+        return torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    if config.resume:
+        print(f"train-restorer: no checkpoint in {out}, starting from the beginning", file=sys.stderr)
+    return None
+
+
+def _resume(checkpoint: dict | None, model: Restorer, rng: torch.Generator, val_idx: list[int],
+            ckpt_path: Path) -> tuple[int, int, int, dict | None]:
+    """Checkpoint: restore the model and the batch generator (the checkpoint must come from the same nets
+    and split). Returns the stage and step to go on from, the stage-1 iterations done and the optimiser
+    state of that stage; (1, 0, 0, None) without a checkpoint."""
+    if checkpoint is None:
+        return 1, 0, 0, None
+    if checkpoint["model_config"] != model.to_config() or checkpoint["val_idx"] != val_idx:
+        raise UserInputError(f"checkpoint {ckpt_path} was made with other nets or data: use a new --out")
+    model.load_state_dict(checkpoint["model"])
+    rng.set_state(checkpoint["rng"])
+    return (int(checkpoint["stage"]), int(checkpoint["step"]), int(checkpoint["stage1_steps"]),
+            checkpoint["opt"])
+
+
+def _save_checkpoint(run: RestorerRun, stage_now: int, step_now: int, opt_state: dict | None,
+                     stage1_steps: int) -> None:
+    """Checkpoint: ``out/checkpoint.pt`` (atomic) with the stage and step, the stage-1 iterations done, the
+    model's configuration and state, the optimiser's state, the batch generator's and the split."""
+    buffer = io.BytesIO()
+    torch.save({"stage": stage_now, "step": step_now, "stage1_steps": stage1_steps,
+                "model_config": run.model.to_config(), "model": run.model.state_dict(), "opt": opt_state,
+                "rng": run.rng.get_state(), "val_idx": run.val_idx}, buffer)
+    atomic_write_bytes(run.out / CHECKPOINT, buffer.getvalue())
+
+
+# ---------------------------------------------------------------------------------------------- write
+def _start_log(run: RestorerRun) -> Path:
+    """Write: ``train_log.jsonl`` cut to the iterations before this run (emptied on a fresh start)."""
+    log_path = run.out / TRAIN_LOG
+    atomic_write_bytes(log_path, _log_lines_up_to(log_path, run.stage, run.start).encode() if run.resumed else b"")
+    return log_path
+
+
+def write_restorer_result(run: RestorerRun, steps: list[int], seconds: float, loss_value: float) -> RestorerResult:
+    """Write the result files: the held-out RMSE (:func:`validate`) as ``validation.json`` and
+    ``validation.md``, the model (``restorer.pt``) and ``result.json``; returns the result."""
+    out, val_idx = run.out, run.val_idx
+    table = validate(run.model, run.data, val_idx, run.device)
     atomic_write_bytes(out / VALIDATION_JSON, (json.dumps(
         {"val_count": len(val_idx), "units": "stored sRGB 0..1; relative depth 0..1", "rmse": table,
-         "val_stems": [data.stems[i] for i in val_idx]}, indent=2) + "\n").encode())
-    atomic_write_bytes(out / VALIDATION_MD, validation_markdown(table, len(val_idx), config.skip).encode())
-    save_restorer(out / MODEL, model, {"steps": steps})
-    result = RestorerResult(out, (steps[0], steps[1]), seconds, loss_value, table, len(train_idx), len(val_idx))
+         "val_stems": [run.data.stems[i] for i in val_idx]}, indent=2) + "\n").encode())
+    atomic_write_bytes(out / VALIDATION_MD, validation_markdown(table, len(val_idx), run.config.skip).encode())
+    save_restorer(out / MODEL, run.model, {"steps": steps})
+    result = RestorerResult(out, (steps[0], steps[1]), seconds, loss_value, table, len(run.train_idx), len(val_idx))
     atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
     return result

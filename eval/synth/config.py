@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
-import types
-import typing
 from dataclasses import dataclass, field
+
+from watergan.io import from_jsonable
 
 from .camera import CameraConfig
 from .render import RenderConfig
@@ -72,26 +72,5 @@ def config_to_dict(config) -> dict:
 
 def config_from_dict(cls, data: dict):
     """Rebuild a configuration dataclass (e.g. :class:`SimulationConfig`) from
-    :func:`config_to_dict`'s output; unknown keys are an error."""
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        raise ValueError(f"{cls.__name__} has no field {sorted(unknown)}; it has {sorted(names)}")
-    values = {}
-    for name, value in data.items():
-        values[name] = _convert(hints[name], value)
-    return cls(**values)
-
-
-def _convert(hint, value):
-    if value is None:
-        return None
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        options = [h for h in typing.get_args(hint) if h is not type(None)]
-        hint = options[0] if len(options) == 1 else hint
-    if dataclasses.is_dataclass(hint) and isinstance(value, dict):
-        return config_from_dict(hint, value)
-    if isinstance(value, list):
-        return tuple(_convert(typing.Any, v) for v in value) if typing.get_origin(hint) is tuple else value
-    return value
+    :func:`config_to_dict`'s output; unknown keys are an error (:func:`watergan.io.from_jsonable`)."""
+    return from_jsonable(cls, data)

@@ -10,7 +10,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .config import SimulationConfig, config_from_dict
-from .io import read_depth_png, read_json
+from .io import read_depth, read_json
 
 
 @dataclass(frozen=True)
@@ -35,12 +35,12 @@ class Truth:
     root: Path
 
     def depth_m(self, index: int) -> np.ndarray:
-        """True camera-z depth (H,W) of frame ``index``, metres (1 mm steps)."""
-        return read_depth_png(self.root / "truth" / "depth" / self.frames[index])
+        """True camera-z depth (H,W) of frame ``index``, metres (1 mm steps; NaN: no value)."""
+        return read_depth(self.root / "truth" / "depth" / self.frames[index])
 
     def range_m(self, index: int) -> np.ndarray:
         """True ray length (H,W) of frame ``index``, metres (1 mm steps)."""
-        return read_depth_png(self.root / "truth" / "range" / self.frames[index])
+        return read_depth(self.root / "truth" / "range" / self.frames[index])
 
 
 def load_truth(out_dir: str | Path) -> Truth:

@@ -5,27 +5,13 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
+from ...imaging import gaussian_blur
 from ..effect import RANK_BLUR, Effect
 from ..params import Param
 from ..registry import register
 
 _MAX_SIGMA_PX = 32.0
-
-
-def gaussian_blur(image: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Separable Gaussian blur with reflected borders; sigma in pixels."""
-    radius = max(1, int(math.ceil(3.0 * sigma_px)))
-    x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
-    k = torch.exp(-0.5 * (x / sigma_px) ** 2)
-    k = k / k.sum()
-    c = image.shape[1]
-    pad_h, pad_w = min(radius, image.shape[-2] - 1), min(radius, image.shape[-1] - 1)
-    out = F.pad(image, (pad_w, pad_w, 0, 0), mode="reflect")
-    out = F.conv2d(out, k[radius - pad_w: radius + pad_w + 1].view(1, 1, 1, -1).repeat(c, 1, 1, 1), groups=c)
-    out = F.pad(out, (0, 0, pad_h, pad_h), mode="reflect")
-    return F.conv2d(out, k[radius - pad_h: radius + pad_h + 1].view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
 
 
 def forward_scatter_blur(direct: torch.Tensor, range_m: torch.Tensor, mix: torch.Tensor,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from ...imaging import gaussian_blur
 from ..effect import RANK_SCATTER, Effect
 from ..params import Param
 from ..registry import register
-from .forward_scatter import gaussian_blur
 
 
 def snow_particles(range_m: torch.Tensor, frame: torch.Tensor, density_per_mpx: float, seed: int):

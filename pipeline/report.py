@@ -5,15 +5,15 @@ text: verdict and tables). The page needs no network: every image is inlined as 
 (large images downscaled), there is no script; links point to local files in the workspace (the GLB
 mesh, the full-size mosaic). Sections:
 
-1. verdict: where ours wins and loses (from ``06_eval/tables.json``);
+1. verdict: where ours wins and loses (from the eval stage's ``tables.json``);
 2. the same frames side by side: raw, every baseline, ours, the oracle and the in-air truth
    (paper Fig. 5);
 3. the tables (paper Tables I-III, fidelity, depth, speed), best value in bold;
 4. per-patch board error as bar charts, per-point consistency as histograms;
-5. depth: monocular vs stereo error maps (``06_eval/depth``);
+5. depth: monocular vs stereo error maps (the eval stage's ``depth/``);
 6. the textured mesh: a rendered view (the orthophoto draped on the mesh's height field, drawn with
    matplotlib; vertical exaggeration stated) with a link to the GLB, and the mosaic;
-7. the diagnosis: the model ledger plot and verdict (``08_diagnose``);
+7. the diagnosis: the model ledger plot and verdict (the diagnose stage's folder);
 8. each stage's configuration and result (timings).
 
 A section whose stage did not run says "not run" (and which command makes it); a section that
@@ -28,11 +28,15 @@ import io
 import json
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import atomic_write_json, atomic_write_text
+
+from .workspace import Workspace
 
 #: Longest side of an inlined photograph / mosaic, pixels.
 THUMB_PX = 320
@@ -115,20 +119,23 @@ def _load_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def _stage_result(ws, stage: str) -> dict:
-    """The stage's result (the ``result`` of result.json), or NotRun."""
-    from pipeline.workspace import STAGE_DIRS
-
-    record = _load_json(ws.root / STAGE_DIRS[stage] / "result.json")
-    if record is None:
-        raise NotRun(f"not run: no {STAGE_DIRS[stage]}/result.json")
-    return record.get("result", record)
+def _stage_result(ws: Workspace, stage: str):
+    """The stage's typed result, or NotRun."""
+    result = ws.result(stage)
+    if result is None:
+        raise NotRun(f"not run: no {ws.stage(stage).folder}/result.json (run `watergan {stage} --workspace WS`)")
+    return result
 
 
-def _tables(ws) -> dict:
-    data = _load_json(ws.root / "06_eval" / "tables.json")
+def _eval_dir(ws: Workspace) -> Path:
+    """The eval stage's folder, as its result gives it."""
+    return ws.path(_stage_result(ws, "eval").tables_json).parent
+
+
+def _tables(ws: Workspace) -> dict:
+    data = _load_json(_eval_dir(ws) / "tables.json")
     if data is None:
-        raise NotRun("not run: no 06_eval/tables.json (run `watergan evaluate --workspace WS`)")
+        raise NotRun("not run: no tables.json (run `watergan evaluate --workspace WS`)")
     return data
 
 
@@ -163,9 +170,9 @@ def section_frames(ws, out: Path) -> tuple[str, dict]:
         labels = data["labels"]
         frames = data.get("example_frames") or []
     else:
-        survey = ws.root / "00_survey" / "images"
+        survey = ws.stage_dir("survey") / "images"
         if not survey.is_dir():
-            raise NotRun("not run: no survey images in 00_survey/images and no evaluation")
+            raise NotRun(f"not run: no survey images in {ws.relative(survey)} and no evaluation")
         names = sorted(p.name for p in survey.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif"))
         columns, folders, labels = ["raw"], {"raw": survey}, {"raw": "raw"}
         frames = [names[i] for i in sorted({0, len(names) // 2, len(names) - 1})] if names else []
@@ -218,9 +225,9 @@ def section_board_chart(ws, out: Path) -> tuple[str, dict]:
 
 
 def section_consistency(ws, out: Path) -> tuple[str, dict]:
-    path = ws.root / "06_eval" / "consistency_points.npz"
+    path = _eval_dir(ws) / "consistency_points.npz"
     if not path.is_file():
-        raise NotRun("not run: no 06_eval/consistency_points.npz (run `watergan evaluate --workspace WS`)")
+        raise NotRun("not run: no consistency_points.npz (run `watergan evaluate --workspace WS`)")
     data = _tables(ws)
     with np.load(path) as npz:
         variances = {k: npz[k] for k in npz.files}
@@ -251,7 +258,7 @@ def section_consistency(ws, out: Path) -> tuple[str, dict]:
 def section_depth(ws, out: Path) -> tuple[str, dict]:
     from eval.tables import depth_table, table_html
 
-    folder = ws.root / "06_eval" / "depth"
+    folder = _eval_dir(ws) / "depth"
     table = depth_table(folder)
     if table["status"] != "ok":
         raise NotRun(table["status"])
@@ -323,33 +330,36 @@ def section_mesh(ws, out: Path) -> tuple[str, dict]:
     import trimesh
 
     r = _stage_result(ws, "mesh")
-    mosaic = read_display(ws.path(r["mosaic_png"]))
-    world = [float(v) for v in ws.path(r["world_file"]).read_text().split()]
-    mesh = trimesh.load(ws.path(r["ply"]), process=False, force="mesh")
+    mosaic = read_display(ws.path(r.mosaic_png))
+    world = [float(v) for v in ws.path(r.world_file).read_text().split()]
+    mesh = trimesh.load(ws.path(r.ply), process=False, force="mesh")
     fig = render_mesh_view(mosaic, world, np.asarray(mesh.vertices))
-    links = " · ".join(_link(ws, out, r[k], text) for k, text in (
+    links = " · ".join(_link(ws, out, getattr(r, k), text) for k, text in (
         ("glb", "textured mesh (GLB)"), ("obj", "OBJ"), ("ply", "PLY with vertex colours")))
-    body = (f"<p>{links} — {r['n_vertices']} vertices, {r['n_faces']} faces ({_esc(r.get('mesh_kind', '2.5d'))}), "
-            f"{1000 * r['texel_m']:.1f} mm per texel.</p>{_img(figure_uri(fig), 'rendered mesh view', 'wide')}"
+    body = (f"<p>{links} — {r.n_vertices} vertices, {r.n_faces} faces ({_esc(r.mesh_kind)}), "
+            f"{1000 * r.texel_m:.1f} mm per texel.</p>{_img(figure_uri(fig), 'rendered mesh view', 'wide')}"
             f"<p class='note'>The orthophoto draped on the mesh's height field (heights interpolated from the "
             f"mesh vertices), hill-shaded, vertical exaggeration x2; open the GLB in any glTF viewer for the "
             f"textured mesh itself.</p>")
-    return body, {"glb": r["glb"], "n_faces": r["n_faces"]}
+    return body, {"glb": r.glb, "n_faces": r.n_faces}
 
 
 def section_mosaic(ws, out: Path) -> tuple[str, dict]:
     r = _stage_result(ws, "mesh")
-    mosaic = read_display(ws.path(r["mosaic_png"]))
-    body = (f"<p>{_link(ws, out, r['mosaic_png'], 'full-size mosaic (PNG)')} · "
-            f"{_link(ws, out, r['world_file'], 'world file')} — {mosaic.shape[1]} x {mosaic.shape[0]} texels, "
-            f"{1000 * r['texel_m']:.1f} mm per texel, {100 * r['mosaic_coverage']:.1f} % covered.</p>"
+    mosaic = read_display(ws.path(r.mosaic_png))
+    body = (f"<p>{_link(ws, out, r.mosaic_png, 'full-size mosaic (PNG)')} · "
+            f"{_link(ws, out, r.world_file, 'world file')} — {mosaic.shape[1]} x {mosaic.shape[0]} texels, "
+            f"{1000 * r.texel_m:.1f} mm per texel, {100 * r.mosaic_coverage:.1f} % covered.</p>"
             f"{_img(data_uri(mosaic, 'jpeg', MOSAIC_PX), 'mosaic', 'wide')}")
-    return body, {"mosaic_png": r["mosaic_png"], "coverage": r["mosaic_coverage"]}
+    return body, {"mosaic_png": r.mosaic_png, "coverage": r.mosaic_coverage}
 
 
 def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
-    folder = ws.root / "08_diagnose"
-    ledger = ws.root / "model_ledger.jsonl"  # eval.diagnose.LEDGER_NAME (imported only when there is one)
+    from eval.diagnose import LEDGER_NAME
+
+    diagnosed = ws.result("diagnose")
+    folder = Path(diagnosed.out_dir) if diagnosed is not None else ws.root / ws.stage("diagnose").folder
+    ledger = ws.root / LEDGER_NAME
     if not ledger.is_file() and not (folder / "ledger.png").is_file():
         raise NotRun("not run: no model ledger (run `watergan diagnose WS`)")
     parts, info = [], {}
@@ -372,10 +382,9 @@ def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
 
 
 def section_config(ws, out: Path) -> tuple[str, dict]:
-    from pipeline.workspace import STAGE_DIRS
-
     rows, details, stages = [], [], {}
-    for stage, folder in STAGE_DIRS.items():
+    for stage, spec in ws.stages.items():
+        folder = spec.folder
         if stage == "report":
             continue
         config = _load_json(ws.root / folder / "config.json")
@@ -424,10 +433,25 @@ pre { background: #f7f7f7; padding: .6em; overflow-x: auto; font-size: .8em; }
 """
 
 
-def write_report(ws) -> Path:
-    """Write ``report/report.html`` and ``report/report.json`` for a workspace; returns the HTML path."""
-    from pipeline.workspace import Workspace, atomic_write_json, atomic_write_text
+@dataclass(frozen=True)
+class ReportConfig:
+    """The report stage has no options: it shows what the workspace holds."""
 
+
+@dataclass
+class ReportResult:
+    report: str
+    """Workspace-relative path of report.html (report.json and report.md beside it)."""
+
+
+def run_report(ws: Workspace, cfg: ReportConfig) -> ReportResult:
+    """Workspace stage: the report of everything the workspace holds."""
+    return ReportResult(report=ws.relative(write_report(ws)))
+
+
+def write_report(ws: Workspace | str | Path) -> Path:
+    """Write ``report.html``, ``report.json`` and ``report.md`` into the report stage's folder of a
+    workspace; returns the HTML path."""
     if not isinstance(ws, Workspace):
         root = Path(ws)
         if not root.is_dir():
@@ -455,7 +479,10 @@ def write_report(ws) -> Path:
             f"<p>{toc}</p>{''.join(parts)}</body></html>\n")
     html_path = out / "report.html"
     atomic_write_text(html_path, page)
-    tables = _load_json(ws.root / "06_eval" / "tables.json")
+    try:
+        tables = _tables(ws)
+    except NotRun:
+        tables = None
     atomic_write_json(out / "report.json", {"workspace": str(ws.root.resolve()), "generated": generated,
                                             "sections": summary, "tables": (tables or {}).get("tables", []),
                                             "verdict": (tables or {}).get("verdict", [])})
@@ -468,7 +495,7 @@ def report_markdown(ws, summary: list[dict], tables: dict | None) -> str:
     from eval.tables import table_markdown
 
     lines = [f"# watergan report — {ws.root.resolve()}", "", "## Verdict", ""]
-    lines += [f"- {line}" for line in (tables or {}).get("verdict", [])] or ["not run: no 06_eval/tables.json"]
+    lines += [f"- {line}" for line in (tables or {}).get("verdict", [])] or ["not run: no evaluation tables"]
     lines += ["", "## Tables", ""] + [table_markdown(t) for t in (tables or {}).get("tables", [])]
     lines += ["## Sections of report.html", ""]
     lines += [f"- {s['title']}: {s['status']}" + (f" ({s.get('reason') or s.get('error')})" if s["status"] != "ok"

@@ -1,0 +1,45 @@
+"""A workspace stage as a command: ``watergan COMMAND --workspace WS [--survey DIR] [--force] [OPTIONS]``.
+
+The options are the stage's configuration fields (:mod:`pipeline.cliargs`); the stage runs through
+:meth:`Workspace.run`, so its record is the one ``watergan run`` writes for the same options and
+upstream results (a standalone ``watergan sfm`` is skipped by a later ``watergan run``, and the
+other way round). ``--survey DIR`` runs the survey stage first (check and link the survey folder,
+as ``watergan run DIR`` does), for a workspace that has none yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from typing import Any
+
+
+def run_stage_command(args: argparse.Namespace) -> int:
+    from .cliargs import config_from_args
+    from .survey import SurveyConfig
+    from .workspace import Workspace
+
+    ws = Workspace(args.workspace)
+    if args.survey:
+        ws.run("survey", SurveyConfig(args.survey))
+    config = config_from_args(ws.stage(args.stage).config_type, args)
+    result = ws.run(args.stage, config, force=args.force)
+    args.printer(ws, result)
+    return 0
+
+
+def add_stage_command(sub, parents: list[argparse.ArgumentParser], stage: str, command: str, help_text: str,
+                      printer: Callable[[Any, Any], None], exclude: tuple[str, ...] = ("progress",)) -> None:
+    """Add ``command`` running the workspace stage ``stage`` (its options from the stage's config)."""
+    from .cliargs import add_config
+    from .stages import STAGES
+
+    spec = STAGES[stage]
+    p = sub.add_parser(command, parents=parents, help=help_text)
+    p.add_argument("--workspace", required=True, help="workspace folder (its survey stage's images are the default "
+                                                      "input)")
+    p.add_argument("--survey", default="", metavar="DIR",
+                   help="survey folder to check and link into the workspace first (as `watergan run DIR` does)")
+    p.add_argument("--force", action="store_true", help="redo the stage even when done with the same options")
+    add_config(p, spec.config_type, exclude=exclude)
+    p.set_defaults(func=run_stage_command, stage=stage, printer=printer)

@@ -1,0 +1,267 @@
+"""The measuring stages of a workspace: the evaluation (every method on the same points and board,
+the paper's tables: ``watergan evaluate``), and the stand-alone colour-consistency and depth
+comparisons (``watergan consistency``, ``watergan depth-compare``). The measuring itself is
+:mod:`eval.tables`, :mod:`eval.colour` and :mod:`eval.depth`; this module finds the inputs through the
+earlier stages' results and writes into the eval stage's folder.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from eval.baselines import BASELINES
+from eval.colour import ColourEvalConfig, ColourEvalResult
+from eval.depth import DepthCompareConfig, DepthCompareResult, compare_depth_folders
+from eval.tables import (
+    INAIR,
+    LABELS,
+    OURS,
+    EvaluateConfig,
+    EvaluateResult,
+    board_table,
+    consistency_table,
+    depth_table,
+    example_frames,
+    fidelity,
+    make_table,
+    measure_board,
+    method_inputs,
+    missing_files,
+    ours_seconds,
+    point_variances,
+    restorer_table,
+    run_baselines,
+    table_markdown,
+    verdict_lines,
+)
+from eval.tracks import Tracks
+from watergan.errors import UserInputError
+from watergan.io import atomic_write_bytes, atomic_write_json, atomic_write_text, image_files
+
+from .workspace import Workspace
+
+
+@dataclass
+class _Folders:
+    """Every method's frames (baselines, ours, oracle; the in-air truth as a reference)."""
+
+    folders: dict[str, Path]
+    methods: list[str]
+    reference: tuple[str, ...]
+    skipped: dict[str, str]
+    per_frame_s: dict[str, float | None]
+
+
+def _survey_dirs(ws: Workspace, cfg: EvaluateConfig) -> tuple[Path, Path]:
+    survey = Path(cfg.survey_dir) if cfg.survey_dir else ws.stage_dir("survey")
+    return survey, Path(cfg.images_dir) if cfg.images_dir else survey / "images"
+
+
+def _dense_depth_dir(ws: Workspace) -> Path | None:
+    dense = ws.result("dense")
+    return ws.path(dense.depth_dir) if dense is not None else None
+
+
+def _correct_dirs(ws: Workspace, cfg: EvaluateConfig) -> tuple[Path | None, Path | None]:
+    """(the correct stage's folder, the corrected frames): ``ours_dir`` when given, else the correct stage's."""
+    if cfg.ours_dir:
+        return Path(cfg.ours_dir).parent, Path(cfg.ours_dir)
+    correct = ws.result("correct")
+    if correct is None:
+        return None, None
+    return ws.path(correct.images).parent, ws.path(correct.images)
+
+
+def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Path, tracks: Tracks,
+                    names: list[str], simulated: bool) -> tuple[_Folders, object]:
+    """Run the baselines and collect every method's folder; returns them and the range source."""
+    out = ws.stage_dir("eval")
+    methods, skipped, ranges, coefficients, geometry = method_inputs(cfg, survey, tracks, simulated,
+                                                                     _dense_depth_dir(ws))
+    per_frame = run_baselines(names, images, methods, out / "baselines", ranges, coefficients, geometry,
+                              cfg.scheduler or None, progress=cfg.progress)
+    folders = {m: out / "baselines" / m for m in methods}
+    correct_dir, ours_dir = _correct_dirs(ws, cfg)
+    if ours_dir is None or not ours_dir.is_dir():
+        skipped[OURS] = f"no corrected images in {ours_dir or 'the correct stage'} (run `watergan correct`)"
+    elif missing_files(ours_dir, names):
+        skipped[OURS] = (f"{ours_dir} lacks {len(missing_files(ours_dir, names))} of the SfM images "
+                         f"(e.g. {missing_files(ours_dir, names)[0]})")
+    else:
+        folders[OURS] = ours_dir
+        per_frame[OURS] = ours_seconds(correct_dir)
+    methods = [m for m in [*methods, OURS] if m != "oracle" and m in folders] + \
+        (["oracle"] if "oracle" in folders else [])
+    reference: tuple[str, ...] = ()
+    if simulated and (survey / "truth" / "inair").is_dir():
+        folders[INAIR] = survey / "truth" / "inair"
+        reference = (INAIR,)
+    folders = {m: folders[m] for m in [*methods, *reference]}
+    return _Folders(folders, methods, reference, skipped, per_frame), ranges
+
+
+def _depth_compare(ws: Workspace, correct_dir: Path | None) -> str:
+    """Run the monocular-vs-stereo comparison when both depths exist and it was not run; '' or why it failed."""
+    if (ws.stage_dir("eval") / "depth" / "metrics.json").is_file():
+        return ""
+    dense = _dense_depth_dir(ws)
+    if correct_dir is None or not (correct_dir / "depth").is_dir() or dense is None or not dense.is_dir():
+        return ""
+    try:
+        run_depth_compare(ws, DepthCompareConfig(pred_dir=str(correct_dir / "depth")))
+    except UserInputError as exc:
+        return f"depth comparison failed: {exc}"
+    return ""
+
+
+def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: str, fid: dict,
+            n_frames: int) -> list[dict]:
+    methods = f.methods
+    restorer = ws.result("restorer")
+    tables = [board_table(board_results, methods, f.reference) if board_results else
+              make_table("table1", "Table I: colour-board accuracy", [], [], status=f"not measured: {board_note}"),
+              consistency_table(cons, methods, f.reference),
+              restorer_table(Path(restorer.out_dir) if restorer else ws.stage_dir("restorer"))]
+    if fid:
+        tables.append(make_table("fidelity", "Fidelity against the in-air truth (higher is better)", methods, [
+            {"label": "PSNR (dB)", "values": [fid[m][0] for m in methods], "better": "higher"},
+            {"label": "SSIM", "values": [fid[m][1] for m in methods], "better": "higher"}], "row",
+            note=f"sRGB-encoded frames against truth/inair, mean over {n_frames} frames. Methods that cannot "
+                 f"know the exposure (all but Jaffe-McGlamery and the oracle) are not rescaled."))
+    else:
+        tables.append(make_table("fidelity", "Fidelity against the in-air truth", [], [],
+                                 status="not measured: not a simulated survey (no truth/inair)"))
+    tables.append(depth_table(ws.stage_dir("eval") / "depth"))
+    tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
+        {"label": "seconds per frame", "values": [f.per_frame_s.get(m) for m in methods], "better": "lower"}], "row",
+        note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "
+             "`watergan correct`'s wall time per corrected frame, model loading and files included."))
+    return tables
+
+
+def _verdict(ws: Workspace, f: _Folders, cons, board_results: dict, fid: dict, ranges) -> list[str]:
+    methods, skipped = f.methods, f.skipped
+    metrics = []
+    if board_results:
+        metrics += [("mean board distance", {m: board_results[m].mean_distance for m in methods}, "lower"),
+                    ("mean board CIEDE2000", {m: board_results[m].mean_ciede2000 for m in methods}, "lower")]
+    metrics += [(f"{ch} consistency", {m: cons.scores[m].variance[k] for m in methods}, "lower")
+                for k, ch in enumerate("RGB")]
+    if fid:
+        metrics += [("PSNR", {m: fid[m][0] for m in methods}, "higher"),
+                    ("SSIM", {m: fid[m][1] for m in methods}, "higher")]
+    verdict = verdict_lines(metrics, methods)
+    if OURS in skipped:
+        verdict.insert(0, f"ours not measured: {skipped[OURS]}")
+    elif board_results and "oracle" in board_results:
+        ratio = board_results[OURS].mean_distance / max(board_results["oracle"].mean_distance, 1e-12)
+        verdict.append(f"ours' mean board distance is {ratio:.2f}x the oracle's "
+                       f"({'within' if ratio <= 2 else 'more than'} 2x)")
+    sfm = ws.result("sfm")
+    if ranges is not None and ranges.kind == "dense" and sfm is not None and sfm.scale_method == "none":
+        verdict.append("the dense depth is not metric (SfM found no scale): Jaffe-McGlamery's coefficients (1/m) "
+                       "and Sea-thru's fitted ones are in survey units")
+    if ranges is not None and ranges.fallback:
+        verdict.append(f"{len(ranges.fallback)} frames had no {ranges.kind} range; the range baselines used a "
+                       f"constant range there (the frame's median SfM depth)")
+    verdict += [f"{LABELS.get(m, m)} not run: {why}" for m, why in skipped.items() if m != OURS]
+    return verdict
+
+
+def _maybe_relative(ws: Workspace, path: Path) -> str:
+    try:
+        return ws.relative(path)
+    except ValueError:
+        return str(Path(path).resolve())
+
+
+def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
+    """Workspace stage (see :mod:`eval.tables`): baselines, then every method measured on the same SfM
+    points, observations and board, then the tables, the verdict and their files."""
+    from eval.colour import consistency, observation_colours
+
+    began = time.perf_counter()
+    unknown = [m for m in cfg.methods if m not in BASELINES]
+    if unknown:
+        raise UserInputError(f"unknown method(s) {unknown}; choose from {', '.join(BASELINES)}")
+    survey, images = _survey_dirs(ws, cfg)
+    tracks = Tracks.load(ws.path(ws.require("sfm", "the evaluation").tracks))
+    names = [str(n) for n in tracks.image_names]  # the frames SfM ran on: what every method is measured on
+    image_files(images)
+    if missing_files(images, names):
+        raise UserInputError(f"{images} lacks SfM images (e.g. {missing_files(images, names)[0]}): give the folder "
+                             f"SfM ran on with --images-dir")
+    simulated = (survey / "truth" / "effects.json").is_file()
+    out = ws.stage_dir("eval")
+    f, ranges = _method_folders(ws, cfg, survey, images, tracks, names, simulated)
+
+    colours = {m: observation_colours(tracks, p, cfg.patch_px, progress=cfg.progress, scheduler=cfg.scheduler or None)
+               for m, p in f.folders.items()}  # sampled once for both
+    cons = consistency(tracks, f.folders, cfg.patch_px, cfg.min_views, colours=colours)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in
+                                   point_variances(tracks, f.folders, cfg.patch_px, cfg.min_views, colours).items()})
+    atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
+    board, board_results, board_note = measure_board(cfg, survey, f.folders)
+    fid = {m: fidelity(f.folders[m], f.folders[INAIR], names) for m in f.methods} if f.reference else {}
+    depth_note = _depth_compare(ws, _correct_dirs(ws, cfg)[0])
+    if depth_note:
+        f.skipped["depth comparison"] = depth_note
+
+    tables = _tables(ws, f, cons, board_results, board_note, fid, len(names))
+    verdict = _verdict(ws, f, cons, board_results, fid, ranges)
+    range_kind = ranges.kind if ranges is not None else "none"
+    examples = example_frames(names, board, cfg.example_frames)
+    data = {"methods": f.methods, "labels": {m: LABELS.get(m, m) for m in [*f.methods, *f.reference]},
+            "reference": list(f.reference), "folders": {m: _maybe_relative(ws, p) for m, p in f.folders.items()},
+            "skipped": f.skipped, "range_source": range_kind, "simulated": simulated, "example_frames": examples,
+            "tables": tables, "verdict": verdict}
+    atomic_write_json(out / "tables.json", data)
+    md = ["# Evaluation", "", f"Methods: {', '.join(LABELS.get(m, m) for m in f.methods)}; range from {range_kind}.",
+          ""] + [table_markdown(t) for t in tables] + ["## Verdict", ""] + [f"- {line}" for line in verdict]
+    atomic_write_text(out / "tables.md", "\n".join(md) + "\n")
+    return EvaluateResult(
+        tables_json=ws.relative(out / "tables.json"), tables_md=ws.relative(out / "tables.md"),
+        baselines_dir=ws.relative(out / "baselines"), methods=f.methods, skipped=f.skipped, range_source=range_kind,
+        mean_board_distance={m: r.mean_distance for m, r in board_results.items()},
+        consistency_variance={m: s.variance for m, s in cons.scores.items()}, verdict=verdict,
+        example_frames=examples, seconds=time.perf_counter() - began)
+
+
+def run_colour_eval(ws: Workspace, cfg: ColourEvalConfig) -> ColourEvalResult:
+    """``watergan consistency``: tracks from the sfm stage's result; writes ``colour.json`` in the eval
+    stage's folder (read by the diagnosis, :func:`eval.diagnose.colour_summary`)."""
+    from eval.colour import board_accuracy, consistency, load_board_json, parse_folders, truth_board
+
+    tracks = Tracks.load(ws.path(ws.require("sfm", "the colour consistency").tracks))
+    folders = parse_folders(cfg.folders)
+    result = ColourEvalResult(consistency=consistency(tracks, folders, cfg.patch_px, cfg.min_views, cfg.linear,
+                                                      progress=True, scheduler=cfg.scheduler or None))
+    board = load_board_json(cfg.board_json) if cfg.board_json else truth_board(cfg.truth_dir) if cfg.truth_dir \
+        else None
+    if board is not None:
+        result.board = {name: board_accuracy(path, board, cfg.board_inset, linear=cfg.linear)
+                        for name, path in folders.items()}
+    out = ws.stage_dir("eval") / "colour.json"
+    atomic_write_json(out, result)
+    result.table = ws.relative(out)
+    return result
+
+
+def run_depth_compare(ws: Workspace, cfg: DepthCompareConfig) -> DepthCompareResult:
+    """``watergan depth-compare`` in a workspace: the reference defaults to the dense stage's depth maps;
+    outputs in the eval stage's folder, ``depth/``."""
+    dense = _dense_depth_dir(ws)
+    ref_dir = Path(cfg.ref_dir) if cfg.ref_dir else dense
+    if ref_dir is None:
+        raise UserInputError("no reference depth: run the dense stage first or give the reference folder")
+    out_dir = ws.stage_dir("eval") / "depth"
+    result = compare_depth_folders(cfg.pred_dir, ref_dir, out_dir, cfg)
+    result.error_maps = [ws.relative(p) for p in result.error_maps]
+    result.table = ws.relative(result.table)
+    return result

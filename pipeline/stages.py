@@ -1,0 +1,87 @@
+"""The stage table: every stage of a workspace, declared once.
+
+A stage is a plain function ``run(ws: Workspace, config) -> result`` with a frozen configuration
+dataclass (its fields are the stage's CLI options) and a result dataclass (saved as JSON in the
+stage's ``result.json``, read back typed by :meth:`Workspace.result`). ``reads`` lists the stages
+whose results it uses: their result hashes enter its own (see :mod:`pipeline.workspace`), so a
+rerun upstream reruns it.
+
+Entries name their types and function as ``"module:attribute"`` and import them when first used:
+the heavy libraries (torch, pycolmap, open3d) load only with the stage that needs them.
+
+Adding a stage: one entry here (in run order), its config and result dataclasses, its function,
+and its options in the CLI come from the config (``pipeline/cli.py``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+
+def _load(ref: Any) -> Any:
+    """The object ``"module:attribute"`` names (anything else is taken as the object itself)."""
+    if not isinstance(ref, str):
+        return ref
+    module, _, attribute = ref.partition(":")
+    return getattr(importlib.import_module(module), attribute)
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    """Name on the command line (``watergan run --force NAME``) and in the table."""
+    folder: str
+    """The stage's folder in the workspace."""
+    config: str | type
+    """``module:Class`` of the configuration dataclass."""
+    result: str | type
+    """``module:Class`` of the result dataclass."""
+    run: str | Callable
+    """``module:function`` of ``run(ws, config) -> result``."""
+    reads: tuple[str, ...]
+    """Stages whose results it reads (their hashes enter its own)."""
+    help: str
+    """One line: what the stage does."""
+
+    @property
+    def config_type(self) -> type:
+        return _load(self.config)
+
+    @property
+    def result_type(self) -> type:
+        return _load(self.result)
+
+    @property
+    def fn(self) -> Callable:
+        return _load(self.run)
+
+
+#: Every stage, in the order ``watergan run`` runs them.
+STAGES: dict[str, Stage] = {s.name: s for s in (
+    Stage("survey", "00_survey", "pipeline.survey:SurveyConfig", "pipeline.survey:SurveyResult",
+          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace"),
+    Stage("gan", "01_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult",
+          "pipeline.gan:run_gan_stage", ("survey",), "train WaterGAN, then render the paired set for the restorer"),
+    Stage("restorer", "02_restorer", "watergan.train_restorer:RestorerConfig",
+          "watergan.train_restorer:RestorerResult", "pipeline.gan:run_restorer_stage", ("gan",),
+          "train the restorer (depth and colour nets) on WaterGAN's pairs"),
+    Stage("correct", "03_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",
+          "pipeline.correct:run_correct_stage", ("restorer",), "correct every survey frame with the restorer"),
+    Stage("sfm", "04_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
+          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale"),
+    Stage("dense", "05_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
+          "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh"),
+    Stage("eval", "06_eval", "eval.tables:EvaluateConfig", "eval.tables:EvaluateResult",
+          "pipeline.evaluate:run_evaluate", ("sfm", "correct", "dense", "restorer"),
+          "baselines and ours on the same points and board: the paper's tables"),
+    Stage("mesh", "07_mesh", "pipeline.mesh:MeshConfig", "pipeline.mesh:MeshResult", "pipeline.mesh:run_mesh",
+          ("sfm", "correct", "dense"), "textured mesh and photomosaic from the corrected frames"),
+    Stage("diagnose", "08_diagnose", "eval.diagnose:DiagnoseConfig", "eval.diagnose:DiagnoseResult",
+          "pipeline.diagnose:run_diagnose_stage", ("sfm",), "the discovery loop: fit, residuals, missing effect"),
+    Stage("report", "report", "pipeline.report:ReportConfig", "pipeline.report:ReportResult",
+          "pipeline.report:run_report", ("gan", "restorer", "correct", "sfm", "dense", "eval", "mesh", "diagnose"),
+          "one self-contained HTML page"),
+)}

@@ -1,0 +1,128 @@
+"""The survey stage: check a user's survey folder before any training starts, link it into the
+workspace (never copy or change it), and find or render the in-air RGB-D set WaterGAN learns from.
+
+The survey folder is what a user has: ``images/`` (one camera), optional ``right/`` (the stereo
+rig's right frames, same names), ``camera.json`` (intrinsics, optional ``baseline_m``), optional
+``survey.json`` and optional ``rgbd/`` (an in-air RGB-D set: ``rgb/`` + ``depth/``).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
+from watergan.errors import UserInputError
+from watergan.io import read_camera_json, read_json
+
+from .workspace import Workspace
+
+
+def check_survey(survey_dir: Path) -> dict:
+    """Refuse a survey folder that cannot be processed, before any training starts: a missing
+    ``images/`` folder, fewer than 3 images, unreadable or truncated files, images of different
+    sizes, ``right/`` frames that do not pair with ``images/`` by name, a missing or malformed ``camera.json``,
+    a malformed ``survey.json``. Returns a summary."""
+    survey_dir = Path(survey_dir)
+    images_dir = survey_dir / "images"
+    if not survey_dir.is_dir():
+        raise UserInputError(f"survey folder {survey_dir} does not exist")
+    if not images_dir.is_dir():
+        raise UserInputError(f"survey folder {survey_dir} has no images/ folder: put the frames in {images_dir}")
+    files = list_files(images_dir, IMAGE_SUFFIXES)
+    if len(files) < 3:
+        raise UserInputError(f"{images_dir} holds {len(files)} image(s) (PNG, JPEG or TIFF); a survey needs at least 3")
+    sizes: dict[tuple[int, int], list[str]] = {}
+    bad = []
+    for path in files:
+        try:
+            image = read_image(path)
+        except DataError as exc:
+            bad.append(str(exc))
+            continue
+        sizes.setdefault(image.shape[:2], []).append(path.name)
+    if bad:
+        raise UserInputError(f"{len(bad)} unreadable image(s) in {images_dir}; fix or remove them:\n  "
+                             + "\n  ".join(bad))
+    if len(sizes) > 1:
+        listing = "; ".join(f"{w}x{h}: {len(n)} (e.g. {n[0]})" for (h, w), n in sizes.items())
+        raise UserInputError(f"images in {images_dir} have different sizes ({listing}); one camera per survey")
+    right_dir = survey_dir / "right"
+    stereo = right_dir.is_dir()
+    if stereo:
+        left = {p.name for p in files}
+        right = {p.name for p in list_files(right_dir, IMAGE_SUFFIXES)}
+        if left != right:
+            missing = sorted(left ^ right)[:5]
+            raise UserInputError(f"right/ and images/ in {survey_dir} do not pair by file name (e.g. "
+                                 f"{', '.join(missing)}); remove right/ for a single camera")
+    if not (survey_dir / "camera.json").is_file():
+        raise UserInputError(f"{survey_dir} has no camera.json (fx, fy, cx, cy, width, height): SfM and the "
+                             f"range of each pixel need the intrinsics")
+    read_camera_json(survey_dir / "camera.json")  # malformed JSON or a missing key: an error naming the file
+    if (survey_dir / "survey.json").is_file():
+        read_json(survey_dir / "survey.json", "survey file")
+    (h, w), = sizes
+    return {"n_images": len(files), "width": w, "height": h, "stereo": stereo,
+            "simulated": (survey_dir / "truth" / "effects.json").is_file()}
+
+
+@dataclass(frozen=True)
+class SurveyConfig:
+    """Where the survey is, and the in-air RGB-D set WaterGAN learns from."""
+
+    survey_dir: str
+    """The survey folder (images/, optional right/, camera.json, optional survey.json and rgbd/)."""
+    rgbd_dir: str = ""
+    """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: ``<survey>/rgbd``, else a generic
+    seafloor set rendered by the simulator into the workspace."""
+    seed: int = 0
+    """Seed of the generic RGB-D set."""
+
+
+@dataclass
+class SurveyResult:
+    n_images: int
+    width: int
+    height: int
+    stereo: bool
+    """Whether the survey has right/ frames."""
+    simulated: bool
+    """Whether it is a simulated survey with truth/."""
+    rgbd_dir: str
+    """The in-air RGB-D set WaterGAN uses (absolute)."""
+    survey_dir: str
+    """The survey folder (absolute); the workspace's survey folder links to it."""
+    navigation: bool = False
+    """Whether survey.json gives each frame's altitude (``nav_altitude_m``)."""
+
+
+def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
+    """Check the survey and link it into ``00_survey`` (nothing of the user's is copied or changed);
+    render a generic in-air RGB-D set when none is given."""
+    survey, target = Path(cfg.survey_dir).resolve(), ws.stage_dir("survey").resolve()
+    summary = check_survey(survey)
+    if survey != target:
+        for name in ("images", "right", "camera.json", "survey.json", "truth"):
+            src, dst = survey / name, target / name
+            if dst.is_symlink() and dst.resolve() != src.resolve():
+                dst.unlink()  # a link left by a run on another survey folder
+            if src.exists() and not dst.exists():
+                dst.symlink_to(src)
+    rgbd = Path(cfg.rgbd_dir) if cfg.rgbd_dir else survey / "rgbd"
+    if not (rgbd / "rgb").is_dir():
+        if cfg.rgbd_dir:
+            raise UserInputError(f"in-air RGB-D folder {rgbd} has no rgb/ folder (rgb/ + depth/, paired by name)")
+        from eval.synth.presets import PRESETS
+        from eval.synth.rgbd import write_rgbd_set
+
+        rgbd = ws.stage_dir("survey") / "generic_rgbd"
+        if rgbd.exists():
+            shutil.rmtree(rgbd)
+        print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
+        write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
+    nav = survey / "survey.json"
+    navigation = nav.is_file() and "nav_altitude_m" in read_json(nav, "survey file")
+    return SurveyResult(**summary, rgbd_dir=str(rgbd), survey_dir=str(survey), navigation=navigation)

@@ -1,0 +1,21 @@
+"""Which torch device a run uses: the one place that turns a ``device`` option into a device."""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import UserInputError
+
+DEVICE_NAMES = ("auto", "cpu", "cuda")
+"""The values of every ``device`` option."""
+
+
+def pick_device(name: str) -> torch.device:
+    """"auto": CUDA when available, else CPU; "cpu" or "cuda" as asked."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise UserInputError("device 'cuda' requested but CUDA is not available")
+    if name not in DEVICE_NAMES:
+        raise UserInputError(f"device must be auto, cpu or cuda, got {name!r}")
+    return torch.device(name)

@@ -1,0 +1,300 @@
+"""File I/O every layer shares: atomic writes, JSON of dataclasses, PNG images and depth maps.
+
+Depth maps, one convention everywhere:
+- on disk a depth (or range) map is a single-channel 16-bit PNG of millimetres, ``0`` = no value
+  (``.npy`` in metres and ``.mat`` with the key ``depth`` are read too);
+- in memory it is float64 metres with ``NaN`` where there is no value (:func:`read_depth`). The
+  nets take 0 for "no value" in their input tensors: :func:`depth_or_zero` converts at that boundary.
+
+Every write goes through a temporary file in the same folder renamed into place (``os.replace``),
+so a reader sees the old or the new content, never a partial one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import os
+import tempfile
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .errors import UserInputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+DEPTH_SUFFIXES = (".png", ".npy", ".mat")
+ENCODINGS = ("srgb", "linear")
+#: Largest distance a 16-bit millimetre PNG holds, metres.
+MAX_DEPTH_PNG_M = 65.535
+
+
+class DataError(UserInputError):
+    """A data file or folder that cannot be used (the message names it and says what to do)."""
+
+
+# ---------------------------------------------------------------------------------------- writes
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def to_jsonable(value: Any, for_hash: bool = False) -> Any:
+    """Dataclasses as dicts, paths as strings, enums as their values; ``for_hash`` leaves out
+    dataclass fields marked ``metadata={"hash": False}`` (where work runs, progress bars: not what a
+    stage computes)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name), for_hash) for f in dataclasses.fields(value)
+                if not (for_hash and f.metadata.get("hash") is False)}
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v, for_hash) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v, for_hash) for v in value]
+    return value
+
+
+def from_jsonable(cls: Any, data: Any) -> Any:
+    """Rebuild a value of type ``cls`` from :func:`to_jsonable`'s output: dataclasses (nested ones
+    too) from dicts, tuples from lists, paths and enums from strings. A dataclass given a key it
+    does not have is an error naming both (a result or configuration from another version)."""
+    if data is None:
+        return None
+    if isinstance(cls, types.UnionType) or typing.get_origin(cls) is typing.Union:
+        options = [h for h in typing.get_args(cls) if h is not type(None)]
+        cls = options[0] if len(options) == 1 else Any
+    if dataclasses.is_dataclass(cls) and isinstance(data, dict):
+        hints = typing.get_type_hints(cls)
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ValueError(f"{cls.__name__} has no field {sorted(unknown)}; it has {sorted(names)}")
+        return cls(**{k: from_jsonable(hints[k], v) for k, v in data.items()})
+    origin = typing.get_origin(cls)
+    if origin is tuple and isinstance(data, list):
+        args = typing.get_args(cls)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(from_jsonable(args[0], v) for v in data)
+        return tuple(from_jsonable(a, v) for a, v in zip(args, data, strict=False)) if args else tuple(data)
+    if origin is list and isinstance(data, list):
+        (arg,) = typing.get_args(cls) or (Any,)
+        return [from_jsonable(arg, v) for v in data]
+    if isinstance(cls, type) and issubclass(cls, Path):
+        return Path(data)
+    if isinstance(cls, type) and issubclass(cls, enum.Enum):
+        return cls(data)
+    return data
+
+
+def atomic_write_json(path: str | Path, value: Any) -> None:
+    """JSON (dataclasses and paths converted) with sorted keys: the same value gives the same bytes."""
+    atomic_write_text(path, json.dumps(to_jsonable(value), indent=2, sort_keys=True) + "\n")
+
+
+def read_json(path: str | Path, what: str = "file") -> Any:
+    """A JSON file; a missing or malformed file is a :class:`DataError` naming it."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError(f"{what} {path} does not exist") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{what} {path} is not valid JSON ({exc}); fix or re-export it") from exc
+
+
+# ---------------------------------------------------------------------------------------- images
+def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 decoding: L = V / 12.92 for V <= 0.04045, else ((V + 0.055) / 1.055)^2.4."""
+    v = np.clip(v, 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 encoding: V = 12.92 L for L <= 0.0031308, else 1.055 L^(1/2.4) - 0.055."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def read_image(path: Path, encoding: str = "srgb") -> np.ndarray:
+    """An RGB image file (8- or 16-bit PNG, JPEG or TIFF) as (H,W,3) float64 linear radiance 0..1."""
+    if encoding not in ENCODINGS:
+        raise DataError(f"image encoding must be one of {ENCODINGS}, got {encoding!r}")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"cannot read image {path}: {exc}") from exc
+    if not is_complete(path, data):
+        raise DataError(f"image {path} is truncated (no end marker); re-export or remove it")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DataError(f"image {path} is not a readable PNG, JPEG or TIFF file")
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise DataError(f"image {path} has shape {image.shape}; expected a colour (RGB) image")
+    if image.dtype == np.uint8:
+        scale = 255.0
+    elif image.dtype == np.uint16:
+        scale = 65535.0
+    else:
+        raise DataError(f"image {path} has sample type {image.dtype}; expected 8- or 16-bit integers")
+    rgb = image[..., 2::-1].astype(np.float64) / scale  # BGR(A) -> RGB
+    return srgb_to_linear(rgb) if encoding == "srgb" else rgb
+
+
+def is_complete(path: Path, data: bytes) -> bool:
+    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker (truncated)."""
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        return data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82")
+    if suffix in (".jpg", ".jpeg"):
+        return data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9")
+    return True
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an (H,W) or (H,W,3) RGB uint8/uint16 array (cv2 stores BGR: swapped here)."""
+    if image.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"PNG images must be uint8 or uint16, got {image.dtype}")
+    data = image[..., ::-1] if image.ndim == 3 else image
+    ok, buffer = cv2.imencode(".png", np.ascontiguousarray(data))
+    if not ok:
+        raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as PNG")
+    return buffer.tobytes()
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """An (H,W) or (H,W,3) RGB uint8/uint16 array as a PNG file, atomically."""
+    atomic_write_bytes(path, encode_png(image))
+
+
+def read_png(path: str | Path) -> np.ndarray:
+    """A PNG as written by :func:`write_png` (RGB order, its own bit depth)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FileNotFoundError(f"could not read image {path}")
+    return image[..., ::-1].copy() if image.ndim == 3 else image
+
+
+def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
+    """Linear (H,W,3) 0..1 as an 8-bit sRGB PNG, atomically."""
+    write_png(path, (np.rint(linear_to_srgb(linear_rgb) * 255.0).astype(np.uint8)))
+
+
+
+# ---------------------------------------------------------------------------------------- depth
+def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
+    """(H,W) metres as a 16-bit PNG of millimetres, atomically: NaN or <= 0 is stored as 0 (no
+    value), values are rounded to 1 mm (at least 1 mm where valid); above 65.535 m is an error."""
+    depth_m = np.asarray(depth_m, np.float64)
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    if (depth_m[valid] > MAX_DEPTH_PNG_M).any():
+        raise DataError(f"distance above {MAX_DEPTH_PNG_M} m cannot be stored in the 16-bit millimetre PNG {path}")
+    mm = np.where(valid, np.clip(np.rint(np.where(valid, depth_m, 0.0) * 1000.0), 1, 65535), 0)
+    write_png(path, mm.astype(np.uint16))
+
+
+def _load_depth_array(path: Path) -> np.ndarray:
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        data = path.read_bytes()
+        if not is_complete(path, data):
+            raise DataError(f"depth {path} is truncated (no PNG end chunk)")
+        raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise DataError(f"depth {path} is not a readable PNG")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise DataError(f"depth {path} is a {raw.dtype} PNG of shape {raw.shape}; expected a "
+                            f"single-channel 16-bit PNG in millimetres")
+        depth = raw.astype(np.float64) / 1000.0
+        depth[raw == 0] = np.nan
+        return depth
+    if suffix == ".npy":
+        return np.load(path, allow_pickle=False)
+    if suffix == ".mat":
+        import scipy.io
+
+        mat = scipy.io.loadmat(path)
+        if "depth" not in mat:
+            keys = sorted(k for k in mat if not k.startswith("__"))
+            raise DataError(f"depth {path} has no key 'depth' (keys: {keys})")
+        return mat["depth"]
+    raise DataError(f"depth {path}: unsupported format {suffix} (use {', '.join(DEPTH_SUFFIXES)})")
+
+
+def read_depth(path: str | Path) -> np.ndarray:
+    """A depth or range file as (H,W) float64 metres with NaN where there is no value.
+
+    Formats: 16-bit PNG in millimetres (0 = no value), ``.npy`` in metres or ``.mat`` with the key
+    ``depth`` in metres (0 = no value in both). A file holding NaN, infinite or negative values is an
+    error (a user's array with NaNs is ambiguous: mark missing pixels with 0)."""
+    path = Path(path)
+    try:
+        depth = _load_depth_array(path)
+    except DataError:
+        raise
+    except (OSError, ValueError, NotImplementedError, TypeError) as exc:
+        raise DataError(f"cannot read depth {path}: {type(exc).__name__}: {exc}") from exc
+    depth = np.asarray(depth)
+    if depth.ndim == 3 and depth.shape[2] == 1:
+        depth = depth[..., 0]
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+        raise DataError(f"depth {path} has shape {depth.shape} and type {depth.dtype}; expected an (H,W) number array")
+    depth = depth.astype(np.float64)
+    if path.suffix.lower() != ".png":
+        if not np.isfinite(depth).all():
+            raise DataError(f"depth {path} contains NaN or infinite values; use 0 for pixels without depth")
+        if (depth < 0).any():
+            raise DataError(f"depth {path} contains negative values (min {depth.min():.3g} m)")
+        depth[depth == 0] = np.nan
+    return depth
+
+
+def depth_or_zero(depth_m: np.ndarray) -> np.ndarray:
+    """NaN (no value) as 0, the form the nets take as input."""
+    return np.nan_to_num(depth_m, nan=0.0)
+
+
+# ---------------------------------------------------------------------------------------- survey files
+def image_files(folder: Path) -> list[str]:
+    """Sorted image file names in a folder (clear error when there are none)."""
+    if not folder.is_dir():
+        raise DataError(f"image folder {folder} does not exist")
+    names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+    return names
+
+
+def read_camera_json(path: Path) -> dict | None:
+    """camera.json's intrinsics (fx, fy, cx, cy, width, height; optional baseline_m), None when there is
+    no such file; malformed JSON or a missing key is an error naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    cam = read_json(path, "camera file")
+    if not isinstance(cam, dict):
+        raise DataError(f"{path} holds {type(cam).__name__}; expected an object with fx, fy, cx, cy, width, height")
+    missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
+    if missing:
+        raise DataError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height")
+    return cam
