@@ -121,7 +121,7 @@ class DepthCompareConfig:
     pred_dir: str
     """Folder of predicted (relative) depth maps: 16-bit PNG in mm or .npy in metres, named like the images."""
     ref_dir: str = ""
-    """Folder of reference depth maps; empty: the dense stage's ``05_dense/depth`` in the workspace."""
+    """Folder of reference depth maps; empty: the dense stage's depth maps in the workspace."""
     with_shift: bool = False
     """Fit scale and shift (True) or scale only (False)."""
     per_image: bool = True

@@ -474,7 +474,7 @@ def ledger_table(records: list[dict]) -> str:
             previous = r["heldout_rmse"]
     colour = [(i, r) for i, r in enumerate(records) if r.get("consistency") or r.get("board_ciede2000")]
     if colour:
-        lines.append("\ncolour of the image folders measured by `watergan consistency` (06_eval/colour.json) "
+        lines.append("\ncolour of the image folders measured by `watergan consistency` (its colour.json) "
                      "when the version was fitted: consistency = mean variance of c/(R+G+B) across views "
                      "(lower = more consistent), board = mean CIEDE2000 to the true patch colours")
         for i, r in colour:

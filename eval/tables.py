@@ -7,13 +7,13 @@ board, and the paper's tables side by side. The workspace stage that chains thes
     tables.json, tables.md            the tables (best value per row or column in bold) and the verdict
 
 Methods: the baselines of :mod:`eval.baselines` (raw, histogram equalisation, CLAHE, gray world,
-Jaffe-McGlamery, Sea-thru, oracle) and "ours", the restorer's corrected frames (``03_correct/images``
+Jaffe-McGlamery, Sea-thru, oracle) and "ours", the restorer's corrected frames (the correct stage's ``images/``
 by default, made by ``watergan correct``). A baseline that lacks an input (range, coefficients,
 simulator truth) is skipped and the tables say why. On a simulated survey the in-air truth
 (``truth/inair``) is measured too, as a reference column that is never "best".
 
 Range for Jaffe-McGlamery and Sea-thru (``range_source``): 'dense' reads the dense stage's camera
-z-depth (``05_dense/depth/<stem>.png``, millimetres of the survey frame's units) and converts it
+z-depth (the dense stage's ``depth/<stem>.png``, millimetres of the survey frame's units) and converts it
 with the intrinsics to the ray length r = z |K^-1 (x, y, 1)|; pixels without depth take the
 nearest valid pixel's range (a frame without depth: its median sparse SfM depth everywhere).
 'truth' reads the simulator's ``truth/range``. 'auto': dense when the dense stage ran, else truth
@@ -24,13 +24,13 @@ Tables (as in the paper; lower is better unless said):
   their mean and the mean CIEDE2000 (:func:`eval.colour.board_accuracy`).
 - Table II: per channel, the mean over SfM points of the variance of n across views
   (:func:`eval.colour.consistency`, the same points and observations for every method).
-- Table III: the restorer's RMSE on its held-out synthetic split (``02_restorer/validation.json``).
+- Table III: the restorer's RMSE on its held-out synthetic split (the restorer's ``validation.json``).
 - Fidelity (simulated surveys): PSNR (dB) and SSIM of the sRGB-encoded frames against the in-air
   truth (higher is better), averaged over frames.
-- Depth: monocular (the restorer's relative depth, ``03_correct/depth``) against stereo/MVS depth
-  (``06_eval/depth/metrics.json``; computed here when both inputs exist and it is missing).
+- Depth: monocular (the restorer's relative depth, the correct stage's ``depth/``) against stereo/MVS depth
+  (``depth/metrics.json`` in the eval stage's folder; computed here when both inputs exist and it is missing).
 - Speed: seconds per frame of each method's correction alone (files excluded; the oracle's excludes
-  rendering the true geometry; ours from ``03_correct/summary.json``, which includes file I/O).
+  rendering the true geometry; ours from the correct stage's ``summary.json``, which includes file I/O).
 
 With ``EvaluateConfig.scheduler`` (a Dask scheduler address) the baselines (chunks of frames, every
 method) and the colour sampling at the SfM observations run on the cluster's workers
@@ -70,13 +70,13 @@ class EvaluateConfig:
     """Baselines and the restorer measured on the same SfM points and colour board."""
 
     survey_dir: str = ""
-    """The survey folder (images/, camera.json, and truth/ when simulated); empty: ``00_survey``."""
+    """The survey folder (images/, camera.json, and truth/ when simulated); empty: the workspace's survey."""
     images_dir: str = ""
     """The raw frames SfM ran on; empty: ``<survey>/images``."""
     methods: tuple[str, ...] = tuple(BASELINES)
     """Baselines to run (names of eval.baselines.BASELINES)."""
     ours_dir: str = ""
-    """The restorer's corrected frames; empty: ``03_correct/images`` when present."""
+    """The restorer's corrected frames; empty: the correct stage's images when it ran."""
     range_source: RangeChoice = RangeChoice.auto
     """Range for Jaffe-McGlamery and Sea-thru: 'dense', 'truth' or 'auto' (dense, else truth)."""
     jaffe_stack: str = ""

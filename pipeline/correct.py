@@ -45,7 +45,7 @@ from watergan.data import (
     read_image,
     read_nav_altitudes,
 )
-from watergan.device import pick_device
+from watergan.device import Device, pick_device
 from watergan.nets.restorer import restore
 from watergan.train_restorer import load_restorer
 
@@ -294,7 +294,7 @@ class CorrectConfig:
     """Redo images already corrected."""
     batch_size: int = 4
     """Images per batch."""
-    device: str = "auto"
+    device: Device = Device.auto
     """auto: CUDA when available, else CPU; or cpu, cuda."""
     scheduler: str = ""
     """Dask scheduler address (tcp://HOST:8786) to run the per-image work on its workers (shared file system)."""

@@ -60,22 +60,31 @@ class RunOptions:
 
 
 # --------------------------------------------------------------------------- the stages' options
-#: Per option group of ``watergan run``: (configuration class, fields the plan sets itself). The
-#: ``gan`` stage has two groups: its training (``gan``) and the rendering of its pairs (``generate``).
-_GROUPS: dict[str, tuple[str, tuple[str, ...]]] = {
+#: The gan stage's configuration holds two: its training (option group ``gan``) and the rendering of
+#: its pairs (``generate``); (configuration class, fields the plan sets itself).
+_GAN_GROUPS: dict[str, tuple[str, tuple[str, ...]]] = {
     "gan": ("watergan.train:GanConfig", ("rgbd_dir", "underwater_dir", "out_dir", "seed", "resume", "device",
                                          "progress")),
     "generate": ("watergan.generate:GenerateConfig", ("model_dir", "rgbd_dir", "out_dir", "seed", "device",
                                                       "progress")),
-    "restorer": ("watergan.train_restorer:RestorerConfig", ("data_dir", "out_dir", "seed", "resume", "device",
-                                                             "progress")),
-    "correct": ("pipeline.correct:CorrectStage", ("images_dir", "scheduler", "progress")),
-    "sfm": ("pipeline.sfm:SfmConfig", ("images_dir", "seed")),
-    "dense": ("pipeline.dense:DenseConfig", ("images_dir", "scheduler", "progress")),
-    "eval": ("eval.tables:EvaluateConfig", ("survey_dir", "images_dir", "ours_dir", "scheduler", "progress")),
-    "mesh": ("pipeline.mesh:MeshConfig", ("images_dir", "progress")),
-    "diagnose": ("eval.diagnose:DiagnoseConfig", ("add", "progress", "measure.seed", "fit.seed")),
 }
+#: RunOptions fields that every stage configuration having a field of the same name takes.
+_COMMON = ("seed", "progress", "scheduler")
+
+
+def _groups() -> dict[str, tuple[Any, tuple[str, ...]]]:
+    """Per option group of ``watergan run`` (a stage; the gan stage gives two): (configuration class or
+    its ``module:Class``, the fields the plan sets itself)."""
+    from .stages import STAGES
+
+    out: dict[str, tuple[Any, tuple[str, ...]]] = {}
+    for name, stage in STAGES.items():
+        if name == "gan":
+            out.update(_GAN_GROUPS)
+        elif name not in ("survey", "report"):  # the survey's options are RunOptions'; the report has none
+            out[name] = (stage.config, stage.run_sets)
+    return out
+
 
 #: Where ``watergan run`` starts from other defaults than the stage's own (by option key).
 RUN_DEFAULTS: dict[str, Any] = {"gan_budget_min": 4.0, "restorer_budget_min": 2.5,
@@ -85,12 +94,12 @@ RUN_DEFAULTS: dict[str, Any] = {"gan_budget_min": 4.0, "restorer_budget_min": 2.
 def _config_class(group: str) -> type:
     from .stages import _load
 
-    return _load(_GROUPS[group][0])
+    return _load(_groups()[group][0])
 
 
 def stage_options() -> list[tuple[str, Option]]:
     """Every stage option of ``watergan run``: (group, option); the key is ``group_field``."""
-    return [(group, o) for group, (_, plan_sets) in _GROUPS.items()
+    return [(group, o) for group, (config, plan_sets) in _groups().items()
             for o in options(_config_class(group), plan_sets)]
 
 
@@ -140,9 +149,13 @@ def load_options_file(path: str | Path) -> dict:
 
 
 def _configured(group: str, opts: RunOptions, **fixed: Any) -> Any:
-    """The group's configuration: the plan's ``fixed`` fields, then the run's defaults, then the options given."""
+    """The group's configuration: the plan's ``fixed`` fields (and RunOptions' common ``seed``,
+    ``progress``, ``scheduler`` where the configuration has them), the run's defaults, the options given."""
+    cls = _config_class(group)
+    names = {f.name for f in dataclasses.fields(cls)}
+    fixed = {**{k: getattr(opts, k) for k in _COMMON if k in names}, **fixed}
     values = {**run_defaults(group), **opts.stages.get(group, {})}
-    return build(_config_class(group), {p: v for p, v in values.items() if p[0] not in fixed}, **fixed)
+    return build(cls, {p: v for p, v in values.items() if p[0] not in fixed}, **fixed)
 
 
 # ------------------------------------------------------------------------------------ the plan
@@ -150,47 +163,37 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
     """Per stage after the survey (the stage table's order), a factory of its configuration; factories
     run when the stage is reached, so they can read the results of the stages before."""
     from .gan import GanStage
+    from .stages import STAGES
 
-    gan_dir, progress = ws.stage_dir("gan"), {"progress": opts.progress}
+    gan_dir = ws.stage_dir("gan")
     rgbd = Path(survey.rgbd_dir)
 
     def gan() -> GanStage:
         given = opts.stages.get("gan", {}).get(("effects",))
         base = _configured("gan", opts, rgbd_dir=rgbd, underwater_dir=ws.stage_dir("survey") / "images",
-                           out_dir=gan_dir / "model", seed=opts.seed, **progress)
+                           out_dir=gan_dir / "model")
         effects = tuple(dict.fromkeys((given or base.effects) + opts.add))
         return GanStage(dataclasses.replace(base, effects=effects),
                         _configured("generate", opts, model_dir=gan_dir / "model", rgbd_dir=rgbd,
-                                    out_dir=gan_dir / "generated", seed=opts.seed, **progress))
+                                    out_dir=gan_dir / "generated"))
 
     def restorer():
         gan_result = ws.require("gan", "the restorer")
-        cfg = _configured("restorer", opts, data_dir=ws.path(gan_result.generated), out_dir=ws.stage_dir("restorer"),
-                          seed=opts.seed, **progress)
+        cfg = _configured("restorer", opts, data_dir=ws.path(gan_result.generated), out_dir=ws.stage_dir("restorer"))
         if ("altitude",) not in opts.stages.get("restorer", {}):  # the altimeter's altitude when the survey has it
             cfg = dataclasses.replace(cfg, altitude=survey.navigation)
         return cfg
 
     def diagnose():
-        cfg = _configured("diagnose", opts, add=opts.add, **progress)
+        cfg = _configured("diagnose", opts, add=opts.add)
         return with_values(cfg, {("measure", "seed"): opts.seed, ("fit", "seed"): opts.seed})
 
     def mesh():
-        return _configured("mesh", opts, images_dir=str(ws.path(ws.require("correct", "the mesh").images)),
-                           **progress)
+        return _configured("mesh", opts, images_dir=str(ws.path(ws.require("correct", "the mesh").images)))
 
-    scheduler = {"scheduler": opts.scheduler}
-    return {
-        "gan": gan,
-        "restorer": restorer,
-        "correct": lambda: _configured("correct", opts, **scheduler, **progress),
-        "sfm": lambda: _configured("sfm", opts, seed=opts.seed),
-        "dense": lambda: _configured("dense", opts, **scheduler, **progress),
-        "eval": lambda: _configured("eval", opts, **scheduler, **progress),
-        "mesh": mesh,
-        "diagnose": diagnose,
-        "report": lambda: ws.stage("report").config_type(),
-    }
+    special = {"gan": gan, "restorer": restorer, "mesh": mesh, "diagnose": diagnose,
+               "report": lambda: ws.stage("report").config_type()}
+    return {name: special.get(name, lambda name=name: _configured(name, opts)) for name in STAGES if name != "survey"}
 
 
 def run_all(opts: RunOptions) -> dict:

@@ -10,7 +10,8 @@ Entries name their types and function as ``"module:attribute"`` and import them 
 the heavy libraries (torch, pycolmap, open3d) load only with the stage that needs them.
 
 Adding a stage: one entry here (in run order), its config and result dataclasses, its function,
-and its options in the CLI come from the config (``pipeline/cli.py``).
+and a command line for it (:func:`pipeline.cli_stage.add_stage_command`, one call); its options in
+``watergan run`` and in its own command come from the config.
 """
 
 from __future__ import annotations
@@ -45,6 +46,9 @@ class Stage:
     """Stages whose results it reads (their hashes enter its own)."""
     help: str
     """One line: what the stage does."""
+    run_sets: tuple[str, ...] = ()
+    """Configuration fields ``watergan run`` sets itself (inputs from earlier results, and its common
+    ``seed``, ``progress``, ``scheduler``): not options of ``run``. Dotted for nested fields."""
 
     @property
     def config_type(self) -> type:
@@ -62,25 +66,32 @@ class Stage:
 #: Every stage, in the order ``watergan run`` runs them.
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("survey", "00_survey", "pipeline.survey:SurveyConfig", "pipeline.survey:SurveyResult",
-          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace"),
+          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace",
+          ("survey_dir", "rgbd_dir", "seed")),
     Stage("gan", "01_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult",
           "pipeline.gan:run_gan_stage", ("survey",), "train WaterGAN, then render the paired set for the restorer"),
     Stage("restorer", "02_restorer", "watergan.train_restorer:RestorerConfig",
           "watergan.train_restorer:RestorerResult", "pipeline.gan:run_restorer_stage", ("gan",),
-          "train the restorer (depth and colour nets) on WaterGAN's pairs"),
+          "train the restorer (depth and colour nets) on WaterGAN's pairs",
+          ("data_dir", "out_dir", "seed", "resume", "device", "progress")),
     Stage("correct", "03_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",
-          "pipeline.correct:run_correct_stage", ("restorer",), "correct every survey frame with the restorer"),
+          "pipeline.correct:run_correct_stage", ("restorer",), "correct every survey frame with the restorer",
+          ("images_dir", "scheduler", "progress")),
     Stage("sfm", "04_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
-          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale"),
+          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale", ("images_dir", "seed")),
     Stage("dense", "05_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
-          "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh"),
+          "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh",
+          ("images_dir", "scheduler", "progress")),
     Stage("eval", "06_eval", "eval.tables:EvaluateConfig", "eval.tables:EvaluateResult",
           "pipeline.evaluate:run_evaluate", ("sfm", "correct", "dense", "restorer"),
-          "baselines and ours on the same points and board: the paper's tables"),
+          "baselines and ours on the same points and board: the paper's tables",
+          ("survey_dir", "images_dir", "ours_dir", "scheduler", "progress")),
     Stage("mesh", "07_mesh", "pipeline.mesh:MeshConfig", "pipeline.mesh:MeshResult", "pipeline.mesh:run_mesh",
-          ("sfm", "correct", "dense"), "textured mesh and photomosaic from the corrected frames"),
+          ("sfm", "correct", "dense"), "textured mesh and photomosaic from the corrected frames",
+          ("images_dir", "progress")),
     Stage("diagnose", "08_diagnose", "eval.diagnose:DiagnoseConfig", "eval.diagnose:DiagnoseResult",
-          "pipeline.diagnose:run_diagnose_stage", ("sfm",), "the discovery loop: fit, residuals, missing effect"),
+          "pipeline.diagnose:run_diagnose_stage", ("sfm",), "the discovery loop: fit, residuals, missing effect",
+          ("add", "progress", "measure.seed", "fit.seed")),
     Stage("report", "report", "pipeline.report:ReportConfig", "pipeline.report:ReportResult",
           "pipeline.report:run_report", ("gan", "restorer", "correct", "sfm", "dense", "eval", "mesh", "diagnose"),
           "one self-contained HTML page"),

@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
+
 import torch
 
 from .errors import UserInputError
 
-DEVICE_NAMES = ("auto", "cpu", "cuda")
-"""The values of every ``device`` option."""
+
+class Device(StrEnum):
+    """The values of every ``device`` option: auto (CUDA when available, else CPU), cpu or cuda."""
+
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+DEVICE_NAMES = tuple(Device)
 
 
 def pick_device(name: str) -> torch.device:

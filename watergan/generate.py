@@ -49,8 +49,9 @@ from .data import (
     write_depth_png,
     write_srgb8,
 )
-from .device import pick_device
+from .device import Device, pick_device
 from .errors import UserInputError
+from .io import Encoding
 from .nets.generator import WaterGenerator
 from .train import CHECKPOINT, STACK_JSON, load_checkpoint
 
@@ -71,7 +72,7 @@ class GenerateConfig:
     """Output size (height, width), pixels; None: each in-air image's own size."""
     seed: int = 0
     """Seed of the noise vectors."""
-    encoding: str = "srgb"
+    encoding: Encoding = Encoding.srgb
     """Encoding of the in-air image files: "srgb" or "linear"."""
     use_intrinsics: bool = True
     """Use camera.json beside the RGB-D data when present (range from the rays); else range = depth."""
@@ -79,7 +80,7 @@ class GenerateConfig:
     """Skip (and report) bad or unpaired files instead of stopping with an error."""
     recolour_fraction: float = 0.5
     """Fraction of the in-air images recoloured (:func:`recolour`, seeded) before rendering; 0: none."""
-    device: str = field(default="auto", metadata={"hash": False})
+    device: Device = field(default=Device.auto, metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Show a progress bar."""

@@ -19,6 +19,7 @@ import os
 import tempfile
 import types
 import typing
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,14 @@ from .errors import UserInputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DEPTH_SUFFIXES = (".png", ".npy", ".mat")
-ENCODINGS = ("srgb", "linear")
+class Encoding(StrEnum):
+    """How image files store colour: sRGB-encoded (decoded to linear on reading) or linear."""
+
+    srgb = "srgb"
+    linear = "linear"
+
+
+ENCODINGS = tuple(Encoding)
 #: Largest distance a 16-bit millimetre PNG holds, metres.
 MAX_DEPTH_PNG_M = 65.535
 

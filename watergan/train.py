@@ -51,11 +51,12 @@ from .data import (
     load_rgbd,
     load_underwater,
 )
-from .device import pick_device
+from .device import Device, pick_device
 from .errors import UserInputError
 from .formation import FormationState
 from .formation.effects.backscatter_conv import BackscatterConv
 from .imaging import gaussian_blur
+from .io import Encoding
 from .nets.discriminator import Discriminator
 from .nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
 
@@ -181,7 +182,7 @@ class GanConfig:
     """Stop after this many minutes of this run's wall-clock time (None: no time limit)."""
     seed: int = 0
     """Seed of initialisation, batch sampling and noise (same seed, same run on the same device)."""
-    encoding: str = "srgb"
+    encoding: Encoding = Encoding.srgb
     """Encoding of the image files: "srgb" (decoded to linear) or "linear"."""
     skip_bad: bool = False
     """Skip (and report) unreadable or unpaired files instead of stopping with an error."""
@@ -193,7 +194,7 @@ class GanConfig:
     """Iterations between sample grids (one is always written at the end)."""
     resume: bool = False
     """Continue from ``out_dir/checkpoint.pt`` when it exists."""
-    device: str = field(default="auto", metadata={"hash": False})
+    device: Device = field(default=Device.auto, metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Show a progress bar."""

@@ -41,9 +41,9 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from .data import DataError, atomic_write_bytes, depth_or_zero, read_depth, read_image
-from .device import pick_device
+from .device import Device, pick_device
 from .errors import UserInputError
-from .nets.restorer import HEADS, WIDTH_PRESETS, Restorer, image_context, position_maps, restore
+from .nets.restorer import HEADS, WIDTH_PRESETS, Head, Restorer, WidthPreset, image_context, position_maps, restore
 
 CHECKPOINT = "checkpoint.pt"
 MODEL = "restorer.pt"
@@ -61,11 +61,11 @@ class RestorerConfig:
     """A ``watergan generate`` output folder (underwater/, inair/, depth/)."""
     out_dir: Path
     """Model folder: checkpoint, log, restorer.pt and validation tables go here."""
-    widths: str = "cpu"
+    widths: WidthPreset = WidthPreset.cpu
     """Width preset of the nets: "cpu" (small, fast) or "paper" (SegNet-sized)."""
     skip: bool = True
     """Full-resolution skip layers in the colour net; False is the ``no_skip`` ablation."""
-    head: str = "affine"
+    head: Head = Head.affine
     """What the colour core outputs: "affine" (per-channel gain and offset fields applied to the image,
     :func:`watergan.nets.restorer.apply_affine`) or "direct" (the colours, as the paper)."""
     altitude: bool = True
@@ -100,7 +100,7 @@ class RestorerConfig:
     """Iterations between checkpoints (one is always written at the end of each stage)."""
     resume: bool = False
     """Continue from ``out_dir/checkpoint.pt`` when it exists."""
-    device: str = field(default="auto", metadata={"hash": False})
+    device: Device = field(default=Device.auto, metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Show progress bars."""

@@ -61,6 +61,7 @@ multiple of :func:`Restorer.multiple` (replicating the border), runs both nets a
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from enum import StrEnum
 
 import torch
 import torch.nn.functional as F
@@ -68,8 +69,14 @@ from torch import nn
 
 LEVELS = 3
 """Max-pooling levels of the core: its input sides must be multiples of 2**LEVELS."""
-HEADS = ("affine", "direct")
-"""What the colour core outputs: per-channel gain and offset fields, or the colours themselves."""
+class Head(StrEnum):
+    """What the colour core outputs: per-channel gain and offset fields, or the colours themselves."""
+
+    affine = "affine"
+    direct = "direct"
+
+
+HEADS = tuple(Head)
 
 
 @dataclass(frozen=True)
@@ -91,7 +98,14 @@ CPU_WIDTHS = RestorerWidths()
 #: SegNet-sized widths as in the paper (for a GPU).
 PAPER_WIDTHS = RestorerWidths(depth_core=(64, 128, 256, 512), colour_core=(64, 128, 256, 512), full_res=64,
                               blocks_per_level=2)
-WIDTH_PRESETS = {"cpu": CPU_WIDTHS, "paper": PAPER_WIDTHS}
+class WidthPreset(StrEnum):
+    """Net widths: small for the CPU, or SegNet-sized as the paper (for a GPU)."""
+
+    cpu = "cpu"
+    paper = "paper"
+
+
+WIDTH_PRESETS = {WidthPreset.cpu: CPU_WIDTHS, WidthPreset.paper: PAPER_WIDTHS}
 
 
 def conv_block(c_in: int, c_out: int, kernel: int = 3) -> nn.Sequential:
