@@ -39,8 +39,8 @@ SURVEYS = {
 def prepare(root: Path, name: str) -> Path:
     """Simulate the survey ``name`` into ``root/name/00_survey`` and run SfM and dense (each skipped when done)."""
     from eval.synth import make_config, simulate_survey
-    from pipeline.dense import DenseConfig, run_dense
-    from pipeline.sfm import SfmConfig, run_sfm
+    from pipeline.dense import DenseConfig
+    from pipeline.sfm import SfmConfig
     from pipeline.workspace import Workspace
 
     spec = SURVEYS[name]
@@ -51,8 +51,10 @@ def prepare(root: Path, name: str) -> Path:
         cfg = replace(cfg, trajectory=replace(cfg.trajectory, stereo=spec["stereo"]),
                       rgbd=replace(cfg.rgbd, n_scenes=1, views_per_scene=1))
         simulate_survey(survey, cfg, force=True, progress=False)
-    ws.run("sfm", SfmConfig(), run_sfm)
-    ws.run("dense", DenseConfig(progress=False), run_dense)
+    if not (ws.stage_dir("sfm") / "tracks.npz").is_file():  # reused when present, whatever made it
+        ws.run("sfm", SfmConfig())
+    if not (ws.stage_dir("dense") / "result.json").is_file():
+        ws.run("dense", DenseConfig(progress=False))
     return ws.root
 
 
@@ -63,8 +65,8 @@ def load_inputs(ws_root: Path):
     from eval.colour import truth_board
     from eval.depth import read_depth
     from eval.tables import z_to_range
+    from eval.tracks import Tracks
     from eval.water import SparseTracks, WaterFrame
-    from pipeline.sfm import Tracks
     from watergan.data import read_image
 
     survey = ws_root / "00_survey"
