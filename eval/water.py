@@ -49,11 +49,24 @@ What pins what (and what does not):
   the corrected colours are then in units of that gain (their ratios between channels are still free of it
   only if the gain is grey, which a white balance need not be).
 
-Uncertainty: a bootstrap over frames (``bootstrap`` replicates; frames drawn with replacement, the frames that
-see the board and the others drawn separately so that every replicate keeps the board; a point's views weigh
-as many times as their frame was drawn); each replicate is refitted from the full fit. Intervals are the
-estimate +- 1.96 bootstrap standard deviations (clipped to the bounds); the bootstrap percentiles are kept
-too. Pairs of parameters whose bootstrap correlation exceeds 0.95 are reported as trade-offs.
+Uncertainty: a two-way bootstrap (``bootstrap`` replicates): frames drawn with replacement (the frames that
+see the board and the others drawn separately, so every replicate keeps the board) and each surface point's
+views weighted Poisson(1) times (the views of one point share its texture and registration errors, so frames
+alone are not independent units). Each replicate is refitted from the full fit: one Newton step with the full
+fit's Hessian (central differences of the gradient), then ``bootstrap_iterations`` L-BFGS steps. Resampling
+cannot see a bias that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the
+board weighted 10x less: how far the correspondences alone pull the estimate from the board's) and each
+parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2),
+clipped to the bounds. The bootstrap percentiles are kept too. Pairs of parameter components whose bootstrap
+correlation exceeds 0.95 are reported as trade-offs (eta_c with k_c through the board's range, B_inf with beta).
+
+Why colours are read at a fixed footprint on the surface: with a fixed blur in pixels a near view averages a
+smaller patch of the seafloor's texture than a far view, so the views of one point differ by a texture term
+whose size depends on range; the profiled least squares then biases the ratio of near to far views, i.e. eta
+(on the demo +3-7 %, gain +3 %, B_inf green +16 %, with the true geometry as much as with SfM's). Reading
+every view at the same footprint (``footprint_m``) removes most of it (eta within 2 % without the board's
+extra weight). This is the likely cause of the diagnosis fit's high eta (it reads 5 px patches at SfM
+features), along with its few points.
 
 Bad input: fewer than ``min_frames`` frames with a pose and range, range on too small a part of the frames,
 or too few points seen at different ranges raise :class:`WaterInputError`, saying what to give.
@@ -714,8 +727,10 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         problem.set_raw(best_raw)
         problem.point_weight = None
         t_boot = time.perf_counter() - t0 - t_fit
-        alternatives = config.spec_alternatives if config.spec_alternatives is not None else (
-            ({"board_weight": config.board_weight / 10},) if problem.has_board else ({"loss_scale": config.loss_scale * 3},))
+        alternatives = config.spec_alternatives
+        if alternatives is None:
+            alternatives = ({"board_weight": config.board_weight / 10},) if problem.has_board else \
+                ({"loss_scale": config.loss_scale * 3},)
         spec = {}
         for change in alternatives:
             problem.config = replace(config, **change)
