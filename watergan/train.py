@@ -56,7 +56,7 @@ from .errors import UserInputError
 from .formation import FormationState
 from .formation.effects.backscatter_conv import BackscatterConv
 from .imaging import gaussian_blur
-from .io import Encoding
+from .io import Encoding, to_jsonable
 from .nets.discriminator import Discriminator
 from .nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
 
@@ -451,7 +451,9 @@ def _json_ready(values: dict[str, torch.Tensor]) -> dict[str, list | float]:
 
 
 def _config_json(config: GanConfig) -> dict:
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
+    """The configuration as plain JSON values (paths and choices as strings: a checkpoint loads with
+    ``weights_only``)."""
+    return to_jsonable(config)
 
 
 def _save_checkpoint(run: GanRun, step: int, trained_generator: dict | None = None) -> None:

@@ -306,7 +306,7 @@ class Restorer(nn.Module):
 
     def to_config(self) -> dict:
         return {"widths": asdict(self.widths), "factor": self.factor, "skip": self.skip,
-                "depth_hw": list(self.depth_hw), "head": self.colour_net.head,
+                "depth_hw": list(self.depth_hw), "head": str(self.colour_net.head),
                 "altitude": self.altitude}
 
     @classmethod
