@@ -115,10 +115,32 @@ def compare(estimate, truth: dict) -> dict:
     return rows
 
 
+def mesh_range(mesh_ply: Path, frames, K) -> dict[str, np.ndarray]:
+    """Per frame, the ray length to the dense stage's fused mesh rendered from the SfM pose (NaN: no hit)."""
+    import open3d as o3d
+
+    mesh = o3d.t.io.read_triangle_mesh(str(mesh_ply))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh.to_legacy()))
+    out = {}
+    for f in frames:
+        if f.world_from_cam is None:
+            continue
+        h, w = f.range_m.shape
+        ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+        d = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True) @ f.world_from_cam[:3, :3].T
+        rays = np.concatenate([np.broadcast_to(f.world_from_cam[:3, 3], d.shape), d], -1).astype(np.float32)
+        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        out[f.name] = np.where(np.isfinite(t), t, np.nan)
+    return out
+
+
 def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
     """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the dense range
     ('physics'), the true stack with the dense range ('true_water_dense_range') and the oracle (true stack,
-    true geometry). Dense range holes are filled with the nearest valid pixel's range (fraction reported)."""
+    true geometry). Pixels without dense range take it from the fused mesh rendered into the view, the rest
+    from the nearest pixel with range (fractions reported)."""
     import torch
 
     from eval.baselines import oracle
@@ -133,12 +155,17 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
     folders = {name: out / name for name in ("physics", "true_water_dense_range", "oracle")}
     for folder in folders.values():
         folder.mkdir(parents=True, exist_ok=True)
-    filled, seconds = [], 0.0
+    filled, from_mesh, seconds = [], [], 0.0
     torch.set_num_threads(1)
+    meshed = mesh_range(ws_root / "05_dense" / "fused_mesh.ply", frames, K)
     for f in frames:
-        r = f.range_m
+        r = np.asarray(f.range_m, np.float64)
+        hole = ~np.isfinite(r)
+        if f.name in meshed:
+            r = np.where(hole, meshed[f.name], r)
+        from_mesh.append(float(np.mean(hole & np.isfinite(r))))
         filled.append(float(np.mean(~np.isfinite(r))))
-        r_full = fill_nearest(np.asarray(r, np.float64))
+        r_full = fill_nearest(r)
         t = time.perf_counter()
         corrected, _ = correct_physics(f.image, r_full, stack, K)
         seconds += time.perf_counter() - t
@@ -147,7 +174,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
         write_srgb8(folders["true_water_dense_range"] / f.name, np.clip(np.nan_to_num(corrected), 0, 1))
         write_srgb8(folders["oracle"] / f.name, oracle(f.image.astype(np.float64), geometry.state(f.name),
                                                        geometry.stack))
-    return {"folders": folders, "filled_fraction": float(np.mean(filled)),
+    return {"folders": folders, "filled_fraction": float(np.mean(filled)), "mesh_fraction": float(np.mean(from_mesh)),
             "physics_seconds_per_frame": seconds / max(len(frames), 1)}
 
 
@@ -177,6 +204,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     t = time.perf_counter()
     frames, K, sparse, board, tracks = load_inputs(ws_root)
     load_seconds = time.perf_counter() - t
+    sfm = json.loads((ws_root / "04_sfm" / "result.json").read_text())["result"]
+    config = replace(config, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     add = SURVEYS[name].get("add", ())
     if add:
         config = replace(config, effects=tuple(config.effects) + tuple(add))
@@ -201,9 +230,9 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     corr = correct_folders(ws_root, frames, K, estimate.stack, out)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
-    print(f"   correction (dense range, {100 * corr['filled_fraction']:.1f} % of pixels filled from the nearest "
-          f"range; physics {corr['physics_seconds_per_frame']:.2f} s/frame); consistency on "
-          f"{metrics['consistency_points']} points")
+    print(f"   correction (dense range; {100 * corr['mesh_fraction']:.1f} % of pixels from the fused mesh, "
+          f"{100 * corr['filled_fraction']:.1f} % from the nearest pixel with range; physics "
+          f"{corr['physics_seconds_per_frame']:.2f} s/frame); consistency on {metrics['consistency_points']} points")
     for label in ("raw", "physics", "true_water_dense_range", "oracle"):
         m = metrics[label]
         print(f"   {label:24s} board CIEDE2000 {m['board_ciede2000']:6.3f}  consistency x1e-5 "
@@ -222,7 +251,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     }
     print("   targets:", targets)
     return {"params": params, "estimate": estimate.to_json(), "correction": metrics,
-            "filled_fraction": corr["filled_fraction"], "targets": targets,
+            "filled_fraction": corr["filled_fraction"], "mesh_fraction": corr["mesh_fraction"], "targets": targets,
             "seconds": {"prepare": round(prep_seconds, 1), "load": round(load_seconds, 2),
                         "water": round(water_seconds, 2),
                         "physics_per_frame": round(corr["physics_seconds_per_frame"], 3)}}
