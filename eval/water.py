@@ -55,7 +55,8 @@ Uncertainty: a two-way bootstrap (``bootstrap`` replicates): frames drawn with r
 see the board and the others drawn separately, so every replicate keeps the board) and each surface point's
 views weighted Poisson(1) times (the views of one point share its texture and registration errors, so frames
 alone are not independent units). Each replicate is refitted from the full fit: one Newton step with the full
-fit's Hessian (central differences of the gradient), then ``bootstrap_iterations`` L-BFGS steps. Resampling
+fit's Hessian (central differences of the gradient; eigenvalues floored at 1e-6 of the largest, the step halved
+until it lowers the replicate's loss), then ``bootstrap_iterations`` L-BFGS steps. Resampling
 cannot see a bias that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the
 board weighted 10x less: how far the correspondences alone pull the estimate from the board's) and each
 parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2),
@@ -723,7 +724,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         if config.bootstrap:
             x0 = problem.flat()
             evals, evecs = torch.linalg.eigh(problem.hessian(ones))
-            inv = (evecs / evals.clamp_min(evals.abs().max() * 1e-9 + 1e-300)) @ evecs.T
+            inv = (evecs / evals.clamp_min(evals.abs().max() * 1e-6 + 1e-300)) @ evecs.T
         for _ in range(config.bootstrap):
             wts = np.zeros(n_frames_total)
             for group in (board_frames, other):
@@ -733,7 +734,16 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
             if config.bootstrap_points:
                 problem.point_weight = torch.from_numpy(rng.poisson(1.0, obs.n_points).astype(np.float64))
             problem.set_flat(x0)
-            problem.set_flat(x0 - inv @ problem.gradient(weight))  # one Newton step from the full fit
+            step = -(inv @ problem.gradient(weight))  # a Newton step from the full fit, halved until it helps
+            with torch.no_grad():
+                before = float(problem.loss(weight))
+                for _ in range(6):
+                    problem.set_flat(x0 + step)
+                    if float(problem.loss(weight)) < before:
+                        break
+                    step = step / 2
+                else:
+                    problem.set_flat(x0)
             if config.bootstrap_iterations:
                 problem.minimise(weight, config.bootstrap_iterations)
             samples.append(problem.physical())
