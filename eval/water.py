@@ -81,9 +81,9 @@ B_inf blue on seed 0, B_inf green monocular) and the off-centre survey's eta blu
 board (gain held at its true value) the correspondences alone: eta +2/-3/+6 %, B_inf +13/-6/-2 %, beta poorly
 pinned (green 0.50 against 0.32).
 
-Known limits: the alternative fit starts from the main fit, so in a flat direction (red B_inf-beta) it may
-stop short of the alternative's own optimum (a fresh fit with board weight 1 gives red B_inf 0.033, the
-alternative from the main fit 0.031): the specification term is then too small. The added effect's overall
+Known limits: the alternative fit starts where the main fit started (from the main fit's optimum it stopped
+short of its own in the flat red B_inf-beta direction: 0.031 instead of 0.033); in a flat direction any fit
+stops where the loss stops changing, so beta's interval is only as good as that. The added effect's overall
 strength is exactly degenerate with its polynomial (s (a r^2 + b r^4 + c r^6)), and the two vignetting
 effects trade with each other: only their product, and the strength ratios between channels (measured 1 :
 0.900 : 0.811 against 1 : 0.9 : 0.8), are pinned.
@@ -201,7 +201,7 @@ class WaterConfig:
     scale error s divides every coefficient in 1/m (eta, beta) by s, which no resampling sees: their intervals
     widen by 1.96 x this x value, in quadrature."""
     spec_iterations: int = 150
-    """L-BFGS iterations of each alternative fit (from the main fit)."""
+    """L-BFGS iterations of each alternative fit (from the same start as the main fit)."""
     min_frames: int = 4
     """Frames with a pose and range needed."""
     min_range_coverage: float = 0.2
@@ -723,6 +723,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         problem = _Problem(stack, obs, config, tuple(fixed))
         _start_inside(problem)
         fast = _Problem(stack, obs, config, tuple(fixed), float32=True) if config.float32 else problem
+        start_raw = problem.get_raw()
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
         n_frames_total = int(frames.max()) + 1
         ones = torch.zeros(n_frames_total, dtype=torch.float64)
@@ -772,7 +773,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         spec = {}
         for change in alternatives:
             problem.config = replace(config, **change)
-            problem.set_raw(best_raw)
+            problem.set_raw(start_raw)  # a fresh fit: from the main fit it stops short in flat directions
             problem.minimise(ones, config.spec_iterations)
             for key, value in problem.physical().items():
                 spec[key] = np.maximum(spec.get(key, 0.0), np.abs(value - best[key]))
