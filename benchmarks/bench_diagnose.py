@@ -73,7 +73,7 @@ def main() -> None:
     rows = []
     for case in cases:
         target = survey_dir(Path(args.cache), args.survey, case, args.geometry)
-        for stale in (target / "diagnose", target / "08_diagnose"):
+        for stale in (target / "diagnose", target / "09_diagnose"):
             shutil.rmtree(stale, ignore_errors=True)
         (target / "model_ledger.jsonl").unlink(missing_ok=True)
         start = time.perf_counter()

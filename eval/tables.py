@@ -52,8 +52,10 @@ from eval.baselines import BASELINES, jaffe_coefficients
 from watergan.errors import UserInputError
 
 OURS = "ours"
+PHYSICS = "physics"
 INAIR = "inair"
-LABELS = {**{name: b.label for name, b in BASELINES.items()}, OURS: "ours", INAIR: "in-air truth"}
+LABELS = {**{name: b.label for name, b in BASELINES.items()}, OURS: "ours", PHYSICS: "physics (range)",
+          INAIR: "in-air truth"}
 RANGE_SOURCES = ("auto", "truth", "dense")
 
 
@@ -474,11 +476,11 @@ def restorer_table(restorer_dir: Path) -> dict:
 
 
 def depth_table(depth_dir: Path) -> dict:
-    """Monocular vs stereo depth from ``06_eval/depth/metrics.json`` (or a 'not run' table)."""
+    """Monocular vs stereo depth from ``07_eval/depth/metrics.json`` (or a 'not run' table)."""
     path = depth_dir / "metrics.json"
     title = "Depth: monocular (restorer) vs stereo/MVS"
     if not path.is_file():
-        return make_table("depth", title, [], [], status="not run: no 06_eval/depth/metrics.json (needs the "
+        return make_table("depth", title, [], [], status="not run: no 07_eval/depth/metrics.json (needs the "
                           "restorer's depth in 03_correct/depth and the dense stage, or `watergan depth-compare`)")
     data = json.loads(path.read_text())
     o = data["overall"]

@@ -212,6 +212,11 @@ class WaterConfig:
     """Torch threads of the fit."""
     seed: int = 0
     """Seed of the pixel sampling and the bootstrap."""
+    board_json: str = ""
+    """A colour-board file (:func:`eval.colour.load_board_json`) for the pipeline's water stage; empty: the
+    simulated survey's board when there is one, else none (then the gain is held)."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Progress bars (the pipeline's correction)."""
 
 
 # --------------------------------------------------------------------------------- observations
@@ -677,7 +682,7 @@ class WaterEstimate:
     fixed:        effects held at their values (e.g. gain without a board) and why.
     tradeoffs:    [(a, b, correlation)] free parameter components whose bootstrap |correlation| > 0.95.
     n_points, n_observations, n_board, n_frames: sizes of the measurement table.
-    rmse:         RMS residual of the views (linear colour).
+    rmse:         RMS residual of the views (linear colour); ``residuals``: per view (for plots).
     seconds:      wall time (measuring, fitting, bootstrap).
     """
 
@@ -692,6 +697,9 @@ class WaterEstimate:
     rmse: float
     seconds: dict
     alternatives: list = field(default_factory=list)
+    residuals: dict | None = None
+    """Per view: residual (N,3) (observed - fitted, linear), range_m (N,), radius (N,) (distance from the
+    image centre, 1 at the corners); not in :meth:`to_json`."""
 
     def to_json(self) -> dict:
         return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed,
@@ -785,12 +793,15 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         with torch.no_grad():
             a, c = _affine(stack, problem.state)
             j = problem.albedo(a, c, ones.to(a.dtype)[torch.from_numpy(obs.frame)])
-            rmse = float(torch.sqrt(((problem.y - (a * j[problem.point] + c)) ** 2).mean()))
+            residual = (problem.y - (a * j[problem.point] + c)).numpy()
+            rmse = float(np.sqrt((residual ** 2).mean()))
         for p in stack.parameters():
             p.requires_grad_(False)
         params, tradeoffs = _describe(stack, best, samples, fixed, spec, config.range_scale_sd)
         return WaterEstimate(stack=stack, params=params, fixed=fixed, tradeoffs=tradeoffs, n_points=obs.n_points,
                              n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),
+                             residuals={"residual": residual, "range_m": obs.range_m,
+                                        "radius": np.hypot(*(2 * obs.pixel_uv - 1).T) / np.sqrt(2)},
                              rmse=rmse, seconds={"fit": round(t_fit, 2), "bootstrap": round(t_boot, 2),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
                              alternatives=[dict(a) for a in alternatives])

@@ -18,6 +18,7 @@ options of each command are generated from its configuration dataclass (:mod:`pi
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 import zlib  # noqa: F401  load before pycolmap: importing pycolmap first makes Python's zlib corrupt the heap
@@ -71,6 +72,9 @@ class SimulateOptions:
     """Random seed (same seed: same bytes)."""
     force: bool = False
     """Replace an existing output folder."""
+    stereo: bool = True
+    """Write the rig's right frames (right/, baseline_m); --no-stereo: a monocular survey, scale from the
+    navigation altitude (nav_altitude_m in survey.json) and range from multi-view stereo."""
 
 
 def simulate(opts: SimulateOptions) -> int:
@@ -80,6 +84,8 @@ def simulate(opts: SimulateOptions) -> int:
     for name in opts.hidden:
         get(name)  # unknown names fail here, before any rendering
     config = make_config(opts.preset.value, hidden=list(opts.hidden), seed=opts.seed)
+    if not opts.stereo:
+        config = dataclasses.replace(config, trajectory=dataclasses.replace(config.trajectory, stereo=False))
     start = time.perf_counter()
     summary = simulate_survey(opts.out, config, force=opts.force)
     seconds = time.perf_counter() - start

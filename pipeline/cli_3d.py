@@ -5,6 +5,7 @@
     watergan sfm --workspace WS [--survey DIR] [--matching auto|sequential|exhaustive]
                  [--scale auto|stereo|board|altitude|none] [--board-json FILE [--board-width-m W ...]]
     watergan dense --workspace WS [--method auto|sgbm|patch_match] [--pairs auto|rig|neighbours] [--no-fuse]
+    watergan water --workspace WS [--effects A,B] [--board-json FILE] [--bootstrap N]
     watergan consistency --workspace WS --folders NAME=DIR[,NAME=DIR] [--patch-px 5]
                          [--truth-dir SURVEY | --board-json FILE]
     watergan depth-compare --pred-dir DIR [--ref-dir DIR] (--workspace WS | --out DIR) [--with-shift] [--no-per-image]
@@ -39,6 +40,14 @@ def print_dense(ws, r) -> None:
     print(f"depth: {ws.path(r.depth_dir)}")
     if r.mesh_ply:
         print(f"fused: {ws.path(r.points_ply)}, {ws.path(r.mesh_ply)}")
+
+
+def print_water(ws, r) -> None:
+    print(r.summary)
+    print(f"{'board' if r.board else 'no board (gain held)'}; range from the fused mesh for "
+          f"{100 * r.mesh_fraction:.1f} % of the pixels, none for {100 * r.unresolved_fraction:.1f} % (black, masked); "
+          f"estimate {r.estimate_seconds:.1f} s, all {r.seconds:.1f} s")
+    print(f"water:  {ws.path(r.water_json)}\nframes: {ws.path(r.images)}")
 
 
 def cmd_consistency(args: argparse.Namespace) -> int:
@@ -102,6 +111,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
 
     add_stage_command(sub, parents, "sfm", "sfm", "structure from motion (pycolmap) on the raw images", print_sfm)
     add_stage_command(sub, parents, "dense", "dense", "SGBM/patch-match depth maps and TSDF fusion", print_dense)
+    add_stage_command(sub, parents, "water", "water", "the site's water from the survey's geometry (SfM poses, "
+                      "dense range, board), and the physics-corrected frames", print_water)
 
     p = sub.add_parser("consistency", parents=parents, help="colour consistency across views (+ board accuracy)")
     p.add_argument("--workspace", required=True, help="workspace with a finished sfm stage")

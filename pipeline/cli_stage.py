@@ -29,7 +29,7 @@ def run_stage_command(args: argparse.Namespace) -> int:
 
 
 def add_stage_command(sub, parents: list[argparse.ArgumentParser], stage: str, command: str, help_text: str,
-                      printer: Callable[[Any, Any], None], exclude: tuple[str, ...] = ("progress",)) -> None:
+                      printer: Callable[[Any, Any], None], exclude: tuple[str, ...] = ()) -> None:
     """Add ``command`` running the workspace stage ``stage`` (its options from the stage's config)."""
     from .cliargs import add_config
     from .stages import STAGES

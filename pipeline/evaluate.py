@@ -21,6 +21,7 @@ from eval.tables import (
     INAIR,
     LABELS,
     OURS,
+    PHYSICS,
     EvaluateConfig,
     EvaluateResult,
     board_table,
@@ -95,7 +96,10 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     else:
         folders[OURS] = ours_dir
         per_frame[OURS] = ours_seconds(correct_dir)
-    methods = [m for m in [*methods, OURS] if m != "oracle" and m in folders] + \
+    water = ws.result("water")
+    if water is not None and not missing_files(ws.path(water.images), names):
+        folders[PHYSICS] = ws.path(water.images)
+    methods = [m for m in [*methods, OURS, PHYSICS] if m != "oracle" and m in folders] + \
         (["oracle"] if "oracle" in folders else [])
     reference: tuple[str, ...] = ()
     if simulated and (survey / "truth" / "inair").is_dir():

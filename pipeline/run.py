@@ -1,7 +1,8 @@
 """`watergan run`: every stage of the stage table (:mod:`pipeline.stages`) in order on a survey folder,
 resumable.
 
-    survey -> gan (train, generate) -> restorer -> correct -> sfm -> dense -> eval -> mesh -> diagnose -> report
+    survey -> gan (train, generate) -> restorer -> correct -> sfm -> dense -> water -> eval -> mesh -> diagnose
+           -> report
 
 Each stage runs through :meth:`Workspace.run`: it is skipped when its ``result.json`` records the
 hash of the same configuration on the same upstream results, so retraining the restorer reruns the
@@ -188,10 +189,18 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
         cfg = _configured("diagnose", opts, add=opts.add)
         return with_values(cfg, {("measure", "seed"): opts.seed, ("fit", "seed"): opts.seed})
 
+    def water():
+        base = _configured("water", opts)
+        return dataclasses.replace(base, effects=tuple(dict.fromkeys(base.effects + opts.add)))
+
     def mesh():
+        """Textured with the physics-corrected frames when every pixel of them had a range, else the restorer's."""
+        physics = ws.result("water")
+        if physics is not None and physics.unresolved_fraction == 0.0:
+            return _configured("mesh", opts, images_dir=str(ws.path(physics.images)))
         return _configured("mesh", opts, images_dir=str(ws.path(ws.require("correct", "the mesh").images)))
 
-    special = {"gan": gan, "restorer": restorer, "mesh": mesh, "diagnose": diagnose,
+    special = {"gan": gan, "restorer": restorer, "water": water, "mesh": mesh, "diagnose": diagnose,
                "report": lambda: ws.stage("report").config_type()}
     return {name: special.get(name, lambda name=name: _configured(name, opts)) for name in STAGES if name != "survey"}
 

@@ -331,7 +331,7 @@ def test_plugin_effect_is_found_from_its_file(tmp_path):
 
 
 def _colour_json(ws: Path) -> None:
-    """06_eval/colour.json as eval.colour.run_colour_eval writes it."""
+    """07_eval/colour.json as eval.colour.run_colour_eval writes it."""
     from eval.colour import BoardResult, ColourEvalResult, ConsistencyResult, ConsistencyScore
 
     consistency = ConsistencyResult(scores={"raw": ConsistencyScore([3e-4, 2e-4, 1e-4], 2e-4),
@@ -348,8 +348,8 @@ def test_add_appends_a_model_version_and_cli_prints_ledger(surveys, tmp_path):
     _colour_json(ws)
     config = replace(FAST, add=("vignetting_offcentre",), candidates=("sensor_response",))
     result = run_diagnose(ws, config, progress=False)
-    assert result.stack[-2:] == ["vignetting_offcentre", "gain"] and result.out_dir == str(ws / "08_diagnose")
-    assert (ws / "08_diagnose" / "result.json").is_file()
+    assert result.stack[-2:] == ["vignetting_offcentre", "gain"] and result.out_dir == str(ws / "09_diagnose")
+    assert (ws / "09_diagnose" / "result.json").is_file()
     records = read_ledger(ws / "model_ledger.jsonl")
     assert [r["kind"] for r in records] == ["model", "candidate"]
     assert records[0]["consistency"] == {"raw": 2e-4, "corrected": 5e-5}

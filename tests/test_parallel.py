@@ -122,7 +122,7 @@ def test_baselines_and_colour_sampling_on_the_cluster_match_local(cluster):
         cfg = EvaluateConfig(methods=("raw", "gray_world", "jaffe", "seathru", "oracle"), range_source="truth",
                              scheduler=scheduler)
         result = run_evaluate(ws, cfg)
-        runs[label] = ws.root / "06_eval", result
+        runs[label] = ws.root / "07_eval", result
     (local_dir, local), (remote_dir, remote) = runs["local"], runs["remote"]
     assert remote.methods == local.methods == ["raw", "gray_world", "jaffe", "seathru", "oracle"]
     assert _files(remote_dir / "baselines") == _files(local_dir / "baselines")

@@ -81,7 +81,7 @@ def evaluated():
         {"time": "2026-01-01 00:01:00", "kind": "candidate", "heldout_rmse": 0.012,
          "stack": ["attenuation", "gain", "vignetting_offcentre"]})))
     record = ws.run("eval", EvaluateConfig(range_source="dense"))
-    tables = json.loads((ws.root / "06_eval" / "tables.json").read_text())
+    tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
     return survey, ws, record, tables
 
 
@@ -100,7 +100,7 @@ def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
     assert result.methods == ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "ours", "oracle"]
     assert result.range_source == "dense" and result.skipped == {}
     for m in ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "oracle"]:
-        files = sorted(p.name for p in (ws.root / "06_eval" / "baselines" / m).iterdir())
+        files = sorted(p.name for p in (ws.root / "07_eval" / "baselines" / m).iterdir())
         assert files == sorted(p.name for p in (survey / "images").iterdir()), m
     board, cons = _table(tables, "table1"), _table(tables, "table2")
     assert board["reference"] == cons["reference"] == ["inair"]
@@ -115,7 +115,7 @@ def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
     fid = _table(tables, "fidelity")
     assert _row(fid, "PSNR (dB)")["oracle"] > _row(fid, "PSNR (dB)")["raw"] + 10
     # per-point variances behind Table II average to it
-    with np.load(ws.root / "06_eval" / "consistency_points.npz") as npz:
+    with np.load(ws.root / "07_eval" / "consistency_points.npz") as npz:
         assert np.isclose(npz["raw"][:, 1].mean(), _row(cons, "G")["raw"], rtol=1e-4)
 
 
@@ -128,7 +128,7 @@ def test_verdict_says_plainly_where_ours_loses(evaluated):
     assert any(line.startswith("ours loses to Jaffe-McGlamery on mean board distance") for line in verdict)
     assert not any("to raw " in line or "beats raw" in line for line in verdict)  # a tie is neither
     assert any("more than 2x" in line and "oracle" in line for line in verdict)
-    md = (ws.root / "06_eval" / "tables.md").read_text()
+    md = (ws.root / "07_eval" / "tables.md").read_text()
     assert f"**{mean['oracle']:.4f}**" in md and "ours loses to oracle" in md
 
 
@@ -171,7 +171,7 @@ def test_missing_inputs_are_skipped_with_reasons(tmp_path):
     assert result.methods == ["raw", "gray_world"] and result.range_source == "none"
     assert set(result.skipped) == {"jaffe", "seathru", "oracle", "ours"}
     assert result.verdict[0].startswith("ours not measured")
-    tables = json.loads((ws.root / "06_eval" / "tables.json").read_text())
+    tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
     assert _table(tables, "table1")["status"].startswith("not measured")
     assert _table(tables, "fidelity")["status"].startswith("not measured")
     assert ws.run("eval", cfg).seconds == result.seconds  # done: skipped
@@ -246,7 +246,7 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
     assert report["verdict"] and any("ours loses to oracle" in line for line in report["verdict"])
     frames = next(s for s in report["sections"] if s["id"] == "frames")
     assert len(frames["frames"]) == 3 and frames["columns"][-1] == "inair"
-    assert "href='../07_mesh/mesh.glb'" in page and "<b>" in page
+    assert "href='../08_mesh/mesh.glb'" in page and "<b>" in page
     assert "ours loses to oracle" in (ws.root / "report" / "report.md").read_text()
     if not CHROMIUM.is_file():
         pytest.skip(NO_CHROMIUM)
@@ -300,4 +300,4 @@ def test_evaluate_command_prints_the_verdict_of_the_finished_stage(evaluated, ca
     assert args.func(args) == 0  # the same options as the fixture's stage: skipped, its result printed
     printed = capsys.readouterr().out
     assert f"{result.seconds:.1f} s" in printed and "ours loses to oracle on mean board distance" in printed
-    assert str(ws.root / "06_eval" / "tables.md") in printed
+    assert str(ws.root / "07_eval" / "tables.md") in printed

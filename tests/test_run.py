@@ -34,12 +34,12 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     html = report.read_text()
     assert "<img" in html and "http://" not in html.replace("http://www.w3.org", "")
     summary = json.loads((out / "run_summary.json").read_text())
-    assert [s["stage"] for s in summary["stages"]] == ["survey", "gan", "restorer", "correct", "sfm", "dense", "eval",
-                                                       "mesh", "diagnose", "report"]
+    assert [s["stage"] for s in summary["stages"]] == ["survey", "gan", "restorer", "correct", "sfm", "dense", "water",
+                                                       "eval", "mesh", "diagnose", "report"]
     assert not any(s["skipped"] for s in summary["stages"])
     assert len(list((out / "03_correct" / "images").glob("*.png"))) == 10
-    assert (out / "07_mesh" / "mesh.glb").stat().st_size > 0
-    tables = json.loads((out / "06_eval" / "tables.json").read_text())
+    assert (out / "08_mesh" / "mesh.glb").stat().st_size > 0
+    tables = json.loads((out / "07_eval" / "tables.json").read_text())
     assert "ours" in json.dumps(tables)
 
     began = time.perf_counter()
@@ -47,7 +47,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     assert second.returncode == 0, second.stderr[-3000:]
     assert time.perf_counter() - began < 30
     assert all(s["skipped"] for s in json.loads((out / "run_summary.json").read_text())["stages"])
-    assert second.stdout.count("finished earlier, skipped") == 10
+    assert second.stdout.count("finished earlier, skipped") == 11
 
     restorer_mtime = (out / "02_restorer" / "result.json").stat().st_mtime_ns
     sfm_mtime = (out / "04_sfm" / "result.json").stat().st_mtime_ns

@@ -1,0 +1,210 @@
+"""The water stage: the site's water from the survey's own geometry, and the physics correction.
+
+It reads the raw frames (survey), their poses (sfm), their dense range (dense: camera z, turned into
+ray length) and the colour board when there is one (the simulator's, or ``board_json``), estimates the
+formation stack with :func:`eval.water.estimate_water` (which constraint pins which parameter, and
+what stays degenerate: its module docstring), and inverts it at every pixel with that pixel's range
+(:func:`eval.water.correct_physics`). Writes into the stage's folder:
+
+    water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings
+    summary.txt             one line: eta and B_inf with their intervals
+    residuals.png           the fit's residuals against range and image position
+    images/<name>.png       the physics-corrected frames, sRGB, the input's bit depth (8 or 16)
+    mask/<stem>.png         255 where the frame was corrected, 0 where it has no range (written black)
+
+Range per pixel: the dense stage's depth map; a pixel without one takes the range of the dense stage's
+fused mesh rendered into the view (open3d ray casting from the SfM pose); a pixel with neither is not
+guessed: it is written black and marked 0 in the mask (its share is ``unresolved_fraction``).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from eval.tracks import Tracks
+from eval.water import WaterConfig, WaterEstimate, WaterFrame
+from watergan.errors import UserInputError
+from watergan.io import atomic_write_json, atomic_write_text, read_depth, write_png
+
+from .workspace import Workspace
+
+
+@dataclass
+class WaterResult:
+    water_json: str
+    """Workspace-relative path of water.json."""
+    summary: str
+    """One line: eta and B_inf with their 95 % intervals."""
+    stack: list[dict]
+    """The estimated formation stack ({name, params} entries)."""
+    images: str
+    """Workspace-relative folder of the physics-corrected frames."""
+    mask: str
+    """Workspace-relative folder of the masks (255: corrected, 0: no range)."""
+    mesh_fraction: float
+    """Share of the pixels whose range came from the fused mesh."""
+    unresolved_fraction: float
+    """Share of the pixels with no range at all (written black, masked)."""
+    board: bool
+    """Whether a colour board took part (it pins the gain)."""
+    seconds: float
+    """Wall time of the stage (estimate and correction)."""
+    estimate_seconds: float
+    """Wall time of the estimate alone."""
+
+
+def _frames(ws: Workspace, tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
+    """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered)."""
+    from eval.tables import z_to_range
+    from watergan.data import read_image
+
+    K = np.asarray(tracks.K, float)
+    frames = []
+    for k, name in enumerate(str(n) for n in tracks.image_names):
+        image = read_image(images / name).astype(np.float32)
+        path = depth_dir / f"{Path(name).stem}.png" if depth_dir is not None else None
+        if path is not None and path.is_file():
+            range_m = z_to_range(read_depth(path), K).astype(np.float32)
+        else:
+            range_m = np.full(image.shape[:2], np.nan, np.float32)
+        frames.append(WaterFrame(name=name, image=image, range_m=range_m,
+                                 world_from_cam=tracks.world_from_cam[k] if tracks.registered[k] else None))
+    return frames
+
+
+def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None):
+    """(range (H,W) metres along each pixel's ray to the fused mesh, NaN where it misses; the ray-casting
+    scene for the next frame)."""
+    import open3d as o3d
+
+    if scene is None:
+        mesh = o3d.io.read_triangle_mesh(str(mesh_ply))
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    h, w = frame.range_m.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True) @ frame.world_from_cam[:3, :3].T
+    origin = np.broadcast_to(frame.world_from_cam[:3, 3], rays.shape)
+    hits = scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, rays], -1).astype(np.float32)))
+    t = hits["t_hit"].numpy().astype(np.float64)
+    return np.where(np.isfinite(t), t, np.nan), scene
+
+
+def _board(ws: Workspace, cfg: WaterConfig, survey: Path):
+    from eval.colour import load_board_json, truth_board
+
+    if cfg.board_json:
+        return load_board_json(cfg.board_json)
+    if (survey / "truth" / "board.json").is_file():
+        return truth_board(survey)
+    return None
+
+
+def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
+    """Residual (observed - fitted, linear) against range and against the distance from the image centre."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    res = estimate.residuals
+    if res is None:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), sharey=True)
+    for ax, key, label in ((axes[0], "range_m", "range (m)"), (axes[1], "radius", "distance from the image centre "
+                                                                                  "(normalised)")):
+        x = res[key]
+        edges = np.quantile(x, np.linspace(0, 1, 16))
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        for c, colour in enumerate("rgb"):
+            which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(centres) - 1)
+            means = np.array([res["residual"][which == b, c].mean() if (which == b).any() else np.nan
+                              for b in range(len(centres))])
+            ax.plot(centres, means, "-o", color=colour, ms=3, label="RGB"[c])
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(label)
+    axes[0].set_ylabel("mean residual (linear)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("water fit: residuals binned (flat at 0: nothing left along the axis)", fontsize=9)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _write_corrected(out: Path, name: str, corrected: np.ndarray, valid: np.ndarray, bits: int) -> None:
+    from eval.synth.io import quantise, srgb_encode
+
+    rgb = np.where(valid[..., None], np.clip(np.nan_to_num(corrected), 0.0, 1.0), 0.0)
+    write_png(out / "images" / f"{Path(name).stem}.png", quantise(srgb_encode(rgb), bits))
+    write_png(out / "mask" / f"{Path(name).stem}.png", np.where(valid, 255, 0).astype(np.uint8))
+
+
+def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack, images: Path,
+                   mesh_ply: Path | None, progress: bool) -> tuple[float, float]:
+    """Every registered frame through the inverse of ``stack`` with its range (dense, then the fused mesh);
+    returns (share of pixels ranged from the mesh, share with no range)."""
+    import torch
+    from tqdm import tqdm
+
+    from eval.water import correct_physics
+
+    from .correct import _bit_depth
+
+    out = ws.stage_dir("water")
+    from_mesh, unresolved, scene = [], [], None
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for f in tqdm(frames, desc="physics correction", unit="frame", disable=not progress):
+            r = np.asarray(f.range_m, np.float64)
+            hole = ~np.isfinite(r)
+            if hole.any() and mesh_ply is not None and f.world_from_cam is not None:
+                meshed, scene = mesh_range(mesh_ply, f, K, scene)
+                r = np.where(hole, meshed, r)
+            from_mesh.append(float(np.mean(hole & np.isfinite(r))))
+            corrected, valid = correct_physics(f.image, r, stack, K)
+            unresolved.append(float(np.mean(~valid)))
+            _write_corrected(out, f.name, corrected, valid, _bit_depth(images / f.name))
+    finally:
+        torch.set_num_threads(threads)
+    return float(np.mean(from_mesh)), float(np.mean(unresolved))
+
+
+def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
+    """Workspace stage (see the module docstring)."""
+    from eval.water import estimate_water
+
+    began = time.perf_counter()
+    sfm = ws.require("sfm", "the water estimate")
+    dense = ws.result("dense")
+    survey = ws.stage_dir("survey")
+    tracks = Tracks.load(ws.path(sfm.tracks))
+    K = np.asarray(tracks.K, float)
+    if dense is None:
+        raise UserInputError("the water estimate needs each pixel's range: run the dense stage first (`watergan "
+                             "dense --workspace WS`), with stereo frames (right/) or enough overlap for MVS")
+    frames = _frames(ws, tracks, survey / "images", ws.path(dense.depth_dir))
+    board = _board(ws, cfg, survey)
+    cfg = replace(cfg, range_scale_sd=max(cfg.range_scale_sd, float(sfm.scale_spread)))
+    if sfm.scale_method == "none":
+        print("water: the SfM model has no metric scale: attenuation and backscatter coefficients are per SfM "
+              "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
+    estimate = estimate_water(frames, K, board=board, config=cfg)
+    estimate_s = time.perf_counter() - began
+    out = ws.stage_dir("water")
+    atomic_write_json(out / "water.json", estimate.to_json())
+    atomic_write_text(out / "summary.txt", estimate.summary() + "\n")
+    _plot_residuals(estimate, out / "residuals.png")
+    mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
+    mesh_share, unresolved = correct_frames(ws, frames, K, estimate.stack, survey / "images", mesh_ply,
+                                            cfg.progress)
+    print(estimate.summary(), flush=True)
+    return WaterResult(water_json=ws.relative(out / "water.json"), summary=estimate.summary(),
+                       stack=estimate.stack.to_config(), images=ws.relative(out / "images"),
+                       mask=ws.relative(out / "mask"), mesh_fraction=mesh_share, unresolved_fraction=unresolved,
+                       board=board is not None, seconds=time.perf_counter() - began, estimate_seconds=estimate_s)
