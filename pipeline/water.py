@@ -182,12 +182,12 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     began = time.perf_counter()
     sfm = ws.require("sfm", "the water estimate")
     dense = ws.result("dense")
-    survey = ws.stage_dir("survey")
-    tracks = Tracks.load(ws.path(sfm.tracks))
-    K = np.asarray(tracks.K, float)
     if dense is None:
         raise UserInputError("the water estimate needs each pixel's range: run the dense stage first (`watergan "
                              "dense --workspace WS`), with stereo frames (right/) or enough overlap for MVS")
+    survey = ws.stage_dir("survey")
+    tracks = Tracks.load(ws.path(sfm.tracks))
+    K = np.asarray(tracks.K, float)
     frames = _frames(ws, tracks, survey / "images", ws.path(dense.depth_dir))
     board = _board(ws, cfg, survey)
     cfg = replace(cfg, range_scale_sd=max(cfg.range_scale_sd, float(sfm.scale_spread)))
