@@ -195,11 +195,14 @@ def small_survey_config(hidden: list | tuple = (), seed: int = 1, width_px: int 
                    formation=replace(cfg.formation, hidden=entries))
 
 
-def default_stack(survey: Path, effects: tuple[str, ...]) -> Stack:
-    """The model to diagnose: the named effects (initial values), or the survey's visible stack with
-    its parameters when simulated, or attenuation, backscatter, vignetting and gain."""
+def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | None = None) -> Stack:
+    """The model to diagnose: the named effects (initial values), or ``model`` (a stack configuration: the
+    site water the water stage estimated), or the survey's visible stack with its parameters when
+    simulated, or attenuation, backscatter, vignetting and gain."""
     if effects:
         return Stack.ordered(list(effects))
+    if model:
+        return Stack.from_config(list(model))
     truth_effects = survey / "truth" / "effects.json"
     if truth_effects.is_file():
         return Stack.from_config(json.loads(truth_effects.read_text())["visible"])
@@ -519,25 +522,27 @@ def _ledger_record(fit: FitResult, kind: str, meas: Measurements, colour: dict) 
 
 
 def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig = DiagnoseConfig(),
-             tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None) -> DiagnoseResult:
+             tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None,
+             model: list[dict] | None = None) -> DiagnoseResult:
     """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), fit
     the model, analyse residuals, rank candidates, write everything to ``out`` and append the fits
     to the ledger in ``ledger_dir`` (with ``colour``, the image folders' consistency and board error
-    when they were measured). Torch runs on one thread: the tensors are small (observations x 3), and
+    when they were measured). ``model``: the stack to start from (the water stage's estimate; see
+    :func:`default_stack`). Torch runs on one thread: the tensors are small (observations x 3), and
     a thread pool competing with other processes for the cores made a fit 30 times slower (150 s
     instead of 5 s on the demo survey)."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():
-        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {})
+        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model)
 
 
 def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig, tracks: Path | None, scale: str,
-              colour: dict) -> DiagnoseResult:
+              colour: dict, model: list[dict] | None) -> DiagnoseResult:
     start = time.perf_counter()
     progress = config.progress
     survey = check_survey_folder(survey)
-    stack = default_stack(survey, config.effects)
+    stack = default_stack(survey, config.effects, model)
     for name in config.add:
         get(name)
     out.mkdir(parents=True, exist_ok=True)

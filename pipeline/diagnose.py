@@ -1,7 +1,8 @@
 """The diagnose stage: the discovery loop (:mod:`eval.diagnose`) on a workspace or a survey folder.
 
 In a workspace it measures the survey on the sfm stage's tracks (when it ran; else the simulator's
-truth), writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``) at the
+truth), starts from the water stage's estimate (one site water for the correction and the diagnosis),
+writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``) at the
 workspace's root, with the colour of the image folders ``watergan consistency`` measured. On a bare
 survey folder it writes into ``SURVEY/diagnose/`` (ledger there too).
 """
@@ -53,9 +54,12 @@ def _sfm_tracks(ws: Workspace) -> tuple[Path | None, str]:
 
 
 def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseResult:
-    """Workspace stage (see the module docstring)."""
+    """Workspace stage (see the module docstring). The model starts from the site water the water stage
+    estimated (its stack and values) when it ran and ``cfg.effects`` names none."""
     tracks, scale = _sfm_tracks(ws)
-    return diagnose(ws.stage_dir("survey"), ws.stage_dir("diagnose"), ws.root, cfg, tracks, scale, colour_summary(ws))
+    water = ws.result("water")
+    return diagnose(ws.stage_dir("survey"), ws.stage_dir("diagnose"), ws.root, cfg, tracks, scale, colour_summary(ws),
+                    model=water.stack if water is not None else None)
 
 
 def run_diagnose(target: str | Path, config: DiagnoseConfig | None = None, progress: bool | None = None,
