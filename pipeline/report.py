@@ -13,7 +13,8 @@ mesh, the full-size mosaic). Sections:
 5. depth: monocular vs stereo error maps (the eval stage's ``depth/``);
 6. the textured mesh: a rendered view (the orthophoto draped on the mesh's height field, drawn with
    matplotlib; vertical exaggeration stated) with a link to the GLB, and the mosaic;
-7. the diagnosis: the model ledger plot and verdict (the diagnose stage's folder);
+7. the site water (the water stage's estimate with its intervals, residual plot) and the diagnosis: the
+   model ledger plot and verdict (the diagnose stage's folder);
 8. each stage's configuration and result (timings).
 
 A section whose stage did not run says "not run" (and which command makes it); a section that
@@ -354,6 +355,24 @@ def section_mosaic(ws, out: Path) -> tuple[str, dict]:
     return body, {"mosaic_png": r.mosaic_png, "coverage": r.mosaic_coverage}
 
 
+def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
+    """The site water the water stage estimated: its summary line, each parameter with its 95 % interval,
+    the residual plot."""
+    r = _stage_result(ws, "water")
+    water = _load_json(ws.path(r.water_json)) or {}
+    rows = "".join(f"<tr><th>{_esc(key)}</th><td>{_esc(p.get('value'))}</td>"
+                   f"<td>{_esc([p.get('low'), p.get('high')] if p.get('low') is not None else 'held')}</td>"
+                   f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.get("params", {}).items())
+    plot = ws.path(r.water_json).parent / "residuals.png"
+    figure = _img(data_uri(read_display(plot), "png", None), "water fit residuals", "wide") if plot.is_file() else ""
+    body = (f"<p>{_esc(r.summary)}</p><table><tr><th>parameter</th><th>estimate</th><th>95 % interval</th>"
+            f"<th>units</th></tr>{rows}</table><p class='note'>{'A colour board pinned the gain. ' if r.board else ''}"
+            f"Physics-corrected frames: range from the dense stage, from the fused mesh for "
+            f"{100 * r.mesh_fraction:.1f} % of the pixels; {100 * r.unresolved_fraction:.1f} % had none (black, "
+            f"masked).</p>{figure}")
+    return body, {"summary": r.summary}
+
+
 def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
     from eval.diagnose import LEDGER_NAME
 
@@ -412,6 +431,7 @@ SECTIONS = (
     ("board", "Colour-board error per patch", section_board_chart),
     ("consistency", "Consistency across views", section_consistency),
     ("depth", "Depth: monocular vs stereo", section_depth),
+    ("water", "The site's water", section_water),
     ("mesh", "Textured mesh", section_mesh),
     ("mosaic", "Mosaic", section_mosaic),
     ("diagnosis", "Diagnosis: where the model is wrong", section_diagnosis),
