@@ -99,6 +99,7 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     water = ws.result("water")
     if water is not None and not missing_files(ws.path(water.images), names):
         folders[PHYSICS] = ws.path(water.images)
+        per_frame[PHYSICS] = (water.seconds - water.estimate_seconds) / max(len(names), 1)
     methods = [m for m in [*methods, OURS, PHYSICS] if m != "oracle" and m in folders] + \
         (["oracle"] if "oracle" in folders else [])
     reference: tuple[str, ...] = ()
@@ -144,7 +145,8 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
     tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
         {"label": "seconds per frame", "values": [f.per_frame_s.get(m) for m in methods], "better": "lower"}], "row",
         note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "
-             "`watergan correct`'s wall time per corrected frame, model loading and files included."))
+             "`watergan correct`'s wall time per corrected frame, model loading and files included; physics is the "
+             "water stage's correction per frame (mesh ray casting and files included, the estimate excluded)."))
     return tables
 
 

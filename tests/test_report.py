@@ -50,6 +50,7 @@ def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
 @pytest.fixture(scope="module")
 def evaluated():
     """A workspace with every input the evaluation and the report use, evaluated."""
+    from eval.water import WaterConfig
     from pipeline.correct import CorrectStage, CorrectStageResult
     from pipeline.dense import DenseConfig, DenseResult
     from pipeline.mesh import MeshConfig
@@ -80,6 +81,7 @@ def evaluated():
         {"time": "2026-01-01 00:00:00", "kind": "model", "heldout_rmse": 0.02, "stack": ["attenuation", "gain"]},
         {"time": "2026-01-01 00:01:00", "kind": "candidate", "heldout_rmse": 0.012,
          "stack": ["attenuation", "gain", "vignetting_offcentre"]})))
+    ws.run("water", WaterConfig(bootstrap=4, progress=False))  # the physics correction: one more method
     record = ws.run("eval", EvaluateConfig(range_source="dense"))
     tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
     return survey, ws, record, tables
@@ -97,7 +99,8 @@ def _row(table: dict, label: str) -> dict:
 @pytest.mark.slow
 def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
     survey, ws, result, tables = evaluated
-    assert result.methods == ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "ours", "oracle"]
+    assert result.methods == ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "ours", "physics",
+                              "oracle"]
     assert result.range_source == "dense" and result.skipped == {}
     for m in ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "oracle"]:
         files = sorted(p.name for p in (ws.root / "07_eval" / "baselines" / m).iterdir())
