@@ -35,6 +35,10 @@ SURVEYS = {
     "demo1": {"seed": 1, "stereo": True},
     "mono0": {"seed": 0, "stereo": False},
     "offc0": {"seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",), "add": ("vignetting_offcentre",)},
+    # robustness: a form the estimator does not share (the off-centre falloff hidden and not added: offc0's survey,
+    # before --add), and backscatter with beta equal to eta (a degenerate corner of the estimator's family)
+    "offc0_before_add": {"seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",), "workspace": "offc0"},
+    "beta_eq_eta0": {"seed": 0, "stereo": True, "beta_equals_eta": True},
 }
 
 
@@ -46,12 +50,17 @@ def prepare(root: Path, name: str) -> Path:
     from pipeline.workspace import Workspace
 
     spec = SURVEYS[name]
-    ws = Workspace(root / name)
+    ws = Workspace(root / spec.get("workspace", name))
     survey = ws.stage_dir("survey")
     if not (survey / "truth" / "config.json").is_file():
         cfg = make_config("demo", hidden=spec.get("hidden", ()), seed=spec["seed"])
         cfg = replace(cfg, trajectory=replace(cfg.trajectory, stereo=spec["stereo"]),
                       rgbd=replace(cfg.rgbd, n_scenes=1, views_per_scene=1))
+        if spec.get("beta_equals_eta"):
+            visible = [dict(e, params=dict(e.get("params", {}))) for e in cfg.formation.visible]
+            eta = next(e for e in visible if e["name"] == "attenuation")["params"]["eta_per_m"]
+            next(e for e in visible if e["name"] == "backscatter")["params"]["beta_per_m"] = list(eta)
+            cfg = replace(cfg, formation=replace(cfg.formation, visible=tuple(visible)))
         simulate_survey(survey, cfg, force=True, progress=False)
     if not (ws.stage_dir("sfm") / "tracks.npz").is_file():  # reused when present, whatever made it
         ws.run("sfm", SfmConfig())
@@ -226,7 +235,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
         print(f"   {key:32s} est {est:30s} truth {tru:30s} err {rel:24s} covered {cover}")
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)
-    out = root / name / "water_bench"
+    out = ws_root / f"water_bench_{name}"
     corr = correct_folders(ws_root, frames, K, estimate.stack, out)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
