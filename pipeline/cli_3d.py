@@ -47,6 +47,9 @@ def print_water(ws, r) -> None:
     print(f"{'board' if r.board else 'no board (gain held)'}; range from the fused mesh for "
           f"{100 * r.mesh_fraction:.1f} % of the pixels, none for {100 * r.unresolved_fraction:.1f} % (black, masked); "
           f"estimate {r.estimate_seconds:.1f} s, all {r.seconds:.1f} s")
+    if r.at_bounds:
+        print("at a bound (the stack does not fit there; see the residuals and the diagnosis): "
+              + ", ".join(r.at_bounds))
     print(f"water:  {ws.path(r.water_json)}\nframes: {ws.path(r.images)}")
 
 

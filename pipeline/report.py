@@ -365,7 +365,10 @@ def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
                    f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.get("params", {}).items())
     plot = ws.path(r.water_json).parent / "residuals.png"
     figure = _img(data_uri(read_display(plot), "png", None), "water fit residuals", "wide") if plot.is_file() else ""
-    body = (f"<p>{_esc(r.summary)}</p><table><tr><th>parameter</th><th>estimate</th><th>95 % interval</th>"
+    warn = (f"<p class='error'>At a bound of their range: {_esc(', '.join(r.at_bounds))}. The stack does not fit "
+            f"this survey there (an effect is missing or has another form): read the residuals and the "
+            f"diagnosis.</p>" if r.at_bounds else "")
+    body = (f"<p>{_esc(r.summary)}</p>{warn}<table><tr><th>parameter</th><th>estimate</th><th>95 % interval</th>"
             f"<th>units</th></tr>{rows}</table><p class='note'>{'A colour board pinned the gain. ' if r.board else ''}"
             f"Physics-corrected frames: range from the dense stage, from the fused mesh for "
             f"{100 * r.mesh_fraction:.1f} % of the pixels; {100 * r.unresolved_fraction:.1f} % had none (black, "

@@ -52,6 +52,9 @@ class WaterResult:
     """Share of the pixels with no range at all (written black, masked)."""
     board: bool
     """Whether a colour board took part (it pins the gain)."""
+    at_bounds: list[str]
+    """Fitted parameter components at a bound of their range ("effect.param[i]"): the stack does not fit the
+    survey there (an effect is missing or has another form); read the residuals and run the diagnosis."""
     seconds: float
     """Wall time of the stage (estimate and correction)."""
     estimate_seconds: float
@@ -175,6 +178,22 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
     return float(np.mean(from_mesh)), float(np.mean(unresolved))
 
 
+def at_bounds(estimate: WaterEstimate, tolerance: float = 1e-3) -> list[str]:
+    """The fitted parameter components within ``tolerance`` (relative to the range, or absolute for an
+    unbounded side) of a bound."""
+    out = []
+    for effect in estimate.stack.effects:
+        for p in effect.params:
+            key = f"{effect.name}.{p.name}"
+            if not estimate.params.get(key, {}).get("fitted"):
+                continue
+            value = np.atleast_1d(effect.param(p.name).detach().numpy()).ravel()
+            span = (p.upper - p.lower) if np.isfinite(p.upper) else 1.0
+            near = (np.abs(value - p.lower) <= tolerance * span) | (np.abs(p.upper - value) <= tolerance * span)
+            out += [f"{key}[{i}]" if value.size > 1 else key for i in np.flatnonzero(near)]
+    return out
+
+
 def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     """Workspace stage (see the module docstring)."""
     from eval.water import estimate_water
@@ -204,7 +223,13 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     mesh_share, unresolved = correct_frames(ws, frames, K, estimate.stack, survey / "images", mesh_ply,
                                             cfg.progress)
     print(estimate.summary(), flush=True)
+    bounds = at_bounds(estimate)
+    if bounds:
+        print(f"water: {', '.join(bounds)} at a bound of their range: the stack does not fit this survey (an effect "
+              f"is missing or has another form); see {ws.relative(out / 'residuals.png')} and run the diagnosis",
+              file=sys.stderr)
     return WaterResult(water_json=ws.relative(out / "water.json"), summary=estimate.summary(),
                        stack=estimate.stack.to_config(), images=ws.relative(out / "images"),
                        mask=ws.relative(out / "mask"), mesh_fraction=mesh_share, unresolved_fraction=unresolved,
-                       board=board is not None, seconds=time.perf_counter() - began, estimate_seconds=estimate_s)
+                       board=board is not None, at_bounds=bounds, seconds=time.perf_counter() - began,
+                       estimate_seconds=estimate_s)

@@ -220,6 +220,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
         # eta was 43 % off in green on the demo
         np.testing.assert_allclose(p["value"], truth[key], rtol=0.25, err_msg=key)
     assert result.board and result.summary.startswith("water: eta_per_m") and result.unresolved_fraction < 0.2
+    assert result.at_bounds == []  # nothing hidden: the stack fits
     names = sorted(p.name for p in (survey / "images").iterdir())
     assert sorted(p.name for p in ws.path(result.images).iterdir()) == names
     frame = cv2.imread(str(ws.path(result.images) / names[0]), cv2.IMREAD_UNCHANGED)
@@ -236,6 +237,18 @@ def test_the_evaluation_measures_the_physics_correction(water_workspace):
     result = ws.run("eval", EvaluateConfig(methods=("raw", "oracle"), range_source="truth", progress=False))
     assert "physics" in result.methods
     assert result.mean_board_distance["physics"] < 0.5 * result.mean_board_distance["raw"]
+
+
+def test_a_parameter_at_a_bound_is_reported(survey):
+    """A stack without attenuation on frames whose colour falls with range: the backscatter's beta runs to the
+    top of its range (5 /m, measured), and at_bounds names it; the full stack has nothing at a bound."""
+    from pipeline.water import at_bounds
+
+    frames, board = survey
+    wrong = estimate_water(frames, K, board=board, config=WaterConfig(effects=("backscatter", "vignetting", "gain"),
+                                                                      bootstrap=0))
+    assert "backscatter.beta_per_m[1]" in at_bounds(wrong)
+    assert at_bounds(estimate_water(frames, K, board=board, config=WaterConfig(bootstrap=0))) == []
 
 
 def test_the_water_stage_needs_the_dense_range(tmp_path):
