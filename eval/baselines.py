@@ -42,7 +42,8 @@ def _check(image: np.ndarray) -> np.ndarray:
 
 def _range(range_m: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
     if range_m is None:
-        raise UserInputError("this baseline needs the range (H,W) in metres: give --range truth or run the dense stage")
+        raise UserInputError("this baseline needs the range (H,W) in metres: give --range-source truth or run the "
+                             "dense stage")
     range_m = np.asarray(range_m, np.float64)
     if range_m.shape != tuple(shape[:2]):
         raise UserInputError(f"range map {range_m.shape} does not match the image {tuple(shape[:2])}")

@@ -175,10 +175,10 @@ class RangeSource:
         truth = (survey / "truth" / "range").is_dir()
         if requested == "dense" and not dense:
             raise UserInputError(f"no dense depth maps ({dense_dir or 'the dense stage did not run'}): run "
-                                 f"`watergan dense` first or use --range truth on a simulated survey")
+                                 f"`watergan dense` first or use --range-source truth on a simulated survey")
         if requested == "truth" and not truth:
-            raise UserInputError(f"no simulator range in {survey / 'truth' / 'range'}: --range truth needs a "
-                                 f"simulated survey; use --range dense")
+            raise UserInputError(f"no simulator range in {survey / 'truth' / 'range'}: --range-source truth needs a "
+                                 f"simulated survey; use --range-source dense")
         if requested == "auto":
             return "dense" if dense else "truth" if truth else "none"
         return requested
@@ -465,7 +465,7 @@ def restorer_table(restorer_dir: Path) -> dict:
     title = "Table III: restorer RMSE on its held-out synthetic split (lower is better)"
     if not path.is_file():
         return make_table("table3", title, [], [], status=f"not run: no {path.parent.name}/validation.json "
-                          f"(train the restorer with `watergan train-restorer` into the workspace's 02_restorer)")
+                          f"(train the restorer: `watergan run`, or `watergan train-restorer`)")
     data = json.loads(path.read_text())
     rmse = data["rmse"]
     rows = [{"label": {"raw": "raw (uncorrected)", "restorer": "restorer"}.get(k, k),
@@ -476,12 +476,12 @@ def restorer_table(restorer_dir: Path) -> dict:
 
 
 def depth_table(depth_dir: Path) -> dict:
-    """Monocular vs stereo depth from ``07_eval/depth/metrics.json`` (or a 'not run' table)."""
+    """Monocular vs stereo depth from ``depth_dir/metrics.json`` (or a 'not run' table)."""
     path = depth_dir / "metrics.json"
     title = "Depth: monocular (restorer) vs stereo/MVS"
     if not path.is_file():
-        return make_table("depth", title, [], [], status="not run: no 07_eval/depth/metrics.json (needs the "
-                          "restorer's depth in 03_correct/depth and the dense stage, or `watergan depth-compare`)")
+        return make_table("depth", title, [], [], status=f"not run: no {depth_dir}/metrics.json (needs the "
+                          "restorer's relative depth and the dense stage, or `watergan depth-compare`)")
     data = json.loads(path.read_text())
     o = data["overall"]
     rows = [{"label": label, "values": [o[key]], "better": ""} for key, label in (
@@ -607,7 +607,7 @@ def method_inputs(cfg: EvaluateConfig, survey: Path, tracks, simulated: bool, de
         if m in skipped:
             continue
         if BASELINES[m].needs_range and ranges is None:
-            skipped[m] = "no range: run the dense stage (or --range truth on a simulated survey)"
+            skipped[m] = "no range: run the dense stage (or --range-source truth on a simulated survey)"
             continue
         methods.append(m)
     return methods, skipped, ranges, coefficients, geometry
@@ -625,7 +625,7 @@ def measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -
         except UserInputError as exc:
             return None, {}, str(exc)
     else:
-        return None, {}, "no board (give --board FILE with pixel corners)"
+        return None, {}, "no board (give --board-json FILE with pixel corners)"
     try:
         return board, {m: board_accuracy(p, board, cfg.board_inset) for m, p in folders.items()}, ""
     except UserInputError as exc:

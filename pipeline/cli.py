@@ -6,7 +6,8 @@
     watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
     watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
     watergan train-restorer / correct     the restorer (see pipeline/cli_restorer.py)
-    watergan sfm / dense / consistency / depth-compare / texture / mosaic   3D (see pipeline/cli_3d.py)
+    watergan sfm / dense / water / consistency / depth-compare / texture / mosaic   3D and the site water
+                                          (see pipeline/cli_3d.py)
     watergan diagnose / ledger            the discovery loop (see pipeline/cli_diagnose.py)
     watergan evaluate / report            baselines, tables and the HTML report (see pipeline/cli_report.py)
 

@@ -112,10 +112,9 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     from eval.colour import ColourEvalConfig
     from eval.depth import DepthCompareConfig
 
-    add_stage_command(sub, parents, "sfm", "sfm", "structure from motion (pycolmap) on the raw images", print_sfm)
-    add_stage_command(sub, parents, "dense", "dense", "SGBM/patch-match depth maps and TSDF fusion", print_dense)
-    add_stage_command(sub, parents, "water", "water", "the site's water from the survey's geometry (SfM poses, "
-                      "dense range, board), and the physics-corrected frames", print_water)
+    add_stage_command(sub, parents, "sfm", print_sfm)
+    add_stage_command(sub, parents, "dense", print_dense)
+    add_stage_command(sub, parents, "water", print_water)
 
     p = sub.add_parser("consistency", parents=parents, help="colour consistency across views (+ board accuracy)")
     p.add_argument("--workspace", required=True, help="workspace with a finished sfm stage")
@@ -128,6 +127,6 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     add_config(p, DepthCompareConfig)
     p.set_defaults(func=cmd_depth_compare)
 
-    add_stage_command(sub, parents, "mesh", "texture", "mesh (2.5D or TSDF) textured from the images (GLB, OBJ, "
-                      "PLY)", print_texture)
-    add_stage_command(sub, parents, "mesh", "mosaic", "orthophoto mosaic PNG with a world file", print_mosaic)
+    add_stage_command(sub, parents, "mesh", print_texture, help_text="mesh (2.5D or TSDF) textured from the images "
+                      "(GLB, OBJ, PLY)")
+    add_stage_command(sub, parents, "mesh", print_mosaic, "mosaic", "orthophoto mosaic PNG with a world file")

@@ -36,8 +36,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``evaluate`` and ``report`` to an argparse subparsers object; each sets ``func``."""
-    add_stage_command(sub, parents, "eval", "evaluate",
-                      "baselines and the restorer on the same SfM points and board: the paper's tables", print_evaluate)
+    add_stage_command(sub, parents, "eval", print_evaluate)
     p = sub.add_parser("report", parents=parents, help="write the workspace's HTML report (report/report.html)")
     p.add_argument("workspace", help="workspace folder")
     p.set_defaults(func=cmd_report)

@@ -3,14 +3,17 @@
 The options are the stage's configuration fields (:mod:`pipeline.cliargs`); the stage runs through
 :meth:`Workspace.run`, so its record is the one ``watergan run`` writes for the same options and
 upstream results (a standalone ``watergan sfm`` is skipped by a later ``watergan run``, and the
-other way round). ``--survey DIR`` runs the survey stage first (check and link the survey folder,
-as ``watergan run DIR`` does), for a workspace that has none yet.
+other way round), as far as the command's defaults are run's (``texture`` textures the raw frames
+unless given ``--images-dir``; run gives it the corrected ones). ``--survey DIR`` runs the survey
+stage first (check and link the survey folder, as ``watergan run DIR`` does), for a workspace that
+has none yet.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 
@@ -21,21 +24,22 @@ def run_stage_command(args: argparse.Namespace) -> int:
 
     ws = Workspace(args.workspace)
     if args.survey:
-        ws.run("survey", SurveyConfig(args.survey))
+        ws.run("survey", SurveyConfig(str(Path(args.survey).resolve())))  # as `watergan run` names it
     config = config_from_args(ws.stage(args.stage).config_type, args)
     result = ws.run(args.stage, config, force=args.force)
     args.printer(ws, result)
     return 0
 
 
-def add_stage_command(sub, parents: list[argparse.ArgumentParser], stage: str, command: str, help_text: str,
-                      printer: Callable[[Any, Any], None], exclude: tuple[str, ...] = ()) -> None:
-    """Add ``command`` running the workspace stage ``stage`` (its options from the stage's config)."""
+def add_stage_command(sub, parents: list[argparse.ArgumentParser], stage: str, printer: Callable[[Any, Any], None],
+                      command: str = "", help_text: str = "", exclude: tuple[str, ...] = ()) -> None:
+    """Add ``command`` (default: the stage table's) running the workspace stage ``stage``, its options from the
+    stage's config, its help the table's unless ``help_text``."""
     from .cliargs import add_config
     from .stages import STAGES
 
     spec = STAGES[stage]
-    p = sub.add_parser(command, parents=parents, help=help_text)
+    p = sub.add_parser(command or spec.command, parents=parents, help=help_text or spec.help)
     p.add_argument("--workspace", required=True, help="workspace folder (its survey stage's images are the default "
                                                       "input)")
     p.add_argument("--survey", default="", metavar="DIR",

@@ -26,8 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-SCHEDULER_HELP = ("Dask scheduler address (tcp://HOST:8786) to run the per-image work on its workers; the data "
-                  "must be on a file system they share (default: this machine)")
 _REQUIRED = object()
 
 
@@ -157,7 +155,7 @@ def add_options(parser: argparse.ArgumentParser, opts: list[Option], prefix: str
             text += f" (default: {_format_default(default)})"
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
-            text += f" (default: {'on' if default else 'off'})"
+            text += f" (default: {'auto' if default is None else 'on' if default else 'off'})"
         elif typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...):
             kwargs.update(list_option(text))
         elif typing.get_origin(hint) is tuple:
@@ -169,6 +167,52 @@ def add_options(parser: argparse.ArgumentParser, opts: list[Option], prefix: str
             kwargs["metavar"] = {int: "N", float: "X", Path: "PATH"}.get(hint, key.rsplit("_", 1)[-1].upper())
         kwargs.setdefault("help", text.replace("%", "%%"))
         parser.add_argument(o.flag(prefix), **kwargs)
+
+
+def convert(o: Option, value: Any, where: str) -> Any:
+    """A value for option ``o`` from a file (TOML) as the command line would parse it: enums from their
+    values, ``HxW`` or [h, w] sizes, lists from lists or comma-separated text, int/float/bool checked;
+    anything else is an error naming ``where`` and the option."""
+    from watergan.errors import UserInputError
+
+    hint, optional = _unoptional(o.hint)
+
+    def bad(expected: str) -> UserInputError:
+        return UserInputError(f"{where}: {o.key()} must be {expected}, got {value!r}")
+
+    if value is None or (optional and isinstance(value, str) and value.lower() == "none"):
+        if optional:
+            return None
+        raise bad("given")
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if typing.get_origin(hint) is tuple and typing.get_args(hint) == (str, ...):
+        items = name_list(value) if isinstance(value, str) else value
+        if not isinstance(items, list | tuple) or not all(isinstance(v, str) for v in items):
+            raise bad("a list of names")
+        return tuple(items)
+    if typing.get_origin(hint) is tuple:
+        try:
+            pair = size_hw(value) if isinstance(value, str) else tuple(int(v) for v in value)
+        except (argparse.ArgumentTypeError, TypeError, ValueError):
+            raise bad("HEIGHTxWIDTH (e.g. 480x640) or [height, width]") from None
+        if len(pair) != 2:
+            raise bad("HEIGHTxWIDTH")
+        return pair
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        try:
+            return hint(value)
+        except ValueError:
+            raise bad("one of " + ", ".join(e.value for e in hint)) from None
+    if hint is float and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    if hint is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if hint in (str, Path) and isinstance(value, str):
+        return hint(value)
+    raise bad({int: "an integer", float: "a number", str: "text", Path: "a path"}.get(hint, str(hint)))
 
 
 def given(args: argparse.Namespace, opts: list[Option], prefix: str = "") -> dict[tuple[str, ...], Any]:

@@ -111,9 +111,8 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
 
 
 def _depth_compare(ws: Workspace, correct_dir: Path | None) -> str:
-    """Run the monocular-vs-stereo comparison when both depths exist and it was not run; '' or why it failed."""
-    if (ws.stage_dir("eval") / "depth" / "metrics.json").is_file():
-        return ""
+    """Run the monocular-vs-stereo comparison (again: the restorer may have changed) when both depths exist;
+    '' or why it failed."""
     dense = _dense_depth_dir(ws)
     if correct_dir is None or not (correct_dir / "depth").is_dir() or dense is None or not dense.is_dir():
         return ""

@@ -124,13 +124,13 @@ def _stage_result(ws: Workspace, stage: str):
     """The stage's typed result, or NotRun."""
     result = ws.result(stage)
     if result is None:
-        raise NotRun(f"not run: no {ws.stage(stage).folder}/result.json (run `watergan {stage} --workspace WS`)")
+        raise NotRun(f"not run: no {ws.stage(stage).folder}/result.json (run {ws.stage(stage).how_to_run()})")
     return result
 
 
 def _eval_dir(ws: Workspace) -> Path:
-    """The eval stage's folder, as its result gives it."""
-    return ws.path(_stage_result(ws, "eval").tables_json).parent
+    """The eval stage's folder (``watergan consistency`` and ``depth-compare`` write there too, without a record)."""
+    return ws.root / ws.stage("eval").folder
 
 
 def _tables(ws: Workspace) -> dict:

@@ -18,7 +18,6 @@ see :func:`stage_options`. The same keys work in a TOML file (``--config run.tom
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 import tomllib
 from collections.abc import Callable, Mapping
@@ -29,7 +28,7 @@ from typing import Any
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json
 
-from .cliargs import Option, build, options, with_values
+from .cliargs import Option, build, convert, options, with_values
 from .survey import SurveyConfig, check_survey  # noqa: F401  (check_survey: the survey's checks, for callers)
 from .workspace import Workspace, config_hash
 
@@ -109,26 +108,27 @@ def run_defaults(group: str) -> dict[tuple[str, ...], Any]:
     return {o.path: RUN_DEFAULTS[o.key(g)] for g, o in stage_options() if g == group and o.key(g) in RUN_DEFAULTS}
 
 
-def run_options(values: Mapping[str, Any]) -> RunOptions:
+def run_options(values: Mapping[str, Any], where: str = "options") -> RunOptions:
     """RunOptions from flat keys (a TOML file's, or the command line's): common fields by name, the
-    stages' options by their ``group_field`` key."""
-    common = {f.name for f in dataclasses.fields(RunOptions)} - {"stages"}
-    by_key = {o.key(g): (g, o.path) for g, o in stage_options()}
+    stages' options by their ``group_field`` key; every value converted and checked as the command line
+    does (:func:`pipeline.cliargs.convert`; ``where`` names the source in errors)."""
+    common = {o.key(): o for o in options(RunOptions, ("stages",))}
+    by_key = {o.key(g): (g, o) for g, o in stage_options()}
     stages: dict[str, dict] = {}
+    fields: dict[str, Any] = {}
     unknown = []
     for key, value in values.items():
         if key in common:
-            continue
-        if key not in by_key:
+            fields[key] = convert(common[key], value, where)
+        elif key in by_key:
+            group, o = by_key[key]
+            stages.setdefault(group, {})[o.path] = convert(dataclasses.replace(o, path=(key,)), value, where)
+        else:
             unknown.append(key)
-            continue
-        group, path = by_key[key]
-        stages.setdefault(group, {})[path] = tuple(value) if isinstance(value, list) else value
     if unknown:
         raise UserInputError(f"unknown option(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(common))} "
                              f"and the stages' options (`watergan run --help`)")
-    return RunOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in common},
-                      stages=stages)
+    return RunOptions(**fields, stages=stages)
 
 
 def load_options_file(path: str | Path) -> dict:
@@ -142,10 +142,7 @@ def load_options_file(path: str | Path) -> dict:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise UserInputError(f"configuration file {path} is not valid TOML: {exc}") from exc
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
-    try:
-        run_options({"survey_dir": "", "workspace": "", **values})
-    except UserInputError as exc:
-        raise UserInputError(f"configuration file {path}: {exc}") from None
+    run_options({"survey_dir": "", "workspace": "", **values}, where=f"configuration file {path}")
     return values
 
 
@@ -205,6 +202,12 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
     return {name: special.get(name, lambda name=name: _configured(name, opts)) for name in STAGES if name != "survey"}
 
 
+def survey_config(opts: RunOptions) -> SurveyConfig:
+    """The survey stage's configuration, folders as absolute paths (``./S`` and ``S`` are the same survey)."""
+    return SurveyConfig(str(Path(opts.survey_dir).resolve()),
+                        str(Path(opts.rgbd_dir).resolve()) if opts.rgbd_dir else "", opts.seed)
+
+
 def run_all(opts: RunOptions) -> dict:
     """Run (or skip) every stage; returns the summary written to ``WORKSPACE/run_summary.json``."""
     from .stages import STAGES
@@ -234,7 +237,7 @@ def run_all(opts: RunOptions) -> dict:
             print(f"      {stage} done in {seconds:.1f} s", flush=True)
         return result
 
-    survey = step("survey", SurveyConfig(str(opts.survey_dir), opts.rgbd_dir, opts.seed))
+    survey = step("survey", survey_config(opts))
     plan = stage_plan(ws, opts, survey)
     for stage in STAGES:
         if stage != "survey":
@@ -262,9 +265,3 @@ def print_summary(summary: dict) -> None:
         print(f"{STAGES[t['stage']].folder:12} {'skipped' if t['skipped'] else 'ran':9} {t['seconds']:8.1f}")
     print(f"total {summary['seconds']:.1f} s")
     print(f"report: {summary['report']}")
-
-
-def stage_seconds(workspace: str | Path) -> dict[str, float]:
-    """Seconds each stage took when it last ran (from run_summary.json entries that ran)."""
-    data = json.loads((Path(workspace) / "run_summary.json").read_text())
-    return {t["stage"]: t["seconds"] for t in data["stages"] if not t["skipped"]}

@@ -486,7 +486,8 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
                 s, spread = board_scale(tracks, quads, width_m, height_m)
                 return method, s, spread
             if cfg.scale == "board":
-                raise UserInputError("board scale needs a board file with pixel corners (--board) and its true size")
+                raise UserInputError("board scale needs a board file with pixel corners (--board-json) and its "
+                                     "true size")
         elif method == "altitude":
             if has_altitude:
                 by_name = read_nav_altitudes(survey_path, [str(n) for n in tracks.image_names])

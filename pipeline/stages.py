@@ -47,8 +47,16 @@ class Stage:
     help: str
     """One line: what the stage does."""
     run_sets: tuple[str, ...] = ()
-    """Configuration fields ``watergan run`` sets itself (inputs from earlier results, and its common
-    ``seed``, ``progress``, ``scheduler``): not options of ``run``. Dotted for nested fields."""
+    """Configuration fields that are not options of ``watergan run``: those it sets itself (inputs from
+    earlier results; its common ``seed``, ``progress``, ``scheduler``) and those it leaves at their defaults
+    (``device``, ``resume``, other input folders). Dotted for nested fields."""
+    command: str = ""
+    """The stand-alone command that runs it in a workspace (empty: only ``watergan run``)."""
+
+    def how_to_run(self) -> str:
+        """What to type to run the stage in a workspace."""
+        return (f"`watergan {self.command} --workspace WS` (or `watergan run`)" if self.command
+                else "`watergan run SURVEY --workspace WS`")
 
     @property
     def config_type(self) -> type:
@@ -78,20 +86,21 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           "pipeline.correct:run_correct_stage", ("restorer",), "correct every survey frame with the restorer",
           ("images_dir", "scheduler", "progress")),
     Stage("sfm", "04_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
-          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale", ("images_dir", "seed")),
+          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale", ("images_dir", "seed"),
+          "sfm"),
     Stage("dense", "05_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
           "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh",
-          ("images_dir", "scheduler", "progress")),
+          ("images_dir", "scheduler", "progress"), "dense"),
     Stage("water", "06_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
           ("sfm", "dense"), "the site's water from the survey's geometry, and the physics correction with each "
-          "pixel's range", ("range_scale_sd", "seed", "progress")),
+          "pixel's range", ("range_scale_sd", "seed", "progress"), "water"),
     Stage("eval", "07_eval", "eval.tables:EvaluateConfig", "eval.tables:EvaluateResult",
           "pipeline.evaluate:run_evaluate", ("sfm", "correct", "dense", "water", "restorer"),
           "baselines and ours on the same points and board: the paper's tables",
-          ("survey_dir", "images_dir", "ours_dir", "scheduler", "progress")),
+          ("survey_dir", "images_dir", "ours_dir", "scheduler", "progress"), "evaluate"),
     Stage("mesh", "08_mesh", "pipeline.mesh:MeshConfig", "pipeline.mesh:MeshResult", "pipeline.mesh:run_mesh",
           ("sfm", "correct", "dense", "water"), "textured mesh and photomosaic from the corrected frames",
-          ("images_dir", "progress")),
+          ("images_dir", "progress"), "texture"),
     Stage("diagnose", "09_diagnose", "eval.diagnose:DiagnoseConfig", "eval.diagnose:DiagnoseResult",
           "pipeline.diagnose:run_diagnose_stage", ("sfm", "water"),
           "the discovery loop: fit, residuals, missing effect",

@@ -61,7 +61,7 @@ class WaterResult:
     """Wall time of the estimate alone."""
 
 
-def _frames(ws: Workspace, tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
+def _frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
     """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered)."""
     from eval.tables import z_to_range
     from watergan.data import read_image
@@ -149,7 +149,7 @@ def _write_corrected(out: Path, name: str, corrected: np.ndarray, valid: np.ndar
 
 def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack, images: Path,
                    mesh_ply: Path | None, progress: bool) -> tuple[float, float]:
-    """Every registered frame through the inverse of ``stack`` with its range (dense, then the fused mesh);
+    """Every frame through the inverse of ``stack`` with its range (dense, then the fused mesh for a registered one);
     returns (share of pixels ranged from the mesh, share with no range)."""
     import torch
     from tqdm import tqdm
@@ -207,7 +207,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     survey = ws.stage_dir("survey")
     tracks = Tracks.load(ws.path(sfm.tracks))
     K = np.asarray(tracks.K, float)
-    frames = _frames(ws, tracks, survey / "images", ws.path(dense.depth_dir))
+    frames = _frames(tracks, survey / "images", ws.path(dense.depth_dir))
     board = _board(ws, cfg, survey)
     cfg = replace(cfg, range_scale_sd=max(cfg.range_scale_sd, float(sfm.scale_spread)))
     if sfm.scale_method == "none":

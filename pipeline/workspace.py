@@ -79,16 +79,23 @@ class Workspace:
         return json.loads(path.read_text())
 
     def result(self, stage: str) -> Any:
-        """The stage's result as its typed dataclass (the stage table's ``result``), None before it ran."""
+        """The stage's result as its typed dataclass (the stage table's ``result``), None before it ran; a
+        record another version of watergan wrote (other fields) is an error saying to rerun the stage."""
         record = self.record(stage)
-        return None if record is None else from_jsonable(self.stage(stage).result_type, record["result"])
+        if record is None:
+            return None
+        try:
+            return from_jsonable(self.stage(stage).result_type, record["result"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserInputError(f"{self.root / self.stage(stage).folder / 'result.json'} was written by another "
+                                 f"version of watergan ({exc}): rerun the stage with --force {stage}") from None
 
     def require(self, stage: str, what: str) -> Any:
         """The result of ``stage``, or a clear error saying that ``what`` needs it run first."""
         result = self.result(stage)
         if result is None:
-            raise UserInputError(f"{what} needs the {stage} stage: run `watergan {stage} --workspace {self.root}` "
-                                 f"(or `watergan run`) first")
+            raise UserInputError(f"{what} needs the {stage} stage in {self.root}: run "
+                                 f"{self.stage(stage).how_to_run()} first")
         return result
 
     def upstream(self, stage: str) -> dict[str, str]:
@@ -101,9 +108,16 @@ class Workspace:
         return config_hash({"config": config, "upstream": self.upstream(stage)})
 
     def is_done(self, stage: str, config: Any) -> bool:
-        """True when the stage finished with this very configuration on the same upstream results."""
+        """True when the stage finished with this very configuration on the same upstream results (and its
+        record reads back: one from another version of watergan is not done)."""
         record = self.record(stage)
-        return record is not None and record.get("config_hash") == self.stage_hash(stage, config)
+        if record is None or record.get("config_hash") != self.stage_hash(stage, config):
+            return False
+        try:
+            self.result(stage)
+        except UserInputError:
+            return False
+        return True
 
     def save(self, stage: str, config: Any, result: Any) -> dict:
         """Record a finished stage: config.json, then result.json (written last: it marks completion)."""

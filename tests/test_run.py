@@ -12,7 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.run import RunOptions, check_survey, load_options_file, run_all, run_options, stage_plan
+from pipeline.run import (
+    RunOptions,
+    check_survey,
+    load_options_file,
+    run_all,
+    run_options,
+    stage_plan,
+    survey_config,
+)
 from pipeline.survey import SurveyConfig, SurveyResult
 from watergan.errors import UserInputError
 
@@ -143,7 +151,7 @@ def test_unknown_effect_and_stage_fail_first(tmp_path):
 
 
 def test_survey_stage_links_without_copying(tmp_path):
-    from pipeline.survey import SurveyConfig, run_survey
+    from pipeline.survey import run_survey
     from pipeline.workspace import Workspace
 
     for name in ("a", "b"):
@@ -187,7 +195,7 @@ def test_a_standalone_sfm_is_what_run_would_do(tmp_path):
 
     workspace = Workspace(ws)
     opts = run_options({"survey_dir": str(survey), "workspace": str(ws), "progress": False})
-    survey_result = workspace.run("survey", SurveyConfig(str(survey), opts.rgbd_dir, opts.seed))  # as run_all does
+    survey_result = workspace.run("survey", survey_config(opts))  # as run_all does
     assert workspace.is_done("sfm", stage_plan(workspace, opts, survey_result)["sfm"]())
     assert (ws / "04_sfm" / "result.json").read_text() == sfm_record
     other = run_options({"survey_dir": str(survey), "workspace": str(ws), "sfm_matching": "exhaustive"})
@@ -218,3 +226,17 @@ def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
         build_parser().parse_args(["run", "S", "--workspace", "W", "--restorer-head", "magic"])
     with pytest.raises(UserInputError, match="unknown option.*restorer_hed"):
         run_options({"survey_dir": "S", "workspace": "W", "restorer_hed": "direct"})
+
+
+def test_options_from_a_file_are_checked_as_the_command_line_checks_them(tmp_path):
+    opts = run_options({"survey_dir": "S", "workspace": "W", "sfm_matching": "exhaustive", "gan_budget_min": 4,
+                        "restorer_depth_hw": "56x56", "dense_fuse": False, "add": "a,b"})
+    assert opts.stages["sfm"][("matching",)] == "exhaustive" and opts.add == ("a", "b")
+    assert opts.stages["gan"][("budget_min",)] == 4.0 and isinstance(opts.stages["gan"][("budget_min",)], float)
+    assert opts.stages["restorer"][("depth_hw",)] == (56, 56)
+    for key, value, expected in (("sfm_matching", "bogus", "one of auto"), ("dense_fuse", "no", "true or false"),
+                                 ("restorer_depth_hw", "big", "HEIGHTxWIDTH"), ("seed", 1.5, "an integer")):
+        bad = tmp_path / f"{key}.toml"
+        bad.write_text(f"{key} = {value!r}\n".replace("'", '"'))
+        with pytest.raises(UserInputError, match=f"{bad}.*{key}.*{expected}"):
+            load_options_file(bad)

@@ -701,7 +701,7 @@ def _build_generator(config: GanConfig, checkpoint: dict | None, rgbd, water, in
         generator = WaterGenerator.from_config(checkpoint["stack"])
         if generator.stack.names != [c["name"] for c in generator_stack_config(config.effects)]:
             raise UserInputError(f"checkpoint {ckpt_path} holds effects {generator.stack.names}, not "
-                                 f"{list(config.effects)}: resume with the same effects or use a new --out")
+                                 f"{list(config.effects)}: resume with the same effects or use a new --out-dir")
         return generator, float(checkpoint["depth_scale_m"])
     depth_scale_m = config.depth_scale_m or float(rgbd.depth_m.max())
     if not depth_scale_m > 0:

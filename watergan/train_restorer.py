@@ -539,7 +539,7 @@ def _resume(checkpoint: dict | None, model: Restorer, rng: torch.Generator, val_
     if checkpoint is None:
         return 1, 0, 0, None
     if checkpoint["model_config"] != model.to_config() or checkpoint["val_idx"] != val_idx:
-        raise UserInputError(f"checkpoint {ckpt_path} was made with other nets or data: use a new --out")
+        raise UserInputError(f"checkpoint {ckpt_path} was made with other nets or data: use a new --out-dir")
     model.load_state_dict(checkpoint["model"])
     rng.set_state(checkpoint["rng"])
     return (int(checkpoint["stage"]), int(checkpoint["step"]), int(checkpoint["stage1_steps"]),
