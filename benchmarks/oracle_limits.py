@@ -3,8 +3,8 @@ its two inputs (the water, the range) replaced by what a real method has.
 
     .venv/bin/python benchmarks/oracle_limits.py --workspace WS [--out DIR]
 
-WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``01_gan/model/stack.json``,
-``04_sfm``, ``05_dense``). Every survey frame is inverted exactly, pixel by pixel, as the oracle of
+WS: a workspace of a simulated survey (``00_survey/truth``, ``04_sfm``, ``05_dense``; ``01_gan/model/stack.json``
+and ``06_water`` when they ran). Every survey frame is inverted exactly, pixel by pixel, as the oracle of
 :mod:`eval.baselines` does, with:
 
 - the true stack and the true range (the oracle itself);
@@ -13,7 +13,10 @@ WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/tru
   correction knows for sure from the navigation);
 - the true range and the true stack with WaterGAN's learned attenuation (eta), then also its gain and
   vignetting (the water a restorer trained on WaterGAN's pairs learns; the GAN's backscatter is a
-  learned convolution with no counterpart in the true stack, so the true one is kept).
+  learned convolution with no counterpart in the true stack, so the true one is kept);
+- the water stage's estimated stack (``06_water``) and the dense range: what the physics correction
+  does, with the oracle's true geometry for everything but the range (rows left out when the workspace
+  lacks the gan or the water stage).
 
 For each it prints the mean colour-board distance (|n(measured) - n(true)|, n = c / (R + G + B), as
 Table I), the CIEDE2000, and the colour consistency across views on the SfM points (as Table II).
@@ -53,7 +56,10 @@ def main() -> None:
     args = parser.parse_args()
     ws = args.workspace
     survey = (ws / "00_survey").resolve()
-    learned = {e["name"]: e["params"] for e in json.loads((ws / "01_gan" / "model" / "stack.json").read_text())}
+    gan_stack = ws / "01_gan" / "model" / "stack.json"
+    learned = {e["name"]: e["params"] for e in json.loads(gan_stack.read_text())} if gan_stack.is_file() else {}
+    water = ws / "06_water" / "result.json"
+    estimated = json.loads(water.read_text())["result"]["stack"] if water.is_file() else None
     geometry = OracleGeometry(survey)
     board = truth_board(survey)
     tracks = Tracks.load(ws / "04_sfm" / "tracks.npz")
@@ -70,15 +76,18 @@ def main() -> None:
     def plane_range(name: str, shape: tuple[int, int]) -> np.ndarray:
         return z_to_range(np.full(shape, nav[name]), K)
 
-    variants = (("oracle: true water, true range", "oracle", (), None),
-                ("true water, dense range", "dense_range", (), dense_range),
-                ("true water, flat seafloor at nav altitude", "plane_range", (), plane_range),
-                ("GAN's eta, true range", "gan_eta", ("attenuation",), None),
-                ("GAN's eta, gain, vignetting, true range", "gan_eta_gain_vignetting",
-                 ("attenuation", "gain", "vignetting"), None))
+    variants = [("oracle: true water, true range", "oracle", (), None, None),
+                ("true water, dense range", "dense_range", (), dense_range, None),
+                ("true water, flat seafloor at nav altitude", "plane_range", (), plane_range, None)]
+    if learned:
+        variants += [("GAN's eta, true range", "gan_eta", ("attenuation",), None, None),
+                     ("GAN's eta, gain, vignetting, true range", "gan_eta_gain_vignetting",
+                      ("attenuation", "gain", "vignetting"), None, None)]
+    if estimated:
+        variants.append(("estimated water, dense range", "estimated_water_dense_range", (), dense_range, estimated))
     folders = {}
-    for label, folder_name, effects, range_fn in variants:
-        stack = Stack.from_config(with_learned(true_config, learned, effects))
+    for label, folder_name, effects, range_fn, config in variants:
+        stack = Stack.from_config(config or with_learned(true_config, learned, effects))
         folders[label] = folder = args.out / folder_name
         folder.mkdir(parents=True, exist_ok=True)
         for name in names:
@@ -93,7 +102,8 @@ def main() -> None:
     print(f"consistency on {scores.n_points} points (variance of c/(R+G+B) across views), R G B:")
     for label, score in scores.scores.items():
         print(f"{label:>42}: {' '.join(f'{v:.2e}' for v in score.variance)}")
-    print("WaterGAN's:", json.dumps({k: learned[k] for k in ("attenuation", "gain", "vignetting") if k in learned}))
+    if learned:
+        print("WaterGAN's:", json.dumps({k: learned[k] for k in ("attenuation", "gain", "vignetting") if k in learned}))
 
 
 if __name__ == "__main__":
