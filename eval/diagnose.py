@@ -42,7 +42,6 @@ import itertools
 import json
 import time
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -63,21 +62,13 @@ from .diagnose_fit import (
     observation_state,
     soft_l1,
 )
-from .diagnose_measure import MeasureConfig, Measurements, check_survey_folder, measure_survey
+from .diagnose_measure import GeometrySource, MeasureConfig, Measurements, check_survey_folder, measure_survey
 from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
 
 DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 LEDGER_NAME = "model_ledger.jsonl"
 #: Training observations on which the start grid is evaluated.
 START_GRID_OBS = 300
-
-
-class GeometrySource(StrEnum):
-    """Where the diagnosis's 3D points and views come from."""
-
-    auto = "auto"
-    truth = "truth"
-    sfm = "sfm"
 
 
 @dataclass(frozen=True)

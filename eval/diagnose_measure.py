@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, fields, replace
+from enum import StrEnum
 from pathlib import Path
 
 import cv2
@@ -93,7 +94,15 @@ class Geometry:
     water_depth_m: np.ndarray | None = None
 
 
-GEOMETRY_SOURCES = ("auto", "truth", "sfm")
+class GeometrySource(StrEnum):
+    """Where the diagnosis's 3D points and views come from."""
+
+    auto = "auto"
+    truth = "truth"
+    sfm = "sfm"
+
+
+GEOMETRY_SOURCES = tuple(GeometrySource)
 
 
 @dataclass(frozen=True)

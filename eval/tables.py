@@ -56,7 +56,6 @@ PHYSICS = "physics"
 INAIR = "inair"
 LABELS = {**{name: b.label for name, b in BASELINES.items()}, OURS: "ours", PHYSICS: "physics (range)",
           INAIR: "in-air truth"}
-RANGE_SOURCES = ("auto", "truth", "dense")
 
 
 class RangeChoice(StrEnum):
@@ -65,6 +64,9 @@ class RangeChoice(StrEnum):
     auto = "auto"
     truth = "truth"
     dense = "dense"
+
+
+RANGE_SOURCES = tuple(RangeChoice)
 
 
 @dataclass(frozen=True)

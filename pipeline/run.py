@@ -167,10 +167,12 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
     rgbd = Path(survey.rgbd_dir)
 
     def gan() -> GanStage:
-        given = opts.stages.get("gan", {}).get(("effects",))
         base = _configured("gan", opts, rgbd_dir=rgbd, underwater_dir=ws.stage_dir("survey") / "images",
                            out_dir=gan_dir / "model")
-        effects = tuple(dict.fromkeys((given or base.effects) + opts.add))
+        effects = tuple(dict.fromkeys(base.effects + opts.add))
+        gan_given = opts.stages.get("gan", {})
+        if ({("iterations",), ("epochs",)} & set(gan_given)) and ("budget_min",) not in gan_given:
+            base = dataclasses.replace(base, budget_min=None)  # as train-gan: iterations or epochs alone stop it
         return GanStage(dataclasses.replace(base, effects=effects),
                         _configured("generate", opts, model_dir=gan_dir / "model", rgbd_dir=rgbd,
                                     out_dir=gan_dir / "generated"))

@@ -222,6 +222,8 @@ def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
     plan = stage_plan(ws, opts, survey)
     assert plan["diagnose"]().effects == ("attenuation", "backscatter") and plan["diagnose"]().add == ("gain",)
     assert plan["gan"]().train.budget_min == 2.0 and plan["gan"]().train.effects[-1] == "gain"
+    by_count = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-iterations", "5"]), "S", "W")
+    assert stage_plan(ws, by_count, survey)["gan"]().train.budget_min is None  # as train-gan: the count alone stops it
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "S", "--workspace", "W", "--restorer-head", "magic"])
     with pytest.raises(UserInputError, match="unknown option.*restorer_hed"):

@@ -90,3 +90,12 @@ def test_every_stage_is_declared_once_and_resolves():
         assert dataclasses.is_dataclass(stage.config_type) and dataclasses.is_dataclass(stage.result_type), name
         assert callable(stage.fn) and set(stage.reads) < set(STAGES), name
         assert list(STAGES).index(name) > max((list(STAGES).index(r) for r in stage.reads), default=-1), name
+
+
+def test_results_hold_numpy_values_as_plain_json():
+    import numpy as np
+
+    from watergan.io import to_jsonable
+
+    assert to_jsonable({"a": np.float32(1.5), "b": np.arange(3), "c": (np.int64(2),)}) == {"a": 1.5, "b": [0, 1, 2],
+                                                                                           "c": [2]}

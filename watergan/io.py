@@ -66,9 +66,9 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 
 def to_jsonable(value: Any, for_hash: bool = False) -> Any:
-    """Dataclasses as dicts, paths as strings, enums as their values; ``for_hash`` leaves out
-    dataclass fields marked ``metadata={"hash": False}`` (where work runs, progress bars: not what a
-    stage computes)."""
+    """Dataclasses as dicts, paths as strings, enums as their values, numpy values as numbers and lists;
+    ``for_hash`` leaves out dataclass fields marked ``metadata={"hash": False}`` (where work runs, progress
+    bars: not what a stage computes)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_jsonable(getattr(value, f.name), for_hash) for f in dataclasses.fields(value)
                 if not (for_hash and f.metadata.get("hash") is False)}
@@ -76,6 +76,8 @@ def to_jsonable(value: Any, for_hash: bool = False) -> Any:
         return str(value)
     if isinstance(value, enum.Enum):
         return value.value
+    if isinstance(value, np.generic | np.ndarray):
+        return value.tolist()
     if isinstance(value, dict):
         return {str(k): to_jsonable(v, for_hash) for k, v in value.items()}
     if isinstance(value, list | tuple):
