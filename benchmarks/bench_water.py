@@ -74,26 +74,14 @@ def load_inputs(ws_root: Path):
     from ``05_dense/depth`` as ray length; 0 = none stays NaN), SfM poses; the board's pixel quads projected
     with the true poses (what a user's board file with detected corners gives)."""
     from eval.colour import truth_board
-    from eval.depth import read_depth
-    from eval.tables import z_to_range
     from eval.tracks import Tracks
-    from eval.water import SparseTracks, WaterFrame
-    from watergan.data import read_image
+    from eval.water import SparseTracks
+    from pipeline.water import water_frames
 
     survey = ws_root / "00_survey"
     tracks = Tracks.load(ws_root / "04_sfm" / "tracks.npz")
     K = np.asarray(tracks.K, float)
-    frames = []
-    for k, name in enumerate(str(n) for n in tracks.image_names):
-        path = ws_root / "05_dense" / "depth" / f"{Path(name).stem}.png"
-        image = read_image(survey / "images" / name).astype(np.float32)
-        if path.is_file():
-            z = read_depth(path)
-            r = z_to_range(np.where(z > 0, z, np.nan), K).astype(np.float32)
-        else:
-            r = np.full(image.shape[:2], np.nan, np.float32)
-        pose = tracks.world_from_cam[k] if tracks.registered[k] else None
-        frames.append(WaterFrame(name=name, image=image, range_m=r, world_from_cam=pose))
+    frames = water_frames(tracks, survey / "images", ws_root / "05_dense" / "depth")
     sparse = SparseTracks(xyz=tracks.xyz, obs_point=tracks.obs_point, obs_frame=tracks.obs_image,
                           obs_xy=tracks.obs_xy)
     return frames, K, sparse, truth_board(survey), tracks
@@ -124,27 +112,6 @@ def compare(estimate, truth: dict) -> dict:
     return rows
 
 
-def mesh_range(mesh_ply: Path, frames, K) -> dict[str, np.ndarray]:
-    """Per frame, the ray length to the dense stage's fused mesh rendered from the SfM pose (NaN: no hit)."""
-    import open3d as o3d
-
-    mesh = o3d.t.io.read_triangle_mesh(str(mesh_ply))
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh.to_legacy()))
-    out = {}
-    for f in frames:
-        if f.world_from_cam is None:
-            continue
-        h, w = f.range_m.shape
-        ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-        d = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
-        d = d / np.linalg.norm(d, axis=-1, keepdims=True) @ f.world_from_cam[:3, :3].T
-        rays = np.concatenate([np.broadcast_to(f.world_from_cam[:3, 3], d.shape), d], -1).astype(np.float32)
-        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
-        out[f.name] = np.where(np.isfinite(t), t, np.nan)
-    return out
-
-
 def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
     """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the dense range
     ('physics'), the true stack with the dense range ('true_water_dense_range') and the oracle (true stack,
@@ -155,6 +122,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
     from eval.baselines import oracle
     from eval.tables import OracleGeometry, fill_nearest
     from eval.water import correct_physics
+    from pipeline.water import mesh_range
     from watergan.data import write_srgb8
     from watergan.formation import Stack
 
@@ -166,12 +134,13 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
         folder.mkdir(parents=True, exist_ok=True)
     filled, from_mesh, seconds = [], [], 0.0
     torch.set_num_threads(1)
-    meshed = mesh_range(ws_root / "05_dense" / "fused_mesh.ply", frames, K)
+    scene = None
     for f in frames:
         r = np.asarray(f.range_m, np.float64)
         hole = ~np.isfinite(r)
-        if f.name in meshed:
-            r = np.where(hole, meshed[f.name], r)
+        if f.world_from_cam is not None:
+            meshed, scene = mesh_range(ws_root / "05_dense" / "fused_mesh.ply", f, K, scene)
+            r = np.where(hole, meshed, r)
         from_mesh.append(float(np.mean(hole & np.isfinite(r))))
         filled.append(float(np.mean(~np.isfinite(r))))
         r_full = fill_nearest(r)

@@ -103,7 +103,7 @@ import numpy as np
 import torch
 
 from watergan.errors import UserInputError
-from watergan.formation import FormationState, Stack, get
+from watergan.formation import FormationState, Stack
 
 #: The water stack fitted by default: the simulator's visible physics (WaterGAN's learned backscatter
 #: network is replaced by its analytic counterpart, which has physical parameters to estimate).
@@ -495,8 +495,8 @@ def _check_diversity(obs: Observations, config: WaterConfig) -> None:
 def build_stack(config: WaterConfig) -> Stack:
     """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``."""
     given = {e["name"]: dict(e.get("params", {})) for e in config.initial}
-    names = sorted(dict.fromkeys(list(config.effects) + list(given)), key=lambda n: get(n).rank)
-    return Stack.from_config([{"name": n, "params": given.get(n, {})} for n in names]).to(torch.float64)
+    names = dict.fromkeys(list(config.effects) + list(given))
+    return Stack.ordered([{"name": n, "params": given.get(n, {})} for n in names]).to(torch.float64)
 
 
 def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.float64) -> FormationState:

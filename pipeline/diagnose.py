@@ -31,7 +31,7 @@ def colour_summary(ws: Workspace) -> dict:
     """From the eval stage's ``colour.json`` (``watergan consistency``), per image folder: the colour
     consistency (mean normalised-colour variance across views) and, when a board was measured, its
     mean CIEDE2000. Empty without the file."""
-    path = ws.root / ws.stage("eval").folder / "colour.json"
+    path = ws.folder("eval") / "colour.json"
     if not path.is_file():
         return {}
     out = {}

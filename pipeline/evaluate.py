@@ -130,7 +130,7 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
     tables = [board_table(board_results, methods, f.reference) if board_results else
               make_table("table1", "Table I: colour-board accuracy", [], [], status=f"not measured: {board_note}"),
               consistency_table(cons, methods, f.reference),
-              restorer_table(Path(restorer.out_dir) if restorer else ws.root / ws.stage("restorer").folder)]
+              restorer_table(Path(restorer.out_dir) if restorer else ws.folder("restorer"))]
     if fid:
         tables.append(make_table("fidelity", "Fidelity against the in-air truth (higher is better)", methods, [
             {"label": "PSNR (dB)", "values": [fid[m][0] for m in methods], "better": "higher"},

@@ -130,7 +130,7 @@ def _stage_result(ws: Workspace, stage: str):
 
 def _eval_dir(ws: Workspace) -> Path:
     """The eval stage's folder (``watergan consistency`` and ``depth-compare`` write there too, without a record)."""
-    return ws.root / ws.stage("eval").folder
+    return ws.folder("eval")
 
 
 def _tables(ws: Workspace) -> dict:
@@ -380,7 +380,7 @@ def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
     from eval.diagnose import LEDGER_NAME
 
     diagnosed = ws.result("diagnose")
-    folder = Path(diagnosed.out_dir) if diagnosed is not None else ws.root / ws.stage("diagnose").folder
+    folder = Path(diagnosed.out_dir) if diagnosed is not None else ws.folder("diagnose")
     ledger = ws.root / LEDGER_NAME
     if not ledger.is_file() and not (folder / "ledger.png").is_file():
         raise NotRun("not run: no model ledger (run `watergan diagnose WS`)")

@@ -61,7 +61,7 @@ class WaterResult:
     """Wall time of the estimate alone."""
 
 
-def _frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
+def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
     """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered)."""
     from eval.tables import z_to_range
     from watergan.data import read_image
@@ -151,18 +151,16 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
                    mesh_ply: Path | None, progress: bool) -> tuple[float, float]:
     """Every frame through the inverse of ``stack`` with its range (dense, then the fused mesh for a registered one);
     returns (share of pixels ranged from the mesh, share with no range)."""
-    import torch
     from tqdm import tqdm
 
+    from eval.synth.imaging import single_torch_thread
     from eval.water import correct_physics
 
     from .correct import _bit_depth
 
     out = ws.stage_dir("water")
     from_mesh, unresolved, scene = [], [], None
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with single_torch_thread():
         for f in tqdm(frames, desc="physics correction", unit="frame", disable=not progress):
             r = np.asarray(f.range_m, np.float64)
             hole = ~np.isfinite(r)
@@ -173,8 +171,6 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
             corrected, valid = correct_physics(f.image, r, stack, K)
             unresolved.append(float(np.mean(~valid)))
             _write_corrected(out, f.name, corrected, valid, _bit_depth(images / f.name))
-    finally:
-        torch.set_num_threads(threads)
     return float(np.mean(from_mesh)), float(np.mean(unresolved))
 
 
@@ -207,7 +203,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     survey = ws.stage_dir("survey")
     tracks = Tracks.load(ws.path(sfm.tracks))
     K = np.asarray(tracks.K, float)
-    frames = _frames(tracks, survey / "images", ws.path(dense.depth_dir))
+    frames = water_frames(tracks, survey / "images", ws.path(dense.depth_dir))
     board = _board(ws, cfg, survey)
     cfg = replace(cfg, range_scale_sd=max(cfg.range_scale_sd, float(sfm.scale_spread)))
     if sfm.scale_method == "none":

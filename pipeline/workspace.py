@@ -58,8 +58,13 @@ class Workspace:
             raise KeyError(f"unknown stage '{name}'; stages: {', '.join(self.stages)}")
         return self.stages[name]
 
+    def folder(self, stage: str) -> Path:
+        """The stage's folder (not created: for reading)."""
+        return self.root / self.stage(stage).folder
+
     def stage_dir(self, stage: str) -> Path:
-        path = self.root / self.stage(stage).folder
+        """The stage's folder, created when missing (for writing)."""
+        path = self.folder(stage)
         path.mkdir(parents=True, exist_ok=True)
         return path
 
@@ -73,7 +78,7 @@ class Workspace:
 
     def record(self, stage: str) -> dict | None:
         """The stage's ``result.json`` as saved (stage, config_hash, upstream, result), None before it ran."""
-        path = self.root / self.stage(stage).folder / "result.json"
+        path = self.folder(stage) / "result.json"
         if not path.is_file():
             return None
         return json.loads(path.read_text())
@@ -87,7 +92,7 @@ class Workspace:
         try:
             return from_jsonable(self.stage(stage).result_type, record["result"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise UserInputError(f"{self.root / self.stage(stage).folder / 'result.json'} was written by another "
+            raise UserInputError(f"{self.folder(stage) / 'result.json'} was written by another "
                                  f"version of watergan ({exc}): rerun the stage with --force {stage}") from None
 
     def require(self, stage: str, what: str) -> Any:
@@ -133,7 +138,6 @@ class Workspace:
         """Run the stage's function ``fn(ws, config)`` unless it is already done with this configuration
         on the same upstream results; returns its typed result."""
         if force or not self.is_done(stage, config):
-            result_path = self.root / self.stage(stage).folder / "result.json"
-            result_path.unlink(missing_ok=True)  # a rerun is unfinished until it saves again
+            (self.folder(stage) / "result.json").unlink(missing_ok=True)  # a rerun is unfinished until it saves again
             self.save(stage, config, self.stage(stage).fn(self, config))
         return self.result(stage)
