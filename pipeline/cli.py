@@ -1,7 +1,7 @@
 """The `watergan` console script.
 
     watergan effects                      list every registered effect, its parameters and signature
-    watergan simulate --out DIR [--preset demo|tiny|small] [--hidden NAME[,NAME]] [--seed N] [--force]
+    watergan simulate --out DIR [--preset demo|reef|auv|tiny|small] [--hidden NAME[,NAME]] [--seed N] [--force]
     watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py)
     watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
     watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 
+from eval.synth.presets import PRESETS
+
 from .cliargs import add_config, config_from_args
 
 PLUGIN_HELP = "a Python file that registers effects with @watergan.formation.register (repeatable)"
@@ -51,12 +53,8 @@ def cmd_effects(args: argparse.Namespace) -> int:
     return 0
 
 
-class Preset(StrEnum):
-    """The simulator's built-in surveys (eval.synth.presets)."""
-
-    demo = "demo"
-    tiny = "tiny"
-    small = "small"
+#: The simulator's built-in surveys: one member per entry of eval.synth.PRESETS.
+Preset = StrEnum("Preset", {name: name for name in PRESETS})
 
 
 @dataclass(frozen=True)
@@ -66,7 +64,9 @@ class SimulateOptions:
     out: Path
     """Output folder (must not exist or be empty, unless --force)."""
     preset: Preset = Preset.demo
-    """demo: 44 stereo frames of 640x480; tiny: a few small frames for tests; small: 10 frames of 320x240."""
+    """demo: 44 stereo frames of 640x480; reef: 60 frames of a diver's rig over a colourful reef in 5 m of
+    water; auv: 60 frames of an AUV at 2-4 m altitude in darkness with two strobes; tiny: a few small frames
+    for tests; small: 10 frames of 320x240."""
     hidden: tuple[str, ...] = ()
     """Effects applied to the images but left out of the visible model."""
     seed: int = 0

@@ -2,7 +2,7 @@
 
     watergan run SURVEY --workspace WS [--config run.toml] [--add LIST] [--seed N] [--force STAGE]...
                  [--STAGE-OPTION VALUE]...        e.g. --gan-budget-min 4 --restorer-head direct
-    watergan demo [--out demo_out] [--preset demo|small] [same options]
+    watergan demo [--out demo_out] [--preset demo|reef|auv|tiny|small] [same options]
 
 ``demo`` simulates the built-in default survey (one effect hidden) into the survey stage's folder
 of ``OUT`` and runs every stage on it. Both print progress per stage, a summary and the report's
@@ -86,7 +86,10 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
 
     p = sub.add_parser("demo", parents=parents, help="simulate the built-in survey and run every stage on it")
     p.add_argument("--out", default="demo_out", help="workspace folder (default: demo_out)")
-    p.add_argument("--preset", choices=["demo", "small"], default="demo",
-                   help="demo: 44 stereo frames of 640x480 (the default); small: 10 frames of 320x240, for tests")
+    from eval.synth.presets import PRESETS
+
+    p.add_argument("--preset", choices=list(PRESETS), default="demo",
+                   help="the simulated survey (as `watergan simulate --preset`): demo, 44 stereo frames of 640x480 "
+                        "(the default); reef and auv, 60 field-like frames; tiny and small, for tests")
     _common(p)
     p.set_defaults(func=cmd_demo)

@@ -29,6 +29,22 @@ def full_stack_config(visible: list[dict] | tuple[dict, ...], hidden: list[dict]
     return Stack.rank_order([*visible, *hidden])
 
 
+def rig_camera_config(full: list[dict], camera_offset_m: tuple[float, float, float]) -> list[dict]:
+    """The full stack configuration for a rig camera at ``camera_offset_m`` (metres, in the frame of the
+    reference camera, whose configuration ``full`` is, with parallel axes: a stereo rig's right camera is
+    at (baseline, 0, 0)). The lights are fixed to the rig, so a light at L in the reference frame is at
+    L - offset in this camera's frame; every other effect is the same."""
+    out = []
+    for entry in full:
+        if entry["name"] == "artificial_light":
+            params = dict(entry["params"])
+            params["offset_m"] = [[p - o for p, o in zip(light, camera_offset_m, strict=True)]
+                                  for light in params["offset_m"]]
+            entry = {"name": entry["name"], "params": params}
+        out.append(entry)
+    return out
+
+
 def build_stacks(visible, hidden) -> tuple[Stack, Stack, Stack]:
     """(visible, hidden, full) stacks; the hidden stack lists the hidden effects by rank."""
     return (Stack.from_config(list(visible)), Stack.from_config(full_stack_config([], hidden)),

@@ -65,6 +65,10 @@ class RGBDConfig:
     aliases into more contrast than the site's frames show once both are reduced to WaterGAN's size,
     and the discriminator then tells generated images by their texture, which no physical stage can
     change (with 1 on the demo survey, D(generated) fell below 0.01 and eta drifted 2-5x off)."""
+    like_site: bool = True
+    """Draw the scenes to resemble the survey site (its photographs, tint and texture contrast), as an
+    in-air set chosen for the survey would be; False: the generic seafloor set (grey sediment photographs,
+    sediment tints) that a user without a site-matched RGB-D set has."""
 
 
 #: Relative spread of a scene's brightness and of each tint channel around the site's (site-matched sets).

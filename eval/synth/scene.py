@@ -1,5 +1,6 @@
-"""Simulated sites: a seafloor heightfield with rocks, textured from real photographs, and a
-24-patch colour-checker board lying on it.
+"""Simulated sites: a seafloor heightfield with rocks (or reef mounds), textured from real photographs,
+optionally covered in part by colonies of other colours (corals, algae, sponges), and a 24-patch
+colour-checker board lying on it.
 
 World frame: z up, metres. The seafloor is z = h(x, y) over a rectangle centred on the origin;
 it is exactly flat (z = 0) in a disc around the board, which lies ``lift_m`` above it, face up.
@@ -17,7 +18,7 @@ import open3d as o3d
 from .io import srgb_decode, srgb_encode
 
 #: Photographs that scikit-image ships (offline), usable as albedo detail.
-TEXTURES = ("gravel", "grass", "brick", "coffee", "immunohistochemistry", "rocket")
+TEXTURES = ("gravel", "grass", "brick", "coffee", "immunohistochemistry", "rocket", "moon")
 
 COLOURCHECKER = "ColorChecker24 - After November 2014"
 
@@ -93,6 +94,12 @@ class SceneConfig:
     """Exponent on the normalised detail photograph (larger = stronger texture)."""
     board: BoardConfig | None = field(default_factory=BoardConfig)
     """The colour board, or None for a site without one."""
+    cover_palette_linear: tuple[tuple[float, float, float], ...] = ()
+    """Linear albedos of the colonies (corals, algae, sponges) that cover part of the floor; empty: none."""
+    cover_fraction: float = 0.0
+    """Share of the floor the colonies cover (0..1); rocks and mounds are covered first."""
+    cover_patch_m: float = 0.5
+    """Correlation length of the colony patches, metres (a colony's typical size)."""
 
 
 @dataclass(frozen=True)
@@ -248,6 +255,8 @@ class Scene:
         self._overlay_angle = rng.uniform(0, 2 * np.pi)
         self._overlay_scale = rng.uniform(1.3, 1.6)
         self._offsets = rng.uniform(0, 512, 4)
+        if c.cover_palette_linear and c.cover_fraction > 0:  # drawn last: a site without colonies is unchanged
+            self._base = self._cover(rng, self._base)
         self.parts = [self._seafloor_part()]
         if self.board is not None:
             self.parts.append(self._board_part())
@@ -286,6 +295,33 @@ class Scene:
         rock = np.clip((rock - 0.25) / 0.3, 0.0, 1.0)[..., None]
         tint = (1 - rock) * np.asarray(c.tint_linear) + rock * np.asarray(c.rock_tint_linear)
         return (tint * lf).astype(np.float32)
+
+    def _cover(self, rng: np.random.Generator, base: np.ndarray) -> np.ndarray:
+        """The colour raster with colonies: where a smooth field F = N_0 + 2 m (N_0 unit-variance noise of
+        correlation length ``cover_patch_m``, m the rock/mound mask) exceeds its (1 - ``cover_fraction``)
+        quantile, the tint is the palette colour k = argmax_k N_k (K more such fields, one per colour),
+        times the raster's own low-frequency variation (base / tint). Outside the board's flat disc only."""
+        c = self.config
+        rows, cols = base.shape[:2]
+        coarse = c.cover_patch_m / 3
+        shape = (int((c.size_y_m + 2) / coarse) + 2, int((c.size_x_m + 2) / coarse) + 2)
+        k = len(c.cover_palette_linear)
+
+        def field() -> np.ndarray:
+            noise = cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 1.5)
+            return cv2.resize((noise / noise.std()).astype(np.float32), (cols, rows), interpolation=cv2.INTER_CUBIC)
+
+        gx, gy = np.meshgrid(self._base_origin[0] + self._base_spacing * np.arange(cols),
+                             self._base_origin[1] + self._base_spacing * np.arange(rows))
+        mound = self._rocks.bumps(gx, gy).max(0) if len(self._rocks.heights) else np.zeros_like(gx)
+        cover = field() + 2.0 * mound
+        covered = (cover > np.quantile(cover, 1 - c.cover_fraction)) & (self._flat_weight(gx, gy) > 0)
+        colour = np.argmax(np.stack([field() for _ in range(k)]), axis=0)
+        palette = np.asarray(c.cover_palette_linear, np.float32)
+        rock = np.clip((mound - 0.25) / 0.3, 0.0, 1.0)[..., None]
+        tint = (1 - rock) * np.asarray(c.tint_linear) + rock * np.asarray(c.rock_tint_linear)
+        variation = base / np.maximum(tint, 1e-6)
+        return np.where(covered[..., None], palette[colour] * variation, base).astype(np.float32)
 
     def _flat_weight(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """0 in the disc around the board, rising smoothly (smoothstep) to 1 over the next metre."""
@@ -418,6 +454,8 @@ def build_scene(config: SceneConfig, seed: int) -> Scene:
     """The site for ``config``; the same seed gives the same relief, rocks and texture placement."""
     if config.grid_spacing_m <= 0 or config.texel_m <= 0:
         raise ValueError("grid_spacing_m and texel_m must be positive")
+    if not 0.0 <= config.cover_fraction <= 1.0 or config.cover_patch_m <= 0:
+        raise ValueError("cover_fraction must be in 0..1 and cover_patch_m positive")
     for name in (config.detail_texture, config.overlay_texture):
         if name not in TEXTURES:
             raise ValueError(f"unknown texture '{name}'; choose one of {', '.join(TEXTURES)}")

@@ -32,10 +32,12 @@ import open3d as o3d
 from tqdm import tqdm
 
 from watergan.errors import UserInputError
+from watergan.formation import Stack
+from watergan.formation.effects.artificial_light import beam_angle_deg
 
 from .camera import intrinsics_for
 from .config import SimulationConfig, config_to_dict
-from .imaging import add_sensor_noise, build_stacks, encode, linear_image, single_torch_thread
+from .imaging import add_sensor_noise, build_stacks, encode, linear_image, rig_camera_config, single_torch_thread
 from .io import quantise, write_depth_png, write_json, write_png, write_srgb_png
 from .render import View, frame_state, make_raycaster, render_view
 from .rgbd import write_rgbd_set
@@ -190,9 +192,13 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     caster = make_raycaster(scene)
     trajectory = lawnmower(config.trajectory, intr, config.seed)
     stereo = trajectory.world_from_cam_right is not None
-    cameras = [("images", trajectory.world_from_cam)] + ([("right", trajectory.world_from_cam_right)] if stereo else [])
+    cameras = [("images", trajectory.world_from_cam, full)]
+    if stereo:  # lights are fixed to the rig: the right camera sees them shifted by the baseline
+        right = full if "artificial_light" not in full.names else Stack.from_config(
+            rig_camera_config(full.to_config(), (config.trajectory.baseline_m, 0.0, 0.0)))
+        cameras.append(("right", trajectory.world_from_cam_right, right))
     truth = root / "truth"
-    for folder in [name for name, _ in cameras] + ["inair", "inair_linear", "depth", "range"]:
+    for folder in [name for name, _, _ in cameras] + ["inair", "inair_linear", "depth", "range"]:
         (root / folder if folder in ("images", "right") else truth / folder).mkdir(parents=True, exist_ok=True)
 
     board_part = next((i for i, p in enumerate(scene.parts) if p.kind == BOARD), None)
@@ -202,13 +208,13 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     with _Writer() as writer, single_torch_thread():
         for k in tqdm(range(len(trajectory)), desc="survey", unit="frame",
                       disable=None if progress is None else not progress):
-            for cam, (folder, poses) in enumerate(cameras):
+            for cam, (folder, poses, stack) in enumerate(cameras):
                 view = render_view(caster, scene, intr, poses[k], config.render)
                 if not view.valid.all():
                     raise SimulationError(f"frame {k} ({folder}) sees past the edge of the site: enlarge "
                                           f"the scene or shrink the survey")
                 state = frame_state(view, k, config.render.site_depth_m)
-                noisy = add_sensor_noise(linear_image(full, state), f.shot_noise_e, f.read_noise,
+                noisy = add_sensor_noise(linear_image(stack, state), f.shot_noise_e, f.read_noise,
                                          np.random.default_rng([config.seed, 41, k, cam]))
                 writer.submit(_write_image, root / folder / names[k], noisy, f.bit_depth)
                 if cam == 0:
@@ -252,7 +258,8 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     if not o3d.io.write_triangle_mesh(str(truth / "scene.ply"), scene.legacy_mesh()):
         raise OSError(f"could not write {truth / 'scene.ply'}")
     write_json(truth / "config.json", config_to_dict(config))
-    n_rgbd = write_rgbd_set(root / "rgbd", config.rgbd, config.seed, progress, site=config.scene)
+    n_rgbd = write_rgbd_set(root / "rgbd", config.rgbd, config.seed, progress,
+                            site=config.scene if config.rgbd.like_site else None)
     return len(names), board_frames, n_rgbd
 
 
@@ -268,10 +275,13 @@ def _write_frame_truth(truth: Path, name: str, view: View) -> None:
 
 
 def _lights(full) -> list[dict]:
-    """The light rig a user knows (``artificial_light``'s ``rig_params``: positions, aims, beam widths),
-    if the scene is lit artificially."""
+    """The light rig a user knows, if the scene is lit artificially: per light ``artificial_light``'s
+    ``rig_params`` exactly as rendered (``offset_m`` in the frame of the camera of ``images/``, metres;
+    ``tilt_deg``, the aim; ``beam_deg``, the Gaussian beam's sigma) and ``beam_angle_deg``, the full angle
+    at half intensity that a strobe's data sheet gives (2 sqrt(2 ln 2) sigma)."""
     for effect in full.effects:
         if effect.name == "artificial_light":
             p = effect.to_config()["params"]
-            return [{key: p[key][i] for key in effect.rig_params if key in p} for i in range(len(p["offset_m"]))]
+            return [{key: p[key][i] for key in effect.rig_params if key in p}
+                    | {"beam_angle_deg": beam_angle_deg(p["beam_deg"][i])} for i in range(len(p["offset_m"]))]
     return []

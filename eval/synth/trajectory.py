@@ -1,4 +1,5 @@
-"""Survey trajectories: a lawnmower pattern of a downward-looking camera, with pose jitter.
+"""Survey trajectories: a lawnmower pattern of a downward-looking camera, with pose jitter; lines
+may fly at different heights and look ahead, back or sideways (a diver's passes over a reef).
 
 The vehicle body frame is x forward, y left, z up. The camera looks down (nadir) with the image's
 top edge towards the direction of travel: camera x = body -y, camera y = body -x, camera z =
@@ -52,6 +53,13 @@ class TrajectoryConfig:
     """Stereo baseline along the left camera's x axis, metres."""
     nav_altitude_noise_m: float = 0.01
     """Standard deviation of the navigation's (DVL-like) altitude reading, metres."""
+    line_altitudes_m: tuple[float, ...] = ()
+    """Camera height of each line in turn (cycled), metres; empty: ``altitude_m`` for every line. Line
+    and frame spacing follow ``altitude_m`` whatever the line's height."""
+    line_tilts_deg: tuple[tuple[float, float], ...] = ()
+    """Tilt of the optical axis of each line in turn (cycled) from nadir, (towards the direction of
+    travel, towards the left of it), degrees; the camera is moved so that its axis still meets the
+    datum on the planned line (it looks at the same strip from the side). Empty: nadir lines."""
 
 
 @dataclass(frozen=True)
@@ -99,7 +107,10 @@ def rig_right(world_from_cam: np.ndarray, baseline_m: float) -> np.ndarray:
 def lawnmower(config: TrajectoryConfig, intr: Intrinsics, seed: int) -> Trajectory:
     """Frame poses of a lawnmower survey. Line spacing = (1 - side_overlap) x across-track
     footprint, frame spacing = (1 - forward_overlap) x along-track footprint (at ``altitude_m``);
-    lines run along +x and -x in turn, ordered from +y to -y."""
+    lines run along +x and -x in turn, ordered from +y to -y. A line of height h (``line_altitudes_m``)
+    tilted by (a forward, b left) (``line_tilts_deg``) has pitch -a and roll +b added to the body
+    attitude and its camera centre moved by -h (tan a f + tan b l), f and l the unit forward and left
+    directions, so the tilted axis meets the datum where a nadir one would."""
     c = config
     if c.n_lines < 1 or c.frames_per_line < 1:
         raise ValueError("n_lines and frames_per_line must be at least 1")
@@ -119,11 +130,16 @@ def lawnmower(config: TrajectoryConfig, intr: Intrinsics, seed: int) -> Trajecto
         line, j = divmod(k, c.frames_per_line)
         direction = 1.0 if line % 2 == 0 else -1.0
         along_pos = (j - (c.frames_per_line - 1) / 2) * frame_step * direction
-        y = c.centre_xy_m[1] + ((c.n_lines - 1) / 2 - line) * line_step + jitter[k, 1]
-        x = c.centre_xy_m[0] + along_pos + jitter[k, 0]
-        z = c.altitude_m + c.altitude_wave_m * math.sin(2 * math.pi * k / c.altitude_wave_frames + wave_phase)
+        height = c.line_altitudes_m[line % len(c.line_altitudes_m)] if c.line_altitudes_m else c.altitude_m
+        forward, left = (math.radians(a) for a in c.line_tilts_deg[line % len(c.line_tilts_deg)]) \
+            if c.line_tilts_deg else (0.0, 0.0)
+        aim_x = -height * math.tan(forward) * direction     # forward is +x on lines along +x, -x on the others
+        aim_y = -height * math.tan(left) * direction        # left is +y on lines along +x, -y on the others
+        y = c.centre_xy_m[1] + ((c.n_lines - 1) / 2 - line) * line_step + jitter[k, 1] + aim_y
+        x = c.centre_xy_m[0] + along_pos + jitter[k, 0] + aim_x
+        z = height + c.altitude_wave_m * math.sin(2 * math.pi * k / c.altitude_wave_frames + wave_phase)
         heading = 0.0 if direction > 0 else math.pi
-        rotation = body_rotation(heading + yaw[k], pitch[k], roll[k]) @ CAM_IN_BODY
+        rotation = body_rotation(heading + yaw[k], pitch[k] - forward, roll[k] + left) @ CAM_IN_BODY
         poses.append(make_pose(rotation, np.array([x, y, z])))
         lines.append(line)
     poses = np.array(poses)

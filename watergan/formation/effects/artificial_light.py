@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ..effect import RANK_ILLUMINATION, Effect
 from ..params import Param
 from ..registry import register
+
+#: Full width at half maximum of a Gaussian beam per unit sigma: 2 sqrt(2 ln 2).
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def beam_angle_deg(beam_sigma_deg: float) -> float:
+    """The beam angle a strobe's data sheet gives (the full angle at which the intensity falls to half
+    its on-axis value) of a Gaussian beam of sigma ``beam_sigma_deg``: 2 sqrt(2 ln 2) sigma, degrees."""
+    return FWHM_PER_SIGMA * beam_sigma_deg
 
 
 def beam_axes(tilt_deg: torch.Tensor) -> torch.Tensor:
