@@ -24,7 +24,7 @@ def check_survey(survey_dir: Path) -> dict:
     """Refuse a survey folder that cannot be processed, before any training starts: a missing
     ``images/`` folder, fewer than 3 images, unreadable or truncated files, images of different
     sizes, ``right/`` frames that do not pair with ``images/`` by name, a missing or malformed ``camera.json``,
-    a malformed ``survey.json``. Returns a summary."""
+    a malformed ``survey.json`` (its light rig included). Returns a summary."""
     survey_dir = Path(survey_dir)
     images_dir = survey_dir / "images"
     if not survey_dir.is_dir():
@@ -63,7 +63,14 @@ def check_survey(survey_dir: Path) -> dict:
                              f"range of each pixel need the intrinsics")
     read_camera_json(survey_dir / "camera.json")  # malformed JSON or a missing key: an error naming the file
     if (survey_dir / "survey.json").is_file():
-        read_json(survey_dir / "survey.json", "survey file")
+        declared = read_json(survey_dir / "survey.json", "survey file")
+        if isinstance(declared, dict) and "lights" in declared:
+            from watergan.formation.effects.artificial_light import check_rig
+
+            try:
+                check_rig(declared["lights"])
+            except ValueError as exc:
+                raise UserInputError(f"{survey_dir / 'survey.json'}: lights: {exc}") from exc
     (h, w), = sizes
     return {"n_images": len(files), "width": w, "height": h, "stereo": stereo,
             "simulated": (survey_dir / "truth" / "effects.json").is_file()}

@@ -133,12 +133,11 @@ def lawnmower(config: TrajectoryConfig, intr: Intrinsics, seed: int) -> Trajecto
         height = c.line_altitudes_m[line % len(c.line_altitudes_m)] if c.line_altitudes_m else c.altitude_m
         forward, left = (math.radians(a) for a in c.line_tilts_deg[line % len(c.line_tilts_deg)]) \
             if c.line_tilts_deg else (0.0, 0.0)
-        aim_x = -height * math.tan(forward) * direction     # forward is +x on lines along +x, -x on the others
-        aim_y = -height * math.tan(left) * direction        # left is +y on lines along +x, -y on the others
-        y = c.centre_xy_m[1] + ((c.n_lines - 1) / 2 - line) * line_step + jitter[k, 1] + aim_y
-        x = c.centre_xy_m[0] + along_pos + jitter[k, 0] + aim_x
-        z = height + c.altitude_wave_m * math.sin(2 * math.pi * k / c.altitude_wave_frames + wave_phase)
         heading = 0.0 if direction > 0 else math.pi
+        axis = (body_rotation(heading, -forward, left) @ CAM_IN_BODY)[:, 2]  # the line's optical axis, no jitter
+        y = c.centre_xy_m[1] + ((c.n_lines - 1) / 2 - line) * line_step + jitter[k, 1] + height * axis[1] / axis[2]
+        x = c.centre_xy_m[0] + along_pos + jitter[k, 0] + height * axis[0] / axis[2]
+        z = height + c.altitude_wave_m * math.sin(2 * math.pi * k / c.altitude_wave_frames + wave_phase)
         rotation = body_rotation(heading + yaw[k], pitch[k] - forward, roll[k] + left) @ CAM_IN_BODY
         poses.append(make_pose(rotation, np.array([x, y, z])))
         lines.append(line)

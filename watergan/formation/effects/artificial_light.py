@@ -20,6 +20,34 @@ def beam_angle_deg(beam_sigma_deg: float) -> float:
     return FWHM_PER_SIGMA * beam_sigma_deg
 
 
+def check_rig(lights) -> None:
+    """Raise ValueError unless ``lights`` declares a light rig as survey.json does: a list with, per light,
+    ``offset_m`` (3 numbers: the position in the camera frame of ``images/``, metres) and optionally
+    ``tilt_deg`` (2 numbers: the aim towards +x and +y, degrees), ``beam_deg`` (the Gaussian beam's sigma,
+    degrees, > 0) and ``beam_angle_deg`` (the full angle at half intensity, degrees, > 0; given with
+    ``beam_deg``, it must be FWHM_PER_SIGMA times it, within 0.01 degrees)."""
+
+    def numbers(value, n: int) -> bool:
+        return isinstance(value, list) and len(value) == n and all(
+            isinstance(v, int | float) and math.isfinite(v) for v in value)
+
+    if not isinstance(lights, list):
+        raise ValueError(f"lights must be a list of lights, got {type(lights).__name__}")
+    for i, light in enumerate(lights):
+        if not isinstance(light, dict) or not numbers(light.get("offset_m"), 3):
+            raise ValueError(f"light {i} needs offset_m: [x, y, z], its position in the camera frame in metres")
+        if "tilt_deg" in light and not numbers(light["tilt_deg"], 2):
+            raise ValueError(f"light {i}: tilt_deg must be [towards +x, towards +y] in degrees")
+        for key in ("beam_deg", "beam_angle_deg"):
+            if key in light and not (numbers([light[key]], 1) and light[key] > 0):
+                raise ValueError(f"light {i}: {key} must be a positive number of degrees")
+        if "beam_deg" in light and "beam_angle_deg" in light and \
+                abs(light["beam_angle_deg"] - beam_angle_deg(light["beam_deg"])) > 0.01:
+            raise ValueError(f"light {i}: beam_angle_deg {light['beam_angle_deg']} is not the full width at half "
+                             f"intensity of a beam of sigma beam_deg {light['beam_deg']} "
+                             f"({beam_angle_deg(light['beam_deg']):.2f}); give one or make them agree")
+
+
 def beam_axes(tilt_deg: torch.Tensor) -> torch.Tensor:
     """(L,3) unit beam axes in the camera frame from (L,2) tilts (towards +x, towards +y), degrees."""
     tx, ty = torch.deg2rad(tilt_deg[:, 0]), torch.deg2rad(tilt_deg[:, 1])
