@@ -1,9 +1,10 @@
 """The in-air RGB-D training set: many views of other random seafloor scenes (other seeds, other
 photographs and tints, no board), from nadir and oblique poses.
 
-The scenes are drawn to resemble the survey site, as an in-air set chosen for a survey would be: with
-the site's own scene configuration, each scene takes the site's sediment photographs and a tint and
-texture contrast within about 15 % of the site's; without one (a real survey), generic sediment tints.
+The scenes are drawn to resemble the survey site, as an in-air set chosen for a survey would be
+(``RGBDConfig.like_site``, the demo's choice): with the site's own scene configuration, each scene takes
+the site's sediment photographs and a tint and texture contrast within about 15 % of the site's; without
+one (a real survey, or the reef and auv presets), generic sediment photographs and tints.
 WaterGAN can change colour and brightness, not content, so whatever differs between the set and the
 site is learned as water: a set with twice the site's texture contrast pushes the learned water towards
 a murkier one (a larger eta dims the texture, a stronger veil restores the mean), and a set a third
