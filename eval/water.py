@@ -51,19 +51,21 @@ What pins what (and what does not):
   the corrected colours are then in units of that gain (their ratios between channels are still free of it
   only if the gain is grey, which a white balance need not be).
 
-Uncertainty: a two-way bootstrap (``bootstrap`` replicates): frames drawn with replacement (the frames that
-see the board and the others drawn separately, so every replicate keeps the board) and each surface point's
-views weighted Poisson(1) times (the views of one point share its texture and registration errors, so frames
-alone are not independent units). Each replicate is refitted from the full fit: one Newton step with the full
-fit's Hessian (central differences of the gradient; eigenvalues floored at 1e-6 of the largest, the step halved
-until it lowers the replicate's loss), then ``bootstrap_iterations`` L-BFGS steps. Resampling
-cannot see a bias that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the
-board weighted 10x less: how far the correspondences alone pull the estimate from the board's) and each
-parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2),
-clipped to the bounds; coefficients in 1/m also take the range's scale uncertainty (``range_scale_sd``: the
-monocular demo's altitude scale is 1.3 % short, which moves every eta by +1.3 %). The bootstrap percentiles are
-kept too. Pairs of parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs
-(eta_c with k_c through the board's range, B_inf with beta).
+Uncertainty: a bootstrap (``bootstrap`` replicates): frames drawn with replacement (the frames that see the board
+and the others drawn separately, so every replicate keeps the board), each surface point's views weighted Poisson(1)
+times (the views of one point share its texture and registration errors, so frames alone are not independent units)
+and so is each board patch's (a patch's error, e.g. its known colour against what its rendered or printed surface
+gives, is shared by every frame that sees it: with frames alone resampled the board-pinned eta and B_inf had
+intervals of +-1 % that missed 1-2 % errors). Each replicate is refitted from the full fit: one Newton step with the
+full fit's Hessian (central differences of the gradient; eigenvalues floored at 1e-6 of the largest, the step halved
+until it lowers the replicate's loss), then ``bootstrap_iterations`` L-BFGS steps. Resampling cannot see a bias that
+every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x less: how
+far the correspondences alone pull the estimate from the board's) and each parameter's largest change is added in
+quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2), clipped to the bounds; coefficients in 1/m
+also take the range's scale uncertainty (``range_scale_sd``: the monocular demo's altitude scale is 1.3 % short,
+which moves every eta by +1.3 %). The bootstrap percentiles are kept too. Pairs of parameter components whose
+bootstrap correlation exceeds 0.95 are reported as trade-offs (eta_c with k_c through the board's range, B_inf with
+beta).
 
 Why colours are read at a fixed footprint on the surface: with a fixed blur in pixels a near view averages a
 smaller patch of the seafloor's texture than a far view, so the views of one point differ by a texture term
@@ -186,8 +188,9 @@ class WaterConfig:
     bootstrap_iterations: int = 5
     """L-BFGS iterations of each replicate, after a Newton step from the full fit (the full fit's Hessian)."""
     bootstrap_points: bool = True
-    """Resample the surface points too (each point's views weigh Poisson(1) times): the views of one point share
-    its errors (texture, misregistration), so frames alone are not independent units (two-way bootstrap)."""
+    """Resample the surface points and the board's patches too (each one's views weigh Poisson(1) times): the
+    views of one point (one patch) share its errors (texture, misregistration, the patch's colour), so frames
+    alone are not independent units."""
     float32: bool = True
     """Bootstrap replicates evaluate the model in float32 (parameters and loss stay float64): twice as fast, the
     same spread. The main and the alternative fits always run in float64: in float32 L-BFGS can stop early in
@@ -208,13 +211,16 @@ class WaterConfig:
     """Mean fraction of pixels with range needed."""
     min_points: int = 200
     """Points seen in two views whose ranges differ by >= 0.1 m needed."""
-    threads: int = 1
-    """Torch threads of the fit."""
+    threads: int = field(default=1, metadata={"hash": False})
+    """Torch threads of the fit (not hashed: the estimate does not depend on it)."""
     seed: int = 0
     """Seed of the pixel sampling and the bootstrap."""
     board_json: str = ""
     """A colour-board file (:func:`eval.colour.load_board_json`) for the pipeline's water stage; empty: the
     simulated survey's board when there is one, else none (then the gain is held)."""
+    range_agreement: float = 0.01
+    """The pipeline's correction: a pixel keeps its dense range where the fused mesh agrees within this
+    fraction, else takes the mesh's (the estimate itself reads the dense range)."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Progress bars (the pipeline's correction)."""
 
@@ -242,6 +248,7 @@ class Observations:
     board_pixel_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     board_points_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    board_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (B,) patch index
 
 
 def _rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -434,7 +441,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
     import cv2
 
     w, h = obs.image_wh
-    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "frame")}
+    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "frame", "patch")}
     for k in usable:
         f = frames[k]
         quads = board.quads.get(f.name)
@@ -466,6 +473,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
             rows["uv"].append([(xc + 0.5) / w, (yc + 0.5) / h])
             rows["pc"].append(pc)
             rows["frame"].append(k)
+            rows["patch"].append(p)
     if rows["colour"]:
         obs.board_colour = np.array(rows["colour"], np.float64)
         obs.board_albedo = np.array(rows["albedo"], np.float64)
@@ -474,6 +482,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         obs.board_pixel_uv = np.array(rows["uv"], np.float64)
         obs.board_points_cam = np.array(rows["pc"], np.float64)
         obs.board_frame = np.array(rows["frame"], np.int64)
+        obs.board_patch = np.array(rows["patch"], np.int64)
 
 
 def _check_diversity(obs: Observations, config: WaterConfig) -> None:
@@ -539,6 +548,7 @@ class _Problem:
         self.point = torch.from_numpy(obs.point)
         self.has_board = len(obs.board_colour) > 0
         self.point_weight: torch.Tensor | None = None  # (P,) bootstrap weights of the points (None: all 1)
+        self.patch_weight: torch.Tensor | None = None  # (patches,) bootstrap weights of the board's patches
         if self.has_board:
             self.board_state = _state(obs.board_range_m, obs.board_depth_m, obs.board_pixel_uv,
                                       obs.board_points_cam, obs.board_frame, obs.image_wh, dt)
@@ -575,6 +585,8 @@ class _Problem:
         total = ((w[:, None] * _soft_l1(e, self.config.loss_scale)).sum() / w.sum().clamp_min(1e-12)).double()
         if self.has_board:
             wb = frame_weight[torch.from_numpy(self.obs.board_frame)]
+            if self.patch_weight is not None:
+                wb = wb * self.patch_weight.to(wb.dtype)[torch.from_numpy(self.obs.board_patch)]
             ab, cb = _affine(self.stack, self.board_state)
             eb = self.board_y - (ab * self.board_j + cb)
             total = total + self.config.board_weight * ((wb[:, None] * _soft_l1(eb, self.config.loss_scale)).sum()
@@ -760,6 +772,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
             weight = torch.from_numpy(wts)
             if config.bootstrap_points:
                 fast.point_weight = torch.from_numpy(rng.poisson(1.0, obs.n_points).astype(np.float64))
+                if problem.has_board:
+                    n_patches = int(obs.board_patch.max()) + 1
+                    fast.patch_weight = torch.from_numpy(rng.poisson(1.0, n_patches).astype(np.float64))
             fast.set_flat(x0)
             step = -(inv @ fast.gradient(weight))  # a Newton step from the full fit, halved until it helps
             with torch.no_grad():
@@ -775,7 +790,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
                 fast.minimise(weight, config.bootstrap_iterations)
             samples.append(fast.physical())
         problem.set_raw(best_raw)
-        fast.point_weight = None
+        fast.point_weight = fast.patch_weight = None
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives
         if alternatives is None:

@@ -263,3 +263,44 @@ def test_the_water_stage_needs_the_dense_range(tmp_path):
                                           seconds=0.0))
     with pytest.raises(UserInputError, match="run the dense stage first"):
         ws.run("water", WaterConfig())
+
+
+def test_board_patches_are_bootstrap_units(survey):
+    """Every board row names its patch (the bootstrap weighs each patch's views together)."""
+    from eval.water import measure
+
+    frames, board = survey
+    obs = measure(frames, K, board=board, config=WaterConfig(samples_per_frame=50, margin_px=4))
+    assert len(obs.board_patch) == len(obs.board_colour) > 20
+    np.testing.assert_array_equal(obs.board_albedo, BOARD_RGB[obs.board_patch])
+
+
+def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disagrees(tmp_path):
+    """Dense range kept where the fused mesh agrees within 1 %; the mesh's range where the dense range is missing
+    or off (an outlier); a frame without a pose keeps its dense range."""
+    import open3d as o3d
+
+    from pipeline.water import correction_range
+
+    plane = o3d.geometry.TriangleMesh()  # the seafloor z = 0 under the camera, 4 m x 4 m
+    plane.vertices = o3d.utility.Vector3dVector(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], float))
+    plane.triangles = o3d.utility.Vector3iVector(np.array([[0, 1, 2], [0, 2, 3]]))
+    mesh_ply = tmp_path / "fused_mesh.ply"
+    o3d.io.write_triangle_mesh(str(mesh_ply), plane)
+    m = pose(0.0, 0.0, 2.0)
+    _, true_range, _ = render(m, Stack.from_config(TRUE))
+    dense = true_range * 1.004  # agrees within 1 %
+    dense[:10] = np.nan  # no dense range
+    dense[30:40, 30:40] *= 1.1  # an outlier patch
+    frame = WaterFrame(name="a.png", image=np.zeros((H, W, 3), np.float32), range_m=dense.astype(np.float32),
+                       world_from_cam=m)
+    r, from_mesh, _ = correction_range(frame, K, mesh_ply, agreement=0.01)
+    kept = np.ones((H, W), bool)
+    kept[:10] = False
+    kept[30:40, 30:40] = False
+    np.testing.assert_allclose(r[kept], dense[kept], rtol=1e-6)
+    np.testing.assert_allclose(r[~kept], true_range[~kept], rtol=1e-4)
+    np.testing.assert_array_equal(from_mesh, ~kept)
+    no_pose = WaterFrame(name="b.png", image=frame.image, range_m=frame.range_m, world_from_cam=None)
+    r, from_mesh, _ = correction_range(no_pose, K, mesh_ply, agreement=0.01)
+    assert not from_mesh.any() and np.isnan(r[:10]).all()

@@ -192,6 +192,19 @@ def encode_png(image: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
+def bit_depth(path: Path, image: np.ndarray | None = None) -> int:
+    """8 or 16: a PNG's IHDR bit depth (byte 24), 8 for JPEG; a TIFF's from its decoded type."""
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        with path.open("rb") as f:
+            header = f.read(25)
+        return 16 if len(header) == 25 and header[24] == 16 else 8
+    if suffix in (".jpg", ".jpeg"):
+        return 8
+    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return 16 if decoded is not None and decoded.dtype == np.uint16 else 8
+
+
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """An (H,W) or (H,W,3) RGB uint8/uint16 array as a PNG file, atomically."""
     atomic_write_bytes(path, encode_png(image))
@@ -277,6 +290,13 @@ def read_depth(path: str | Path) -> np.ndarray:
             raise DataError(f"depth {path} contains negative values (min {depth.min():.3g} m)")
         depth[depth == 0] = np.nan
     return depth
+
+
+def z_to_range(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Ray length r = z |K^-1 (x, y, 1)| of camera z-depth (H,W) (NaN stays NaN)."""
+    h, w = depth_m.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return depth_m * np.sqrt(((xs - K[0, 2]) / K[0, 0]) ** 2 + ((ys - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
 
 
 def depth_or_zero(depth_m: np.ndarray) -> np.ndarray:
