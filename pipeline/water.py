@@ -58,6 +58,8 @@ class WaterResult:
     at_bounds: list[str]
     """Fitted parameter components at a bound of their range ("effect.param[i]"): the stack does not fit the
     survey there (an effect is missing or has another form); read the residuals and run the diagnosis."""
+    converged: bool
+    """Whether the fit converged within ``max_iterations`` (if not, its estimate is where it stopped)."""
     seconds: float
     """Wall time of the stage (estimate and correction)."""
     estimate_seconds: float
@@ -230,6 +232,10 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     mesh_share, unresolved = correct_frames(ws, frames, K, estimate.stack, survey / "images", mesh_ply,
                                             cfg.range_agreement, cfg.progress)
     print(estimate.summary(), flush=True)
+    if not estimate.converged:
+        print(f"water: the fit had not converged after {estimate.iterations} iterations (raise `--max-iterations`, "
+              "`--water-max-iterations` in `watergan run`); "
+              "its parameters are where it stopped", file=sys.stderr)
     bounds = at_bounds(estimate)
     if bounds:
         print(f"water: {', '.join(bounds)} at a bound of their range: the stack does not fit this survey (an effect "
@@ -238,5 +244,6 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     return WaterResult(water_json=ws.relative(out / "water.json"), summary=estimate.summary(),
                        stack=estimate.stack.to_config(), images=ws.relative(out / "images"),
                        mask=ws.relative(out / "mask"), mesh_fraction=mesh_share, unresolved_fraction=unresolved,
-                       board=board is not None, at_bounds=bounds, seconds=time.perf_counter() - began,
+                       board=board is not None, at_bounds=bounds, converged=estimate.converged,
+                       seconds=time.perf_counter() - began,
                        estimate_seconds=estimate_s)

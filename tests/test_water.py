@@ -304,3 +304,16 @@ def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disag
     no_pose = WaterFrame(name="b.png", image=frame.image, range_m=frame.range_m, world_from_cam=None)
     r, from_mesh, _ = correction_range(no_pose, K, mesh_ply, agreement=0.01)
     assert not from_mesh.any() and np.isnan(r[:10]).all()
+
+
+def test_a_fit_stopped_before_convergence_says_so(survey):
+    """Rounds of L-BFGS run until one gains less than convergence_rtol; a fit cut short by max_iterations is
+    reported as not converged (in the estimate and its summary line), one given room converges."""
+    frames, board = survey
+    short = estimate_water(frames, K, board=board, config=WaterConfig(iterations=2, max_iterations=3, bootstrap=0,
+                                                                      margin_px=4, footprint_m=FOOTPRINT_M))
+    assert not short.converged and short.iterations == 3 and "not converged in 3 iterations" in short.summary()
+    full = estimate_water(frames, K, board=board, config=WaterConfig(bootstrap=0, margin_px=4,
+                                                                     footprint_m=FOOTPRINT_M))
+    assert full.converged and 150 < full.iterations <= 600 and "not converged" not in full.summary()
+    assert full.to_json()["converged"] is True
