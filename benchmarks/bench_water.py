@@ -192,7 +192,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     params = compare(estimate, truth)
     print(f"\n== {name}: {estimate.summary()}")
     print(f"   water estimate {water_seconds:.1f} s (+ {load_seconds:.1f} s reading frames and range; "
-          f"{estimate.seconds}); {estimate.n_points} points, {estimate.n_observations} views, "
+          f"{estimate.seconds}; {estimate.iterations} iterations, converged {estimate.converged}); "
+          f"{estimate.n_points} points, {estimate.n_observations} views, "
           f"{estimate.n_board} board patch views, {estimate.n_frames} frames")
     for key, row in params.items():
         cover = "".join("y" if c else "N" for c in row.get("covered", [])) or "-"

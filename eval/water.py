@@ -182,10 +182,10 @@ class WaterConfig:
     loss_scale: float = 0.01
     """Soft-L1 scale, linear colour units."""
     iterations: int = 150
-    """L-BFGS iterations of the full fit's first round; then rounds of half as many (a fresh L-BFGS history
-    each) until a round lowers the loss by less than ``convergence_rtol`` or ``max_iterations`` are done. One
-    round is not always enough: with ``vignetting_offcentre`` added the fit crawls along the B_inf-beta valley,
-    and after 150 iterations red B_inf was 0.0337 (truth 0.030) at a loss above the truth's; 450 reached 0.0301."""
+    """L-BFGS iterations of a round of the full fit: rounds (a fresh L-BFGS history each) run until one lowers the
+    loss by less than ``convergence_rtol`` or ``max_iterations`` are done. One round is not always enough: with
+    ``vignetting_offcentre`` added the fit crawls along the B_inf-beta valley, and after 150 iterations red B_inf
+    was 0.0337 (truth 0.030) at a loss above the truth's; 450 reached 0.0301."""
     max_iterations: int = 600
     """L-BFGS iterations of a fit at most (the main fit and each alternative); the estimate says whether it
     converged before."""
@@ -618,8 +618,7 @@ class _Problem:
     def converge(self, frame_weight: torch.Tensor, config: WaterConfig) -> tuple[int, bool]:
         """Rounds of :meth:`minimise` (see ``WaterConfig.iterations``); returns (iterations, converged)."""
         loss = self.minimise(frame_weight, config.iterations)
-        done = config.iterations
-        step = max(1, config.iterations // 2)
+        done = step = config.iterations
         while done + step <= config.max_iterations:
             before, loss = loss, self.minimise(frame_weight, step)
             done += step
