@@ -174,7 +174,6 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
     from eval.synth.imaging import single_torch_thread
     from eval.water import correct_physics
 
-
     out = ws.stage_dir("water")
     from_mesh, unresolved, scene = [], [], None
     with single_torch_thread():
