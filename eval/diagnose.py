@@ -16,11 +16,12 @@ Pieces (each usable alone):
 
 Candidate ranking: every registered effect not in the stack is a candidate unless it needs whole
 images (``needs_image``), has learned layers, needs a state field the measurements lack, or acts
-identically on every view of a point (then the per-point albedo absorbs it and multi-view colour
-cannot see it). Each candidate is inserted by ``rank`` into the model *as configured* and the
-whole stack is refitted (albedos start from the base fit; a declared light rig is held; effects
-with many local minima start from the best point of the grid their class declares, ``start_grid``,
-also when added with ``--add``). Relative held-out change
+identically on every view of a point at its initial values and at random values inside its bounds
+(then the per-point albedo absorbs it and multi-view colour cannot see it; an effect named with
+``--candidates`` is fitted anyway, and the skip says so). Each candidate is inserted by ``rank``
+into the model *as configured* and the whole stack is refitted (albedos start from the base fit; a
+declared light rig is held; effects with many local minima start from the best point of the grid
+their class declares, ``start_grid``, also when added with ``--add``). Relative held-out change
 d = RMSE_candidate / RMSE_base - 1; its significance is a paired bootstrap over held-out points
 (p = fraction of resamples with d >= 0). A candidate is accepted when p < ``alpha`` and
 d <= -``min_improvement``; the best accepted one is the verdict. Axes whose structure score
@@ -49,7 +50,7 @@ import torch
 from tqdm import tqdm
 
 from watergan.errors import UserInputError
-from watergan.formation import MissingInputError, Stack, available, get
+from watergan.formation import Counts, MissingInputError, Stack, available, get
 from watergan.io import atomic_write_json, atomic_write_text
 
 from .diagnose_fit import (
@@ -186,18 +187,25 @@ def small_survey_config(hidden: list | tuple = (), seed: int = 1, width_px: int 
                    formation=replace(cfg.formation, hidden=entries))
 
 
-def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | None = None) -> Stack:
-    """The model to diagnose: the named effects (initial values), or ``model`` (a stack configuration: the
-    site water the water stage estimated), or the survey's visible stack with its parameters when
-    simulated, or attenuation, backscatter, vignetting and gain."""
+def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | None = None,
+                  counts: Counts | None = None) -> Stack:
+    """The model to diagnose: the named effects (initial values; ``counts`` sizes their per-frame and
+    per-light parameters), or ``model`` (a stack configuration: the site water the water stage estimated),
+    or the survey's visible stack with its parameters when simulated, or attenuation, backscatter,
+    vignetting and gain."""
     if effects:
-        return Stack.ordered(list(effects))
+        return Stack.ordered(list(effects), counts)
     if model:
-        return Stack.from_config(list(model))
+        return Stack.from_config(list(model), counts)
     truth_effects = survey / "truth" / "effects.json"
     if truth_effects.is_file():
-        return Stack.from_config(json.loads(truth_effects.read_text())["visible"])
-    return Stack.from_names(list(DEFAULT_EFFECTS))
+        return Stack.from_config(json.loads(truth_effects.read_text())["visible"], counts)
+    return Stack.from_names(list(DEFAULT_EFFECTS), counts)
+
+
+def survey_counts(meas: Measurements) -> Counts:
+    """The survey's frames and declared lights: the rows of per-frame and per-light parameters."""
+    return Counts(frames=len(meas.frames), lights=len(meas.lights) or None)
 
 
 def declared_rig(effect, meas: Measurements) -> tuple[str, ...]:
@@ -207,13 +215,11 @@ def declared_rig(effect, meas: Measurements) -> tuple[str, ...]:
 
 def rig_settings(cls, meas: Measurements) -> dict:
     """Initial values of an effect from the light rig survey.json declares (empty without lights or
-    ``rig_params``): the declared rig parameters, one row per light, and the effect's other per-light
-    parameters (any number of rows, e.g. ``artificial_light``'s power) at their first initial row."""
+    ``rig_params``): the declared rig parameters, one row per light (the effect's other per-light
+    parameters get one row per light from :func:`survey_counts`)."""
     if not meas.lights or not cls.rig_params:
         return {}
-    settings = {key: [light[key] for light in meas.lights] for key in declared_rig(cls, meas)}
-    per_light = [p for p in cls.params if p.name not in cls.rig_params and any(s[:1] == (-1,) for s in p.shapes)]
-    return settings | {p.name: [p.init[0]] * len(meas.lights) for p in per_light}
+    return {key: [light[key] for light in meas.lights] for key in declared_rig(cls, meas)}
 
 
 def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ...]]:
@@ -224,9 +230,10 @@ def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ..
 
 
 def make_effect(name: str, meas: Measurements):
-    """A candidate effect at its initial values (the declared light rig for one with ``rig_params``)."""
+    """A candidate effect at its initial values for this survey (one row per frame or light of its per-frame
+    and per-light parameters; the declared light rig for one with ``rig_params``)."""
     cls = get(name)
-    return cls(**rig_settings(cls, meas))
+    return cls(survey_counts(meas), **rig_settings(cls, meas))
 
 
 def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:
@@ -305,7 +312,9 @@ def start_added(stack: Stack, added: list[str], meas: Measurements, split, confi
 
 
 def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
-    """Candidates to try and {name: reason} for the registered effects that are skipped."""
+    """Candidates to try and {name: reason} for the registered effects that are skipped. Effects named in
+    ``only`` are tried even when the per-point albedo seems to absorb them (the screen of
+    :func:`absorbed_by_albedo` is a judgement; the other reasons are things the fit cannot do)."""
     names = list(only) if only else [n for n in available() if n not in stack.names]
     keep, skipped = [], {}
     probe = np.unique(meas.point)[:200]
@@ -324,24 +333,53 @@ def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()
             skipped[name] = "has learned layers (no physical parameters to fit)"
             continue
         try:
-            absorbed = _absorbed_by_albedo(stack, insert_by_rank(stack, effect), state, meas.point[obs])
+            absorbed = absorbed_by_albedo(stack, name, effect, state, meas.point[obs], declared_rig(effect, meas))
         except MissingInputError as exc:
             skipped[name] = f"input missing: {exc}"
             continue
-        if absorbed:
-            skipped[name] = ("acts the same on every view of a point: the per-point albedo absorbs it, so "
-                             "multi-view colour cannot detect it (e.g. light that depends on the point alone)")
+        if absorbed and name not in only:
+            skipped[name] = (f"acts the same on every view of a point at each of {SCREEN_PROBES + 1} parameter "
+                             f"values tried: the per-point albedo absorbs it, so multi-view colour cannot detect it "
+                             f"(e.g. light that depends on the point alone); fit it anyway with --candidates {name}")
             continue
         keep.append(name)
     return keep, skipped
 
 
-def _absorbed_by_albedo(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
-    """True when adding the effect only rescales each point's direct signal by a factor common to
-    all its views and leaves the veiling light unchanged: with T = F(1) - F(0) and B = F(0), the
-    log ratio of T with and without the effect is constant within every point and B is unchanged."""
+#: Random parameter values at which :func:`absorbed_by_albedo` probes a candidate, besides its initial ones.
+SCREEN_PROBES = 3
+
+
+def absorbed_by_albedo(stack: Stack, name: str, effect, state, point: np.ndarray, held: tuple[str, ...] = (),
+                       seed: int = 19) -> bool:
+    """True when adding ``effect`` (named ``name``) only rescales each point's direct signal by a factor
+    common to all its views and leaves the veiling light unchanged, at its initial values and at
+    ``SCREEN_PROBES`` random values inside its bounds: with T = F(1) - F(0) and B = F(0), the log ratio of
+    T with and without the effect is constant within every point and B is unchanged at every probe.
+
+    The random values matter: an effect whose initial values are neutral (a per-frame exposure starting
+    at gain 1 in every frame) is the identity there, which every albedo absorbs. Each learnable
+    parameter not in ``held`` (a declared rig) gets raw values drawn uniformly in [-2, 2], element by
+    element (12-88 % of a bounded span, 0.13-2.1 above a lower bound), so per-frame values differ."""
+    rng = torch.Generator().manual_seed(seed)
+    trial = insert_by_rank(stack, effect).to(torch.float64)
+    probe = trial[name]
+    learnable = [p.name for p in probe.params if p.learnable and p.name not in held]
+    for k in range(SCREEN_PROBES + 1):
+        if k:
+            with torch.no_grad():
+                for pname in learnable:
+                    raw = probe.raw[pname]
+                    raw.copy_(torch.rand(raw.shape, generator=rng, dtype=raw.dtype) * 4.0 - 2.0)
+        if not _absorbed_at(stack, trial, state, point):
+            return False
+    return True
+
+
+def _absorbed_at(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
+    """:func:`absorbed_by_albedo` at the trial stack's current values."""
     renders = []
-    for s in (copy_stack(stack).to(torch.float64), trial.to(torch.float64)):
+    for s in (copy_stack(stack).to(torch.float64), trial):
         with torch.no_grad():
             zero = s.render(state.replace(direct=torch.zeros_like(state.direct)))[:, :, 0, 0]
             renders.append((s.render(state)[:, :, 0, 0] - zero, zero))
@@ -404,13 +442,20 @@ def unexplained_axes(final_scores: dict, structure: dict, config: DiagnoseConfig
 
 
 def _short_params(params: dict) -> str:
-    """The first fitted parameter, e.g. "centre_uv (0.61, 0.44)"."""
+    """The first fitted parameter, e.g. "centre_uv (0.61, 0.44)", or its range when it has more than
+    ``SHORT_VALUES`` values (one per frame): "log_gain (16 values, -0.33 to 0.27)"."""
     for pname, p in params.items():
         if p["fitted"]:
-            value = p["value"]
-            text = f"({', '.join(f'{v:.2f}' for v in np.ravel(value))})" if isinstance(value, list) else f"{value:.3g}"
+            value = np.ravel(p["value"])
+            if len(value) > SHORT_VALUES:
+                return f"{pname} ({len(value)} values, {value.min():.2f} to {value.max():.2f})"
+            text = f"({', '.join(f'{v:.2f}' for v in value)})" if isinstance(p["value"], list) else f"{value[0]:.3g}"
             return f"{pname} {text}"
     return ""
+
+
+#: Values of a parameter the verdict lists one by one; more are summarised by their range.
+SHORT_VALUES = 6
 
 
 def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
@@ -533,11 +578,11 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     start = time.perf_counter()
     progress = config.progress
     survey = check_survey_folder(survey)
-    stack = default_stack(survey, config.effects, model)
-    for name in config.add:
+    for name in (*config.effects, *config.add):
         get(name)
     out.mkdir(parents=True, exist_ok=True)
     meas = measure_survey(survey, config.measure, config.geometry, tracks, scale)
+    stack = default_stack(survey, config.effects, model, survey_counts(meas))
     added = [name for name in config.add if name not in stack.names]
     for name in added:
         stack = insert_by_rank(stack, make_effect(name, meas))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -21,7 +22,16 @@ import numpy as np
 import pytest
 import torch
 
-from eval.diagnose import DiagnoseConfig, find_ledger, ledger_table, read_ledger, small_survey_config
+from eval.diagnose import (
+    DiagnoseConfig,
+    candidate_names,
+    default_stack,
+    find_ledger,
+    ledger_table,
+    read_ledger,
+    small_survey_config,
+    survey_counts,
+)
 from eval.diagnose_fit import FitConfig, fit_stack, make_split
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
 from eval.synth import load_truth, simulate_survey
@@ -34,10 +44,12 @@ from watergan.formation import Stack, available
 from watergan.io import atomic_write_json
 
 #: Candidates: the effects registered when the tests are collected (a plugin that another test module
-#: registers later in the same process must not join the ranking).
+#: registers later in the same process must not join the ranking), less ambient_depth: the screen skips
+#: it (the albedo absorbs it, test_the_screen_skips_what_the_albedo_absorbs_and_says_how_to_force_it), but
+#: a named candidate is fitted anyway.
 BUILTIN = tuple(available())
-FAST = DiagnoseConfig(candidates=BUILTIN, measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60),
-                      bootstrap=500, plots=False)
+FAST = DiagnoseConfig(candidates=tuple(n for n in BUILTIN if n != "ambient_depth"),
+                      measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60), bootstrap=500, plots=False)
 #: Every effect the simulator can hide (the visible stack's effects are in the model already).
 HIDEABLE = sorted(set(BUILTIN) - {e["name"] for e in default_visible_stack()} - set(NOT_SIMULATED))
 #: Effects that the diagnosis cannot find from multi-view colour at their simulated strength, and why
@@ -219,7 +231,7 @@ def test_offcentre_vignetting_outputs(diagnosed, surveys):
     for name in ("measurements.npz", "fit.json", "residuals.json", "residuals.npz", "residual_image_position.png",
                  "residual_range.png", "points_residual.ply", "ranking.json", "verdict.txt", "result.json"):
         assert (out / name).is_file(), name
-    assert "ambient_depth" in result.skipped and "forward_scatter" in result.skipped
+    assert "forward_scatter" in result.skipped
     records = read_ledger(find_ledger(out.parent))
     assert records[0]["kind"] == "model" and records[0]["geometry"] == "truth"
     assert len(records) == 1 + len(result.ranking)
@@ -328,6 +340,53 @@ def test_plugin_effect_is_found_from_its_file(tmp_path):
     top = ranking[0]
     assert top["name"] == "brightness_gradient" and top["change"] <= -0.5, out.stdout
     np.testing.assert_allclose(top["params"]["slope"]["value"], [-0.25, 0.2], atol=0.03)
+
+
+def test_the_screen_skips_what_the_albedo_absorbs_and_says_how_to_force_it(clean):
+    meas = measure_target(clean, MeasureConfig(n_points=200))
+    stack = default_stack(clean, (), None, survey_counts(meas))
+    names, skipped = candidate_names(stack, meas)
+    assert "ambient_depth" not in names and "--candidates ambient_depth" in skipped["ambient_depth"]
+    assert "vignetting_offcentre" in names
+    names, skipped = candidate_names(stack, meas, ("ambient_depth", "forward_scatter"))
+    assert names == ["ambient_depth"] and "needs_image" in skipped["forward_scatter"]
+
+
+def readme_plugin(marker: str) -> str:
+    """The README's Python block that contains ``marker``."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    return next(b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S) if marker in b)
+
+
+def test_per_frame_plugin_with_neutral_start_is_found(tmp_path):
+    """The README's auto-exposure plugin (one log-gain per frame, sized by the survey; initial values 0,
+    where it is the identity) hidden in a small survey by its simulation_params (a pattern of 7 repeated
+    over the 16 frames) ranks first with the held-out error at least halved."""
+    plugin = tmp_path / "frame_exposure.py"
+    plugin.write_text(readme_plugin('per="frame"'))
+    survey = tmp_path / "survey"
+    simulate = textwrap.dedent("""
+        import sys
+        from eval.diagnose import small_survey_config
+        from eval.synth import simulate_survey
+        from watergan.formation import load_plugin
+        assert load_plugin(sys.argv[1]) == ["frame_exposure"]
+        simulate_survey(sys.argv[2], small_survey_config(["frame_exposure"]), progress=False)
+        """)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-c", simulate, str(plugin), str(survey)], check=True, capture_output=True, env=env)
+    hidden = json.loads((survey / "truth" / "effects.json").read_text())["hidden"][0]["params"]["log_gain"]
+    assert len(hidden) == 16 and hidden[7:14] == hidden[:7] and len(set(hidden)) == 7
+    out = subprocess.run([sys.executable, "-m", "pipeline.cli", "--plugin", str(plugin), "diagnose", str(survey),
+                          "--measure-n-points", "600", "--fit-iterations", "60", "--no-plots", "--no-progress"],
+                         capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    top = json.loads((survey / "diagnose" / "ranking.json").read_text())["candidates"][0]
+    assert top["name"] == "frame_exposure" and top["significant"] and top["change"] <= -0.5, out.stdout
+    assert top["flattened"] == "frame" and "log_gain (16 values" in out.stdout, out.stdout
+    fitted = np.array(top["params"]["log_gain"]["value"])
+    offset = np.mean(fitted - hidden)  # a common log-gain is the albedos' scale
+    assert np.abs(fitted - offset - hidden).max() < 0.03, (fitted, hidden)
 
 
 def _colour_json(ws: Path) -> None:
