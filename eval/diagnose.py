@@ -116,7 +116,9 @@ class CandidateResult:
     """One candidate's refit. ``change``: relative held-out RMSE change (negative = better);
     ``ci95``: bootstrap 95% interval of it; ``p``: fraction of resamples with no improvement;
     ``flattened``: the axis whose structure score dropped most, with the drop; ``scores`` and
-    ``structure`` (amplitude / residual RMSE) per axis after the refit."""
+    ``structure`` (amplitude / residual RMSE) per axis after the refit; ``implausible``: why its fitted
+    values are not physical (see :func:`why_implausible`; "" when they are): such a candidate is never
+    significant, however much it explains."""
 
     name: str
     heldout_rmse: float
@@ -130,6 +132,7 @@ class CandidateResult:
     scores: dict
     structure: dict
     seconds: float
+    implausible: str = ""
 
 
 @dataclass(frozen=True)
@@ -422,11 +425,41 @@ def rank_candidates(stack: Stack, meas: Measurements, base: FitResult, base_scor
         flattened = max(drops, key=drops.get)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
-            significant=p < config.alpha and change <= -config.min_improvement, flattened=flattened,
+            significant=p < config.alpha and change <= -config.min_improvement and not why_implausible(
+                name, fit.params[name]), flattened=flattened,
             flattened_drop=round(drops[flattened], 3), params=fit.params[name], scores=cand_scores,
-            structure=relative_amplitudes(cand_analysis, fit),
-            seconds=fit.seconds))
+            structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
+            implausible=why_implausible(name, fit.params[name])))
     return sorted(results, key=lambda r: r.change)
+
+
+#: A fitted value within this fraction of its parameter's span from a bound sits on the bound.
+AT_BOUND = 0.005
+
+
+def why_implausible(name: str, params: dict) -> str:
+    """Why the fitted values of candidate ``name`` (``FitResult.params[name]``) are not physical, "" when they
+    are: a fitted value on a bound (within ``AT_BOUND`` of the span; the fit wanted to go further than the
+    effect's form allows) or outside the parameter's declared envelope (``Param.plausible``). A bound at 0
+    is no reason: there a part of the effect is off (no ambient light, no decay), which is physical."""
+    reasons = []
+    for p in get(name).params:
+        entry = params.get(p.name)
+        if entry is None or not entry["fitted"]:
+            continue
+        values = np.ravel(entry["value"])
+        span = p.upper - p.lower if p.bounded_above else max(abs(p.lower), 1.0)
+        on_bound = [v for v in values if (p.lower != 0 and v - p.lower < AT_BOUND * span)
+                    or (p.bounded_above and p.upper != 0 and p.upper - v < AT_BOUND * span)]
+        outside = [v for v in values if p.plausible and not p.plausible[0] <= v <= p.plausible[1]]
+        units = f" {p.units}" if p.units else ""
+        if outside:
+            reasons.append(f"{p.name} = {outside[0]:.3g}{units} outside [{p.plausible[0]:g}, {p.plausible[1]:g}]"
+                           f"{units}")
+        elif on_bound:
+            bound = p.lower if on_bound[0] - p.lower < AT_BOUND * span else p.upper
+            reasons.append(f"{p.name} = {on_bound[0]:.3g}{units} at its bound {bound:g}")
+    return "; ".join(reasons)
 
 
 def relative_amplitudes(analysis: dict, fit: FitResult) -> dict[str, float]:
@@ -459,8 +492,9 @@ SHORT_VALUES = 6
 
 
 def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
-                 final_structure: dict | None = None) -> str:
-    """One line naming the missing effect (or none), plus a line on unexplained structure."""
+                 final_structure: dict | None = None, misfit: str = "") -> str:
+    """One line naming the missing effect (or none); a line per candidate that would explain enough but
+    is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure."""
     best = next((r for r in ranking if r.significant), None)
     if best is not None:
         line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
@@ -471,6 +505,12 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
         if ranking:
             top = ranking[0]
             line += f" (best candidate {top.name}: held-out error {top.change * 100:+.1f}%, p = {top.p:.2f})"
+    for r in ranking:
+        if r.implausible and r.p < 0.05 and r.change < 0:
+            line += (f"\nimplausible: {r.name} explains {-r.change:.0%} of the held-out error, but {r.implausible}; "
+                     f"not accepted")
+    if misfit:
+        line += f"\n{misfit}"
     if unexplained:
         size = final_structure or {}
         listed = ", ".join(f"{a} (score {final_scores[a]:.1f}" + (f", {size[a]:.0%} of the RMSE)" if a in size else ")")
@@ -478,6 +518,32 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
         line += (f"\nunexplained structure along: {listed} — no registered candidate explains it; an effect "
                  f"whose signature lies on this axis is missing (write one and pass --plugin FILE.py)")
     return line
+
+
+def added_form_misfit(added: tuple[str, ...], model_scores: dict, structure: dict, config: DiagnoseConfig) -> str:
+    """When the model's structure (``model_scores``, ``structure``: of the fit with the added effects) is still
+    unexplained (:func:`unexplained_axes`) along the axis of the effect added last (``added[-1]``), a line
+    saying that the added effect's form does not fit and where its residual map is; else ""."""
+    if not added:
+        return ""
+    name = added[-1]
+    axis = get(name).axis
+    if axis not in unexplained_axes(model_scores, structure, config):
+        return ""
+    return (f"the added effect's form does not fit: with {name} in the model, structure remains along its own "
+            f"axis, {axis} (score {model_scores[axis]:.1f}, {structure[axis]:.0%} of the RMSE; residual_{axis}.png): "
+            f"the effect at work has another shape than {name}'s (write that form and pass --plugin FILE.py)")
+
+
+def stand_in(r: CandidateResult, added: str) -> CandidateResult:
+    """When the form of the effect ``added`` last does not fit (:func:`added_form_misfit`), a candidate that
+    flattens that effect's axis without it being its own (a sensor curve flattening image position) stands in
+    for the missing form rather than being a missing effect: not significant, with the reason."""
+    axis = get(added).axis
+    if r.flattened != axis or get(r.name).axis == axis:
+        return r
+    reason = f"it flattens {axis}, the axis of {added} whose form does not fit, not its own axis ({get(r.name).axis})"
+    return replace(r, significant=False, implausible="; ".join(filter(None, (r.implausible, reason))))
 
 
 def append_ledger(folder: Path, record: dict) -> None:
@@ -609,6 +675,9 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
 
     names, skipped = candidate_names(stack, meas, config.candidates)
     ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress)
+    misfit = added_form_misfit(config.add, base_scores, relative_amplitudes(analysis, base), config)
+    if misfit:
+        ranking = [stand_in(r, config.add[-1]) for r in ranking]
     for r in ranking:
         append_ledger(ledger_dir, {"time": time.strftime("%Y-%m-%d %H:%M:%S"), "kind": "candidate",
                                    "stack": [*stack.names, r.name], "params": {r.name: {
@@ -619,7 +688,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     final_scores = best.scores if best is not None else base_scores
     final_structure = best.structure if best is not None else relative_amplitudes(analysis, base)
     unexplained = unexplained_axes(final_scores, final_structure, config)
-    verdict = verdict_text(ranking, unexplained, final_scores, final_structure)
+    verdict = verdict_text(ranking, unexplained, final_scores, final_structure, misfit)
     if meas.source.endswith("(scale: none)"):
         verdict += ("\nnote: the reconstruction has no metric scale (sfm scale 'none'): ranges are in SfM units, so "
                     "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "

@@ -31,6 +31,7 @@ from eval.diagnose import (
     read_ledger,
     small_survey_config,
     survey_counts,
+    why_implausible,
 )
 from eval.diagnose_fit import FitConfig, fit_stack, make_split
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
@@ -387,6 +388,76 @@ def test_per_frame_plugin_with_neutral_start_is_found(tmp_path):
     fitted = np.array(top["params"]["log_gain"]["value"])
     offset = np.mean(fitted - hidden)  # a common log-gain is the albedos' scale
     assert np.abs(fitted - offset - hidden).max() < 0.03, (fitted, hidden)
+
+
+#: A falloff of another shape than vignetting's polynomial (linear in the radius, off-centre): hidden, it has
+#: no candidate of its form, so vignetting_offcentre is found in round 1 and leaves structure in round 2.
+LINEAR_FALLOFF = '''\
+from watergan.formation import RANK_OPTICS, Effect, Param, normalised_radius, register
+
+
+@register
+class LinearFalloff(Effect):
+    name = "linear_falloff"
+    summary = "darkening linear in the distance from an off-centre point"
+    signature = "image position: darkening that grows linearly away from a point"
+    axis = "image_position"
+    rank = RANK_OPTICS
+    params = (Param("centre_uv", (0.62, 0.42), 0.0, 1.0, "image fraction", "falloff centre"),
+              Param("slope", 0.6, 0.0, 0.95, "", "relative darkening per unit radius"))
+    neutral = {"slope": 0.0}
+
+    def forward(self, state):
+        like = state.direct
+        f = 1.0 - self.param("slope", like) * normalised_radius(state.pixel_uv, state.image_wh,
+                                                                self.param("centre_uv", like))
+        return state.replace(direct=state.direct * f, backscatter=state.backscatter * f)
+'''
+
+
+@pytest.mark.slow
+def test_a_falloff_of_another_shape_does_not_make_round_2_accept_a_stand_in(tmp_path):
+    """Round 1 finds vignetting_offcentre for a hidden linear falloff and calls artificial_light, which
+    fits it with a light farther than a rig holds, implausible; round 2 (--add vignetting_offcentre) says
+    the added effect's form does not fit and accepts nothing (measured: sensor_response -6% and caustics
+    -6% with its cell size at its 5 m bound, both flattening image position)."""
+    plugin = tmp_path / "linear_falloff.py"
+    plugin.write_text(LINEAR_FALLOFF)
+    survey = tmp_path / "survey"
+    simulate = textwrap.dedent("""
+        import sys
+        from eval.diagnose import small_survey_config
+        from eval.synth import simulate_survey
+        from watergan.formation import load_plugin
+        load_plugin(sys.argv[1])
+        simulate_survey(sys.argv[2], small_survey_config(["linear_falloff"]), progress=False)
+        """)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-c", simulate, str(plugin), str(survey)], check=True, capture_output=True, env=env)
+    first = run_diagnose(survey, FAST, progress=False)
+    assert first.best == "vignetting_offcentre", first.verdict
+    light = next(r for r in first.ranking if r["name"] == "artificial_light")
+    assert light["implausible"] and not light["significant"] and light["change"] < -0.3, first.verdict
+    assert "implausible: artificial_light explains" in first.verdict
+    second = run_diagnose(survey, replace(FAST, add=("vignetting_offcentre",), plots=True), progress=False)
+    assert second.best is None, second.verdict
+    assert "the added effect's form does not fit" in second.verdict and "residual_image_position.png" in second.verdict
+    assert (Path(second.out_dir) / "residual_image_position.png").is_file()
+    assert all(not r["significant"] for r in second.ranking)
+    assert any(r["implausible"] and r["p"] < 0.05 and r["change"] <= -0.03 for r in second.ranking), second.verdict
+
+
+def test_why_implausible_names_a_bound_or_the_envelope():
+    def fitted(**values):
+        return {k: {"value": v, "fitted": True} for k, v in values.items()}
+
+    assert why_implausible("vignetting_offcentre", fitted(centre_uv=[0.6, 0.44], strength=[1.0, 0.0, 0.5])) == ""
+    assert "centre_uv = 0.995 image fraction outside [0.02, 0.98]" in why_implausible(
+        "vignetting_offcentre", fitted(centre_uv=[0.995, 0.5]))
+    assert "wavelength_m = 4.99 m at its bound 5" == why_implausible("caustics", fitted(wavelength_m=4.99))
+    assert why_implausible("artificial_light", fitted(ambient=0.0, power=[5.0])) == ""  # off at 0: physical
+    held = {"offset_m": {"value": [[2.9, 0.0, 0.0]], "fitted": False}}
+    assert why_implausible("artificial_light", held) == ""  # a declared rig is not a fit
 
 
 def _colour_json(ws: Path) -> None:

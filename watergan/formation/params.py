@@ -57,6 +57,8 @@ class Param:
     row, so a plugin never writes the survey's length; without a count a per-light value has one row
     and a per-frame value must be given. Any number of rows is accepted when given.
     ``learnable=False`` marks a setting that is serialised with the effect but never optimised.
+    ``plausible``: the envelope real surveys show, where it is narrower than the bounds (a light that a
+    rig can hold, a falloff centre inside the image); the diagnosis calls a fit outside it implausible.
     """
 
     name: str
@@ -68,6 +70,7 @@ class Param:
     learnable: bool = True
     shapes: tuple[tuple[int, ...], ...] = ()
     per: str = ""
+    plausible: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not self.lower < self.upper:

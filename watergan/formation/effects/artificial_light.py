@@ -55,7 +55,8 @@ class ArtificialLight(Effect):
     simulation_params = {"offset_m": [[0.35, 0.0, 0.0]], "power": [6.0], "ambient": 0.3}
     rig_params = ("offset_m", "tilt_deg", "beam_deg")  # survey.json declares the light rig
     params = (
-        Param("offset_m", (0.4, 0.0, 0.0), -3.0, 3.0, "m", "light position in the camera frame", per="light"),
+        Param("offset_m", (0.4, 0.0, 0.0), -3.0, 3.0, "m", "light position in the camera frame", per="light",
+              plausible=(-1.5, 1.5)),  # a rig's arms hold lights within 1.5 m of the camera
         Param("tilt_deg", (0.0, 0.0), -60.0, 60.0, "deg", "beam axis tilt towards +x and +y", per="light"),
         Param("beam_deg", 35.0, 5.0, 90.0, "deg", "Gaussian beam width (sigma)", per="light"),
         Param("power", 4.0, 0.0, 100.0, "", "on-axis irradiance at 1 m", per="light"),
