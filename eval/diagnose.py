@@ -309,7 +309,7 @@ def start_added(stack: Stack, added: list[str], meas: Measurements, split, confi
     if not gridded:
         return
     without = Stack([e for e in copy_stack(stack).effects if e.name not in gridded])
-    prior = fit_stack(without, meas, split, config.fit, frozen_settings(without, meas))
+    prior = fit_stack(without, meas, split, replace(config.fit, bootstrap=0), frozen_settings(without, meas))
     for name in gridded:
         grid_start(stack, name, prior, meas, split, config)
 
@@ -417,7 +417,8 @@ def rank_candidates(stack: Stack, meas: Measurements, base: FitResult, base_scor
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
         trial = insert_by_rank(stack, make_effect(name, meas))
         grid_start(trial, name, base, meas, split, config)
-        fit = fit_stack(trial, meas, split, config.fit, frozen_settings(trial, meas), init_albedo=base.albedo)
+        fit = fit_stack(trial, meas, split, replace(config.fit, bootstrap=0), frozen_settings(trial, meas),
+                        init_albedo=base.albedo)
         change, ci, p = paired_bootstrap(base, fit, config.bootstrap, config.fit.seed)
         cand_analysis = analyse(meas, fit.predicted, fit.residual, config.residuals)
         cand_scores = scores(cand_analysis)

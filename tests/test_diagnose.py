@@ -50,7 +50,8 @@ from watergan.io import atomic_write_json
 #: a named candidate is fitted anyway.
 BUILTIN = tuple(available())
 FAST = DiagnoseConfig(candidates=tuple(n for n in BUILTIN if n != "ambient_depth"),
-                      measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60), bootstrap=500, plots=False)
+                      measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60, bootstrap=0), bootstrap=500,
+                      plots=False)
 #: Every effect the simulator can hide (the visible stack's effects are in the model already).
 HIDEABLE = sorted(set(BUILTIN) - {e["name"] for e in default_visible_stack()} - set(NOT_SIMULATED))
 #: Effects that the diagnosis cannot find from multi-view colour at their simulated strength, and why
@@ -204,6 +205,8 @@ def test_fit_recovers_attenuation_when_nothing_is_hidden(clean):
     eta = fit.params["attenuation"]["eta_per_m"]
     assert np.abs(np.array(eta["value"]) - true_eta).max() < 0.03, eta
     assert all(0 < s < 0.03 for s in eta["std"]) and fit.params["gain"]["k"]["std"] is None
+    low, high = (np.array(b) for b in eta["ci95"])  # the two-way bootstrap's interval (albedos refitted)
+    assert ((low <= true_eta) & (true_eta <= high)).all() and (high - low > 2 * 1.96 * np.array(eta["std"])).all(), eta
     assert fit.heldout_rmse < 0.005 and fit.residual.shape == (m.n_obs, 3)
 
 
