@@ -99,7 +99,8 @@ def test_good_survey_is_accepted(tmp_path):
     ("camera_bad_value", r"camera file .*camera.json: fx = 'fifty' is not a positive number"),
     ("camera_other_size", r"camera file .*camera.json is for 320x240 images; the images .* are 64x48"),
     ("survey_not_json", r"survey file .*survey.json is not valid JSON"),
-    ("survey_bad_altitude", r"survey file .*survey.json: nav_altitude_m\[1\] = -2.0 is not a positive number"),
+    ("survey_bad_altitude", r"survey file .*survey.json: nav_altitude_m is not a positive number for 1 frames "
+                            r"\(e.g. f1.png: -2.0\)"),
     ("survey_short_list", r"survey file .*survey.json: 2 nav_depth_m values for 4 frames"),
     ("survey_bad_light", r"survey file .*survey.json: lights\[0\].offset_m = 'left' is not a number"),
 ])

@@ -325,8 +325,7 @@ def _is_number(value: Any) -> bool:
 
 
 #: survey.json's per-frame lists and what each value must be.
-_PER_FRAME = {"nav_altitude_m": "a positive number (metres above the seafloor)",
-              "nav_depth_m": "a number (metres below the surface)"}
+_PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number"}
 
 
 def read_survey_json(path: Path) -> dict:
@@ -349,7 +348,8 @@ def read_survey_json(path: Path) -> dict:
             raise DataError(f"{where}: {key} must be a list, one value per frame")
         bad = [i for i, v in enumerate(values) if not _is_number(v) or (key == "nav_altitude_m" and not v > 0)]
         if bad:
-            raise DataError(f"{where}: {key}[{bad[0]}] = {values[bad[0]]!r} is not {what}")
+            first = frames[bad[0]] if frames is not None and bad[0] < len(frames) else f"value {bad[0]}"
+            raise DataError(f"{where}: {key} is not {what} for {len(bad)} frames (e.g. {first}: {values[bad[0]]!r})")
         if frames is not None and len(values) != len(frames):
             raise DataError(f"{where}: {len(values)} {key} values for {len(frames)} frames")
     if "site_depth_m" in survey and not _is_number(survey["site_depth_m"]):
