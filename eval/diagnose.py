@@ -236,7 +236,7 @@ def make_effect(name: str, meas: Measurements):
     """A candidate effect at its initial values for this survey (one row per frame or light of its per-frame
     and per-light parameters; the declared light rig for one with ``rig_params``)."""
     cls = get(name)
-    return cls(survey_counts(meas), **rig_settings(cls, meas))
+    return cls(counts=survey_counts(meas), **rig_settings(cls, meas))
 
 
 def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:

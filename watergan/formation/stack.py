@@ -47,7 +47,7 @@ class Stack(nn.Module):
             extra = set(item) - {"name", "params"}
             if extra:
                 raise ParameterError(f"stack entry {i} ({item['name']}) has unknown keys {sorted(extra)}")
-            effects.append(get(item["name"])(counts, **item.get("params", {})))
+            effects.append(get(item["name"])(counts=counts, **item.get("params", {})))
         return cls(effects)
 
     @classmethod
