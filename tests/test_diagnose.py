@@ -381,6 +381,7 @@ def readme_plugin(marker: str) -> str:
     return next(b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S) if marker in b)
 
 
+@pytest.mark.slow
 def test_per_frame_plugin_with_neutral_start_is_found(tmp_path):
     """The README's auto-exposure plugin (one log-gain per frame, sized by the survey; initial values 0,
     where it is the identity) hidden in a small survey by its simulation_params (a pattern of 7 repeated
