@@ -15,7 +15,7 @@ from pathlib import Path
 
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
-from watergan.io import read_camera_json, read_json
+from watergan.io import read_camera_json, read_json, read_survey_json
 
 from .workspace import Workspace
 
@@ -61,10 +61,13 @@ def check_survey(survey_dir: Path) -> dict:
     if not (survey_dir / "camera.json").is_file():
         raise UserInputError(f"{survey_dir} has no camera.json (fx, fy, cx, cy, width, height): SfM and the "
                              f"range of each pixel need the intrinsics")
-    read_camera_json(survey_dir / "camera.json")  # malformed JSON or a missing key: an error naming the file
-    if (survey_dir / "survey.json").is_file():
-        read_json(survey_dir / "survey.json", "survey file")
+    cam = read_camera_json(survey_dir / "camera.json")  # malformed JSON, a missing key or a bad value: an error
     (h, w), = sizes
+    if (cam["width"], cam["height"]) != (w, h):
+        raise UserInputError(f"camera file {survey_dir / 'camera.json'} is for {cam['width']}x{cam['height']} images; "
+                             f"the images in {images_dir} are {w}x{h}")
+    if (survey_dir / "survey.json").is_file():
+        read_survey_json(survey_dir / "survey.json")
     return {"n_images": len(files), "width": w, "height": h, "stereo": stereo,
             "simulated": (survey_dir / "truth" / "effects.json").is_file()}
 

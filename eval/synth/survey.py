@@ -111,7 +111,8 @@ def simulate_survey(out_dir: str | Path, config: SimulationConfig, force: bool =
     out_dir = Path(out_dir).absolute()
     _check_config(config)
     try:
-        stacks = build_stacks(config.formation.visible, config.formation.hidden)
+        stacks = build_stacks(config.formation.visible, config.formation.hidden,
+                              config.trajectory.n_lines * config.trajectory.frames_per_line)
     except (ValueError, KeyError) as exc:
         raise SimulationError(f"invalid formation stack: {exc}") from exc
     tmp = _prepare_output(out_dir, force)
