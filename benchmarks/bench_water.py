@@ -137,13 +137,13 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
     filled, from_mesh, seconds = [], [], 0.0
     torch.set_num_threads(1)
     scene = None
-    for f in frames:
+    for k, f in enumerate(frames):
         r, meshed, scene = correction_range(f, K, ws_root / "05_dense" / "fused_mesh.ply", agreement, scene)
         from_mesh.append(float(np.mean(meshed)))
         filled.append(float(np.mean(~np.isfinite(r))))
         r_full = fill_nearest(r)
         t = time.perf_counter()
-        corrected, _ = correct_physics(f.image, r_full, stack, K)
+        corrected, _ = correct_physics(f.image, r_full, stack, K, frame_index=k)
         seconds += time.perf_counter() - t
         write_srgb8(folders["physics"] / f.name, np.clip(np.nan_to_num(corrected), 0, 1))
         corrected, _ = correct_physics(f.image, r_full, true_stack, K)

@@ -109,7 +109,7 @@ import numpy as np
 import torch
 
 from watergan.errors import UserInputError
-from watergan.formation import FormationState, Stack
+from watergan.formation import Counts, FormationState, Stack
 
 #: The water stack fitted by default: the simulator's visible physics (WaterGAN's learned backscatter
 #: network is replaced by its analytic counterpart, which has physical parameters to estimate).
@@ -251,6 +251,7 @@ class Observations:
     frame: np.ndarray       # (N,) frame index
     n_points: int
     image_wh: tuple[int, int]
+    n_frames: int = 0       # frames of the survey (the length of the frames list; sizes per-frame parameters)
     board_colour: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_albedo: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_range_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -437,7 +438,7 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     remap[used] = np.arange(len(used))
     obs = Observations(colour=cat["colour"][order], range_m=cat["range"][order], depth_m=cat["depth"][order],
                        pixel_uv=cat["uv"][order], points_cam=cat["pc"][order], point=remap[cat["point"][order]],
-                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h))
+                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h), n_frames=len(frames))
     if board is not None:
         _add_board(obs, frames, usable, board, K, rays, ray_norm, config)
     _check_diversity(obs, config)
@@ -511,11 +512,13 @@ def _check_diversity(obs: Observations, config: WaterConfig) -> None:
 # ------------------------------------------------------------------------------------------ fit
 
 
-def build_stack(config: WaterConfig) -> Stack:
-    """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``."""
+def build_stack(config: WaterConfig, n_frames: int | None = None) -> Stack:
+    """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``; parameters held per
+    frame (``Param(per="frame")``, e.g. a plugin's auto-exposure) get ``n_frames`` rows."""
     given = {e["name"]: dict(e.get("params", {})) for e in config.initial}
     names = dict.fromkeys(list(config.effects) + list(given))
-    return Stack.ordered([{"name": n, "params": given.get(n, {})} for n in names]).to(torch.float64)
+    return Stack.ordered([{"name": n, "params": given.get(n, {})} for n in names],
+                         counts=Counts(frames=n_frames)).to(torch.float64)
 
 
 def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.float64) -> FormationState:
@@ -766,7 +769,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, config.threads))
     try:
-        stack = build_stack(config)
+        stack = build_stack(config, obs.n_frames or int(obs.frame.max()) + 1)
         fixed = {name: "held at its configured value" for name in config.fixed_effects}
         if len(obs.board_colour) == 0 and "gain" in stack.names:
             fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
@@ -917,7 +920,7 @@ def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
 
 
 def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[dict],
-                    K: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    K: np.ndarray | None = None, frame_index: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
     J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
     J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
@@ -927,6 +930,8 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
     stack:   a :class:`Stack` or its configuration (e.g. ``WaterEstimate.stack``).
     K:       (3,3) intrinsics; gives effects the camera-frame points and depth (needed by e.g.
              ``artificial_light``); without it depth = range and no points.
+    frame_index: the frame's index in the survey (the estimate's frames list): the row that parameters held
+             per frame take.
     Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
     without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
     if not isinstance(stack, Stack):
@@ -949,7 +954,8 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
     state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=torch.float64),
                            range_m=torch.from_numpy(r_filled[None, None].copy()),
                            pixel_uv=pixel_grid(h, w, 1, torch.float64), image_wh=(w, h),
-                           valid=torch.from_numpy(valid)[None, None], **fields)
+                           valid=torch.from_numpy(valid)[None, None], frame_index=torch.tensor([frame_index]),
+                           **fields)
     stack = stack.to(torch.float64)
     with torch.no_grad():
         a, c = _affine_images(stack, state)

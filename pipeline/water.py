@@ -177,10 +177,10 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
     out = ws.stage_dir("water")
     from_mesh, unresolved, scene = [], [], None
     with single_torch_thread():
-        for f in tqdm(frames, desc="physics correction", unit="frame", disable=not progress):
+        for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
             r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
             from_mesh.append(float(np.mean(meshed)))
-            corrected, valid = correct_physics(f.image, r, stack, K)
+            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k)
             unresolved.append(float(np.mean(~valid)))
             _write_corrected(out, f.name, corrected, valid, bit_depth(images / f.name))
     return float(np.mean(from_mesh)), float(np.mean(unresolved))

@@ -317,3 +317,43 @@ def test_a_fit_stopped_before_convergence_says_so(survey):
                                                                      footprint_m=FOOTPRINT_M))
     assert full.converged and 150 < full.iterations <= 600 and "not converged" not in full.summary()
     assert full.to_json()["converged"] is True
+
+
+def test_a_per_frame_effect_is_sized_by_the_survey_and_inverted_frame_by_frame(survey):
+    """An auto-exposure plugin (one log-gain per frame, ``Param(per="frame")``, neutral start) added to the water:
+    the stack gets one row per frame from the survey, the fit recovers the frames' relative exposures, and the
+    correction takes each frame's own row (``frame_index``). Attenuation is held at its value here: with every
+    frame at its own altitude a per-frame gain and exp(-eta r) at that frame's range nearly coincide."""
+    from dataclasses import replace
+
+    from watergan.formation import RANK_SENSOR, Effect, Param, register
+
+    @register
+    class WaterTestExposure(Effect):
+        name = "water_test_exposure"
+        summary = "each frame's signal scaled by its own gain exp(g_k)"
+        axis = "frame"
+        rank = RANK_SENSOR
+        params = (Param("log_gain", 0.0, -1.0, 1.0, "", "log of the frame's exposure gain", per="frame"),)
+
+        def forward(self, state):
+            gain = torch.exp(self.per_frame("log_gain", state)).view(-1, 1, 1, 1)
+            return state.replace(direct=state.direct * gain, backscatter=state.backscatter * gain)
+
+    frames, board = survey
+    log_gain = np.array([0.12, -0.1, 0.05, -0.14, 0.0, 0.1, -0.06, 0.14, -0.12, 0.08, -0.02, 0.03])
+    exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
+               for f, g in zip(frames, log_gain, strict=True)]
+    config = WaterConfig(effects=(*DEFAULT_WATER_EFFECTS, "water_test_exposure"), fixed_effects=("attenuation",),
+                         initial=(TRUE[0],), samples_per_frame=250, bootstrap=0, margin_px=4,
+                         footprint_m=FOOTPRINT_M)
+    est = estimate_water(exposed, K, board=board, config=config)
+    fitted = np.asarray(est.params["water_test_exposure.log_gain"]["value"], float)
+    assert fitted.shape == (12,)
+    np.testing.assert_allclose(fitted - fitted.mean(), log_gain - log_gain.mean(), atol=0.02)
+    k = int(np.argmax(log_gain))
+    _, r, j = render(exposed[k].world_from_cam, Stack.from_config(TRUE))
+    own, _ = correct_physics(exposed[k].image, r, est.stack, K, frame_index=k)
+    other, _ = correct_physics(exposed[k].image, r, est.stack, K, frame_index=int(np.argmin(log_gain)))
+    assert np.median(np.abs(own / j - 1)) < 0.03  # its own exposure undone
+    assert np.median(other / j) > 1.2  # another frame's row leaves exp(0.14 + 0.14) = 1.32 in it
