@@ -10,8 +10,9 @@ survey, runs the pipeline's SfM and dense stages on it (reused when present), es
 :func:`eval.water.estimate_water` from the raw frames, the SfM poses, the dense range and the board (pixel
 quads from the SfM poses) and prints per parameter the estimate, the truth (``truth/effects.json``), the
 relative error and whether the 95 % interval covers the truth. Then it corrects every frame with
-:func:`eval.water.correct_physics` (dense range, pixels without range filled with the nearest valid pixel's
-range, as the evaluation does for the range-based baselines; the filled fraction is printed) and measures
+:func:`eval.water.correct_physics` with the water stage's range (dense, the fused mesh where the dense range
+has none or disagrees; pixels with neither take the nearest valid pixel's range, as the evaluation does for the
+range-based baselines; the mesh and filled fractions are printed) and measures
 board CIEDE2000 (:func:`eval.colour.board_accuracy`), consistency per channel on the SfM tracks
 (:func:`eval.colour.consistency`) and PSNR against the in-air truth (:func:`eval.tables.fidelity`), beside the
 oracle (:func:`eval.baselines.oracle`, the true stack and the true geometry) and the true stack with the dense
@@ -112,17 +113,18 @@ def compare(estimate, truth: dict) -> dict:
     return rows
 
 
-def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
-    """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the dense range
-    ('physics'), the true stack with the dense range ('true_water_dense_range') and the oracle (true stack,
-    true geometry). Pixels without dense range take it from the fused mesh rendered into the view, the rest
-    from the nearest pixel with range (fractions reported)."""
+def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float) -> dict:
+    """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the water stage's range
+    (:func:`pipeline.water.correction_range`: dense, the fused mesh where the dense range has none or disagrees;
+    'physics'), the true stack with that range ('true_water_dense_range') and the oracle (true stack, true
+    geometry). Pixels with no range at all take the nearest pixel's (the stage writes them black; fractions
+    reported)."""
     import torch
 
     from eval.baselines import oracle
     from eval.tables import OracleGeometry, fill_nearest
     from eval.water import correct_physics
-    from pipeline.water import mesh_range
+    from pipeline.water import correction_range
     from watergan.data import write_srgb8
     from watergan.formation import Stack
 
@@ -135,17 +137,13 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path) -> dict:
     filled, from_mesh, seconds = [], [], 0.0
     torch.set_num_threads(1)
     scene = None
-    for f in frames:
-        r = np.asarray(f.range_m, np.float64)
-        hole = ~np.isfinite(r)
-        if f.world_from_cam is not None:
-            meshed, scene = mesh_range(ws_root / "05_dense" / "fused_mesh.ply", f, K, scene)
-            r = np.where(hole, meshed, r)
-        from_mesh.append(float(np.mean(hole & np.isfinite(r))))
+    for k, f in enumerate(frames):
+        r, meshed, scene = correction_range(f, K, ws_root / "05_dense" / "fused_mesh.ply", agreement, scene)
+        from_mesh.append(float(np.mean(meshed)))
         filled.append(float(np.mean(~np.isfinite(r))))
         r_full = fill_nearest(r)
         t = time.perf_counter()
-        corrected, _ = correct_physics(f.image, r_full, stack, K)
+        corrected, _ = correct_physics(f.image, r_full, stack, K, frame_index=k)
         seconds += time.perf_counter() - t
         write_srgb8(folders["physics"] / f.name, np.clip(np.nan_to_num(corrected), 0, 1))
         corrected, _ = correct_physics(f.image, r_full, true_stack, K)
@@ -194,7 +192,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     params = compare(estimate, truth)
     print(f"\n== {name}: {estimate.summary()}")
     print(f"   water estimate {water_seconds:.1f} s (+ {load_seconds:.1f} s reading frames and range; "
-          f"{estimate.seconds}); {estimate.n_points} points, {estimate.n_observations} views, "
+          f"{estimate.seconds}; {estimate.iterations} iterations, converged {estimate.converged}); "
+          f"{estimate.n_points} points, {estimate.n_observations} views, "
           f"{estimate.n_board} board patch views, {estimate.n_frames} frames")
     for key, row in params.items():
         cover = "".join("y" if c else "N" for c in row.get("covered", [])) or "-"
@@ -205,10 +204,10 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)
     out = ws_root / f"water_bench_{name}"
-    corr = correct_folders(ws_root, frames, K, estimate.stack, out)
+    corr = correct_folders(ws_root, frames, K, estimate.stack, out, config.range_agreement)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
-    print(f"   correction (dense range; {100 * corr['mesh_fraction']:.1f} % of pixels from the fused mesh, "
+    print(f"   correction ({100 * corr['mesh_fraction']:.1f} % of pixels ranged from the fused mesh, "
           f"{100 * corr['filled_fraction']:.1f} % from the nearest pixel with range; physics "
           f"{corr['physics_seconds_per_frame']:.2f} s/frame); consistency on {metrics['consistency_points']} points")
     for label in ("raw", "physics", "true_water_dense_range", "oracle"):

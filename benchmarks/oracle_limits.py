@@ -34,10 +34,11 @@ import torch
 
 from eval.baselines import oracle
 from eval.colour import board_accuracy, consistency, truth_board
-from eval.tables import OracleGeometry, fill_nearest, z_to_range
+from eval.tables import OracleGeometry, fill_nearest
 from eval.tracks import Tracks
 from watergan.data import read_depth, read_image, read_nav_altitudes, write_srgb8
 from watergan.formation import Stack
+from watergan.io import z_to_range
 
 
 def with_learned(true_config: list[dict], learned: dict[str, dict], names: tuple[str, ...]) -> list[dict]:

@@ -37,6 +37,7 @@ import numpy as np
 
 from watergan.data import srgb_to_linear
 from watergan.errors import UserInputError
+from watergan.io import read_json
 
 
 def read_rgb(path: str | Path, linear: bool = True) -> np.ndarray:
@@ -223,7 +224,7 @@ def project_board(names: list[str], corners_world: np.ndarray, true_linear_rgb: 
 def load_board_json(path: str | Path) -> Board:
     """A user's board file: ``{"patches": [{"name", "linear_rgb" | "srgb"}...], "images": {file name:
     [[[x, y] x 4] per patch, or null]}}`` with corners in pixels (OpenCV convention)."""
-    data = json.loads(Path(path).read_text())
+    data = read_json(path, "board file")
     try:
         patches = data["patches"]
         names = [p["name"] for p in patches]
@@ -236,7 +237,7 @@ def load_board_json(path: str | Path) -> Board:
                 colours.append(srgb_to_linear(v))
         quads = {name: np.array([q if q is not None else np.full((4, 2), np.nan) for q in per], float)
                  for name, per in data["images"].items()}
-    except (KeyError, TypeError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserInputError(f"board file {path} must have 'patches' (name, linear_rgb or srgb) and 'images' "
                              f"(file name -> per patch 4 pixel corners): {exc}") from exc
     return Board(names=names, true_linear_rgb=np.array(colours, float), quads=quads)

@@ -16,11 +16,12 @@ Pieces (each usable alone):
 
 Candidate ranking: every registered effect not in the stack is a candidate unless it needs whole
 images (``needs_image``), has learned layers, needs a state field the measurements lack, or acts
-identically on every view of a point (then the per-point albedo absorbs it and multi-view colour
-cannot see it). Each candidate is inserted by ``rank`` into the model *as configured* and the
-whole stack is refitted (albedos start from the base fit; a declared light rig is held; effects
-with many local minima start from the best point of the grid their class declares, ``start_grid``,
-also when added with ``--add``). Relative held-out change
+identically on every view of a point at its initial values and at random values inside its bounds
+(then the per-point albedo absorbs it and multi-view colour cannot see it; an effect named with
+``--candidates`` is fitted anyway, and the skip says so). Each candidate is inserted by ``rank``
+into the model *as configured* and the whole stack is refitted (albedos start from the base fit; a
+declared light rig is held; effects with many local minima start from the best point of the grid
+their class declares, ``start_grid``, also when added with ``--add``). Relative held-out change
 d = RMSE_candidate / RMSE_base - 1; its significance is a paired bootstrap over held-out points
 (p = fraction of resamples with d >= 0). A candidate is accepted when p < ``alpha`` and
 d <= -``min_improvement``; the best accepted one is the verdict. Axes whose structure score
@@ -49,7 +50,7 @@ import torch
 from tqdm import tqdm
 
 from watergan.errors import UserInputError
-from watergan.formation import MissingInputError, Stack, available, get
+from watergan.formation import Counts, MissingInputError, Stack, available, get
 from watergan.io import atomic_write_json, atomic_write_text
 
 from .diagnose_fit import (
@@ -115,7 +116,9 @@ class CandidateResult:
     """One candidate's refit. ``change``: relative held-out RMSE change (negative = better);
     ``ci95``: bootstrap 95% interval of it; ``p``: fraction of resamples with no improvement;
     ``flattened``: the axis whose structure score dropped most, with the drop; ``scores`` and
-    ``structure`` (amplitude / residual RMSE) per axis after the refit."""
+    ``structure`` (amplitude / residual RMSE) per axis after the refit; ``implausible``: why its fitted
+    values are not physical (see :func:`why_implausible`; "" when they are): such a candidate is never
+    significant, however much it explains."""
 
     name: str
     heldout_rmse: float
@@ -129,6 +132,7 @@ class CandidateResult:
     scores: dict
     structure: dict
     seconds: float
+    implausible: str = ""
 
 
 @dataclass(frozen=True)
@@ -186,18 +190,25 @@ def small_survey_config(hidden: list | tuple = (), seed: int = 1, width_px: int 
                    formation=replace(cfg.formation, hidden=entries))
 
 
-def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | None = None) -> Stack:
-    """The model to diagnose: the named effects (initial values), or ``model`` (a stack configuration: the
-    site water the water stage estimated), or the survey's visible stack with its parameters when
-    simulated, or attenuation, backscatter, vignetting and gain."""
+def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | None = None,
+                  counts: Counts | None = None) -> Stack:
+    """The model to diagnose: the named effects (initial values; ``counts`` sizes their per-frame and
+    per-light parameters), or ``model`` (a stack configuration: the site water the water stage estimated),
+    or the survey's visible stack with its parameters when simulated, or attenuation, backscatter,
+    vignetting and gain."""
     if effects:
-        return Stack.ordered(list(effects))
+        return Stack.ordered(list(effects), counts)
     if model:
-        return Stack.from_config(list(model))
+        return Stack.from_config(list(model), counts)
     truth_effects = survey / "truth" / "effects.json"
     if truth_effects.is_file():
-        return Stack.from_config(json.loads(truth_effects.read_text())["visible"])
-    return Stack.from_names(list(DEFAULT_EFFECTS))
+        return Stack.from_config(json.loads(truth_effects.read_text())["visible"], counts)
+    return Stack.from_names(list(DEFAULT_EFFECTS), counts)
+
+
+def survey_counts(meas: Measurements) -> Counts:
+    """The survey's frames and declared lights: the rows of per-frame and per-light parameters."""
+    return Counts(frames=len(meas.frames), lights=len(meas.lights) or None)
 
 
 def declared_rig(effect, meas: Measurements) -> tuple[str, ...]:
@@ -207,13 +218,11 @@ def declared_rig(effect, meas: Measurements) -> tuple[str, ...]:
 
 def rig_settings(cls, meas: Measurements) -> dict:
     """Initial values of an effect from the light rig survey.json declares (empty without lights or
-    ``rig_params``): the declared rig parameters, one row per light, and the effect's other per-light
-    parameters (any number of rows, e.g. ``artificial_light``'s power) at their first initial row."""
+    ``rig_params``): the declared rig parameters, one row per light (the effect's other per-light
+    parameters get one row per light from :func:`survey_counts`)."""
     if not meas.lights or not cls.rig_params:
         return {}
-    settings = {key: [light[key] for light in meas.lights] for key in declared_rig(cls, meas)}
-    per_light = [p for p in cls.params if p.name not in cls.rig_params and any(s[:1] == (-1,) for s in p.shapes)]
-    return settings | {p.name: [p.init[0]] * len(meas.lights) for p in per_light}
+    return {key: [light[key] for light in meas.lights] for key in declared_rig(cls, meas)}
 
 
 def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ...]]:
@@ -224,9 +233,10 @@ def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ..
 
 
 def make_effect(name: str, meas: Measurements):
-    """A candidate effect at its initial values (the declared light rig for one with ``rig_params``)."""
+    """A candidate effect at its initial values for this survey (one row per frame or light of its per-frame
+    and per-light parameters; the declared light rig for one with ``rig_params``)."""
     cls = get(name)
-    return cls(**rig_settings(cls, meas))
+    return cls(counts=survey_counts(meas), **rig_settings(cls, meas))
 
 
 def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:
@@ -299,13 +309,15 @@ def start_added(stack: Stack, added: list[str], meas: Measurements, split, confi
     if not gridded:
         return
     without = Stack([e for e in copy_stack(stack).effects if e.name not in gridded])
-    prior = fit_stack(without, meas, split, config.fit, frozen_settings(without, meas))
+    prior = fit_stack(without, meas, split, replace(config.fit, bootstrap=0), frozen_settings(without, meas))
     for name in gridded:
         grid_start(stack, name, prior, meas, split, config)
 
 
 def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
-    """Candidates to try and {name: reason} for the registered effects that are skipped."""
+    """Candidates to try and {name: reason} for the registered effects that are skipped. Effects named in
+    ``only`` are tried even when the per-point albedo seems to absorb them (the screen of
+    :func:`absorbed_by_albedo` is a judgement; the other reasons are things the fit cannot do)."""
     names = list(only) if only else [n for n in available() if n not in stack.names]
     keep, skipped = [], {}
     probe = np.unique(meas.point)[:200]
@@ -324,24 +336,53 @@ def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()
             skipped[name] = "has learned layers (no physical parameters to fit)"
             continue
         try:
-            absorbed = _absorbed_by_albedo(stack, insert_by_rank(stack, effect), state, meas.point[obs])
+            absorbed = absorbed_by_albedo(stack, name, effect, state, meas.point[obs], declared_rig(effect, meas))
         except MissingInputError as exc:
             skipped[name] = f"input missing: {exc}"
             continue
-        if absorbed:
-            skipped[name] = ("acts the same on every view of a point: the per-point albedo absorbs it, so "
-                             "multi-view colour cannot detect it (e.g. light that depends on the point alone)")
+        if absorbed and name not in only:
+            skipped[name] = (f"acts the same on every view of a point at each of {SCREEN_PROBES + 1} parameter "
+                             f"values tried: the per-point albedo absorbs it, so multi-view colour cannot detect it "
+                             f"(e.g. light that depends on the point alone); fit it anyway with --candidates {name}")
             continue
         keep.append(name)
     return keep, skipped
 
 
-def _absorbed_by_albedo(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
-    """True when adding the effect only rescales each point's direct signal by a factor common to
-    all its views and leaves the veiling light unchanged: with T = F(1) - F(0) and B = F(0), the
-    log ratio of T with and without the effect is constant within every point and B is unchanged."""
+#: Random parameter values at which :func:`absorbed_by_albedo` probes a candidate, besides its initial ones.
+SCREEN_PROBES = 3
+
+
+def absorbed_by_albedo(stack: Stack, name: str, effect, state, point: np.ndarray, held: tuple[str, ...] = (),
+                       seed: int = 19) -> bool:
+    """True when adding ``effect`` (named ``name``) only rescales each point's direct signal by a factor
+    common to all its views and leaves the veiling light unchanged, at its initial values and at
+    ``SCREEN_PROBES`` random values inside its bounds: with T = F(1) - F(0) and B = F(0), the log ratio of
+    T with and without the effect is constant within every point and B is unchanged at every probe.
+
+    The random values matter: an effect whose initial values are neutral (a per-frame exposure starting
+    at gain 1 in every frame) is the identity there, which every albedo absorbs. Each learnable
+    parameter not in ``held`` (a declared rig) gets raw values drawn uniformly in [-2, 2], element by
+    element (12-88 % of a bounded span, 0.13-2.1 above a lower bound), so per-frame values differ."""
+    rng = torch.Generator().manual_seed(seed)
+    trial = insert_by_rank(stack, effect).to(torch.float64)
+    probe = trial[name]
+    learnable = [p.name for p in probe.params if p.learnable and p.name not in held]
+    for k in range(SCREEN_PROBES + 1):
+        if k:
+            with torch.no_grad():
+                for pname in learnable:
+                    raw = probe.raw[pname]
+                    raw.copy_(torch.rand(raw.shape, generator=rng, dtype=raw.dtype) * 4.0 - 2.0)
+        if not _absorbed_at(stack, trial, state, point):
+            return False
+    return True
+
+
+def _absorbed_at(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
+    """:func:`absorbed_by_albedo` at the trial stack's current values."""
     renders = []
-    for s in (copy_stack(stack).to(torch.float64), trial.to(torch.float64)):
+    for s in (copy_stack(stack).to(torch.float64), trial):
         with torch.no_grad():
             zero = s.render(state.replace(direct=torch.zeros_like(state.direct)))[:, :, 0, 0]
             renders.append((s.render(state)[:, :, 0, 0] - zero, zero))
@@ -376,7 +417,8 @@ def rank_candidates(stack: Stack, meas: Measurements, base: FitResult, base_scor
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
         trial = insert_by_rank(stack, make_effect(name, meas))
         grid_start(trial, name, base, meas, split, config)
-        fit = fit_stack(trial, meas, split, config.fit, frozen_settings(trial, meas), init_albedo=base.albedo)
+        fit = fit_stack(trial, meas, split, replace(config.fit, bootstrap=0), frozen_settings(trial, meas),
+                        init_albedo=base.albedo)
         change, ci, p = paired_bootstrap(base, fit, config.bootstrap, config.fit.seed)
         cand_analysis = analyse(meas, fit.predicted, fit.residual, config.residuals)
         cand_scores = scores(cand_analysis)
@@ -384,11 +426,41 @@ def rank_candidates(stack: Stack, meas: Measurements, base: FitResult, base_scor
         flattened = max(drops, key=drops.get)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
-            significant=p < config.alpha and change <= -config.min_improvement, flattened=flattened,
+            significant=p < config.alpha and change <= -config.min_improvement and not why_implausible(
+                name, fit.params[name]), flattened=flattened,
             flattened_drop=round(drops[flattened], 3), params=fit.params[name], scores=cand_scores,
-            structure=relative_amplitudes(cand_analysis, fit),
-            seconds=fit.seconds))
+            structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
+            implausible=why_implausible(name, fit.params[name])))
     return sorted(results, key=lambda r: r.change)
+
+
+#: A fitted value within this fraction of its parameter's span from a bound sits on the bound.
+AT_BOUND = 0.005
+
+
+def why_implausible(name: str, params: dict) -> str:
+    """Why the fitted values of candidate ``name`` (``FitResult.params[name]``) are not physical, "" when they
+    are: a fitted value on a bound (within ``AT_BOUND`` of the span; the fit wanted to go further than the
+    effect's form allows) or outside the parameter's declared envelope (``Param.plausible``). A bound at 0
+    is no reason: there a part of the effect is off (no ambient light, no decay), which is physical."""
+    reasons = []
+    for p in get(name).params:
+        entry = params.get(p.name)
+        if entry is None or not entry["fitted"]:
+            continue
+        values = np.ravel(entry["value"])
+        span = p.upper - p.lower if p.bounded_above else max(abs(p.lower), 1.0)
+        on_bound = [v for v in values if (p.lower != 0 and v - p.lower < AT_BOUND * span)
+                    or (p.bounded_above and p.upper != 0 and p.upper - v < AT_BOUND * span)]
+        outside = [v for v in values if p.plausible and not p.plausible[0] <= v <= p.plausible[1]]
+        units = f" {p.units}" if p.units else ""
+        if outside:
+            reasons.append(f"{p.name} = {outside[0]:.3g}{units} outside [{p.plausible[0]:g}, {p.plausible[1]:g}]"
+                           f"{units}")
+        elif on_bound:
+            bound = p.lower if on_bound[0] - p.lower < AT_BOUND * span else p.upper
+            reasons.append(f"{p.name} = {on_bound[0]:.3g}{units} at its bound {bound:g}")
+    return "; ".join(reasons)
 
 
 def relative_amplitudes(analysis: dict, fit: FitResult) -> dict[str, float]:
@@ -404,18 +476,26 @@ def unexplained_axes(final_scores: dict, structure: dict, config: DiagnoseConfig
 
 
 def _short_params(params: dict) -> str:
-    """The first fitted parameter, e.g. "centre_uv (0.61, 0.44)"."""
+    """The first fitted parameter, e.g. "centre_uv (0.61, 0.44)", or its range when it has more than
+    ``SHORT_VALUES`` values (one per frame): "log_gain (16 values, -0.33 to 0.27)"."""
     for pname, p in params.items():
         if p["fitted"]:
-            value = p["value"]
-            text = f"({', '.join(f'{v:.2f}' for v in np.ravel(value))})" if isinstance(value, list) else f"{value:.3g}"
+            value = np.ravel(p["value"])
+            if len(value) > SHORT_VALUES:
+                return f"{pname} ({len(value)} values, {value.min():.2f} to {value.max():.2f})"
+            text = f"({', '.join(f'{v:.2f}' for v in value)})" if isinstance(p["value"], list) else f"{value[0]:.3g}"
             return f"{pname} {text}"
     return ""
 
 
+#: Values of a parameter the verdict lists one by one; more are summarised by their range.
+SHORT_VALUES = 6
+
+
 def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
-                 final_structure: dict | None = None) -> str:
-    """One line naming the missing effect (or none), plus a line on unexplained structure."""
+                 final_structure: dict | None = None, misfit: str = "") -> str:
+    """One line naming the missing effect (or none); a line per candidate that would explain enough but
+    is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure."""
     best = next((r for r in ranking if r.significant), None)
     if best is not None:
         line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
@@ -426,6 +506,12 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
         if ranking:
             top = ranking[0]
             line += f" (best candidate {top.name}: held-out error {top.change * 100:+.1f}%, p = {top.p:.2f})"
+    for r in ranking:
+        if r.implausible and r.p < 0.05 and r.change < 0:
+            line += (f"\nimplausible: {r.name} explains {-r.change:.0%} of the held-out error, but {r.implausible}; "
+                     f"not accepted")
+    if misfit:
+        line += f"\n{misfit}"
     if unexplained:
         size = final_structure or {}
         listed = ", ".join(f"{a} (score {final_scores[a]:.1f}" + (f", {size[a]:.0%} of the RMSE)" if a in size else ")")
@@ -433,6 +519,32 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
         line += (f"\nunexplained structure along: {listed} — no registered candidate explains it; an effect "
                  f"whose signature lies on this axis is missing (write one and pass --plugin FILE.py)")
     return line
+
+
+def added_form_misfit(added: tuple[str, ...], model_scores: dict, structure: dict, config: DiagnoseConfig) -> str:
+    """When the model's structure (``model_scores``, ``structure``: of the fit with the added effects) is still
+    unexplained (:func:`unexplained_axes`) along the axis of the effect added last (``added[-1]``), a line
+    saying that the added effect's form does not fit and where its residual map is; else ""."""
+    if not added:
+        return ""
+    name = added[-1]
+    axis = get(name).axis
+    if axis not in unexplained_axes(model_scores, structure, config):
+        return ""
+    return (f"the added effect's form does not fit: with {name} in the model, structure remains along its own "
+            f"axis, {axis} (score {model_scores[axis]:.1f}, {structure[axis]:.0%} of the RMSE; residual_{axis}.png): "
+            f"the effect at work has another shape than {name}'s (write that form and pass --plugin FILE.py)")
+
+
+def stand_in(r: CandidateResult, added: str) -> CandidateResult:
+    """When the form of the effect ``added`` last does not fit (:func:`added_form_misfit`), a candidate that
+    flattens that effect's axis without it being its own (a sensor curve flattening image position) stands in
+    for the missing form rather than being a missing effect: not significant, with the reason."""
+    axis = get(added).axis
+    if r.flattened != axis or get(r.name).axis == axis:
+        return r
+    reason = f"it flattens {axis}, the axis of {added} whose form does not fit, not its own axis ({get(r.name).axis})"
+    return replace(r, significant=False, implausible="; ".join(filter(None, (r.implausible, reason))))
 
 
 def append_ledger(folder: Path, record: dict) -> None:
@@ -533,11 +645,11 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     start = time.perf_counter()
     progress = config.progress
     survey = check_survey_folder(survey)
-    stack = default_stack(survey, config.effects, model)
-    for name in config.add:
+    for name in (*config.effects, *config.add):
         get(name)
     out.mkdir(parents=True, exist_ok=True)
     meas = measure_survey(survey, config.measure, config.geometry, tracks, scale)
+    stack = default_stack(survey, config.effects, model, survey_counts(meas))
     added = [name for name in config.add if name not in stack.names]
     for name in added:
         stack = insert_by_rank(stack, make_effect(name, meas))
@@ -564,6 +676,9 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
 
     names, skipped = candidate_names(stack, meas, config.candidates)
     ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress)
+    misfit = added_form_misfit(config.add, base_scores, relative_amplitudes(analysis, base), config)
+    if misfit:
+        ranking = [stand_in(r, config.add[-1]) for r in ranking]
     for r in ranking:
         append_ledger(ledger_dir, {"time": time.strftime("%Y-%m-%d %H:%M:%S"), "kind": "candidate",
                                    "stack": [*stack.names, r.name], "params": {r.name: {
@@ -574,7 +689,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     final_scores = best.scores if best is not None else base_scores
     final_structure = best.structure if best is not None else relative_amplitudes(analysis, base)
     unexplained = unexplained_axes(final_scores, final_structure, config)
-    verdict = verdict_text(ranking, unexplained, final_scores, final_structure)
+    verdict = verdict_text(ranking, unexplained, final_scores, final_structure, misfit)
     if meas.source.endswith("(scale: none)"):
         verdict += ("\nnote: the reconstruction has no metric scale (sfm scale 'none'): ranges are in SfM units, so "
                     "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "

@@ -40,6 +40,7 @@ from eval.synth.camera import Intrinsics, project, unproject
 from eval.synth.io import read_png, srgb_decode
 from watergan.errors import UserInputError
 from watergan.formation import state_from_rgbd
+from watergan.io import read_survey_json
 
 
 @dataclass(frozen=True)
@@ -351,7 +352,7 @@ def geometry_from_tracks(tracks_path: str | Path, survey: Path, config: MeasureC
 def _navigation_water_depth(survey: Path, geometry: Geometry) -> np.ndarray | None:
     """Per point, median over its views of nav_depth_k + (C_k - X) . z; None without navigation depths."""
     path = survey / "survey.json"
-    info = json.loads(path.read_text()) if path.is_file() else {}
+    info = read_survey_json(path) if path.is_file() else {}
     if "nav_depth_m" not in info:
         return None
     by_name = dict(zip(info.get("frames", geometry.frames), info["nav_depth_m"], strict=False))
@@ -390,7 +391,7 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     grad_energy = E[L^2] - E[L]^2 over the patch, L the Laplacian of the grey linear image;
     view angle = acos(n . (c - X)/|c - X|), c the camera centre.
     """
-    survey_json = json.loads((survey / "survey.json").read_text()) if (survey / "survey.json").is_file() else {}
+    survey_json = read_survey_json(survey / "survey.json") if (survey / "survey.json").is_file() else {}
     lights = list(survey_json.get("lights") or [])
     site_depth = float(survey_json.get("site_depth_m", 0.0))
     intr = geometry.intrinsics

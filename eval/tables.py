@@ -50,6 +50,7 @@ import numpy as np
 
 from eval.baselines import BASELINES, jaffe_coefficients
 from watergan.errors import UserInputError
+from watergan.io import z_to_range
 
 OURS = "ours"
 PHYSICS = "physics"
@@ -133,13 +134,6 @@ def _camera_K(survey: Path, tracks) -> np.ndarray:
     if cam is None:
         return np.asarray(tracks.K, float)
     return np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
-
-
-def z_to_range(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Ray length r = z |K^-1 (x, y, 1)| of camera z-depth (H,W) (NaN stays NaN)."""
-    h, w = depth_m.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    return depth_m * np.sqrt(((xs - K[0, 2]) / K[0, 0]) ** 2 + ((ys - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
 
 
 def fill_nearest(values: np.ndarray) -> np.ndarray:

@@ -51,19 +51,21 @@ What pins what (and what does not):
   the corrected colours are then in units of that gain (their ratios between channels are still free of it
   only if the gain is grey, which a white balance need not be).
 
-Uncertainty: a two-way bootstrap (``bootstrap`` replicates): frames drawn with replacement (the frames that
-see the board and the others drawn separately, so every replicate keeps the board) and each surface point's
-views weighted Poisson(1) times (the views of one point share its texture and registration errors, so frames
-alone are not independent units). Each replicate is refitted from the full fit: one Newton step with the full
-fit's Hessian (central differences of the gradient; eigenvalues floored at 1e-6 of the largest, the step halved
-until it lowers the replicate's loss), then ``bootstrap_iterations`` L-BFGS steps. Resampling
-cannot see a bias that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the
-board weighted 10x less: how far the correspondences alone pull the estimate from the board's) and each
-parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2),
-clipped to the bounds; coefficients in 1/m also take the range's scale uncertainty (``range_scale_sd``: the
-monocular demo's altitude scale is 1.3 % short, which moves every eta by +1.3 %). The bootstrap percentiles are
-kept too. Pairs of parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs
-(eta_c with k_c through the board's range, B_inf with beta).
+Uncertainty: a bootstrap (``bootstrap`` replicates): frames drawn with replacement (the frames that see the board
+and the others drawn separately, so every replicate keeps the board), each surface point's views weighted Poisson(1)
+times (the views of one point share its texture and registration errors, so frames alone are not independent units)
+and so is each board patch's (a patch's error, e.g. its known colour against what its rendered or printed surface
+gives, is shared by every frame that sees it: with frames alone resampled the board-pinned eta and B_inf had
+intervals of +-1 % that missed 1-2 % errors). Each replicate is refitted from the full fit: one Newton step with the
+full fit's Hessian (central differences of the gradient; eigenvalues floored at 1e-6 of the largest, the step halved
+until it lowers the replicate's loss), then ``bootstrap_iterations`` L-BFGS steps. Resampling cannot see a bias that
+every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x less: how
+far the correspondences alone pull the estimate from the board's) and each parameter's largest change is added in
+quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2), clipped to the bounds; coefficients in 1/m
+also take the range's scale uncertainty (``range_scale_sd``: the monocular demo's altitude scale is 1.3 % short,
+which moves every eta by +1.3 %). The bootstrap percentiles are kept too. Pairs of parameter components whose
+bootstrap correlation exceeds 0.95 are reported as trade-offs (eta_c with k_c through the board's range, B_inf with
+beta).
 
 Why colours are read at a fixed footprint on the surface: with a fixed blur in pixels a near view averages a
 smaller patch of the seafloor's texture than a far view, so the views of one point differ by a texture term
@@ -73,20 +75,24 @@ every view at the same footprint (``footprint_m``) removes most of it (eta withi
 extra weight). This is the likely cause of the diagnosis fit's high eta (it reads 5 px patches at SfM
 features), along with its few points.
 
-Measured (benchmarks/bench_water.py, results/water.json): on the demo with the board (seeds 0 and 1, stereo),
-eta within 1.2 % and B_inf within 2 % of the truth, beta within 5 %, gain within 0.7 %; the monocular demo
-+1.9 % on eta (its altitude scale is 1.3 % short); with ``vignetting_offcentre`` hidden and added, eta within
-1.7 %, B_inf red +12 %. 19 of 24 eta/B_inf intervals cover the truth; the misses are by 1-2 % (eta green and
-B_inf blue on seed 0, B_inf green monocular) and the off-centre survey's eta blue and red B_inf. Without a
-board (gain held at its true value) the correspondences alone: eta +2/-3/+6 %, B_inf +13/-6/-2 %, beta poorly
-pinned (green 0.50 against 0.32).
+Measured (benchmarks/bench_water.py, results/water.json; 2-core machine shared with other jobs): on the demo
+with the board (seeds 0 and 1, stereo) eta within 1.2 % and B_inf within 2 % of the truth, beta within 5 %,
+gain within 0.6 %; the monocular demo +1.9 % on eta (its altitude scale is 1.3 % short, which
+``range_scale_sd`` carries into the interval); with ``vignetting_offcentre`` hidden and added, eta within 1.2 %
+and B_inf within 1.5 %. All 24 eta and B_inf intervals of these four surveys cover the truth (with frames and
+points alone resampled, before the board's patches were, 19 did; with one round of 150 iterations the
+off-centre fit had stopped at red B_inf +12 %). Without a board (gain held at its true value) the
+correspondences alone: eta +2/-3/+6 %, B_inf +13/-6/-2 %, beta poorly pinned (green 0.50 against 0.32).
 
-Known limits: the alternative fit starts where the main fit started (from the main fit's optimum it stopped
-short of its own in the flat red B_inf-beta direction: 0.031 instead of 0.033); in a flat direction any fit
-stops where the loss stops changing, so beta's interval is only as good as that. The added effect's overall
-strength is exactly degenerate with its polynomial (s (a r^2 + b r^4 + c r^6)), and the two vignetting
-effects trade with each other: only their product, and the strength ratios between channels (measured 1 :
-0.900 : 0.811 against 1 : 0.9 : 0.8), are pinned.
+Known limits: in a flat direction (red B_inf against beta, the two vignettings) a fit stops where a round of
+L-BFGS stops gaining, so what lies further along it is only as pinned as ``convergence_rtol`` says; the
+off-centre fit needed 600 iterations (the ``max_iterations`` default). The vignetting polynomial's b and c
+trade with each other (r^4 against r^6; bootstrap correlation -0.96): the falloff as a function is recovered
+within 1 %, but their intervals do not cover the truth (b -0.04 to -0.05 and c 0.09-0.10 against 0 and 0.05
+on every survey). The added effect's overall strength is exactly degenerate with its polynomial (s (a r^2 + b r^4 +
+c r^6)), and the two vignetting effects trade with each other: only their product, and the strength ratios
+between channels, are pinned (the off-centre strengths +12/+11/+12 % each, ratios 1 : 0.892 : 0.797 against
+1 : 0.9 : 0.8).
 
 Bad input: fewer than ``min_frames`` frames with a pose and range, range on too small a part of the frames,
 or too few points seen at different ranges raise :class:`WaterInputError`, saying what to give.
@@ -103,7 +109,7 @@ import numpy as np
 import torch
 
 from watergan.errors import UserInputError
-from watergan.formation import FormationState, Stack
+from watergan.formation import Counts, FormationState, Stack
 
 #: The water stack fitted by default: the simulator's visible physics (WaterGAN's learned backscatter
 #: network is replaced by its analytic counterpart, which has physical parameters to estimate).
@@ -180,14 +186,23 @@ class WaterConfig:
     loss_scale: float = 0.01
     """Soft-L1 scale, linear colour units."""
     iterations: int = 150
-    """L-BFGS iterations of the full fit."""
+    """L-BFGS iterations of a round of the full fit: rounds (a fresh L-BFGS history each) run until one lowers the
+    loss by less than ``convergence_rtol`` or ``max_iterations`` are done. One round is not always enough: with
+    ``vignetting_offcentre`` added the fit crawls along the B_inf-beta valley, and after 150 iterations red B_inf
+    was 0.0337 (truth 0.030) at a loss above the truth's; 450 reached 0.0301."""
+    max_iterations: int = 600
+    """L-BFGS iterations of a fit at most (the main fit and each alternative); the estimate says whether it
+    converged before."""
+    convergence_rtol: float = 1e-3
+    """A fit has converged when a round lowers its loss by less than this fraction."""
     bootstrap: int = 30
     """Bootstrap replicates over frames (0: none; intervals then absent)."""
     bootstrap_iterations: int = 5
     """L-BFGS iterations of each replicate, after a Newton step from the full fit (the full fit's Hessian)."""
     bootstrap_points: bool = True
-    """Resample the surface points too (each point's views weigh Poisson(1) times): the views of one point share
-    its errors (texture, misregistration), so frames alone are not independent units (two-way bootstrap)."""
+    """Resample the surface points and the board's patches too (each one's views weigh Poisson(1) times): the
+    views of one point (one patch) share its errors (texture, misregistration, the patch's colour), so frames
+    alone are not independent units."""
     float32: bool = True
     """Bootstrap replicates evaluate the model in float32 (parameters and loss stay float64): twice as fast, the
     same spread. The main and the alternative fits always run in float64: in float32 L-BFGS can stop early in
@@ -200,21 +215,22 @@ class WaterConfig:
     """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``). A
     scale error s divides every coefficient in 1/m (eta, beta) by s, which no resampling sees: their intervals
     widen by 1.96 x this x value, in quadrature."""
-    spec_iterations: int = 150
-    """L-BFGS iterations of each alternative fit (from the same start as the main fit)."""
     min_frames: int = 4
     """Frames with a pose and range needed."""
     min_range_coverage: float = 0.2
     """Mean fraction of pixels with range needed."""
     min_points: int = 200
     """Points seen in two views whose ranges differ by >= 0.1 m needed."""
-    threads: int = 1
-    """Torch threads of the fit."""
+    threads: int = field(default=1, metadata={"hash": False})
+    """Torch threads of the fit (not hashed: the estimate does not depend on it)."""
     seed: int = 0
     """Seed of the pixel sampling and the bootstrap."""
     board_json: str = ""
     """A colour-board file (:func:`eval.colour.load_board_json`) for the pipeline's water stage; empty: the
     simulated survey's board when there is one, else none (then the gain is held)."""
+    range_agreement: float = 0.01
+    """The pipeline's correction: a pixel keeps its dense range where the fused mesh agrees within this
+    fraction, else takes the mesh's (the estimate itself reads the dense range)."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Progress bars (the pipeline's correction)."""
 
@@ -235,6 +251,7 @@ class Observations:
     frame: np.ndarray       # (N,) frame index
     n_points: int
     image_wh: tuple[int, int]
+    n_frames: int = 0       # frames of the survey (the length of the frames list; sizes per-frame parameters)
     board_colour: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_albedo: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_range_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -242,6 +259,7 @@ class Observations:
     board_pixel_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     board_points_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    board_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (B,) patch index
 
 
 def _rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -420,7 +438,7 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     remap[used] = np.arange(len(used))
     obs = Observations(colour=cat["colour"][order], range_m=cat["range"][order], depth_m=cat["depth"][order],
                        pixel_uv=cat["uv"][order], points_cam=cat["pc"][order], point=remap[cat["point"][order]],
-                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h))
+                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h), n_frames=len(frames))
     if board is not None:
         _add_board(obs, frames, usable, board, K, rays, ray_norm, config)
     _check_diversity(obs, config)
@@ -434,7 +452,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
     import cv2
 
     w, h = obs.image_wh
-    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "frame")}
+    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "frame", "patch")}
     for k in usable:
         f = frames[k]
         quads = board.quads.get(f.name)
@@ -466,6 +484,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
             rows["uv"].append([(xc + 0.5) / w, (yc + 0.5) / h])
             rows["pc"].append(pc)
             rows["frame"].append(k)
+            rows["patch"].append(p)
     if rows["colour"]:
         obs.board_colour = np.array(rows["colour"], np.float64)
         obs.board_albedo = np.array(rows["albedo"], np.float64)
@@ -474,6 +493,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         obs.board_pixel_uv = np.array(rows["uv"], np.float64)
         obs.board_points_cam = np.array(rows["pc"], np.float64)
         obs.board_frame = np.array(rows["frame"], np.int64)
+        obs.board_patch = np.array(rows["patch"], np.int64)
 
 
 def _check_diversity(obs: Observations, config: WaterConfig) -> None:
@@ -492,11 +512,13 @@ def _check_diversity(obs: Observations, config: WaterConfig) -> None:
 # ------------------------------------------------------------------------------------------ fit
 
 
-def build_stack(config: WaterConfig) -> Stack:
-    """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``."""
+def build_stack(config: WaterConfig, n_frames: int | None = None) -> Stack:
+    """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``; parameters held per
+    frame (``Param(per="frame")``, e.g. a plugin's auto-exposure) get ``n_frames`` rows."""
     given = {e["name"]: dict(e.get("params", {})) for e in config.initial}
     names = dict.fromkeys(list(config.effects) + list(given))
-    return Stack.ordered([{"name": n, "params": given.get(n, {})} for n in names]).to(torch.float64)
+    return Stack.ordered([{"name": n, "params": given.get(n, {})} for n in names],
+                         counts=Counts(frames=n_frames)).to(torch.float64)
 
 
 def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.float64) -> FormationState:
@@ -539,6 +561,7 @@ class _Problem:
         self.point = torch.from_numpy(obs.point)
         self.has_board = len(obs.board_colour) > 0
         self.point_weight: torch.Tensor | None = None  # (P,) bootstrap weights of the points (None: all 1)
+        self.patch_weight: torch.Tensor | None = None  # (patches,) bootstrap weights of the board's patches
         if self.has_board:
             self.board_state = _state(obs.board_range_m, obs.board_depth_m, obs.board_pixel_uv,
                                       obs.board_points_cam, obs.board_frame, obs.image_wh, dt)
@@ -575,6 +598,8 @@ class _Problem:
         total = ((w[:, None] * _soft_l1(e, self.config.loss_scale)).sum() / w.sum().clamp_min(1e-12)).double()
         if self.has_board:
             wb = frame_weight[torch.from_numpy(self.obs.board_frame)]
+            if self.patch_weight is not None:
+                wb = wb * self.patch_weight.to(wb.dtype)[torch.from_numpy(self.obs.board_patch)]
             ab, cb = _affine(self.stack, self.board_state)
             eb = self.board_y - (ab * self.board_j + cb)
             total = total + self.config.board_weight * ((wb[:, None] * _soft_l1(eb, self.config.loss_scale)).sum()
@@ -596,6 +621,17 @@ class _Problem:
         opt.step(closure)
         with torch.no_grad():
             return float(self.loss(frame_weight))
+
+    def converge(self, frame_weight: torch.Tensor, config: WaterConfig) -> tuple[int, bool]:
+        """Rounds of :meth:`minimise` (see ``WaterConfig.iterations``); returns (iterations, converged)."""
+        loss = self.minimise(frame_weight, config.iterations)
+        done = step = config.iterations
+        while done + step <= config.max_iterations:
+            before, loss = loss, self.minimise(frame_weight, step)
+            done += step
+            if before - loss <= config.convergence_rtol * abs(before):
+                return done, True
+        return done, False
 
     def flat(self) -> torch.Tensor:
         return torch.cat([p.detach().reshape(-1) for p in self.theta])
@@ -697,6 +733,10 @@ class WaterEstimate:
     rmse: float
     seconds: dict
     alternatives: list = field(default_factory=list)
+    iterations: int = 0
+    """L-BFGS iterations of the main fit."""
+    converged: bool = True
+    """Whether the main fit converged (see ``WaterConfig.convergence_rtol``) within ``max_iterations``."""
     residuals: dict | None = None
     """Per view: residual (N,3) (observed - fitted, linear), range_m (N,), radius (N,) (distance from the
     image centre, 1 at the corners); not in :meth:`to_json`."""
@@ -705,6 +745,7 @@ class WaterEstimate:
         return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed,
                 "tradeoffs": self.tradeoffs, "n_points": self.n_points, "n_observations": self.n_observations,
                 "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
+                "iterations": self.iterations, "converged": self.converged,
                 "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
                             "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
                             "largest change of the estimate under the alternative weightings "
@@ -718,7 +759,8 @@ class WaterEstimate:
                 p = self.params[key]
                 parts.append(f"{key.split('.')[1]} " + "/".join(
                     f"{v:.3f}[{lo:.3f},{hi:.3f}]" for v, lo, hi in zip(p["value"], p["low"], p["high"], strict=True)))
-        return "water: " + "; ".join(parts) + f" (rmse {self.rmse:.4f}, {self.n_points} points)"
+        unconverged = "" if self.converged else f", not converged in {self.iterations} iterations"
+        return "water: " + "; ".join(parts) + f" (rmse {self.rmse:.4f}, {self.n_points} points{unconverged})"
 
 
 def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> WaterEstimate:
@@ -727,19 +769,18 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, config.threads))
     try:
-        stack = build_stack(config)
+        stack = build_stack(config, obs.n_frames or int(obs.frame.max()) + 1)
         fixed = {name: "held at its configured value" for name in config.fixed_effects}
         if len(obs.board_colour) == 0 and "gain" in stack.names:
             fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
         problem = _Problem(stack, obs, config, tuple(fixed))
         _start_inside(problem)
         fast = _Problem(stack, obs, config, tuple(fixed), float32=True) if config.float32 else problem
-        start_raw = problem.get_raw()
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
         n_frames_total = int(frames.max()) + 1
         ones = torch.zeros(n_frames_total, dtype=torch.float64)
         ones[torch.from_numpy(frames)] = 1.0
-        problem.minimise(ones, config.iterations)
+        iterations, converged = problem.converge(ones, config)
         best_raw = problem.get_raw()
         best = problem.physical()
         t_fit = time.perf_counter() - t0
@@ -760,6 +801,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
             weight = torch.from_numpy(wts)
             if config.bootstrap_points:
                 fast.point_weight = torch.from_numpy(rng.poisson(1.0, obs.n_points).astype(np.float64))
+                if problem.has_board:
+                    n_patches = int(obs.board_patch.max()) + 1
+                    fast.patch_weight = torch.from_numpy(rng.poisson(1.0, n_patches).astype(np.float64))
             fast.set_flat(x0)
             step = -(inv @ fast.gradient(weight))  # a Newton step from the full fit, halved until it helps
             with torch.no_grad():
@@ -775,7 +819,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
                 fast.minimise(weight, config.bootstrap_iterations)
             samples.append(fast.physical())
         problem.set_raw(best_raw)
-        fast.point_weight = None
+        fast.point_weight = fast.patch_weight = None
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives
         if alternatives is None:
@@ -784,8 +828,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         spec = {}
         for change in alternatives:
             problem.config = replace(config, **change)
-            problem.set_raw(start_raw)  # a fresh fit: from the main fit it stops short in flat directions
-            problem.minimise(ones, config.spec_iterations)
+            problem.set_raw(best_raw)
+            problem.converge(ones, problem.config)
             for key, value in problem.physical().items():
                 spec[key] = np.maximum(spec.get(key, 0.0), np.abs(value - best[key]))
         problem.config = config
@@ -804,7 +848,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
                                         "radius": np.hypot(*(2 * obs.pixel_uv - 1).T) / np.sqrt(2)},
                              rmse=rmse, seconds={"fit": round(t_fit, 2), "bootstrap": round(t_boot, 2),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
-                             alternatives=[dict(a) for a in alternatives])
+                             alternatives=[dict(a) for a in alternatives], iterations=iterations,
+                             converged=converged)
     finally:
         torch.set_num_threads(threads)
 
@@ -875,7 +920,7 @@ def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
 
 
 def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[dict],
-                    K: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    K: np.ndarray | None = None, frame_index: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
     J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
     J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
@@ -885,6 +930,8 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
     stack:   a :class:`Stack` or its configuration (e.g. ``WaterEstimate.stack``).
     K:       (3,3) intrinsics; gives effects the camera-frame points and depth (needed by e.g.
              ``artificial_light``); without it depth = range and no points.
+    frame_index: the frame's index in the survey (the estimate's frames list): the row that parameters held
+             per frame take.
     Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
     without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
     if not isinstance(stack, Stack):
@@ -907,7 +954,8 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
     state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=torch.float64),
                            range_m=torch.from_numpy(r_filled[None, None].copy()),
                            pixel_uv=pixel_grid(h, w, 1, torch.float64), image_wh=(w, h),
-                           valid=torch.from_numpy(valid)[None, None], **fields)
+                           valid=torch.from_numpy(valid)[None, None], frame_index=torch.tensor([frame_index]),
+                           **fields)
     stack = stack.to(torch.float64)
     with torch.no_grad():
         a, c = _affine_images(stack, state)

@@ -27,10 +27,7 @@ from .cliargs import add_config, config_from_args
 
 
 def print_sfm(ws, r) -> None:
-    print(f"sfm: registered {r.n_registered} of {r.n_images} images, {r.n_points} points "
-          f"(mean track {r.mean_track_length:.1f}, reprojection {r.mean_reprojection_error_px:.2f} px), "
-          f"{r.matching} matching, scale from {r.scale_method} (x{r.scale_factor:.4g}, "
-          f"spread {100 * r.scale_spread:.1f} %), {r.seconds:.1f} s")
+    print(r.summary())
     print(f"model:  {ws.path(r.model_dir)}\ntracks: {ws.path(r.tracks)}")
 
 

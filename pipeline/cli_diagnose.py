@@ -30,9 +30,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
           f"held-out RMSE {result.heldout_rmse:.5f} (linear)")
     print("structure score per axis (about 1 = no structure): "
           + ", ".join(f"{axis} {score:.1f}" for axis, score in result.scores.items()))
-    print("candidates (held-out error change, 95% CI, p, axis flattened):")
+    print("candidates (held-out error change, 95% CI, p, axis flattened; * accepted, ! implausible values):")
     for r in result.ranking:
-        mark = "*" if r["significant"] else " "
+        mark = "*" if r["significant"] else "!" if r["implausible"] else " "
         print(f" {mark} {r['name']:24} {r['change'] * 100:+6.1f}%  [{r['ci95'][0] * 100:+.1f}%, "
               f"{r['ci95'][1] * 100:+.1f}%]  p={r['p']:.3f}  {r['flattened']}")
     for name, reason in result.skipped.items():

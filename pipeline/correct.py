@@ -46,6 +46,7 @@ from watergan.data import (
     read_nav_altitudes,
 )
 from watergan.device import Device, pick_device
+from watergan.io import bit_depth
 from watergan.nets.restorer import restore
 from watergan.train_restorer import load_restorer
 
@@ -64,21 +65,6 @@ class CorrectResult:
     failed: list[str] = field(default_factory=list)
     """"path: reason" for each image that could not be read."""
     seconds: float = 0.0
-
-
-def _bit_depth(path: Path, image: np.ndarray | None = None) -> int:
-    """8 or 16: a PNG's IHDR bit depth (byte 24), 8 for JPEG; a TIFF's from its decoded type."""
-    suffix = path.suffix.lower()
-    if suffix == ".png":
-        with path.open("rb") as f:
-            header = f.read(25)
-        return 16 if len(header) == 25 and header[24] == 16 else 8
-    if suffix in (".jpg", ".jpeg"):
-        return 8
-    import cv2
-
-    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    return 16 if decoded is not None and decoded.dtype == np.uint16 else 8
 
 
 def _outputs(out: Path, stem: str) -> tuple[Path, Path, Path]:
@@ -145,7 +131,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     for k, path in enumerate(chunk.paths):
         try:
             image = read_image(path, "linear")  # the stored values, 0..1
-            bits = _bit_depth(path)
+            bits = bit_depth(path)
         except DataError as exc:
             result.failed.append(str(exc))
             if bar is not None:

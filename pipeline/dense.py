@@ -50,7 +50,6 @@ run's. Patch-match and the fusion run here.
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
 import zlib  # noqa: F401  must load before pycolmap (see pipeline.sfm)
@@ -61,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import read_camera_json
 
 
 class DenseMethod(StrEnum):
@@ -512,7 +512,7 @@ def run_dense(ws, cfg: DenseConfig) -> DenseResult:
             result.points_ply, result.mesh_ply = ws.relative(result.points_ply), ws.relative(result.mesh_ply)
         return result
     camera_path = images_dir.parent / "camera.json"
-    baseline_m = json.loads(camera_path.read_text()).get("baseline_m") if camera_path.is_file() else None
+    baseline_m = (read_camera_json(camera_path) or {}).get("baseline_m")
     if baseline_m and cfg.pairs != "neighbours" and sfm.scale_method == "none":
         raise UserInputError("the SfM model has no metric scale, so the rig baseline cannot be placed in it: "
                              "rerun sfm with --scale stereo/altitude or use --pairs neighbours")

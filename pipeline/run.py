@@ -29,7 +29,7 @@ from watergan.errors import UserInputError
 from watergan.io import atomic_write_json
 
 from .cliargs import Option, build, convert, options, with_values
-from .survey import SurveyConfig, check_survey  # noqa: F401  (check_survey: the survey's checks, for callers)
+from .survey import SurveyConfig, check_survey
 from .workspace import Workspace, config_hash
 
 
@@ -210,6 +210,25 @@ def survey_config(opts: RunOptions) -> SurveyConfig:
                         str(Path(opts.rgbd_dir).resolve()) if opts.rgbd_dir else "", opts.seed)
 
 
+def check_inputs(opts: RunOptions) -> None:
+    """Every file the run reads from the user, checked before any stage runs: the survey folder
+    (:func:`check_survey`, also when its stage finished earlier: the files may have changed since) and
+    the board files the options name. A bad one is a :class:`UserInputError` naming it."""
+    from eval.colour import load_board_json
+
+    from .sfm import read_board_corners
+
+    check_survey(Path(opts.survey_dir))
+    sfm = opts.stages.get("sfm", {})
+    if sfm.get(("board_json",)):
+        read_board_corners(Path(sfm[("board_json",)]), sfm.get(("board_width_m",), 0.0),
+                           sfm.get(("board_height_m",), 0.0))
+    for group in ("water", "eval"):
+        path = opts.stages.get(group, {}).get(("board_json",))
+        if path:
+            load_board_json(path)
+
+
 def run_all(opts: RunOptions) -> dict:
     """Run (or skip) every stage; returns the summary written to ``WORKSPACE/run_summary.json``."""
     from .stages import STAGES
@@ -222,6 +241,7 @@ def run_all(opts: RunOptions) -> dict:
     gan_effects = opts.stages.get("gan", {}).get(("effects",), ())
     for name in (*gan_effects, *opts.add, *opts.stages.get("diagnose", {}).get(("effects",), ())):
         get(name)  # an unknown effect fails now, not after minutes of training
+    check_inputs(opts)
     ws = Workspace(opts.workspace)
     forced = set(STAGES) if "all" in opts.force else set(opts.force)
     began = time.perf_counter()

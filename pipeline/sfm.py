@@ -33,11 +33,12 @@ Pixel convention everywhere outside COLMAP: OpenCV, the centre of pixel (column 
 
 from __future__ import annotations
 
-import json
 import shutil
+import sys
 import time
 import zlib  # noqa: F401  must load before pycolmap: pycolmap first makes Python's zlib corrupt the heap
-from dataclasses import dataclass
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 
@@ -46,7 +47,7 @@ import numpy as np
 from eval.tracks import Tracks
 from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
-from watergan.io import image_files, read_camera_json
+from watergan.io import image_files, read_camera_json, read_json, read_survey_json
 
 
 class Matching(StrEnum):
@@ -110,6 +111,8 @@ class SfmConfig:
     """Navigation file with ``nav_altitude_m`` per frame; empty: ``survey.json`` beside the images folder."""
     seed: int = 0
     """Random seed of COLMAP's RANSAC and mapper."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Print a one-line summary when SfM ends (COLMAP's own log is kept to its errors either way)."""
 
 
 @dataclass
@@ -138,6 +141,13 @@ class SfmResult:
     """Median absolute deviation / median of the per-sample scale estimates (0 for 'none')."""
     seconds: float
     """Wall time of the stage."""
+
+    def summary(self) -> str:
+        """One line: registration, points, track length, reprojection error, matching, scale, time."""
+        return (f"sfm: registered {self.n_registered} of {self.n_images} images, {self.n_points} points "
+                f"(mean track {self.mean_track_length:.1f}, reprojection {self.mean_reprojection_error_px:.2f} px), "
+                f"{self.matching} matching, scale from {self.scale_method} (x{self.scale_factor:.4g}, "
+                f"spread {100 * self.scale_spread:.1f} %), {self.seconds:.1f} s")
 
 
 def _pose_matrix(image) -> np.ndarray:
@@ -244,8 +254,8 @@ def triangulate_dlt(projections: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
                        ) -> tuple[dict[str, np.ndarray], float, float]:
     """Board file -> (image name -> (Q,4,2) pixel quads, NaN when not visible; true width; true height)."""
+    data = read_json(path, "board file")
     try:
-        data = json.loads(Path(path).read_text())
         images = {}
         for name, corners in data["images"].items():
             if corners is None:
@@ -253,13 +263,13 @@ def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
             quads = [q if q is not None else [[np.nan, np.nan]] * 4 for q in corners] \
                 if np.ndim(corners[0]) == 2 or corners[0] is None else [corners]
             images[name] = np.array(quads, float).reshape(-1, 4, 2)
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+    except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
         raise UserInputError(f"board file {path} must have 'images' (file name -> 4 pixel corners, or 4 per "
                              f"patch): {exc}") from exc
     side = data.get("patch_side_m", 0.0)
     width_m = width_m or data.get("width_m", side)
     height_m = height_m or data.get("height_m", side) or width_m
-    if not width_m > 0:
+    if not all(isinstance(v, int | float) and v > 0 for v in (width_m, height_m)):
         raise UserInputError(f"give the board's true size (width_m/height_m or patch_side_m in {path}, "
                              f"or --board-width-m/--board-height-m)")
     if len({q.shape[0] for q in images.values()}) > 1:
@@ -328,18 +338,36 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
     names, cam = _sfm_inputs(images_dir, cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     database = out_dir / "database.db"
-    _extract_features(database, images_dir, names, cam, cfg)
-    matching = _match_features(database, names, cfg)
-    raw_dir = out_dir / "colmap_raw"
-    rec, n_reg = _map_incrementally(database, images_dir, raw_dir, names, cam, cfg)
+    with colmap_errors_only():
+        _extract_features(database, images_dir, names, cam, cfg)
+        matching = _match_features(database, names, cfg)
+        raw_dir = out_dir / "colmap_raw"
+        rec, n_reg = _map_incrementally(database, images_dir, raw_dir, names, cam, cfg)
     tracks, method, scale, spread = _to_survey_frame(rec, names, images_dir, cam, cfg)
     model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)
-    return SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
-                     n_registered=n_reg, n_points=len(tracks.xyz),
-                     mean_track_length=float(rec.compute_mean_track_length()),
-                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
-                     matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
-                     seconds=time.perf_counter() - start)
+    result = SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
+                       n_registered=n_reg, n_points=len(tracks.xyz),
+                       mean_track_length=float(rec.compute_mean_track_length()),
+                       mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+                       matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
+                       seconds=time.perf_counter() - start)
+    if cfg.progress:
+        print(result.summary(), file=sys.stderr, flush=True)
+    return result
+
+
+@contextmanager
+def colmap_errors_only():
+    """COLMAP's log (glog: thousands of INFO lines and boilerplate warnings for a survey) kept to its errors
+    while the block runs; the level is restored after it."""
+    import pycolmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 2  # glog: 0 INFO, 1 WARNING, 2 ERROR
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
 
 
 def _sfm_inputs(images_dir: Path, cfg: SfmConfig) -> tuple[list[str], dict | None]:
@@ -466,7 +494,7 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
     right_dir = Path(cfg.right_dir) if cfg.right_dir else root / "right"
     survey_path = Path(cfg.survey_json) if cfg.survey_json else root / "survey.json"
     has_stereo = cam is not None and "baseline_m" in cam and right_dir.is_dir()
-    survey = json.loads(survey_path.read_text()) if survey_path.is_file() else {}
+    survey = read_survey_json(survey_path) if survey_path.is_file() else {}
     has_altitude = "nav_altitude_m" in survey
     choices = {"auto": ["stereo", "board", "altitude", "none"], "stereo": ["stereo"], "board": ["board"],
                "altitude": ["altitude"], "none": ["none"]}

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
-from watergan.io import read_camera_json, read_json
+from watergan.io import read_camera_json, read_json, read_survey_json
 
 from .workspace import Workspace
 
@@ -61,17 +61,20 @@ def check_survey(survey_dir: Path) -> dict:
     if not (survey_dir / "camera.json").is_file():
         raise UserInputError(f"{survey_dir} has no camera.json (fx, fy, cx, cy, width, height): SfM and the "
                              f"range of each pixel need the intrinsics")
-    read_camera_json(survey_dir / "camera.json")  # malformed JSON or a missing key: an error naming the file
+    cam = read_camera_json(survey_dir / "camera.json")  # malformed JSON, a missing key or a bad value: an error
+    (h, w), = sizes
+    if (cam["width"], cam["height"]) != (w, h):
+        raise UserInputError(f"camera file {survey_dir / 'camera.json'} is for {cam['width']}x{cam['height']} images; "
+                             f"the images in {images_dir} are {w}x{h}")
     if (survey_dir / "survey.json").is_file():
-        declared = read_json(survey_dir / "survey.json", "survey file")
-        if isinstance(declared, dict) and "lights" in declared:
+        declared = read_survey_json(survey_dir / "survey.json")
+        if "lights" in declared:
             from watergan.formation.effects.artificial_light import check_rig
 
             try:
                 check_rig(declared["lights"])
             except ValueError as exc:
-                raise UserInputError(f"{survey_dir / 'survey.json'}: lights: {exc}") from exc
-    (h, w), = sizes
+                raise UserInputError(f"survey file {survey_dir / 'survey.json'}: lights: {exc}") from exc
     return {"n_images": len(files), "width": w, "height": h, "stereo": stereo,
             "simulated": (survey_dir / "truth" / "effects.json").is_file()}
 

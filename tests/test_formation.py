@@ -10,8 +10,10 @@ from conftest import make_state
 from torch.func import functional_call
 
 from watergan.formation import (
+    Counts,
     Effect,
     MissingInputError,
+    Param,
     ParameterError,
     PluginError,
     Stack,
@@ -394,3 +396,40 @@ def test_entry_point_group_registers_a_packaged_effect(tmp_path, monkeypatch):
     assert "test_dim_entry_point" in available()
     s = make_state()
     assert torch.allclose(Stack.from_names(["test_dim_entry_point"]).double().render(s), 0.5 * s.direct)
+
+
+class _FrameOffset(Effect):
+    """A per-frame effect made in the test (not registered): each frame's signal scaled by exp(g_k)."""
+
+    name = "test_frame_offset"
+    axis = "frame"
+    params = (Param("log_gain", (0.0, 0.0, 0.0), -1.0, 1.0, "", "per channel, per frame", per="frame"),)
+
+    def forward(self, state):
+        return state.replace(direct=state.direct * torch.exp(self.per_frame("log_gain", state))[..., None, None])
+
+
+def test_per_frame_parameter_is_sized_by_the_survey_and_read_by_frame_index(state):
+    effect = _FrameOffset(Counts(frames=5))
+    assert effect.param("log_gain").shape == (5, 3) and not effect.param("log_gain").any()
+    effect.set_values(log_gain=[[0.1 * k] * 3 for k in range(5)])
+    out = effect(state)  # the conftest state's frames are 3 and 4
+    for b, k in enumerate(state.frame_index.tolist()):
+        assert torch.allclose(out.direct[b], state.direct[b] * math.exp(0.1 * k))
+    assert _FrameOffset(log_gain=[[0.0] * 3] * 9).param("log_gain").shape == (9, 3)  # given: any number of frames
+    with pytest.raises(ParameterError, match="one value per survey frame"):
+        _FrameOffset()
+    with pytest.raises(ParameterError, match=r"holds 2 frames' values; the data has frame 4"):
+        _FrameOffset(Counts(frames=2))(state)
+    with pytest.raises(ParameterError, match=r"expected \(N frames, 3\)"):
+        _FrameOffset(log_gain=[0.0, 0.0, 0.0])
+    assert "log_gain = (0.0, 0.0, 0.0) per frame" in _FrameOffset.describe()
+
+
+def test_per_light_parameters_take_one_row_per_declared_light():
+    light = get("artificial_light")(Counts(lights=2))
+    assert light.param("offset_m").shape == (2, 3)
+    assert torch.allclose(light.param("power"), torch.tensor([4.0, 4.0], dtype=torch.float64))
+    assert get("artificial_light")().param("offset_m").shape == (1, 3)  # no count: one light
+    stack = Stack.from_names(["artificial_light"], Counts(frames=7, lights=3))
+    assert stack["artificial_light"].param("beam_deg").shape == (3,)

@@ -95,6 +95,14 @@ def test_good_survey_is_accepted(tmp_path):
     ("not_an_image", "not a readable"),
     ("right_unpaired", "do not pair"),
     ("no_camera", "no camera.json"),
+    ("camera_not_json", r"camera file .*camera.json is not valid JSON"),
+    ("camera_bad_value", r"camera file .*camera.json: fx = 'fifty' is not a positive number"),
+    ("camera_other_size", r"camera file .*camera.json is for 320x240 images; the images .* are 64x48"),
+    ("survey_not_json", r"survey file .*survey.json is not valid JSON"),
+    ("survey_bad_altitude", r"survey file .*survey.json: nav_altitude_m is not a positive number for 1 frames "
+                            r"\(e.g. f1.png: -2.0\)"),
+    ("survey_short_list", r"survey file .*survey.json: 2 nav_depth_m values for 4 frames"),
+    ("survey_bad_light", r"survey file .*survey.json: lights\[0\].offset_m = 'left' is not a number"),
 ])
 def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
     survey = tmp_path / "survey"
@@ -116,6 +124,20 @@ def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
         shutil.copy(images / "f0.png", survey / "right" / "g0.png")
     elif problem == "no_camera":
         (survey / "camera.json").unlink()
+    elif problem.startswith("camera_"):
+        camera = json.loads((survey / "camera.json").read_text())
+        text = {"camera_not_json": json.dumps(camera)[:30],
+                "camera_bad_value": json.dumps({**camera, "fx": "fifty"}),
+                "camera_other_size": json.dumps({**camera, "width": 320, "height": 240})}[problem]
+        (survey / "camera.json").write_text(text)
+    elif problem.startswith("survey_"):
+        frames = sorted(p.name for p in images.iterdir())
+        good = {"frames": frames, "nav_altitude_m": [2.0] * 4, "nav_depth_m": [10.0] * 4, "lights": []}
+        text = {"survey_not_json": json.dumps(good)[:-20],
+                "survey_bad_altitude": json.dumps({**good, "nav_altitude_m": [2.0, -2.0, 2.0, 2.0]}),
+                "survey_short_list": json.dumps({**good, "nav_depth_m": [10.0, 10.0]}),
+                "survey_bad_light": json.dumps({**good, "lights": [{"offset_m": "left"}]})}[problem]
+        (survey / "survey.json").write_text(text)
     before = sorted(p.name for p in survey.rglob("*"))
     with pytest.raises(UserInputError, match=message):
         run_all(RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False))
@@ -127,6 +149,39 @@ def test_cli_bad_survey_is_a_clear_error(tmp_path):
     out = watergan("run", str(tmp_path / "missing"), "--workspace", str(tmp_path / "ws"))
     assert out.returncode == 2
     assert "does not exist" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_survey_file_spoilt_after_the_survey_stage_is_refused_on_the_next_run(tmp_path):
+    """The survey stage finished earlier is skipped, but its checks run again before anything trains."""
+    from pipeline.workspace import Workspace
+
+    survey = tmp_path / "survey"
+    _survey(survey)
+    opts = RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False)
+    Workspace(opts.workspace).run("survey", survey_config(opts))
+    (survey / "survey.json").write_text('{"frames": ["f0.png", "f1.png"], "nav_altitude_m": [2.0, ')
+    with pytest.raises(UserInputError, match="survey.json is not valid JSON"):
+        run_all(opts)
+    assert not (tmp_path / "ws" / "01_gan").exists()
+
+
+@pytest.mark.parametrize("what", ["survey", "camera", "sfm_board", "eval_board", "toml"])
+def test_cli_bad_input_file_is_one_line_naming_it_and_exit_2(tmp_path, what):
+    """Each bad input file stops `watergan run` at once: exit 2, one line naming the file, no traceback, no
+    training, the user's files unchanged."""
+    survey = tmp_path / "survey"
+    _survey(survey)
+    bad = {"survey": survey / "survey.json", "camera": survey / "camera.json", "sfm_board": tmp_path / "board.json",
+           "eval_board": tmp_path / "board.json", "toml": tmp_path / "run.toml"}[what]
+    bad.write_text('{"images": {"f0.png": [[1, 2], [3, ' if what != "toml" else "gan_budget_min = [1.5\n")
+    options = {"sfm_board": ["--sfm-board-json", str(bad)], "eval_board": ["--eval-board-json", str(bad)],
+               "toml": ["--config", str(bad)]}.get(what, [])
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    out = watergan("run", str(survey), "--workspace", str(tmp_path / "ws"), "--no-progress", *options)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert len(out.stderr.strip().splitlines()) == 1 and str(bad) in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr and not (tmp_path / "ws" / "01_gan").exists()
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file() and "ws" not in p.parts} == before
 
 
 def test_options_file_and_unknown_keys(tmp_path):

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, similarity_align
+from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, run_sfm_folder, similarity_align
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 
@@ -118,6 +118,18 @@ def test_too_few_registered_images_is_a_clear_error(tmp_path):
     ws = Workspace(tmp_path / "ws")
     with pytest.raises(UserInputError, match=r"registered only \d+ of 4 images.*exhaustive"):
         run_sfm(ws, SfmConfig(images_dir=str(images)))
+
+
+def test_colmap_log_is_silenced_and_sfm_ends_in_one_line(sfm, tmp_path, capfd):
+    """pycolmap's INFO log (hundreds of lines on this survey) never reaches the terminal; with progress
+    the stage prints one summary line, without it nothing."""
+    survey, _, _ = sfm
+    result = run_sfm_folder(survey / "images", tmp_path / "loud", SfmConfig(progress=True))
+    captured = capfd.readouterr()
+    assert captured.err.strip().splitlines() == [result.summary()] and captured.out == ""
+    run_sfm_folder(survey / "images", tmp_path / "quiet", SfmConfig(progress=False))
+    captured = capfd.readouterr()
+    assert captured.err == "" and captured.out == ""
 
 
 def test_missing_images_folder_is_a_clear_error(tmp_path):

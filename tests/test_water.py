@@ -263,3 +263,97 @@ def test_the_water_stage_needs_the_dense_range(tmp_path):
                                           seconds=0.0))
     with pytest.raises(UserInputError, match="run the dense stage first"):
         ws.run("water", WaterConfig())
+
+
+def test_board_patches_are_bootstrap_units(survey):
+    """Every board row names its patch (the bootstrap weighs each patch's views together)."""
+    from eval.water import measure
+
+    frames, board = survey
+    obs = measure(frames, K, board=board, config=WaterConfig(samples_per_frame=50, margin_px=4))
+    assert len(obs.board_patch) == len(obs.board_colour) > 20
+    np.testing.assert_array_equal(obs.board_albedo, BOARD_RGB[obs.board_patch])
+
+
+def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disagrees(tmp_path):
+    """Dense range kept where the fused mesh agrees within 1 %; the mesh's range where the dense range is missing
+    or off (an outlier); a frame without a pose keeps its dense range."""
+    import open3d as o3d
+
+    from pipeline.water import correction_range
+
+    plane = o3d.geometry.TriangleMesh()  # the seafloor z = 0 under the camera, 4 m x 4 m
+    plane.vertices = o3d.utility.Vector3dVector(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], float))
+    plane.triangles = o3d.utility.Vector3iVector(np.array([[0, 1, 2], [0, 2, 3]]))
+    mesh_ply = tmp_path / "fused_mesh.ply"
+    o3d.io.write_triangle_mesh(str(mesh_ply), plane)
+    m = pose(0.0, 0.0, 2.0)
+    _, true_range, _ = render(m, Stack.from_config(TRUE))
+    dense = true_range * 1.004  # agrees within 1 %
+    dense[:10] = np.nan  # no dense range
+    dense[30:40, 30:40] *= 1.1  # an outlier patch
+    frame = WaterFrame(name="a.png", image=np.zeros((H, W, 3), np.float32), range_m=dense.astype(np.float32),
+                       world_from_cam=m)
+    r, from_mesh, _ = correction_range(frame, K, mesh_ply, agreement=0.01)
+    kept = np.ones((H, W), bool)
+    kept[:10] = False
+    kept[30:40, 30:40] = False
+    np.testing.assert_allclose(r[kept], dense[kept], rtol=1e-6)
+    np.testing.assert_allclose(r[~kept], true_range[~kept], rtol=1e-4)
+    np.testing.assert_array_equal(from_mesh, ~kept)
+    no_pose = WaterFrame(name="b.png", image=frame.image, range_m=frame.range_m, world_from_cam=None)
+    r, from_mesh, _ = correction_range(no_pose, K, mesh_ply, agreement=0.01)
+    assert not from_mesh.any() and np.isnan(r[:10]).all()
+
+
+def test_a_fit_stopped_before_convergence_says_so(survey):
+    """Rounds of L-BFGS run until one gains less than convergence_rtol; a fit cut short by max_iterations is
+    reported as not converged (in the estimate and its summary line), one given room converges."""
+    frames, board = survey
+    short = estimate_water(frames, K, board=board, config=WaterConfig(iterations=2, max_iterations=3, bootstrap=0,
+                                                                      margin_px=4, footprint_m=FOOTPRINT_M))
+    assert not short.converged and short.iterations == 2 and "not converged in 2 iterations" in short.summary()
+    full = estimate_water(frames, K, board=board, config=WaterConfig(bootstrap=0, margin_px=4,
+                                                                     footprint_m=FOOTPRINT_M))
+    assert full.converged and 150 < full.iterations <= 600 and "not converged" not in full.summary()
+    assert full.to_json()["converged"] is True
+
+
+def test_a_per_frame_effect_is_sized_by_the_survey_and_inverted_frame_by_frame(survey):
+    """An auto-exposure plugin (one log-gain per frame, ``Param(per="frame")``, neutral start) added to the water:
+    the stack gets one row per frame from the survey, the fit recovers the frames' relative exposures, and the
+    correction takes each frame's own row (``frame_index``). Attenuation is held at its value here: with every
+    frame at its own altitude a per-frame gain and exp(-eta r) at that frame's range nearly coincide."""
+    from dataclasses import replace
+
+    from watergan.formation import RANK_SENSOR, Effect, Param, register
+
+    @register
+    class WaterTestExposure(Effect):
+        name = "water_test_exposure"
+        summary = "each frame's signal scaled by its own gain exp(g_k)"
+        axis = "frame"
+        rank = RANK_SENSOR
+        params = (Param("log_gain", 0.0, -1.0, 1.0, "", "log of the frame's exposure gain", per="frame"),)
+
+        def forward(self, state):
+            gain = torch.exp(self.per_frame("log_gain", state)).view(-1, 1, 1, 1)
+            return state.replace(direct=state.direct * gain, backscatter=state.backscatter * gain)
+
+    frames, board = survey
+    log_gain = np.array([0.12, -0.1, 0.05, -0.14, 0.0, 0.1, -0.06, 0.14, -0.12, 0.08, -0.02, 0.03])
+    exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
+               for f, g in zip(frames, log_gain, strict=True)]
+    config = WaterConfig(effects=(*DEFAULT_WATER_EFFECTS, "water_test_exposure"), fixed_effects=("attenuation",),
+                         initial=(TRUE[0],), samples_per_frame=250, bootstrap=0, margin_px=4,
+                         footprint_m=FOOTPRINT_M)
+    est = estimate_water(exposed, K, board=board, config=config)
+    fitted = np.asarray(est.params["water_test_exposure.log_gain"]["value"], float)
+    assert fitted.shape == (12,)
+    np.testing.assert_allclose(fitted - fitted.mean(), log_gain - log_gain.mean(), atol=0.02)
+    k = int(np.argmax(log_gain))
+    _, r, j = render(exposed[k].world_from_cam, Stack.from_config(TRUE))
+    own, _ = correct_physics(exposed[k].image, r, est.stack, K, frame_index=k)
+    other, _ = correct_physics(exposed[k].image, r, est.stack, K, frame_index=int(np.argmin(log_gain)))
+    assert np.median(np.abs(own / j - 1)) < 0.03  # its own exposure undone
+    assert np.median(other / j) > 1.2  # another frame's row leaves exp(0.14 + 0.14) = 1.32 in it

@@ -42,6 +42,7 @@ from .io import (  # noqa: F401  (the data formats' readers and writers, re-expo
     linear_to_srgb,
     read_depth,
     read_image,
+    read_survey_json,
     srgb_to_linear,
     write_depth_png,
     write_srgb8,
@@ -184,10 +185,7 @@ def read_nav_altitudes(survey_json: str | Path, names: list[str] | None = None) 
     path = Path(survey_json)
     if not path.is_file():
         raise DataError(f"navigation file {path} does not exist")
-    try:
-        survey = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"navigation file {path} is not valid JSON ({exc})") from exc
+    survey = read_survey_json(path)
     if "nav_altitude_m" not in survey:
         raise DataError(f"navigation file {path} has no nav_altitude_m (the altimeter's reading per frame)")
     frames = survey.get("frames", names)

@@ -192,6 +192,19 @@ def encode_png(image: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
+def bit_depth(path: Path, image: np.ndarray | None = None) -> int:
+    """8 or 16: a PNG's IHDR bit depth (byte 24), 8 for JPEG; a TIFF's from its decoded type."""
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        with path.open("rb") as f:
+            header = f.read(25)
+        return 16 if len(header) == 25 and header[24] == 16 else 8
+    if suffix in (".jpg", ".jpeg"):
+        return 8
+    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return 16 if decoded is not None and decoded.dtype == np.uint16 else 8
+
+
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """An (H,W) or (H,W,3) RGB uint8/uint16 array as a PNG file, atomically."""
     atomic_write_bytes(path, encode_png(image))
@@ -279,6 +292,13 @@ def read_depth(path: str | Path) -> np.ndarray:
     return depth
 
 
+def z_to_range(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Ray length r = z |K^-1 (x, y, 1)| of camera z-depth (H,W) (NaN stays NaN)."""
+    h, w = depth_m.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return depth_m * np.sqrt(((xs - K[0, 2]) / K[0, 0]) ** 2 + ((ys - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
+
+
 def depth_or_zero(depth_m: np.ndarray) -> np.ndarray:
     """NaN (no value) as 0, the form the nets take as input."""
     return np.nan_to_num(depth_m, nan=0.0)
@@ -307,4 +327,60 @@ def read_camera_json(path: Path) -> dict | None:
     missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
     if missing:
         raise DataError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height")
+    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m"):
+        value = cam.get(key)
+        if key == "baseline_m" and value is None:
+            continue
+        positive = key not in ("cx", "cy")
+        if not _is_number(value) or (positive and not value > 0):
+            raise DataError(f"camera file {path}: {key} = {value!r} is not a {'positive ' if positive else ''}number")
+        if key in ("width", "height") and value != int(value):
+            raise DataError(f"camera file {path}: {key} = {value!r} is not a whole number of pixels")
     return cam
+
+
+def _is_number(value: Any) -> bool:
+    """A finite int or float (not a bool, string or list)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
+
+
+#: survey.json's per-frame lists and what each value must be.
+_PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number"}
+
+
+def read_survey_json(path: Path) -> dict:
+    """A survey file (``survey.json``: ``frames``, ``nav_altitude_m``, ``nav_depth_m``, ``site_depth_m``,
+    ``lights``; every key optional), checked: malformed JSON, a value of the wrong type, or per-frame
+    lists whose length differs from ``frames`` are an error naming the file and the key."""
+    path = Path(path)
+    survey = read_json(path, "survey file")
+    where = f"survey file {path}"
+    if not isinstance(survey, dict):
+        raise DataError(f"{where} holds {type(survey).__name__}; expected an object (frames, nav_altitude_m, ...)")
+    frames = survey.get("frames")
+    if frames is not None and not (isinstance(frames, list) and all(isinstance(f, str) for f in frames)):
+        raise DataError(f"{where}: frames must be a list of image file names")
+    for key, what in _PER_FRAME.items():
+        if key not in survey:
+            continue
+        values = survey[key]
+        if not isinstance(values, list):
+            raise DataError(f"{where}: {key} must be a list, one value per frame")
+        bad = [i for i, v in enumerate(values) if not _is_number(v) or (key == "nav_altitude_m" and not v > 0)]
+        if bad:
+            first = frames[bad[0]] if frames is not None and bad[0] < len(frames) else f"value {bad[0]}"
+            raise DataError(f"{where}: {key} is not {what} for {len(bad)} frames (e.g. {first}: {values[bad[0]]!r})")
+        if frames is not None and len(values) != len(frames):
+            raise DataError(f"{where}: {len(values)} {key} values for {len(frames)} frames")
+    if "site_depth_m" in survey and not _is_number(survey["site_depth_m"]):
+        raise DataError(f"{where}: site_depth_m = {survey['site_depth_m']!r} is not a number")
+    lights = survey.get("lights")
+    if lights is not None:
+        if not isinstance(lights, list) or not all(isinstance(light, dict) for light in lights):
+            raise DataError(f"{where}: lights must be a list of objects (offset_m, tilt_deg, beam_deg per light)")
+        for i, light in enumerate(lights):
+            for key, value in light.items():
+                flat = np.ravel(np.asarray(value, dtype=object))
+                if not flat.size or not all(_is_number(v) for v in flat):
+                    raise DataError(f"{where}: lights[{i}].{key} = {value!r} is not a number or a list of numbers")
+    return survey

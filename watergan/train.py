@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from .data import (
     TRAIN_HW,
@@ -59,6 +58,7 @@ from .imaging import gaussian_blur
 from .io import Encoding, to_jsonable
 from .nets.discriminator import Discriminator
 from .nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
+from .progress import TrainingBar
 
 CHECKPOINT = "checkpoint.pt"
 STACK_JSON = "stack.json"
@@ -812,7 +812,7 @@ def _train_iterations(run: GanRun, log, began: float) -> tuple[int, float, float
     budget_s = None if config.budget_min is None else 60.0 * config.budget_min
     settle_reserve_s = 0.0  # time kept for settle_statistics inside the budget, measured once warm
     step, d_loss, g_loss = run.start, float("nan"), float("nan")
-    bar = tqdm(total=target, initial=run.start, disable=not config.progress, desc="train-gan", unit="it")
+    bar = TrainingBar("train-gan", target, run.start, budget_s, config.progress)
     while target is None or step < target:
         if budget_s is not None and time.perf_counter() - began + settle_reserve_s >= budget_s:
             stopped_by = "budget"
@@ -827,8 +827,7 @@ def _train_iterations(run: GanRun, log, began: float) -> tuple[int, float, float
                               "d_fake": torch.sigmoid(d_fake).mean().item(),
                               "seconds": round(time.perf_counter() - began, 3),
                               "params": _json_ready(run.generator.physical_values())}) + "\n")
-        bar.update(1)
-        bar.set_postfix(d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
+        bar.update(step, time.perf_counter() - began, d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
         if step % config.checkpoint_every == 0:
             log.flush()
             _save_checkpoint(run, step)

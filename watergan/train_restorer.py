@@ -38,12 +38,12 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from .data import DataError, atomic_write_bytes, depth_or_zero, read_depth, read_image
 from .device import Device, pick_device
 from .errors import UserInputError
 from .nets.restorer import HEADS, WIDTH_PRESETS, Head, Restorer, WidthPreset, image_context, position_maps, restore
+from .progress import TrainingBar
 
 CHECKPOINT = "checkpoint.pt"
 MODEL = "restorer.pt"
@@ -436,7 +436,8 @@ def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
     budget_s = None if config.budget_min is None else 60.0 * config.budget_min
     stage_end_s = None if budget_s is None else (budget_s * config.stage1_budget_share if current == 1 else budget_s)
     run.model.train()
-    bar = tqdm(total=target, initial=step, disable=not config.progress, desc=f"restorer stage {current}", unit="it")
+    bar = TrainingBar(f"restorer stage {current}", target, step, stage_end_s, config.progress,
+                      time.perf_counter() - began)
     loss_value = None
     while step < target:
         if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
@@ -447,8 +448,7 @@ def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
         log.write(json.dumps({"stage": current, "step": step, "loss": loss_value,
                               "colour_loss": colour_loss.item(), "depth_loss": depth_loss.item(),
                               "seconds": round(time.perf_counter() - began, 3)}) + "\n")
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss_value:.4f}")
+        bar.update(step, time.perf_counter() - began, loss=f"{loss_value:.4f}")
         if step % config.checkpoint_every == 0:
             log.flush()
             _save_checkpoint(run, current, step, opt.state_dict(), step if current == 1 else stage1_steps)

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
-from watergan.formation import FormationState, Stack
+from watergan.formation import Counts, FormationState, Stack, get
 
 from .io import quantise, srgb_encode
 
@@ -45,10 +45,28 @@ def rig_camera_config(full: list[dict], camera_offset_m: tuple[float, float, flo
     return out
 
 
-def build_stacks(visible, hidden) -> tuple[Stack, Stack, Stack]:
-    """(visible, hidden, full) stacks; the hidden stack lists the hidden effects by rank."""
-    return (Stack.from_config(list(visible)), Stack.from_config(full_stack_config([], hidden)),
-            Stack.from_config(full_stack_config(visible, hidden)))
+def build_stacks(visible, hidden, frames: int | None = None) -> tuple[Stack, Stack, Stack]:
+    """(visible, hidden, full) stacks; the hidden stack lists the hidden effects by rank. ``frames``: the
+    survey's frame count, which sizes per-frame parameters (:attr:`watergan.formation.Param.per`): one not
+    given starts at its initial value in every frame, one given with fewer rows repeats them in order over
+    the frames (how an effect's ``simulation_params`` give a per-frame pattern without knowing the survey's
+    length)."""
+    counts = Counts(frames=frames)
+    visible, hidden = ([per_frame_tiled(e, frames) for e in entries] for entries in (visible, hidden))
+    return (Stack.from_config(visible, counts), Stack.from_config(full_stack_config([], hidden), counts),
+            Stack.from_config(full_stack_config(visible, hidden), counts))
+
+
+def per_frame_tiled(entry: dict, frames: int | None) -> dict:
+    """A stack entry whose per-frame parameter values of fewer than ``frames`` rows are repeated in order to
+    ``frames`` rows (see :func:`build_stacks`); unchanged without ``frames``."""
+    params = dict(entry.get("params", {}))
+    for p in get(entry["name"]).params:
+        if p.per == "frame" and frames and p.name in params:
+            rows = np.asarray(params[p.name], float).reshape(-1, *np.shape(p.init))
+            if len(rows) < frames:
+                params[p.name] = np.resize(rows, (frames, *rows.shape[1:])).tolist()
+    return {**entry, "params": params}
 
 
 @contextmanager

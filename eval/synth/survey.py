@@ -32,7 +32,7 @@ import open3d as o3d
 from tqdm import tqdm
 
 from watergan.errors import UserInputError
-from watergan.formation import Stack
+from watergan.formation import Counts, Stack
 from watergan.formation.effects.artificial_light import beam_angle_deg
 
 from .camera import intrinsics_for
@@ -113,7 +113,8 @@ def simulate_survey(out_dir: str | Path, config: SimulationConfig, force: bool =
     out_dir = Path(out_dir).absolute()
     _check_config(config)
     try:
-        stacks = build_stacks(config.formation.visible, config.formation.hidden)
+        stacks = build_stacks(config.formation.visible, config.formation.hidden,
+                              config.trajectory.n_lines * config.trajectory.frames_per_line)
     except (ValueError, KeyError) as exc:
         raise SimulationError(f"invalid formation stack: {exc}") from exc
     tmp = _prepare_output(out_dir, force)
@@ -195,7 +196,8 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     cameras = [("images", trajectory.world_from_cam, full)]
     if stereo:  # lights are fixed to the rig: the right camera sees them shifted by the baseline
         right = full if "artificial_light" not in full.names else Stack.from_config(
-            rig_camera_config(full.to_config(), (config.trajectory.baseline_m, 0.0, 0.0)))
+            rig_camera_config(full.to_config(), (config.trajectory.baseline_m, 0.0, 0.0)),
+            Counts(frames=len(trajectory)))
         cameras.append(("right", trajectory.world_from_cam_right, right))
     truth = root / "truth"
     for folder in [name for name, _, _ in cameras] + ["inair", "inair_linear", "depth", "range"]:

@@ -12,7 +12,7 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from .params import Param, ParameterError, as_tensor, to_json_value
+from .params import Counts, Param, ParameterError, as_tensor, to_json_value
 from .state import FormationState
 
 # Where an effect sits in the chain from scene to sensor; the simulator orders hidden effects by it.
@@ -63,7 +63,9 @@ class Effect(nn.Module):
     simulation_params: ClassVar[dict[str, object]] = {}
     rig_params: ClassVar[tuple[str, ...]] = ()
 
-    def __init__(self, **values) -> None:
+    def __init__(self, counts: Counts | None = None, **values) -> None:
+        """Physical ``values`` by parameter name (the rest start from their ``init``); ``counts``: the survey's
+        frames and lights, which size the per-frame and per-light parameters not given (:attr:`Param.per`)."""
         super().__init__()
         unknown = set(values) - {p.name for p in self.params}
         if unknown:
@@ -71,7 +73,7 @@ class Effect(nn.Module):
             raise ParameterError(f"effect '{self.name}' has no parameter {sorted(unknown)}; it has: {known}")
         self.raw = nn.ParameterDict()
         for p in self.params:
-            value = as_tensor(values.get(p.name, p.init))
+            value = as_tensor(values[p.name]) if p.name in values else p.start_value(counts or Counts(), self.name)
             p.check_shape(value, self.name)
             p.check(value, self.name)
             self.raw[p.name] = nn.Parameter(p.to_raw(value), requires_grad=p.learnable)
@@ -87,6 +89,16 @@ class Effect(nn.Module):
             if p.name == name:
                 return p
         raise ParameterError(f"effect '{self.name}' has no parameter '{name}'")
+
+    def per_frame(self, name: str, state: FormationState) -> torch.Tensor:
+        """The row of per-frame parameter ``name`` for each element of the state's batch (its ``frame_index``),
+        cast to the state's dtype: shape (B, *row)."""
+        value = self.param(name, state.direct)
+        frame = state.need("frame_index", self.name).to(torch.long)
+        if len(frame) and int(frame.max()) >= value.shape[0]:
+            raise ParameterError(f"{self.name}.{name} holds {value.shape[0]} frames' values; the data has frame "
+                                 f"{int(frame.max())} (make the effect for this survey: Counts(frames=...))")
+        return value[frame.to(value.device)]
 
     def values(self) -> dict[str, torch.Tensor]:
         """Every parameter's physical value (float64, detached)."""
@@ -121,7 +133,8 @@ class Effect(nn.Module):
         for p in cls.params:
             hi = "inf" if not p.bounded_above else f"{p.upper:g}"
             fixed = "" if p.learnable else " (fixed setting)"
-            lines.append(f"    - {p.name} = {p.init} in [{p.lower:g}, {hi}] {p.units}{fixed}  {p.doc}".rstrip())
+            per = f" per {p.per}" if p.per else ""
+            lines.append(f"    - {p.name} = {p.init}{per} in [{p.lower:g}, {hi}] {p.units}{fixed}  {p.doc}".rstrip())
         return "\n".join(lines)
 
     def extra_repr(self) -> str:

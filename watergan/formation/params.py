@@ -30,14 +30,35 @@ class ParameterError(UserInputError):
     """A parameter value that is unknown, non-finite, of the wrong shape or out of its bounds."""
 
 
+#: What a parameter may hold one row of per item (:attr:`Param.per`), and the :class:`Counts` field sizing it.
+PER = ("frame", "light")
+
+
+@dataclass(frozen=True)
+class Counts:
+    """How many rows a per-frame or per-light parameter (:attr:`Param.per`) gets when its value is not given:
+    the survey's frames, and the lights survey.json declares (None: unknown)."""
+
+    frames: int | None = None
+    lights: int | None = None
+
+    def of(self, per: str) -> int | None:
+        return {"frame": self.frames, "light": self.lights}[per]
+
+
 @dataclass(frozen=True)
 class Param:
     """One bounded parameter of an effect.
 
-    ``init`` is a float (one value) or a nested tuple (per channel, per light, ...). ``shapes`` lists
-    the shapes a user may give instead (-1: any length), e.g. ``((-1, 3),)`` for several lights; by
-    default only the shape of ``init``.
+    ``init`` is a float (one value) or a nested tuple (per channel, ...). ``shapes`` lists the shapes
+    a user may give instead (-1: any length); by default only the shape of ``init``.
+    ``per="frame"`` (``"light"``) makes the value one row per survey frame (per declared light), each
+    row of ``init``'s shape: an effect made for a survey (:class:`Counts`) starts with ``init`` in every
+    row, so a plugin never writes the survey's length; without a count a per-light value has one row
+    and a per-frame value must be given. Any number of rows is accepted when given.
     ``learnable=False`` marks a setting that is serialised with the effect but never optimised.
+    ``plausible``: the envelope real surveys show, where it is narrower than the bounds (a light that a
+    rig can hold, a falloff centre inside the image); the diagnosis calls a fit outside it implausible.
     """
 
     name: str
@@ -48,18 +69,37 @@ class Param:
     doc: str = ""
     learnable: bool = True
     shapes: tuple[tuple[int, ...], ...] = ()
+    per: str = ""
+    plausible: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not self.lower < self.upper:
             raise ParameterError(f"parameter {self.name}: lower bound {self.lower} >= upper {self.upper}")
+        if self.per and (self.per not in PER or self.shapes):
+            raise ParameterError(f"parameter {self.name}: per must be one of {PER} (and then no shapes), got "
+                                 f"per={self.per!r}, shapes={self.shapes}")
+
+    def start_value(self, counts: Counts, effect: str) -> torch.Tensor:
+        """The value an effect starts from when none is given: ``init``, one row per frame or light for a
+        per-frame or per-light parameter (see the class docstring)."""
+        init = as_tensor(self.init)
+        if not self.per:
+            return init
+        rows = counts.of(self.per)
+        if rows is None and self.per == "frame":
+            raise ParameterError(f"{effect}.{self.name} holds one value per survey frame: make the effect for a "
+                                 f"survey (Counts(frames=...)) or give the values")
+        return init.expand(rows or 1, *init.shape).clone()
 
     def check_shape(self, value: torch.Tensor, effect: str) -> None:
         """Raise a clear :class:`ParameterError` when ``value`` has a shape this parameter does not take."""
-        allowed = self.shapes or (tuple(as_tensor(self.init).shape),)
+        row = tuple(as_tensor(self.init).shape)
+        allowed = ((-1, *row),) if self.per else self.shapes or (row,)
         for shape in allowed:
             if len(shape) == value.ndim and all(s in (-1, n) for s, n in zip(shape, value.shape, strict=True)):
                 return
-        readable = " or ".join(str(tuple("N" if s == -1 else s for s in shape)) for shape in allowed)
+        n = f"N {self.per}s" if self.per else "N"
+        readable = " or ".join(str(tuple(n if s == -1 else s for s in shape)).replace("'", "") for shape in allowed)
         raise ParameterError(f"{effect}.{self.name} has shape {tuple(value.shape)}; expected {readable}")
 
     @property

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from .effect import Effect
-from .params import ParameterError
+from .params import Counts, ParameterError
 from .registry import get
 from .state import FormationState
 
@@ -31,8 +31,9 @@ class Stack(nn.Module):
         self.effects = nn.ModuleList(effects)
 
     @classmethod
-    def from_config(cls, config: list[dict] | str) -> Stack:
-        """From a list of ``{name, params}`` (or its JSON text)."""
+    def from_config(cls, config: list[dict] | str, counts: Counts | None = None) -> Stack:
+        """From a list of ``{name, params}`` (or its JSON text); ``counts`` sizes the per-frame and per-light
+        parameters not given (see :class:`~watergan.formation.params.Param`)."""
         if isinstance(config, str):
             config = json.loads(config)
         if not isinstance(config, list):
@@ -46,13 +47,13 @@ class Stack(nn.Module):
             extra = set(item) - {"name", "params"}
             if extra:
                 raise ParameterError(f"stack entry {i} ({item['name']}) has unknown keys {sorted(extra)}")
-            effects.append(get(item["name"])(**item.get("params", {})))
+            effects.append(get(item["name"])(counts=counts, **item.get("params", {})))
         return cls(effects)
 
     @classmethod
-    def from_names(cls, names: list[str]) -> Stack:
+    def from_names(cls, names: list[str], counts: Counts | None = None) -> Stack:
         """Each named effect at its initial parameters."""
-        return cls.from_config([{"name": n} for n in names])
+        return cls.from_config([{"name": n} for n in names], counts)
 
     @staticmethod
     def rank_order(entries: list[dict | str] | tuple[dict | str, ...]) -> list[dict | str]:
@@ -61,9 +62,9 @@ class Stack(nn.Module):
         return sorted(entries, key=lambda e: get(e if isinstance(e, str) else e["name"]).rank)
 
     @classmethod
-    def ordered(cls, entries: list[dict | str] | tuple[dict | str, ...]) -> Stack:
+    def ordered(cls, entries: list[dict | str] | tuple[dict | str, ...], counts: Counts | None = None) -> Stack:
         """The stack of ``entries`` (``{name, params}`` or names) placed by rank (see :meth:`rank_order`)."""
-        return cls.from_config(cls.rank_order(entries))
+        return cls.from_config(cls.rank_order(entries), counts)
 
     def with_effect(self, effect: Effect) -> Stack:
         """A new stack of these effects (the same modules) with ``effect`` inserted after every effect of

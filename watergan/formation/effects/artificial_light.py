@@ -94,19 +94,18 @@ class ArtificialLight(Effect):
     simulation_params = {"offset_m": [[0.35, 0.0, 0.0]], "power": [6.0], "ambient": 0.3}
     rig_params = ("offset_m", "tilt_deg", "beam_deg")  # survey.json declares the light rig
     params = (
-        Param("offset_m", ((0.4, 0.0, 0.0),), -3.0, 3.0, "m", "light positions in the camera frame",
-              shapes=((-1, 3),)),
-        Param("tilt_deg", ((0.0, 0.0),), -60.0, 60.0, "deg", "beam axis tilt towards +x and +y",
-              shapes=((-1, 2),)),
-        Param("beam_deg", (35.0,), 5.0, 90.0, "deg", "Gaussian beam width (sigma) per light", shapes=((-1,),)),
-        Param("power", (4.0,), 0.0, 100.0, "", "on-axis irradiance at 1 m per light", shapes=((-1,),)),
+        Param("offset_m", (0.4, 0.0, 0.0), -3.0, 3.0, "m", "light position in the camera frame", per="light",
+              plausible=(-1.5, 1.5)),  # a rig's arms hold lights within 1.5 m of the camera
+        Param("tilt_deg", (0.0, 0.0), -60.0, 60.0, "deg", "beam axis tilt towards +x and +y", per="light"),
+        Param("beam_deg", 35.0, 5.0, 90.0, "deg", "Gaussian beam width (sigma)", per="light"),
+        Param("power", 4.0, 0.0, 100.0, "", "on-axis irradiance at 1 m", per="light"),
         Param("eta_per_m", (0.34, 0.24, 0.33), 0.0, 5.0, "1/m", "attenuation on the light-to-scene path"),
         Param("ambient", 0.0, 0.0, 10.0, "", "irradiance from other (natural) light"),
     )
     neutral = {"power": (0.0,), "ambient": 1.0}
 
-    def __init__(self, **values) -> None:
-        super().__init__(**values)
+    def __init__(self, counts=None, **values) -> None:
+        super().__init__(counts, **values)
         counts = {n: self.raw[n].shape[0] for n in ("offset_m", "tilt_deg", "beam_deg", "power")}
         if len(set(counts.values())) != 1:
             raise ValueError(f"artificial_light: every per-light parameter needs one row per light, got {counts}")

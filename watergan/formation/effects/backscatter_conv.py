@@ -45,8 +45,8 @@ class BackscatterConv(Effect):
               learnable=False),
     )
 
-    def __init__(self, **values) -> None:
-        super().__init__(**values)
+    def __init__(self, counts=None, **values) -> None:
+        super().__init__(counts, **values)
         z_dim, h, w = (int(round(self.param(n).item())) for n in ("z_dim", "mask_height", "mask_width"))
         self.mask_hw = (h, w)
         self.project = nn.Linear(z_dim, h * w)

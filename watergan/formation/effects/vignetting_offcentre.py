@@ -30,7 +30,8 @@ class VignettingOffcentre(Effect):
     rank = RANK_OPTICS
     simulation_params = {"centre_uv": [0.61, 0.44], "a_margin": 0.5, "c": 0.1, "strength": [1.0, 0.9, 0.8]}
     params = (
-        Param("centre_uv", (0.5, 0.5), 0.0, 1.0, "image fraction", "falloff centre (u across, v down)"),
+        Param("centre_uv", (0.5, 0.5), 0.0, 1.0, "image fraction", "falloff centre (u across, v down)",
+              plausible=(0.02, 0.98)),  # inside the image
         *VIGNETTING_PARAMS,
         Param("strength", (1.0, 1.0, 1.0), 0.0, 3.0, "", "falloff scale per channel (R, G, B)"),
     )

@@ -1,0 +1,87 @@
+"""The two-way bootstrap (eval.bootstrap) and the diagnosis fit's intervals: do they cover the truth?
+
+Coverage: the model attenuation, backscatter, vignetting, gain (gain held at the simulator's value, as the
+diagnosis holds the configured gain) fitted from the effects' initial values to small clean simulated
+surveys (eval.diagnose.small_survey_config, 600 points) of three seeds; each fitted component's 95 %
+interval is checked against the value the survey was rendered with."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from eval.bootstrap import normal_interval, two_way_weights
+from eval.diagnose import DEFAULT_EFFECTS, small_survey_config
+from eval.diagnose_fit import FitConfig, fit_stack, make_split
+from eval.diagnose_measure import MeasureConfig, measure_survey
+from eval.synth import simulate_survey
+from watergan.formation import Stack
+
+SEEDS = (1, 2, 3)
+
+
+def test_two_way_weights_are_a_frame_count_times_a_point_weight():
+    """On a full frames x points table the weights are the outer product m_f q_p; a replicate keeps about
+    1 - (1 - 1/10)^10 = 65 % of 10 frames, and a point's Poisson(1) weight is 0 in e^-1 = 37 % of them."""
+    rng = np.random.default_rng(0)
+    frame = np.repeat(np.arange(10), 20)
+    point = np.tile(np.arange(20), 10)
+    frames_kept, points_kept = [], []
+    for _ in range(300):
+        w = two_way_weights(rng, frame, point).reshape(10, 20)
+        assert np.allclose(w * w.sum(), np.outer(w.sum(1), w.sum(0)))
+        frames_kept.append((w > 0).any(1).mean() if w.sum() else 0.0)
+        points_kept.append((w > 0).any(0).mean() if w.sum() else 0.0)
+    assert 0.60 < np.mean(frames_kept) < 0.70 and 0.58 < np.mean(points_kept) < 0.68
+
+
+def test_normal_interval_is_clipped_to_the_bounds():
+    sd, low, high = normal_interval(np.array([0.1, 0.5]), np.array([[0.0, 0.4], [0.2, 0.6]]), 0.0, 1.0)
+    assert np.allclose(sd, [np.sqrt(0.02), np.sqrt(0.02)]) and low[0] == 0.0 and 0 < low[1] < 0.5 < high[1] < 1
+
+
+@pytest.fixture(scope="module")
+def coverage(tmp_path_factory):
+    """(bootstrap covered, Laplace covered, misses) over every fitted component of the three seeds."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    covered, laplace, misses = [], [], []
+    for seed in SEEDS:
+        survey = tmp_path_factory.mktemp(f"seed{seed}") / "survey"
+        simulate_survey(survey, small_survey_config([], seed=seed), progress=False)
+        truth = {e["name"]: e["params"] for e in json.loads((survey / "truth" / "effects.json").read_text())["visible"]}
+        meas = measure_survey(survey, MeasureConfig(n_points=600, seed=seed))
+        config = FitConfig(iterations=200, seed=seed)
+        start = Stack.from_names(list(DEFAULT_EFFECTS))
+        start["gain"].set_values(k=truth["gain"]["k"])
+        fit = fit_stack(start, meas, make_split(meas, config), config)
+        for effect, params in fit.params.items():
+            for name, p in params.items():
+                if not p["fitted"]:
+                    continue
+                value, sd, true = (np.ravel(x) for x in (p["value"], p["std"], truth[effect][name]))
+                low, high = (np.ravel(b) for b in p["ci95"])
+                inside = (low <= true) & (true <= high)
+                covered += inside.tolist()
+                laplace += (np.abs(value - true) <= 1.96 * sd).tolist()
+                misses += [f"seed {seed} {effect}.{name}[{k}]" for k in np.flatnonzero(~inside)]
+    torch.set_num_threads(previous)
+    return np.mean(covered), np.mean(laplace), misses
+
+
+@pytest.mark.slow
+def test_bootstrap_intervals_cover_the_truth_where_the_laplace_std_does_not(coverage):
+    """Measured: 30 of 36 components covered (83 %) against 6 of 36 (17 %) by estimate +- 1.96 Laplace std."""
+    boot, laplace, misses = coverage
+    assert boot >= 0.8 and laplace <= 0.3, (boot, laplace, misses)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 30/36 = 83 %, not 90 %: the red backscatter pair (b_inf, beta) "
+                                       "is off on seeds 1 and 3 and eta (green, blue) on seed 3, by more than "
+                                       "the resampling spread: a bias every resample shares (the fixed-pixel "
+                                       "patch footprint, see eval/water.py, is the suspect; not verified)")
+def test_bootstrap_intervals_cover_90_percent_of_the_parameters(coverage):
+    boot, _, misses = coverage
+    assert boot >= 0.9, misses
