@@ -1,7 +1,7 @@
 """`watergan run`: every stage of the stage table (:mod:`pipeline.stages`) in order on a survey folder,
 resumable.
 
-    survey -> gan (train, generate) -> restorer -> correct -> sfm -> dense -> water -> eval -> mesh -> diagnose
+    survey -> sfm -> dense -> water -> gan (train, generate) -> restorer -> correct -> eval -> mesh -> diagnose
            -> report
 
 Each stage runs through :meth:`Workspace.run`: it is skipped when its ``result.json`` records the

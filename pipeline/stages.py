@@ -71,20 +71,13 @@ class Stage:
         return _load(self.run)
 
 
-#: Every stage, in the order ``watergan run`` runs them.
+#: Every stage, in the order ``watergan run`` runs them. The geometry and the water come first: a survey that
+#: SfM cannot register stops before minutes of training, and the water is known before WaterGAN starts. (The
+#: folders keep the numbers they had before, so earlier workspaces stay valid.)
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("survey", "00_survey", "pipeline.survey:SurveyConfig", "pipeline.survey:SurveyResult",
           "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace",
           ("survey_dir", "rgbd_dir", "seed")),
-    Stage("gan", "01_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult",
-          "pipeline.gan:run_gan_stage", ("survey",), "train WaterGAN, then render the paired set for the restorer"),
-    Stage("restorer", "02_restorer", "watergan.train_restorer:RestorerConfig",
-          "watergan.train_restorer:RestorerResult", "pipeline.gan:run_restorer_stage", ("gan",),
-          "train the restorer (depth and colour nets) on WaterGAN's pairs",
-          ("data_dir", "out_dir", "seed", "resume", "device", "progress")),
-    Stage("correct", "03_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",
-          "pipeline.correct:run_correct_stage", ("restorer",), "correct every survey frame with the restorer",
-          ("images_dir", "scheduler", "progress")),
     Stage("sfm", "04_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
           ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale",
           ("images_dir", "seed", "progress"),
@@ -95,6 +88,15 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("water", "06_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
           ("sfm", "dense"), "the site's water from the survey's geometry, and the physics correction with each "
           "pixel's range", ("range_scale_sd", "seed", "progress"), "water"),
+    Stage("gan", "01_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult",
+          "pipeline.gan:run_gan_stage", ("survey",), "train WaterGAN, then render the paired set for the restorer"),
+    Stage("restorer", "02_restorer", "watergan.train_restorer:RestorerConfig",
+          "watergan.train_restorer:RestorerResult", "pipeline.gan:run_restorer_stage", ("gan",),
+          "train the restorer (depth and colour nets) on WaterGAN's pairs",
+          ("data_dir", "out_dir", "seed", "resume", "device", "progress")),
+    Stage("correct", "03_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",
+          "pipeline.correct:run_correct_stage", ("restorer",), "correct every survey frame with the restorer",
+          ("images_dir", "scheduler", "progress")),
     Stage("eval", "07_eval", "eval.tables:EvaluateConfig", "eval.tables:EvaluateResult",
           "pipeline.evaluate:run_evaluate", ("sfm", "correct", "dense", "water", "restorer"),
           "baselines and ours on the same points and board: the paper's tables",

@@ -42,7 +42,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     html = report.read_text()
     assert "<img" in html and "http://" not in html.replace("http://www.w3.org", "")
     summary = json.loads((out / "run_summary.json").read_text())
-    assert [s["stage"] for s in summary["stages"]] == ["survey", "gan", "restorer", "correct", "sfm", "dense", "water",
+    assert [s["stage"] for s in summary["stages"]] == ["survey", "sfm", "dense", "water", "gan", "restorer", "correct",
                                                        "eval", "mesh", "diagnose", "report"]
     assert not any(s["skipped"] for s in summary["stages"])
     assert len(list((out / "03_correct" / "images").glob("*.png"))) == 10
