@@ -769,15 +769,15 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, config.threads))
     try:
-        stack = build_stack(config, obs.n_frames or int(obs.frame.max()) + 1)
+        frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
+        n_frames_total = int(frames.max()) + 1
+        stack = build_stack(config, obs.n_frames or n_frames_total)
         fixed = {name: "held at its configured value" for name in config.fixed_effects}
         if len(obs.board_colour) == 0 and "gain" in stack.names:
             fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
         problem = _Problem(stack, obs, config, tuple(fixed))
         _start_inside(problem)
         fast = _Problem(stack, obs, config, tuple(fixed), float32=True) if config.float32 else problem
-        frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
-        n_frames_total = int(frames.max()) + 1
         ones = torch.zeros(n_frames_total, dtype=torch.float64)
         ones[torch.from_numpy(frames)] = 1.0
         iterations, converged = problem.converge(ones, config)
@@ -789,6 +789,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         rng = np.random.default_rng([config.seed, 29])
         board_frames = np.unique(obs.board_frame)
         other = np.setdiff1d(frames, board_frames)
+        n_patches = int(obs.board_patch.max()) + 1 if problem.has_board else 0
         if config.bootstrap:
             x0 = fast.flat()
             evals, evecs = torch.linalg.eigh(fast.hessian(ones))
@@ -801,8 +802,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
             weight = torch.from_numpy(wts)
             if config.bootstrap_points:
                 fast.point_weight = torch.from_numpy(rng.poisson(1.0, obs.n_points).astype(np.float64))
-                if problem.has_board:
-                    n_patches = int(obs.board_patch.max()) + 1
+                if n_patches:
                     fast.patch_weight = torch.from_numpy(rng.poisson(1.0, n_patches).astype(np.float64))
             fast.set_flat(x0)
             step = -(inv @ fast.gradient(weight))  # a Newton step from the full fit, halved until it helps
