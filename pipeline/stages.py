@@ -107,7 +107,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           ("sfm", "correct", "dense", "water"), "textured mesh and photomosaic from the corrected frames",
           ("images_dir", "progress"), "texture"),
     Stage("diagnose", "09_diagnose", "eval.diagnose:DiagnoseConfig", "eval.diagnose:DiagnoseResult",
-          "pipeline.diagnose:run_diagnose_stage", ("sfm", "water"),
+          "pipeline.diagnose:run_diagnose_stage", ("sfm", "water", "eval"),
           "the discovery loop: fit, residuals, missing effect",
           ("add", "progress", "measure.seed", "fit.seed")),
     Stage("report", "report", "pipeline.report:ReportConfig", "pipeline.report:ReportResult",
