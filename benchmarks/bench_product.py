@@ -101,14 +101,14 @@ def targets(runs: dict[str, list[dict]]) -> dict:
     """Issue 18's targets, per run index, from the recorded figures (None where a case did not run)."""
     out: dict[str, list] = {}
     for case in ("demo_add", "clean", "demo"):
-        for r, rec in enumerate(runs.get(case, [])):
+        for rec in runs.get(case, []):
             b, c = rec["board_ciede2000"], rec["consistency"]
             if rec["restorer_mode"] == "rgb-d":
                 out.setdefault(f"{case}: rgb-d board <= 1.5x physics", []).append(
                     b["ours"] <= 1.5 * b["physics"])
                 out.setdefault(f"{case}: rgb-d consistency below raw and every baseline, every channel", []).append(
                     all(c["ours"][k] < min(c[m][k] for m in BASELINES if m in c) for k in range(3)))
-    for r, rec in enumerate(runs.get("mono", [])):
+    for rec in runs.get("mono", []):
         b, c = rec["board_ciede2000"], rec["consistency"]
         out.setdefault("mono: board <= 2.0", []).append(b["ours"] <= 2.0)
         out.setdefault("mono: consistency below raw, every channel", []).append(
