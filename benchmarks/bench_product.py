@@ -10,7 +10,8 @@ Cases (each a `watergan` command line on a simulated survey; a case's workspace 
 - ``demo_add``: then ``watergan demo --add vignetting_offcentre`` on the same workspace (the loop's step);
 - ``clean``: the demo preset with nothing hidden (``watergan simulate`` then ``watergan run``);
 - ``generic``: ``clean`` with WaterGAN given the generic in-air set instead of the site-matched one;
-- ``mono``: ``clean`` with the monocular restorer (``--no-restorer-range-input``).
+- ``mono``: ``clean`` with the monocular restorer (``--no-restorer-range-input``; a copy of the clean run's workspace,
+  so only the restorer and what follows it rerun).
 
 Each case runs ``--runs`` times (run r in ``OUT/<case>_r<r>``; the same code and seed: the spread is what the
 budgeted training varies). Per run it records, from the eval stage's result, the board CIEDE2000 and the
@@ -75,7 +76,10 @@ def run_case(case: str, ws: Path, out: Path, preset: str, extra: list[str]) -> f
     survey = _clean_survey(out, preset)
     if case == "generic":
         common += ["--rgbd-dir", str(_generic_rgbd(out))]
-    if case == "mono":
+    if case == "mono":  # the clean run's workspace with the restorer retrained monocular (geometry and water reused)
+        clean = ws.parent / ws.name.replace("mono", "clean")
+        if not ws.exists() and (clean / "run_summary.json").is_file():
+            shutil.copytree(clean, ws, symlinks=True)
         common += ["--no-restorer-range-input"]
     return watergan("run", str(survey), "--workspace", str(ws), *common)
 

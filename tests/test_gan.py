@@ -395,7 +395,8 @@ def test_site_water_held_keeps_the_estimate_and_trains_the_scattering(data_dir, 
     from watergan.site_water import read_site_water
 
     water = write_water_json(tmp_path / "water.json")
-    result = train_gan(small_config(data_dir, tmp_path / "model", site_water=water, iterations=3))
+    result = train_gan(small_config(data_dir, tmp_path / "model", site_water=water, iterations=3,
+                                    site_water_scattering=True))
     assert result.site_water["mode"] == "held" and result.settle_loss is None  # no statistics term
     stack = Stack.load(tmp_path / "model" / "stack.json")
     assert stack.names == ["attenuation", "backscatter", "backscatter_conv", "vignetting", "gain"]
@@ -405,7 +406,7 @@ def test_site_water_held_keeps_the_estimate_and_trains_the_scattering(data_dir, 
             assert torch.allclose(stack[entry["name"]].param(name), truth[entry["name"]].param(name), atol=1e-6)
     checkpoint = load_checkpoint(tmp_path / "model" / "checkpoint.pt")
     assert torch.count_nonzero(checkpoint["generator"]["stack.effects.2.norm.bias"]) == 0  # no veil level
-    run = build_gan(small_config(data_dir, tmp_path / "again", site_water=water))
+    run = build_gan(small_config(data_dir, tmp_path / "again", site_water=water, site_water_scattering=True))
     trained = [n for n, p in run.generator.named_parameters() if p.requires_grad]
     assert trained and all(n.startswith("stack.effects.2.") for n in trained)  # backscatter_conv alone
     assert "stack.effects.2.norm.bias" not in trained and run.physics == []
@@ -450,3 +451,24 @@ def test_generate_writes_the_range_the_generator_used(data_dir, tmp_path):
     item = json.loads((tmp_path / "gen" / "manifest.json").read_text())["items"][0]
     depth, range_m = read_depth(tmp_path / "gen" / item["depth"]), read_depth(tmp_path / "gen" / item["range"])
     assert np.allclose(range_m, depth, atol=1.5e-3)  # no camera.json: range = depth, to the millimetre
+
+
+def test_a_held_site_water_without_learned_effects_is_rendered_not_trained(data_dir, tmp_path):
+    water = write_water_json(tmp_path / "water.json")
+    result = train_gan(small_config(data_dir, tmp_path / "model", site_water=water))  # the default effects
+    assert result.stopped_by == "nothing to train" and result.steps == 0
+    assert Stack.load(tmp_path / "model" / "stack.json").to_config() == Stack.from_config(TRUTH).to_config()
+    generate(GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=data_dir / "rgbd", out_dir=tmp_path / "gen",
+                            progress=False, recolour_fraction=0.0))
+    # the generated pairs are the site water's rendering of the in-air views, to 8-bit rounding
+    truth = WaterGenerator(Stack.from_config(TRUTH)).eval()
+    item = json.loads((tmp_path / "gen" / "manifest.json").read_text())["items"][0]
+    rgb = cv2.imread(str(tmp_path / "gen" / item["inair"]))[..., ::-1] / 255.0
+    from watergan.io import srgb_to_linear
+
+    depth = read_depth(tmp_path / "gen" / item["depth"])
+    with torch.no_grad():
+        expected = truth(torch.from_numpy(srgb_to_linear(rgb).transpose(2, 0, 1).copy()).float()[None],
+                         torch.from_numpy(depth).float()[None, None], torch.zeros(1, 100))[0]
+    made = srgb_to_linear(cv2.imread(str(tmp_path / "gen" / item["underwater"]))[..., ::-1] / 255.0)
+    assert np.abs(made - expected.numpy().transpose(1, 2, 0)).max() < 0.01

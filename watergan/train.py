@@ -18,6 +18,12 @@ the backscatter veil's level ``veil_lr`` and its spread ``veil_spread_lr`` (see 
 The geometry of every RGB-D view (range, points, normals) is computed once before training (see
 :func:`~watergan.nets.generator.select_state`).
 
+With a site water (``site_water``: the water stage's ``water.json``, as ``watergan run`` gives it) the
+generator's physical effects are the water stage's stack at its estimate, held (the default: the colour
+statistics term and the settling are off, and the discriminator trains the learned scattering alone) or
+trained under the prior of the estimate's intervals; nothing is started from the colour statistics
+(:mod:`watergan.site_water`).
+
 Files written to ``out_dir``: ``checkpoint.pt`` (states of both nets and optimisers, step, stack
 configuration, RNG state, the generator before settling for a resume; atomic), ``stack.json`` (the
 learned stack), ``train_log.jsonl`` (one line per iteration: losses and every learned physical
@@ -128,6 +134,12 @@ class GanConfig:
     alone) or "prior" (the physical parameters train under the colour-statistics term and a Gaussian prior
     of the estimate's intervals); see :mod:`watergan.site_water`. "learned" (no site_water): the paper's
     way, the water learned from the colour statistics (``watergan run`` then gives no site water)."""
+    site_water_scattering: bool = False
+    """With ``site_water``: keep the learned G-II scattering (``backscatter_conv``, trained by the discriminator) in
+    the generator beside the site water's analytic backscatter. Off by default: on the demo survey (off-centre
+    vignetting hidden and added) the discriminator grew its per-image veil to a spread of 0.04 in red (the red
+    backscatter itself is 0.03), which the restorer cannot undo: its board CIEDE2000 was 7.7 against 1.55
+    without it, at the same training."""
     gain_channels: int = 1
     """Values of the generator's ``gain``: 1 (one exposure factor, as the paper's camera model) or 3
     (a white balance per channel). A per-channel gain and a per-channel attenuation explain a frame's
@@ -228,7 +240,7 @@ class GanResult:
     iterations_per_s: float
     """Iterations per second of this run."""
     stopped_by: str
-    """"iterations", "epochs" or "budget"."""
+    """"iterations", "epochs", "budget" or "nothing to train" (a held site water and no learned effect)."""
     d_loss: float
     g_loss: float
     params: dict[str, list | float]
@@ -507,7 +519,7 @@ def _save_checkpoint(run: GanRun, step: int, trained_generator: dict | None = No
         "generator": run.generator.state_dict(),
         **({"generator_trained": trained_generator} if trained_generator is not None else {}),
         "discriminator": run.discriminator.state_dict(),
-        "opt_g": run.opt_g.state_dict(),
+        "opt_g": run.opt_g.state_dict() if run.opt_g is not None else {},
         "opt_d": run.opt_d.state_dict(),
         "stack": run.generator.to_config(),
         "rng": run.rng.get_state(),
@@ -539,14 +551,15 @@ def _read_resume_checkpoint(config: GanConfig, out: Path) -> dict | None:
 
 
 def _resume(checkpoint: dict | None, generator: WaterGenerator, discriminator: Discriminator,
-            opt_g: torch.optim.Optimizer, opt_d: torch.optim.Optimizer, rng: torch.Generator) -> int:
+            opt_g: torch.optim.Optimizer | None, opt_d: torch.optim.Optimizer, rng: torch.Generator) -> int:
     """Checkpoint: restore both nets (the generator as it was before settling when the checkpoint holds
     that), both optimisers and the batch generator; returns the iteration to go on from (0 without one)."""
     if checkpoint is None:
         return 0
     generator.load_state_dict(checkpoint.get("generator_trained", checkpoint["generator"]))
     discriminator.load_state_dict(checkpoint["discriminator"])
-    opt_g.load_state_dict(checkpoint["opt_g"])
+    if opt_g is not None:
+        opt_g.load_state_dict(checkpoint["opt_g"])
     opt_d.load_state_dict(checkpoint["opt_d"])
     rng.set_state(checkpoint["rng"])
     return int(checkpoint["step"])
@@ -641,8 +654,11 @@ def train_gan(config: GanConfig) -> GanResult:
     run = build_gan(config)
     log_path = _start_log(run)
     began = time.perf_counter()
-    with log_path.open("a") as log:
-        step, d_loss, g_loss, stopped_by = _train_iterations(run, log, began)
+    if run.opt_g is None:  # a held site water and no learned effect: the generator is the site water
+        step, d_loss, g_loss, stopped_by = run.start, float("nan"), float("nan"), "nothing to train"
+    else:
+        with log_path.open("a") as log:
+            step, d_loss, g_loss, stopped_by = _train_iterations(run, log, began)
     trained, settle_loss = _settle(run)
     seconds = time.perf_counter() - began
     _save_checkpoint(run, step, trained)
@@ -659,7 +675,8 @@ class GanRun:
     device: torch.device
     generator: WaterGenerator
     discriminator: Discriminator
-    opt_g: torch.optim.Optimizer
+    opt_g: torch.optim.Optimizer | None
+    """None when nothing of the generator trains (a held site water and no learned effect)."""
     opt_d: torch.optim.Optimizer
     physics: list[torch.nn.Parameter]
     """The generator's physical parameters (:func:`physical_parameters`)."""
@@ -708,7 +725,7 @@ def build_gan(config: GanConfig) -> GanRun:
     betas = (config.beta1, 0.999)
     groups = generator_param_groups(generator, config.lr, config.physics_lr, config.veil_lr, config.veil_spread_lr)
     physics = [] if _held(config) else physical_parameters(generator)  # held: what trains is the scattering
-    opt_g = torch.optim.Adam(groups, config.lr, betas)
+    opt_g = torch.optim.Adam(groups, config.lr, betas) if groups else None
     opt_d = torch.optim.Adam(discriminator.parameters(), config.lr, betas)
     rng = torch.Generator().manual_seed(config.seed)
     start = _resume(checkpoint, generator, discriminator, opt_g, opt_d, rng)
@@ -749,7 +766,8 @@ def _build_generator(config: GanConfig, checkpoint: dict | None, rgbd, water, in
     fresh = generator_stack_config(config.effects, depth_scale_m, config.z_dim, config.image_hw,
                                    config.gain_channels)
     if site is not None:
-        fresh = generator_config(site, fresh)
+        keep = [c for c in fresh if c["name"] != BackscatterConv.name or config.site_water_scattering]
+        fresh = generator_config(site, keep)
     if checkpoint is not None:
         generator = WaterGenerator.from_config(checkpoint["stack"])
         if generator.stack.names != [c["name"] for c in fresh]:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -98,6 +99,14 @@ class RestorerConfig:
     """Images per batch."""
     lr: float = 1e-3
     """Adam learning rate."""
+    lr_decay: bool = True
+    """Cosine decay of the learning rate over each stage, to 0 at its end (its iterations, or its share of the
+    budget when that ends it first); False: a constant ``lr`` after the warm-up."""
+    warmup_iterations: int = 20
+    """Iterations at the start of each stage over which the learning rate rises linearly to ``lr`` (0: none).
+    Each stage starts a fresh Adam, whose first steps move every weight by about ``lr`` whatever its gradient:
+    without the warm-up the colour loss, 1.5e-4 at the end of stage 1 on the demo's pairs, jumped to 0.09 at the
+    second step of stage 2 and took a hundred iterations (a third of the stage) to come back."""
     stage1_iterations: int = 2000
     """Iterations of stage 1 (colour core at core_hw)."""
     stage2_iterations: int = 1000
@@ -169,6 +178,8 @@ def _check_config(c: RestorerConfig) -> None:
         raise UserInputError(f"widths must be one of {sorted(WIDTH_PRESETS)}, got {c.widths!r}")
     if c.head not in HEADS:
         raise UserInputError(f"head must be one of {HEADS}, got {c.head!r}")
+    if c.warmup_iterations < 0:
+        raise UserInputError(f"RestorerConfig.warmup_iterations must be >= 0, got {c.warmup_iterations}")
     for name in ("batch_size", "checkpoint_every"):
         if getattr(c, name) < 1:
             raise UserInputError(f"RestorerConfig.{name} must be at least 1, got {getattr(c, name)}")
@@ -469,12 +480,16 @@ def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
     budget_s = None if config.budget_min is None else 60.0 * config.budget_min
     stage_end_s = None if budget_s is None else (budget_s * config.stage1_budget_share if current == 1 else budget_s)
     run.model.train()
+    stage_start_s = time.perf_counter() - began
     bar = TrainingBar(f"restorer stage {current}", target, step, stage_end_s, config.progress,
                       time.perf_counter() - began)
     loss_value = None
     while step < target:
         if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
             break
+        for group in opt.param_groups:  # warm-up and decay from the stage's progress (resume-safe)
+            group["lr"] = stage_lr(config, step, target, time.perf_counter() - began - stage_start_s,
+                                   None if stage_end_s is None else stage_end_s - stage_start_s)
         loss, colour_loss, depth_loss = restorer_step(run, current, opt)
         step += 1
         loss_value = loss.item()
@@ -492,6 +507,17 @@ def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
     else:
         _save_checkpoint(run, 2, step, opt.state_dict(), stage1_steps)
     return step, loss_value
+
+
+def stage_lr(config: RestorerConfig, step: int, target: int, elapsed_s: float, stage_s: float | None) -> float:
+    """The learning rate of a stage's iteration ``step`` (0-based): ``lr`` times a linear warm-up over
+    ``warmup_iterations`` and, with ``lr_decay``, (1 + cos(pi f)) / 2 with f the stage's progress, the larger of
+    step / target and elapsed_s / stage_s (its share of the budget)."""
+    rate = config.lr * min(1.0, (step + 1) / max(config.warmup_iterations, 1))
+    if config.lr_decay:
+        progress = max(step / max(target, 1), elapsed_s / stage_s if stage_s else 0.0)
+        rate *= 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0)))
+    return rate
 
 
 def _stage_optimiser(run: RestorerRun, current: int) -> torch.optim.Adam:

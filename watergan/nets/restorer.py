@@ -51,7 +51,11 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   Range (``range_input=True``, the RGB-D mode): the colour net's input also holds each pixel's range in
   metres (the dense stage's, where the survey has it), one more map beside the estimated depth; the inverse's
   gain exp(eta r) and offset follow it pixel by pixel, which neither relative depth nor the altitude gives.
-  Holes take the image's median range (:func:`fill_range_holes`).
+  Holes take the image's median range (:func:`fill_range_holes`). With the affine head the inverse's fields
+  are per-pixel functions of range and image position alone, g_c = eta_c r - ln(k_c V(u, v)) and
+  o_c = -B_c(r) exp(eta_c r) with B_c(r) = b_c (1 - exp(-beta_c r)), whatever the scene; a geometry branch, a
+  per-pixel MLP (1x1 convolutions, ``GEOMETRY_WIDTH`` wide, its last layer starting at zero) on [r, u, v, rho^2],
+  adds its fields to the core's, so the core only learns what the content adds.
 
   Position: the colour net's input also holds each pixel's place in the whole image
   (:func:`position_maps`: u, v in [-1, 1] and the squared radius, 1 at a corner), since vignetting
@@ -194,6 +198,8 @@ IMAGE_CHANNELS = 4 + POSITION_CHANNELS
 """The colour net's input: RGB, estimated depth and the position maps."""
 RANGE_CHANNELS = 1
 """The range map's channels (``range_input=True``)."""
+GEOMETRY_WIDTH = 32
+"""Hidden channels of the RGB-D colour net's geometry branch (see the module docstring)."""
 
 
 def fill_range_holes(range_m: torch.Tensor) -> tuple[torch.Tensor, float]:
@@ -262,6 +268,13 @@ class ColourNet(nn.Module):
         if head == "affine":  # zero fields: the net starts as the identity
             nn.init.zeros_(self.core.head.weight)
             nn.init.zeros_(self.core.head.bias)
+        self.geometry = None
+        if range_input and head == "affine":  # per-pixel fields of range and position (module docstring)
+            g = GEOMETRY_WIDTH
+            self.geometry = nn.Sequential(nn.Conv2d(RANGE_CHANNELS + POSITION_CHANNELS, g, 1), nn.ReLU(inplace=True),
+                                          nn.Conv2d(g, g, 1), nn.ReLU(inplace=True), nn.Conv2d(g, channels, 1))
+            nn.init.zeros_(self.geometry[-1].weight)
+            nn.init.zeros_(self.geometry[-1].bias)
         self.up = bilinear_upsampler(channels, factor)
         if skip:
             f = widths.full_res
@@ -287,7 +300,10 @@ class ColourNet(nn.Module):
                 raise ValueError("this colour net takes each image's altitude (metres): give altitude_m")
             context = torch.cat([context, altitude_m.reshape(-1, 1).to(context)], dim=1)
         maps = context[:, :, None, None].expand(-1, -1, *x_small.shape[-2:])
-        return self.core(torch.cat([x_small, maps], dim=1))
+        out = self.core(torch.cat([x_small, maps], dim=1))
+        if self.geometry is not None:  # position (channels 4-6) and range (the last) at the core's resolution
+            out = out + self.geometry(torch.cat([x_small[:, 4:IMAGE_CHANNELS], x_small[:, IMAGE_CHANNELS:]], dim=1))
+        return out
 
     def core_colours(self, x_small: torch.Tensor, altitude_m: torch.Tensor | None = None) -> torch.Tensor:
         """(B,C,h,w) image, depth, position [and range] at the core's resolution -> (B,3,h,w): the core alone
