@@ -2,7 +2,8 @@
 after run, beside raw and every baseline.
 
     .venv/bin/python benchmarks/bench_product.py [--out DIR] [--cases demo,demo_add,clean,generic,mono]
-                                                 [--runs 2] [--preset demo] [extra `watergan run` options...]
+                                                 [--runs 2] [--once clean,mono,generic] [--preset demo]
+                                                 [extra `watergan run` options...]
 
 Cases (each a `watergan` command line on a simulated survey; a case's workspace is reused when done):
 
@@ -145,6 +146,7 @@ def main() -> int:
     parser.add_argument("--out", default="/tmp/bench_product")
     parser.add_argument("--cases", default="demo,demo_add,clean,generic,mono")
     parser.add_argument("--runs", type=int, default=2)
+    parser.add_argument("--once", default="", help="cases run in the first run only (e.g. clean,mono,generic)")
     parser.add_argument("--preset", default="demo")
     parser.add_argument("--result", default=str(ROOT / "benchmarks" / "results" / "product.json"))
     args, extra = parser.parse_known_args()
@@ -152,8 +154,9 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     runs: dict[str, list[dict]] = {}
+    once = {c.strip() for c in args.once.split(",") if c.strip()}
     for r in range(args.runs):
-        for case in cases:
+        for case in (c for c in cases if r == 0 or c not in once):
             ws = out / f"{'demo' if case == 'demo_add' else case}_r{r}"
             seconds = run_case(case, ws, out, args.preset, extra)
             rec = summarise(ws, seconds)
