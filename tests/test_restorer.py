@@ -287,3 +287,16 @@ def test_a_restorer_from_older_nets_asks_to_be_trained_again(tmp_path):
     torch.save(saved, tmp_path / MODEL)
     with pytest.raises(UserInputError, match="train it again"):
         load_restorer(tmp_path)
+
+
+def test_the_learning_rate_warms_up_then_decays_over_each_stage(tmp_path):
+    from watergan.train_restorer import stage_lr
+
+    config = _config(tmp_path, lr=1e-3, warmup_iterations=10)
+    assert stage_lr(config, 0, 100, 0.0, None) == pytest.approx(1e-4 * 0.5 * (1 + np.cos(0.0)))
+    assert stage_lr(config, 9, 100, 0.0, None) == pytest.approx(1e-3 * 0.5 * (1 + np.cos(np.pi * 0.09)))
+    assert stage_lr(config, 50, 100, 0.0, None) == pytest.approx(5e-4)  # half-way: half the rate
+    assert stage_lr(config, 10, 1000, 30.0, 60.0) == pytest.approx(5e-4)  # the budget's share decides
+    assert stage_lr(config, 100, 100, 0.0, None) == pytest.approx(0.0, abs=1e-12)
+    flat = _config(tmp_path, lr=1e-3, warmup_iterations=0, lr_decay=False)
+    assert stage_lr(flat, 0, 100, 0.0, None) == stage_lr(flat, 99, 100, 50.0, 60.0) == 1e-3

@@ -487,7 +487,7 @@ def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
     while step < target:
         if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
             break
-        for group in opt.param_groups:  # warm-up and decay from the stage's progress (resume-safe)
+        for group in opt.param_groups:  # from the step (and budget): a resume by iterations keeps the rates
             group["lr"] = stage_lr(config, step, target, time.perf_counter() - began - stage_start_s,
                                    None if stage_end_s is None else stage_end_s - stage_start_s)
         loss, colour_loss, depth_loss = restorer_step(run, current, opt)
