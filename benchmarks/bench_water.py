@@ -206,10 +206,10 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
           f"{estimate.n_points} points, {estimate.n_observations} views, "
           f"{estimate.n_board} board patch views, {estimate.n_frames} frames")
     for key, row in params.items():
-        cover = "".join("y" if c else "N" for c in row.get("covered", [])) or "-"
-        est = " ".join(f"{v:.4f}" for v in row["estimate"])
-        tru = " ".join(f"{v:.4f}" for v in row["truth"])
-        rel = " ".join(f"{100 * v:+.1f}%" if np.isfinite(v) else "n/a" for v in row["rel_error"])
+        cover = "".join("y" if c else "N" for c in np.ravel(row.get("covered", []))) or "-"
+        est = " ".join(f"{v:.4f}" for v in np.ravel(row["estimate"]))  # per-light parameters: rows flattened
+        tru = " ".join(f"{v:.4f}" for v in np.ravel(row["truth"]))
+        rel = " ".join(f"{100 * v:+.1f}%" if np.isfinite(v) else "n/a" for v in np.ravel(row["rel_error"]))
         print(f"   {key:32s} est {est:30s} truth {tru:30s} err {rel:24s} covered {cover}")
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)

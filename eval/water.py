@@ -350,6 +350,24 @@ def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24
     return normals
 
 
+def needs_normals(stack: Stack) -> bool:
+    """Whether an effect of the stack reads surface normals (it raises MissingInputError naming normals_cam on a
+    state without them)."""
+    from watergan.formation import MissingInputError
+
+    one = torch.ones(1, 1, 1, 1, dtype=torch.float64)
+    state = FormationState(direct=torch.ones(1, 3, 1, 1, dtype=torch.float64), range_m=2 * one, depth_m=2 * one,
+                           pixel_uv=torch.full((1, 2, 1, 1), 0.5, dtype=torch.float64), image_wh=(2, 2),
+                           points_cam=torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64).view(1, 3, 1, 1),
+                           frame_index=torch.zeros(1, dtype=torch.long))
+    try:
+        with torch.no_grad():
+            stack.to(torch.float64).render(state)
+    except MissingInputError as exc:
+        return "normals_cam" in str(exc)
+    return False
+
+
 def _normal_map(frame: WaterFrame, K: np.ndarray, config: WaterConfig) -> np.ndarray:
     """The frame's normals (its own, else :func:`normals_from_range`)."""
     if frame.normals_cam is not None:
@@ -395,8 +413,9 @@ def _check_inputs(frames: list[WaterFrame], K: np.ndarray, config: WaterConfig) 
 
 
 def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
-            config: WaterConfig = WaterConfig()) -> Observations:
-    """The measurement table of the module docstring (dense correspondences, tracks, board)."""
+            config: WaterConfig = WaterConfig(), normals: bool = False) -> Observations:
+    """The measurement table of the module docstring (dense correspondences, tracks, board); with ``normals``
+    each view's surface normal in its camera frame too (for effects that read them, e.g. ``artificial_light``)."""
     import cv2
 
     K = np.asarray(K, np.float64)
@@ -410,7 +429,7 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     inner[m:h - m, m:w - m] = True
 
     # 1. lift samples of every frame to world points (with their surface normals, world frame)
-    points, normals = [], []
+    points, point_normals = [], []
     for k in usable:
         f = frames[k]
         r = _clean_range(f.range_m)
@@ -428,11 +447,11 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
         pc = rays[yy, xx] / ray_norm[yy, xx, None] * r[yy, xx, None]
         pose = np.asarray(f.world_from_cam, np.float64)
         points.append(pc @ pose[:3, :3].T + pose[:3, 3])
-        normals.append(_normal_map(f, K, config)[yy, xx] @ pose[:3, :3].T)
+        point_normals.append(_normal_map(f, K, config)[yy, xx] @ pose[:3, :3].T if normals else np.zeros((len(yy), 3)))
     if not points:
         raise WaterInputError("no frame has a pixel with range inside the image margin")
     xyz = np.concatenate(points)
-    normals_world = np.concatenate(normals)
+    normals_world = np.concatenate(point_normals)
 
     # 2. views of every point in every frame (occlusion test with that frame's own range)
     rows = {key: [] for key in ("colour", "range", "depth", "uv", "pc", "nc", "point", "frame")}
@@ -505,7 +524,8 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
             sel = tracks.obs_point[use & (tracks.obs_frame == k)]
             centres[sel] += np.asarray(frames[k].world_from_cam, np.float64)[:3, 3]
             seen[sel] += 1
-        track_normals = pca_normals(np.asarray(tracks.xyz, np.float64), centres / np.maximum(seen, 1)[:, None], 12)
+        track_normals = pca_normals(np.asarray(tracks.xyz, np.float64), centres / np.maximum(seen, 1)[:, None], 12) \
+            if normals else np.zeros((len(tracks.xyz), 3))
         for k in np.unique(tracks.obs_frame[use]):
             sel = np.flatnonzero(use & (tracks.obs_frame == k))
             pose = np.asarray(frames[k].world_from_cam, np.float64)
@@ -535,17 +555,18 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     used = np.unique(cat["point"][order])
     remap[used] = np.arange(len(used))
     obs = Observations(colour=cat["colour"][order], range_m=cat["range"][order], depth_m=cat["depth"][order],
-                       pixel_uv=cat["uv"][order], points_cam=cat["pc"][order], normals_cam=cat["nc"][order],
+                       pixel_uv=cat["uv"][order], points_cam=cat["pc"][order],
+                       normals_cam=cat["nc"][order] if normals else None,
                        point=remap[cat["point"][order]],
                        frame=cat["frame"][order], n_points=len(used), image_wh=(w, h), n_frames=len(frames))
     if board is not None:
-        _add_board(obs, frames, usable, board, K, rays, ray_norm, config)
+        _add_board(obs, frames, usable, board, K, rays, ray_norm, config, normals)
     _check_diversity(obs, config)
     return obs
 
 
 def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], board, K: np.ndarray,
-               rays: np.ndarray, ray_norm: np.ndarray, config: WaterConfig) -> None:
+               rays: np.ndarray, ray_norm: np.ndarray, config: WaterConfig, normals: bool = False) -> None:
     """Board rows: per frame and visible patch, the mean raw colour inside the shrunk quad, its centroid and
     the median range there (patches with range on fewer than half their pixels are skipped)."""
     import cv2
@@ -558,7 +579,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         if quads is None:
             continue
         r = _clean_range(f.range_m)
-        normal_map = _normal_map(f, K, config)
+        normal_map = _normal_map(f, K, config) if normals else None
         for p, quad in enumerate(np.asarray(quads, np.float64)):
             if not np.isfinite(quad).all():
                 continue
@@ -577,8 +598,9 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
             rr = float(np.nanmedian(r[inside]))
             ray = np.array([(xc - K[0, 2]) / K[0, 0], (yc - K[1, 2]) / K[1, 1], 1.0])
             pc = ray / np.linalg.norm(ray) * rr
-            n = np.nanmean(normal_map[inside], 0)
-            rows["nc"].append(n / max(float(np.linalg.norm(n)), 1e-12))
+            if normal_map is not None:
+                n = np.nanmean(normal_map[inside], 0)
+                rows["nc"].append(n / max(float(np.linalg.norm(n)), 1e-12))
             rows["colour"].append(colour)
             rows["albedo"].append(board.true_linear_rgb[p])
             rows["range"].append(rr)
@@ -594,7 +616,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         obs.board_depth_m = np.array(rows["depth"], np.float64)
         obs.board_pixel_uv = np.array(rows["uv"], np.float64)
         obs.board_points_cam = np.array(rows["pc"], np.float64)
-        obs.board_normals_cam = np.array(rows["nc"], np.float64)
+        obs.board_normals_cam = np.array(rows["nc"], np.float64) if normals else None
         obs.board_frame = np.array(rows["frame"], np.int64)
         obs.board_patch = np.array(rows["patch"], np.int64)
 
@@ -1083,7 +1105,7 @@ def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
     Raises :class:`WaterInputError` when the frames cannot pin the water (too few registered frames, too
     little range, too few points seen at different ranges)."""
     t0 = time.perf_counter()
-    obs = measure(frames, K, tracks, board, config)
+    obs = measure(frames, K, tracks, board, config, normals=needs_normals(build_stack(config, len(frames), lights)))
     t_measure = time.perf_counter() - t0
     estimate = fit_observations(obs, config, lights)
     estimate.seconds = {"measure": round(t_measure, 2), **estimate.seconds,
@@ -1128,9 +1150,11 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
         pc = rays / np.linalg.norm(rays, axis=-1, keepdims=True) * r_filled[..., None]
         fields["points_cam"] = torch.from_numpy(pc.transpose(2, 0, 1)[None].copy())
         fields["depth_m"] = torch.from_numpy(pc[..., 2][None, None].copy())
-        n = normals_from_range(r, K, normal_smooth_px) if normals_cam is None else np.asarray(normals_cam, np.float64)
-        n = np.where(np.isfinite(n), n, np.array([0.0, 0.0, -1.0]))
-        fields["normals_cam"] = torch.from_numpy(n.transpose(2, 0, 1)[None].copy())
+        if normals_cam is not None or needs_normals(stack):
+            n = normals_from_range(r, K, normal_smooth_px) if normals_cam is None else \
+                np.asarray(normals_cam, np.float64)
+            n = np.where(np.isfinite(n), n, np.array([0.0, 0.0, -1.0]))
+            fields["normals_cam"] = torch.from_numpy(n.transpose(2, 0, 1)[None].copy())
     else:
         fields["depth_m"] = torch.from_numpy(r_filled[None, None].copy())
     state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=torch.float64),
