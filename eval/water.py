@@ -114,8 +114,9 @@ d ~ r for lights beside the camera) is read as attenuation: on the auv preset et
 
 Measured on auv (seed 0, benchmarks/bench_water.py ``auv0``; off-centre vignetting hidden): eta +4.3/-11.9/-19.5 %
 (without the rig +315/+493/+492 %), B_inf +32/+93/+123 %, 2 of 6 intervals covering the truth; with the hidden
-effect added (``auv0_add``) eta +21/+12/+12 %. The geometry limits it: the same fit with the true range, poses
-and normals gives eta within 2.5 %, with the dense range and SfM poses but true normals +10/+4/+5 %. The veil
+effect added (``auv0_add``) eta +21/+12/+12 %. The hidden effect and the geometry limit it: with the true range,
+poses and normals the fit gives eta +2/-7/-13 % without the hidden effect in the stack and within 2.5 % with it;
+with the dense range and SfM poses but true normals +2/-11/-18 % and +10/+4/+5 % (README has the table). The veil
 over the survey's 2-4 m, k B_inf (1 - exp(-beta r)), is within 4-12 %; its asymptote B_inf is not (beta 0.12-0.17
 against 0.3: the strobes light little water and the span is short).
 
