@@ -1,9 +1,11 @@
 """WaterGAN on the simulated demo survey: training speed and how well the water is learned.
 
     .venv/bin/python benchmarks/bench_gan.py [--survey DIR] [--out DIR] [--budget-min 5] [--iterations N]
+                                             [--rgbd-dir DIR] [--site-water WATER_JSON --site-water-mode held|prior]
 
 Simulates the demo preset with no hidden effect (unless ``--survey`` already holds one), trains on
-``SURVEY/rgbd`` (in-air RGB-D) against ``SURVEY/images`` (the underwater frames), then:
+``SURVEY/rgbd`` (in-air RGB-D; ``--rgbd-dir`` for another set, e.g. a generic one) against ``SURVEY/images``
+(the underwater frames), starting from the water stage's estimate with ``--site-water``, then:
 
 - attenuation: learned eta_c vs the truth (``truth/effects.json`` "full"): channel ordering and
   relative error per channel (target: same ordering, each within 50 %);
@@ -58,6 +60,9 @@ def main() -> int:
     parser.add_argument("--instance-noise", type=float, default=defaults.instance_noise_std)
     parser.add_argument("--real-label", type=float, default=defaults.real_label)
     parser.add_argument("--physics-lr", type=float, default=defaults.physics_lr)
+    parser.add_argument("--rgbd-dir", default=None, help="in-air RGB-D set (default: SURVEY/rgbd)")
+    parser.add_argument("--site-water", default=None, help="a water stage's water.json")
+    parser.add_argument("--site-water-mode", default="held", choices=["held", "prior"])
     parser.add_argument("--adversarial-physics", action="store_true",
                         help="the paper's training: the discriminator moves the physical parameters too")
     args = parser.parse_args()
@@ -73,7 +78,10 @@ def main() -> int:
     if out.exists():
         shutil.rmtree(out)
 
-    config = GanConfig(rgbd_dir=survey / "rgbd", underwater_dir=survey / "images", out_dir=out / "model",
+    config = GanConfig(rgbd_dir=Path(args.rgbd_dir) if args.rgbd_dir else survey / "rgbd",
+                       underwater_dir=survey / "images", out_dir=out / "model",
+                       site_water=Path(args.site_water) if args.site_water else None,
+                       site_water_mode=args.site_water_mode,
                        budget_min=args.budget_min, iterations=args.iterations, seed=args.seed,
                        disc_width=args.disc_width, instance_noise_std=args.instance_noise,
                        real_label=args.real_label, physics_lr=args.physics_lr,

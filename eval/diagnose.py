@@ -31,7 +31,8 @@ residual RMSE after the verdict's model are reported as unexplained.
 Ledger (``model_ledger.jsonl`` in the workspace, or SURVEY/diagnose/): one JSON record per fit with
 time, kind ("model" or "candidate"), stack, fitted values, held-out and training RMSE, the number of
 observations and the geometry source; model records of a workspace also carry, when
-``watergan consistency`` measured the image folders (its ``colour.json``), the colour consistency of each measured
+the eval stage ran, the raw frames', the physics correction's and the restorer's (named with its mode), and when
+``watergan consistency`` measured image folders (its ``colour.json``), those too: the colour consistency of each
 image folder (``consistency``: mean over points of the per-channel variance of c / (R + G + B)
 across views) and its colour-board error (``board_ciede2000``: mean CIEDE2000 over patches), so a
 model version can be read beside what its corrected images achieve.
@@ -555,7 +556,7 @@ def read_ledger(path: Path) -> list[dict]:
 
 def ledger_table(records: list[dict]) -> str:
     """A plain-text table: version, time, kind, held-out RMSE, change from the previous model, stack;
-    then, for records that carry them, the consistency and board error of the measured image folders."""
+    then, for records that carry them, the consistency and board error of the corrected frames."""
     lines = [f"{'ver':>3}  {'time':19}  {'kind':9}  {'heldout_rmse':>12}  {'change':>7}  stack"]
     previous = None
     for i, r in enumerate(records):
@@ -566,8 +567,8 @@ def ledger_table(records: list[dict]) -> str:
             previous = r["heldout_rmse"]
     colour = [(i, r) for i, r in enumerate(records) if r.get("consistency") or r.get("board_ciede2000")]
     if colour:
-        lines.append("\ncolour of the image folders measured by `watergan consistency` (its colour.json) "
-                     "when the version was fitted: consistency = mean variance of c/(R+G+B) across views "
+        lines.append("\ncolour of the corrected frames when the version was fitted (the eval stage's, and folders "
+                     "`watergan consistency` measured): consistency = mean variance of c/(R+G+B) across views "
                      "(lower = more consistent), board = mean CIEDE2000 to the true patch colours")
         for i, r in colour:
             for name in sorted({*r.get("consistency", {}), *r.get("board_ciede2000", {})}):
@@ -579,13 +580,18 @@ def ledger_table(records: list[dict]) -> str:
 
 
 def plot_ledger(records: list[dict], path: Path) -> None:
-    """Held-out RMSE per ledger entry: model versions joined by a line, candidate trials as dots."""
+    """Held-out RMSE per ledger entry: model versions joined by a line, candidate trials as dots; beside it,
+    when model versions carry them, what their corrected frames achieve (the board's CIEDE2000 and the colour
+    consistency per image folder, one line each), so adding an effect can be seen to lower the error of the
+    frames users texture with."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    colour_keys = [k for k in ("board_ciede2000", "consistency") if any(r.get(k) for r in records)]
+    fig, axes = plt.subplots(1, 1 + len(colour_keys), figsize=(7 + 4.5 * len(colour_keys), 3.6), squeeze=False)
+    ax = axes[0, 0]
     model = [(i, r["heldout_rmse"]) for i, r in enumerate(records) if r["kind"] == "model"]
     trials = [(i, r["heldout_rmse"]) for i, r in enumerate(records) if r["kind"] != "model"]
     if trials:
@@ -599,6 +605,18 @@ def plot_ledger(records: list[dict], path: Path) -> None:
     ax.set_xlabel("ledger entry")
     ax.set_ylabel("held-out RMSE (linear)")
     ax.legend(fontsize=8)
+    for ax, key in zip(axes[0, 1:], colour_keys, strict=True):
+        names = sorted({n for r in records for n in (r.get(key) or {})})
+        for name in names:
+            points = [(i, r[key][name]) for i, r in enumerate(records) if name in (r.get(key) or {})]
+            ax.plot(*zip(*points, strict=True), "o-", label=name)
+        ax.set_xlabel("ledger entry")
+        ax.set_ylabel("board CIEDE2000" if key == "board_ciede2000" else "consistency (variance of c/(R+G+B))")
+        ax.set_title("corrected frames per model version", fontsize=9)
+        if key == "consistency":
+            ax.set_yscale("log")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
     fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
 

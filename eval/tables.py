@@ -118,6 +118,8 @@ class EvaluateResult:
     range_source: str
     """'dense', 'truth' or 'none'."""
     mean_board_distance: dict[str, float] = field(default_factory=dict)
+    mean_board_ciede2000: dict[str, float] = field(default_factory=dict)
+    """Per method, the colour board's mean CIEDE2000 over patches (after one exposure factor per view)."""
     consistency_variance: dict[str, list[float]] = field(default_factory=dict)
     verdict: list[str] = field(default_factory=list)
     example_frames: list[str] = field(default_factory=list)

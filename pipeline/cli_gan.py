@@ -49,7 +49,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         raise UserInputError(f"model folder {config.model_dir} does not exist: run `watergan train-gan` first")
     result = generate(config)
     print(f"generated {result.count} underwater images in {result.seconds:.1f} s -> {result.out_dir} "
-          f"(inair/, depth/, underwater/, manifest.json)")
+          f"(inair/, depth/, range/, underwater/, manifest.json)")
     if result.skipped:
         print(f"skipped {len(result.skipped)} bad file(s):\n  " + "\n  ".join(result.skipped))
     return 0

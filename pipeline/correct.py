@@ -12,7 +12,10 @@ The restorer works on the stored (sRGB-encoded) values scaled to 0..1, so the ou
 input's encoding. A restorer trained with ``altitude`` also takes each image's altitude above the
 seafloor (metres), the ``nav_altitude_m`` of a navigation file (:func:`watergan.data.read_nav_altitudes`;
 by default the ``survey.json`` beside the images folder); an image without one is an error before any
-work. Images already corrected (all three outputs present) are skipped unless ``force``. An unreadable
+work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's range in metres from
+``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take the image's
+median range, :func:`watergan.nets.restorer.fill_range_holes`); an image without a range map is an error before
+any work. Images already corrected (all three outputs present) are skipped unless ``force``. An unreadable
 or truncated image is reported and skipped. Every file is written atomically; the output folder may
 not be (or contain) the input folder's files.
 
@@ -46,8 +49,8 @@ from watergan.data import (
     read_nav_altitudes,
 )
 from watergan.device import Device, pick_device
-from watergan.io import bit_depth
-from watergan.nets.restorer import restore
+from watergan.io import bit_depth, depth_or_zero, read_depth
+from watergan.nets.restorer import fill_range_holes, restore
 from watergan.train_restorer import load_restorer
 
 SUMMARY = "summary.json"
@@ -93,6 +96,8 @@ class CorrectChunk:
     device: str
     altitude_m: tuple[float, ...] | None = None
     """Per path, the altitude above the seafloor in metres (None: the model does not take it)."""
+    range_dir: Path | None = None
+    """Folder of each path's range map ``<stem>.png`` (None: the model does not take range)."""
 
 
 @dataclass
@@ -112,16 +117,19 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
-    batch: list[tuple[str, np.ndarray, int, float]] = []
+    batch: list[tuple[str, np.ndarray, int, float, np.ndarray | None]] = []
 
     def flush() -> None:
-        x = torch.from_numpy(np.stack([im for _, im, _, _ in batch]).transpose(0, 3, 1, 2)).float().to(dev)
-        altitude = torch.tensor([a for *_, a in batch], device=dev) if chunk.altitude_m is not None else None
+        x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).float().to(dev)
+        altitude = torch.tensor([b[3] for b in batch], device=dev) if chunk.altitude_m is not None else None
+        range_m = None
+        if chunk.range_dir is not None:
+            range_m = fill_range_holes(torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).float())[0].to(dev)
         with torch.no_grad():
-            rgb, depth = restore(model, x, altitude)
+            rgb, depth = restore(model, x, altitude, range_m)
         rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().double().numpy()
-        for k, (stem, _, bits, _) in enumerate(batch):
+        for k, (stem, _, bits, _, _) in enumerate(batch):
             _write(out, stem, rgb_np[k], depth_np[k], bits)
         result.corrected += len(batch)
         if bar is not None:
@@ -132,6 +140,14 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
         try:
             image = read_image(path, "linear")  # the stored values, 0..1
             bits = bit_depth(path)
+            range_m = None
+            if chunk.range_dir is not None:
+                range_m = depth_or_zero(read_depth(chunk.range_dir / f"{path.stem}.png"))
+                if range_m.shape != image.shape[:2]:
+                    raise DataError(f"range map {chunk.range_dir / f'{path.stem}.png'} is {range_m.shape[1]}x"
+                                    f"{range_m.shape[0]}, the image {image.shape[1]}x{image.shape[0]}")
+                if not (range_m > 0).any():
+                    raise DataError(f"range map {chunk.range_dir / f'{path.stem}.png'} holds no range")
         except DataError as exc:
             result.failed.append(str(exc))
             if bar is not None:
@@ -140,7 +156,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
             continue
         if batch and batch[0][1].shape != image.shape:
             flush()
-        batch.append((path.stem, image, bits, chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0))
+        batch.append((path.stem, image, bits, chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m))
         if len(batch) == chunk.batch_size:
             flush()
     if batch:
@@ -150,7 +166,8 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
 
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
                    batch_size: int = 4, device: str = "auto", progress: bool = True, scheduler=None,
-                   chunk_size: int = 64, navigation: str | Path | None = None) -> CorrectResult:
+                   chunk_size: int = 64, navigation: str | Path | None = None,
+                   range_dir: str | Path | None = None) -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
     images of the same size are corrected together, ``batch_size`` at a time.
 
@@ -160,7 +177,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     writing to ``out_dir`` on the shared file system (:mod:`watergan.parallel`). Same files either way.
 
     ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
-    ``images_dir``), read only for a restorer trained with ``altitude``."""
+    ``images_dir``), read only for a restorer trained with ``altitude``. ``range_dir``: the folder of each
+    image's range map, for a restorer trained with ``range_input`` (the RGB-D mode)."""
     from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     began = time.perf_counter()
@@ -191,6 +209,14 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         if lacking:
             raise DataError(f"the navigation has no altitude for {len(lacking)} of the {len(files)} images "
                             f"(e.g. {lacking[0]}): the restorer in {model_dir} needs one per image")
+    ranges = Path(range_dir) if (model.range_input and range_dir) else None
+    if model.range_input:
+        lacking = [p.name for p in files if ranges is None or not (ranges / f"{p.stem}.png").is_file()]
+        if lacking:
+            raise DataError(f"the restorer in {model_dir} takes each pixel's range (RGB-D mode), and "
+                            f"{len(lacking)} of the {len(files)} images have no range map (e.g. {lacking[0]}"
+                            f"{'' if ranges is None else f' in {ranges}'}): give --range-dir (the water stage's "
+                            f"range/), or train a monocular restorer (--no-range-input)")
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
@@ -205,12 +231,13 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
-                                              altitude_of(todo)), bar, model)
+                                              altitude_of(todo), ranges), bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
-                             batch_size, device, altitude_of(part)) for part in chunks(todo, size)]
+                             batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None)
+                for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):
             print(f"correct: skipped {message}", file=sys.stderr)
@@ -249,18 +276,24 @@ class CorrectStageResult:
     """Workspace-relative folder of the relative depth maps."""
     fps: float
     """Frames per second, file I/O and model loading included."""
+    mode: str = "monocular"
+    """"rgb-d" (each pixel's range from the water stage) or "monocular" (the image, and the altitude when the
+    restorer takes it)."""
 
 
 def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
-    """Correct the survey's frames with the restorer stage's model into the stage's folder."""
+    """Correct the survey's frames with the restorer stage's model into the stage's folder; a restorer in RGB-D
+    mode takes each pixel's range from the water stage's range maps."""
     restorer = ws.require("restorer", "correct")
     images = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     out = ws.stage_dir("correct")
+    rgbd = load_restorer(restorer.out_dir).range_input
+    ranges = ws.path(ws.require("water", "the RGB-D restorer").range_dir) if rgbd else None
     result = correct_folder(restorer.out_dir, images, out, force=True, batch_size=cfg.batch_size,
-                            progress=cfg.progress, scheduler=cfg.scheduler or None)
+                            progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges)
     return CorrectStageResult(corrected=result.corrected, failed=result.failed, seconds=result.seconds,
                               images=ws.relative(out / "images"), depth=ws.relative(out / "depth"),
-                              fps=result.corrected / max(result.seconds, 1e-9))
+                              fps=result.corrected / max(result.seconds, 1e-9), mode="rgb-d" if rgbd else "monocular")
 
 
 @dataclass(frozen=True)
@@ -276,6 +309,9 @@ class CorrectConfig:
     navigation: Path | None = None
     """Survey file with nav_altitude_m per frame, for a restorer that takes altitude (default: survey.json
     beside the images folder)."""
+    range_dir: Path | None = None
+    """Folder of each image's range map (<stem>.png, 16-bit millimetres; a workspace's 06_water/range), for a
+    restorer trained in RGB-D mode."""
     force: bool = False
     """Redo images already corrected."""
     batch_size: int = 4

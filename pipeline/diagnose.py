@@ -27,24 +27,47 @@ def is_workspace(target: str | Path) -> bool:
     return (survey / "camera.json").is_file() and (survey / "images").is_dir()
 
 
+#: The eval stage's methods the ledger records for each model version: the corrected frames users texture with.
+LEDGER_METHODS = {"raw": "raw", "physics": "physics (range)", "ours": "ours"}
+
+
+def corrected_summary(ws: Workspace) -> dict:
+    """From the eval stage's result, for the raw frames, the physics correction and the restorer ("ours (rgb-d)"
+    or "ours (monocular)", by the correct stage's mode): the colour consistency (mean over R, G, B of the
+    normalised-colour variance across views) and the board's mean CIEDE2000. Empty without an eval result."""
+    result = ws.result("eval")
+    if result is None:
+        return {}
+    correct = ws.result("correct")
+    names = {**LEDGER_METHODS, "ours": f"ours ({correct.mode if correct is not None else 'unknown'})"}
+    out: dict[str, dict] = {"consistency": {}, "board_ciede2000": {}}
+    for method, name in names.items():
+        if method in result.consistency_variance:
+            out["consistency"][name] = float(sum(result.consistency_variance[method]) / 3)
+        if method in result.mean_board_ciede2000:
+            out["board_ciede2000"][name] = float(result.mean_board_ciede2000[method])
+    return {k: v for k, v in out.items() if v}
+
+
 def colour_summary(ws: Workspace) -> dict:
-    """From the eval stage's ``colour.json`` (``watergan consistency``), per image folder: the colour
-    consistency (mean normalised-colour variance across views) and, when a board was measured, its
-    mean CIEDE2000. Empty without the file."""
+    """Per image folder, the colour consistency (mean normalised-colour variance across views) and, when a
+    board was measured, its mean CIEDE2000: the eval stage's corrected frames (:func:`corrected_summary`) and
+    the folders ``watergan consistency`` measured (the eval stage's ``colour.json``)."""
+    out = corrected_summary(ws)
     path = ws.folder("eval") / "colour.json"
     if not path.is_file():
-        return {}
-    out = {}
+        return out
     try:
         data = read_json(path)
         scores = (data.get("consistency") or {}).get("scores") or {}
-        if scores:
-            out["consistency"] = {name: float(s["mean_variance"]) for name, s in scores.items()}
         board = data.get("board") or {}
-        if board:
-            out["board_ciede2000"] = {name: float(b["mean_ciede2000"]) for name, b in board.items()}
+        measured = {"consistency": {name: float(s["mean_variance"]) for name, s in scores.items()},
+                    "board_ciede2000": {name: float(b["mean_ciede2000"]) for name, b in board.items()}}
     except (ValueError, KeyError, TypeError, AttributeError):
-        return {}  # another layout: the ledger simply goes without the colour fields
+        return out  # another layout: the ledger goes without these folders
+    for key, values in measured.items():
+        if values:
+            out.setdefault(key, {}).update(values)
     return out
 
 

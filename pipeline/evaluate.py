@@ -222,20 +222,31 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
     verdict = _verdict(ws, f, cons, board_results, fid, ranges)
     range_kind = ranges.kind if ranges is not None else "none"
     examples = example_frames(names, board, cfg.example_frames)
-    data = {"methods": f.methods, "labels": {m: LABELS.get(m, m) for m in [*f.methods, *f.reference]},
+    correct = ws.result("correct") if not cfg.ours_dir else None
+    ours_mode = correct.mode if correct is not None else "unknown"
+    data = {"methods": f.methods, "ours_mode": ours_mode,
+            "labels": {m: LABELS.get(m, m) for m in [*f.methods, *f.reference]},
             "reference": list(f.reference), "folders": {m: _maybe_relative(ws, p) for m, p in f.folders.items()},
             "skipped": f.skipped, "range_source": range_kind, "simulated": simulated, "example_frames": examples,
             "tables": tables, "verdict": verdict}
     atomic_write_json(out / "tables.json", data)
-    md = ["# Evaluation", "", f"Methods: {', '.join(LABELS.get(m, m) for m in f.methods)}; range from {range_kind}.",
-          ""] + [table_markdown(t) for t in tables] + ["## Verdict", ""] + [f"- {line}" for line in verdict]
+    md = ["# Evaluation", "", f"Methods: {', '.join(LABELS.get(m, m) for m in f.methods)}; range from {range_kind}; "
+          f"ours: the restorer, {OURS_MODES.get(ours_mode, ours_mode)}.", ""]
+    md += [table_markdown(t) for t in tables] + ["## Verdict", ""] + [f"- {line}" for line in verdict]
     atomic_write_text(out / "tables.md", "\n".join(md) + "\n")
     return EvaluateResult(
         tables_json=ws.relative(out / "tables.json"), tables_md=ws.relative(out / "tables.md"),
         baselines_dir=ws.relative(out / "baselines"), methods=f.methods, skipped=f.skipped, range_source=range_kind,
         mean_board_distance={m: r.mean_distance for m, r in board_results.items()},
+        mean_board_ciede2000={m: r.mean_ciede2000 for m, r in board_results.items()},
         consistency_variance={m: s.variance for m, s in cons.scores.items()}, verdict=verdict,
         example_frames=examples, seconds=time.perf_counter() - began)
+
+
+#: How the correct stage's restorer corrected the frames (its result's ``mode``).
+OURS_MODES = {"rgb-d": "RGB-D mode (each pixel's range from the water stage)",
+              "monocular": "monocular mode (the image, and the altitude when the restorer takes it)",
+              "unknown": "frames given with ours_dir (mode not recorded)"}
 
 
 def run_colour_eval(ws: Workspace, cfg: ColourEvalConfig) -> ColourEvalResult:

@@ -63,8 +63,8 @@ class RunOptions:
 #: The gan stage's configuration holds two: its training (option group ``gan``) and the rendering of
 #: its pairs (``generate``); (configuration class, fields the plan sets itself).
 _GAN_GROUPS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "gan": ("watergan.train:GanConfig", ("rgbd_dir", "underwater_dir", "out_dir", "seed", "resume", "device",
-                                         "progress")),
+    "gan": ("watergan.train:GanConfig", ("rgbd_dir", "underwater_dir", "out_dir", "site_water", "seed", "resume",
+                                         "device", "progress")),
     "generate": ("watergan.generate:GenerateConfig", ("model_dir", "rgbd_dir", "out_dir", "seed", "device",
                                                       "progress")),
 }
@@ -160,6 +160,8 @@ def _configured(group: str, opts: RunOptions, **fixed: Any) -> Any:
 def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[], Any]]:
     """Per stage after the survey (the stage table's order), a factory of its configuration; factories
     run when the stage is reached, so they can read the results of the stages before."""
+    from watergan.site_water import SiteWater
+
     from .gan import GanStage
     from .stages import STAGES
 
@@ -169,6 +171,8 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
     def gan() -> GanStage:
         base = _configured("gan", opts, rgbd_dir=rgbd, underwater_dir=ws.stage_dir("survey") / "images",
                            out_dir=gan_dir / "model")
+        if base.site_water_mode != SiteWater.learned:  # the water stage's estimate, held or under its prior
+            base = dataclasses.replace(base, site_water=ws.path(ws.require("water", "WaterGAN").water_json))
         effects = tuple(dict.fromkeys(base.effects + opts.add))
         gan_given = opts.stages.get("gan", {})
         if ({("iterations",), ("epochs",)} & set(gan_given)) and ("budget_min",) not in gan_given:
@@ -180,8 +184,12 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
     def restorer():
         gan_result = ws.require("gan", "the restorer")
         cfg = _configured("restorer", opts, data_dir=ws.path(gan_result.generated), out_dir=ws.stage_dir("restorer"))
-        if ("altitude",) not in opts.stages.get("restorer", {}):  # the altimeter's altitude when the survey has it
+        given = opts.stages.get("restorer", {})
+        if ("altitude",) not in given:  # the altimeter's altitude when the survey has it
             cfg = dataclasses.replace(cfg, altitude=survey.navigation)
+        if ("range_input",) not in given:  # RGB-D when the water stage left each frame's range maps
+            water = ws.result("water")
+            cfg = dataclasses.replace(cfg, range_input=water is not None and bool(water.range_dir))
         return cfg
 
     def diagnose():

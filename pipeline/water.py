@@ -11,6 +11,8 @@ what stays degenerate: its module docstring), and inverts it at every pixel with
     residuals.png           the fit's residuals against range and image position
     images/<name>.png       the physics-corrected frames, sRGB, the input's bit depth (8 or 16)
     mask/<stem>.png         255 where the frame was corrected, 0 where it has no range (written black)
+    range/<stem>.png        the range each pixel was corrected with, 16-bit millimetres (0: none); the RGB-D
+                            restorer corrects with it too
 
 Range per pixel (:func:`correction_range`): the dense stage's depth map where it agrees with the dense
 stage's fused mesh rendered into the view (open3d ray casting from the SfM pose) within ``range_agreement``;
@@ -41,7 +43,15 @@ import numpy as np
 from eval.tracks import Tracks
 from eval.water import WaterConfig, WaterEstimate, WaterFrame
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_json, atomic_write_text, bit_depth, read_depth, write_png, z_to_range
+from watergan.io import (
+    atomic_write_json,
+    atomic_write_text,
+    bit_depth,
+    read_depth,
+    write_depth_png,
+    write_png,
+    z_to_range,
+)
 
 from .workspace import Workspace
 
@@ -73,6 +83,8 @@ class WaterResult:
     """Wall time of the stage (estimate and correction)."""
     estimate_seconds: float
     """Wall time of the estimate alone."""
+    range_dir: str = ""
+    """Workspace-relative folder of the range maps the frames were corrected with (16-bit millimetre PNGs)."""
 
 
 def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
@@ -201,6 +213,7 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k,
                                                normal_smooth_px=normal_smooth_px)
             unresolved.append(float(np.mean(~valid)))
+            write_depth_png(out / "range" / f"{Path(f.name).stem}.png", r)
             _write_corrected(out, f.name, corrected, valid, bit_depth(images / f.name))
     return float(np.mean(from_mesh)), float(np.mean(unresolved))
 
@@ -271,4 +284,4 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
                        mask=ws.relative(out / "mask"), mesh_fraction=mesh_share, unresolved_fraction=unresolved,
                        board=board is not None, at_bounds=bounds, converged=estimate.converged,
                        seconds=time.perf_counter() - began,
-                       estimate_seconds=estimate_s)
+                       estimate_seconds=estimate_s, range_dir=ws.relative(out / "range"))

@@ -105,3 +105,35 @@ def test_a_restorer_that_takes_altitude_reads_the_navigation(tmp_path):
     correct_folder(tmp_path / "model", images, tmp_path / "far", progress=False, navigation=far)
     a_near, a_far = (cv2.imread(str(tmp_path / d / "images" / "a.png")).astype(int) for d in ("near", "far"))
     assert np.abs(a_near - a_far).max() > 2
+
+
+def test_an_rgbd_restorer_corrects_with_each_pixel_s_range(tmp_path):
+    """An RGB-D restorer needs a range map per image (a clear error before any work otherwise); holes take the
+    image's median range; a farther range map gives another correction of the same image."""
+    from watergan.io import write_depth_png
+
+    model = Restorer(TINY, depth_hw=(16, 16), range_input=True).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+    save_restorer(tmp_path / "model" / "restorer.pt", model)
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    with pytest.raises(DataError, match="2 of the 2 images have no range map .*--range-dir"):
+        correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
+    near, far = tmp_path / "near_range", tmp_path / "far_range"
+    near_m = np.full((32, 40), 1.5)
+    near_m[:4] = 0  # a hole
+    write_depth_png(near / "a.png", near_m)
+    with pytest.raises(DataError, match="1 of the 2 images have no range map .e.g. b.png"):
+        correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False, range_dir=near)
+    assert not (tmp_path / "out").exists()
+    write_depth_png(near / "b.png", near_m)
+    for name in ("a.png", "b.png"):
+        write_depth_png(far / name, np.full((32, 40), 4.0))
+    assert correct_folder(tmp_path / "model", images, tmp_path / "near", progress=False, range_dir=near).corrected == 2
+    correct_folder(tmp_path / "model", images, tmp_path / "far", progress=False, range_dir=far)
+    a_near, a_far = (cv2.imread(str(tmp_path / d / "images" / "a.png")).astype(int) for d in ("near", "far"))
+    assert np.abs(a_near - a_far).max() > 2

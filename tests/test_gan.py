@@ -16,7 +16,7 @@ from watergan.formation.effects.vignetting import vignetting_coefficients
 from watergan.generate import GenerateConfig, generate, load_generator
 from watergan.nets.discriminator import Discriminator
 from watergan.nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
-from watergan.train import GanConfig, generator_param_groups, load_checkpoint, train_gan
+from watergan.train import GanConfig, build_gan, generator_param_groups, load_checkpoint, train_gan
 
 HW = (24, 32)
 TRUTH = [{"name": "attenuation", "params": {"eta_per_m": [0.5, 0.15, 0.2]}},
@@ -374,3 +374,101 @@ def test_settle_matches_the_statistics_and_moves_only_the_physics():
     assert fresh.training  # its mode and which parameters train are given back
     assert {n: p.requires_grad for n, p in fresh.named_parameters()} == trains
     assert not all(trains.values())  # fixed settings stay fixed
+
+
+# ------------------------------------------------------------------------------------------- site water
+def write_water_json(path, stack=TRUTH, half_width=0.1):
+    """A water stage's water.json holding ``stack`` with a 95 % interval of +-``half_width`` (relative) around
+    each value (the gain marked not fitted, as without a board)."""
+    params = {}
+    for entry in stack:
+        for name, value in entry["params"].items():
+            v = np.atleast_1d(np.asarray(value, float))
+            params[f"{entry['name']}.{name}"] = {"value": v.tolist(), "low": (v - half_width * np.abs(v)).tolist(),
+                                                 "high": (v + half_width * np.abs(v)).tolist(),
+                                                 "fitted": entry["name"] != "gain"}
+    path.write_text(json.dumps({"stack": stack, "params": params}))
+    return path
+
+
+def test_site_water_held_keeps_the_estimate_and_trains_the_scattering(data_dir, tmp_path):
+    from watergan.site_water import read_site_water
+
+    water = write_water_json(tmp_path / "water.json")
+    result = train_gan(small_config(data_dir, tmp_path / "model", site_water=water, iterations=3,
+                                    site_water_scattering=True))
+    assert result.site_water["mode"] == "held" and result.settle_loss is None  # no statistics term
+    stack = Stack.load(tmp_path / "model" / "stack.json")
+    assert stack.names == ["attenuation", "backscatter", "backscatter_conv", "vignetting", "gain"]
+    truth = Stack.from_config(TRUTH)
+    for entry in TRUTH:  # every parameter of the site water is where the water stage put it
+        for name in entry["params"]:
+            assert torch.allclose(stack[entry["name"]].param(name), truth[entry["name"]].param(name), atol=1e-6)
+    checkpoint = load_checkpoint(tmp_path / "model" / "checkpoint.pt")
+    assert torch.count_nonzero(checkpoint["generator"]["stack.effects.2.norm.bias"]) == 0  # no veil level
+    run = build_gan(small_config(data_dir, tmp_path / "again", site_water=water, site_water_scattering=True))
+    trained = [n for n, p in run.generator.named_parameters() if p.requires_grad]
+    assert trained and all(n.startswith("stack.effects.2.") for n in trained)  # backscatter_conv alone
+    assert "stack.effects.2.norm.bias" not in trained and run.physics == []
+    assert len(read_site_water(water).prior) == 3  # eta, b_inf, a_margin; the gain is not fitted
+
+
+def test_site_water_prior_pulls_towards_the_estimate(data_dir, tmp_path):
+    from watergan.site_water import prior_loss, read_site_water
+
+    far = [dict(e, params=dict(e["params"])) for e in TRUTH]
+    far[0]["params"]["eta_per_m"] = [0.9, 0.4, 0.5]  # an estimate far from the water the frames show
+    water = write_water_json(tmp_path / "water.json", far, half_width=0.01)
+    site = read_site_water(water)
+    result = train_gan(small_config(data_dir, tmp_path / "prior", site_water=water, site_water_mode="prior",
+                                    iterations=4, settle_steps=5))
+    free = train_gan(small_config(data_dir, tmp_path / "free", site_water=write_water_json(
+        tmp_path / "wide.json", far, half_width=50.0), site_water_mode="prior", iterations=4, settle_steps=5))
+    eta_prior = np.asarray(result.params["attenuation.eta_per_m"])
+    eta_free = np.asarray(free.params["attenuation.eta_per_m"])
+    # a tight prior keeps eta near the estimate; a wide one lets the statistics move it further
+    assert np.abs(eta_prior - [0.9, 0.4, 0.5]).max() < np.abs(eta_free - [0.9, 0.4, 0.5]).max()
+    assert float(prior_loss(Stack.from_config(far), site.prior).detach()) == pytest.approx(0.0, abs=1e-9)
+    assert float(prior_loss(Stack.from_config(TRUTH), site.prior).detach()) > 100  # eta 0.5 vs 0.9 +- 0.005
+
+
+def test_site_water_errors(data_dir, tmp_path):
+    with pytest.raises(UserInputError, match="does not exist"):
+        train_gan(small_config(data_dir, tmp_path, site_water=tmp_path / "none.json"))
+    with pytest.raises(UserInputError, match="learned"):
+        train_gan(small_config(data_dir, tmp_path, site_water=write_water_json(tmp_path / "w.json"),
+                               site_water_mode="learned"))
+    (tmp_path / "bad.json").write_text(json.dumps({"params": {}}))
+    with pytest.raises(UserInputError, match="no stack"):
+        train_gan(small_config(data_dir, tmp_path, site_water=tmp_path / "bad.json"))
+
+
+def test_generate_writes_the_range_the_generator_used(data_dir, tmp_path):
+    train_gan(small_config(data_dir, tmp_path / "model", site_water=write_water_json(tmp_path / "w.json"),
+                           iterations=1))
+    generate(GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=data_dir / "rgbd", out_dir=tmp_path / "gen",
+                            progress=False))
+    item = json.loads((tmp_path / "gen" / "manifest.json").read_text())["items"][0]
+    depth, range_m = read_depth(tmp_path / "gen" / item["depth"]), read_depth(tmp_path / "gen" / item["range"])
+    assert np.allclose(range_m, depth, atol=1.5e-3)  # no camera.json: range = depth, to the millimetre
+
+
+def test_a_held_site_water_without_learned_effects_is_rendered_not_trained(data_dir, tmp_path):
+    water = write_water_json(tmp_path / "water.json")
+    result = train_gan(small_config(data_dir, tmp_path / "model", site_water=water))  # the default effects
+    assert result.stopped_by == "nothing to train" and result.steps == 0
+    assert Stack.load(tmp_path / "model" / "stack.json").to_config() == Stack.from_config(TRUTH).to_config()
+    generate(GenerateConfig(model_dir=tmp_path / "model", rgbd_dir=data_dir / "rgbd", out_dir=tmp_path / "gen",
+                            progress=False, recolour_fraction=0.0))
+    # the generated pairs are the site water's rendering of the in-air views, to 8-bit rounding
+    truth = WaterGenerator(Stack.from_config(TRUTH)).eval()
+    item = json.loads((tmp_path / "gen" / "manifest.json").read_text())["items"][0]
+    rgb = cv2.imread(str(tmp_path / "gen" / item["inair"]))[..., ::-1] / 255.0
+    from watergan.io import srgb_to_linear
+
+    depth = read_depth(tmp_path / "gen" / item["depth"])
+    with torch.no_grad():
+        expected = truth(torch.from_numpy(srgb_to_linear(rgb).transpose(2, 0, 1).copy()).float()[None],
+                         torch.from_numpy(depth).float()[None, None], torch.zeros(1, 100))[0]
+    made = srgb_to_linear(cv2.imread(str(tmp_path / "gen" / item["underwater"]))[..., ::-1] / 255.0)
+    assert np.abs(made - expected.numpy().transpose(1, 2, 0)).max() < 0.01

@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from watergan.data import read_depth
+from watergan.data import DataError, read_depth
 from watergan.errors import UserInputError
 from watergan.nets.restorer import (
     Restorer,
@@ -16,6 +16,7 @@ from watergan.nets.restorer import (
     SegNetCore,
     apply_affine,
     bilinear_upsampler,
+    fill_range_holes,
     image_context,
     position_maps,
     restore,
@@ -165,6 +166,40 @@ def test_the_altitude_enters_the_colour_net():
         far, _ = restore(model, image, torch.tensor([3.0]))
     assert (near - far).abs().max() > 1e-3
     assert Restorer.from_config(model.to_config()).altitude and not Restorer(TINY).altitude
+
+
+def test_the_range_enters_the_colour_net():
+    """An RGB-D restorer refuses to run without each pixel's range and corrects the same image differently at
+    another range; holes take the image's median range."""
+    torch.manual_seed(0)
+    model = Restorer(TINY, range_input=True).eval()
+    image = torch.rand(1, 3, 40, 48)
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+        with pytest.raises(ValueError, match="range"):
+            restore(model, image)
+        near, _ = restore(model, image, range_m=torch.full((1, 1, 40, 48), 1.5))
+        far, _ = restore(model, image, range_m=torch.full((1, 1, 40, 48), 3.0))
+    assert (near - far).abs().max() > 1e-3
+    assert Restorer.from_config(model.to_config()).range_input and not Restorer(TINY).range_input
+    holes = torch.tensor([[[[1.0, 0.0], [float("nan"), 3.0]]]])
+    filled, share = fill_range_holes(holes)
+    assert filled.flatten().tolist() == [1.0, 1.0, 1.0, 3.0] and share == 0.5  # torch's median: the lower middle
+    with pytest.raises(ValueError, match="no range"):
+        fill_range_holes(torch.zeros(1, 1, 2, 2))
+
+
+def test_an_rgbd_restorer_trains_on_the_paired_range(tmp_path):
+    from watergan.io import write_depth_png
+
+    folder = write_generate_folder(tmp_path / "gen", count=3, hw=(40, 40))
+    with pytest.raises(DataError, match="missing .*range"):
+        train_restorer(_config(tmp_path, range_input=True))
+    for i in range(3):
+        write_depth_png(folder / "range" / f"f{i:02d}.png", read_depth(folder / "depth" / f"f{i:02d}.png") * 1.1)
+    result = train_restorer(_config(tmp_path, range_input=True))
+    assert result.steps == (2, 2) and load_restorer(result.out_dir).range_input
+    assert np.isfinite(json.loads((result.out_dir / "validation.json").read_text())["rmse"]["restorer"]["R"])
 
 
 def test_a_training_frame_s_altitude_is_its_median_depth(tmp_path):

@@ -48,7 +48,14 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     assert len(list((out / "03_correct" / "images").glob("*.png"))) == 10
     assert (out / "08_mesh" / "mesh.glb").stat().st_size > 0
     tables = json.loads((out / "07_eval" / "tables.json").read_text())
-    assert "ours" in json.dumps(tables)
+    assert "ours" in json.dumps(tables) and tables["ours_mode"] == "rgb-d"  # the survey has range: RGB-D restorer
+    gan = json.loads((out / "01_gan" / "result.json").read_text())["result"]["train"]
+    assert gan["site_water"]["mode"] == "held" and gan["site_water"]["water_json"].endswith("06_water/water.json")
+    assert len(list((out / "06_water" / "range").glob("*.png"))) == 10
+    ledger = [json.loads(line) for line in (out / "model_ledger.jsonl").read_text().splitlines()]
+    model = [r for r in ledger if r["kind"] == "model"][-1]
+    for key in ("board_ciede2000", "consistency"):  # the ledger records what the corrected frames achieve
+        assert {"raw", "physics (range)", "ours (rgb-d)"} <= set(model[key]), model.get(key)
 
     began = time.perf_counter()
     second = watergan("demo", "--preset", "small", "--out", str(out), *FAST)
@@ -62,7 +69,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     forced = watergan("demo", "--preset", "small", "--out", str(out), "--force", "correct", *FAST)
     assert forced.returncode == 0, forced.stderr[-3000:]
     ran = {s["stage"] for s in json.loads((out / "run_summary.json").read_text())["stages"] if not s["skipped"]}
-    assert ran == {"correct", "eval", "mesh", "report"}  # correct and the stages that read it
+    assert ran == {"correct", "eval", "mesh", "diagnose", "report"}  # correct and the stages that read it
     assert (out / "02_restorer" / "result.json").stat().st_mtime_ns == restorer_mtime
     assert (out / "04_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
 

@@ -22,6 +22,9 @@ Output folder::
 
     OUT/inair/<stem>.png        in-air image as used, 8-bit sRGB
     OUT/depth/<stem>.png        its depth, 16-bit PNG of millimetres (0 = no value)
+    OUT/range/<stem>.png        the range the generator used (the ray length from camera.json's intrinsics,
+                                else the depth), 16-bit PNG of millimetres (0 = no value): the RGB-D
+                                restorer's input
     OUT/underwater/<stem>.png   the generated underwater image, 8-bit sRGB
     OUT/manifest.json           model, size, seed, stack, and one entry per image
 """
@@ -146,7 +149,7 @@ def generate(config: GenerateConfig) -> GenerateResult:
     pairs, skipped = find_rgbd_pairs(config.rgbd_dir, config.skip_bad)
     camera = read_intrinsics(config.rgbd_dir) if config.use_intrinsics else None
     out = Path(config.out_dir)
-    for sub in ("inair", "depth", "underwater"):
+    for sub in ("inair", "depth", "range", "underwater"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     noise = torch.Generator().manual_seed(config.seed)
     colours = np.random.default_rng([config.seed, 7])
@@ -176,12 +179,14 @@ def generate(config: GenerateConfig) -> GenerateResult:
         rgb_t = torch.from_numpy(rgb.transpose(2, 0, 1)).float()[None].to(device)
         depth_t = torch.from_numpy(depth).float()[None, None].to(device)
         with torch.no_grad():
-            underwater = generator(rgb_t, depth_t, z.to(device), intrinsics)[0].cpu().double().numpy()
+            state = generator.state(rgb_t, depth_t, z.to(device), intrinsics)
+            underwater = generator.render(state)[0].cpu().double().numpy()
         name = f"{pair.stem}.png"
         write_srgb8(out / "inair" / name, rgb)
         write_depth_png(out / "depth" / name, depth)
+        write_depth_png(out / "range" / name, np.where(depth > 0, state.range_m[0, 0].cpu().double().numpy(), 0.0))
         write_srgb8(out / "underwater" / name, underwater.transpose(1, 2, 0))
-        items.append({"stem": pair.stem, "inair": f"inair/{name}", "depth": f"depth/{name}",
+        items.append({"stem": pair.stem, "inair": f"inair/{name}", "depth": f"depth/{name}", "range": f"range/{name}",
                       "underwater": f"underwater/{name}", "source_rgb": str(pair.rgb),
                       "source_depth": str(pair.depth), "height": size_hw[0], "width": size_hw[1],
                       "recoloured": recoloured})
@@ -189,7 +194,8 @@ def generate(config: GenerateConfig) -> GenerateResult:
                 "recolour_fraction": config.recolour_fraction,
                 "size_hw": list(config.size_hw) if config.size_hw else None,
                 "range_from": "camera rays" if camera is not None else "depth",
-                "encoding": {"inair": "srgb 8-bit", "depth": "uint16 millimetres", "underwater": "srgb 8-bit"},
+                "encoding": {"inair": "srgb 8-bit", "depth": "uint16 millimetres", "range": "uint16 millimetres",
+                             "underwater": "srgb 8-bit"},
                 "stack": generator.to_config(), "count": len(items), "skipped": skipped, "items": items}
     atomic_write_bytes(out / MANIFEST, (json.dumps(manifest, indent=2) + "\n").encode())
     return GenerateResult(out, len(items), time.perf_counter() - began, skipped)

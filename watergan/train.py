@@ -18,6 +18,12 @@ the backscatter veil's level ``veil_lr`` and its spread ``veil_spread_lr`` (see 
 The geometry of every RGB-D view (range, points, normals) is computed once before training (see
 :func:`~watergan.nets.generator.select_state`).
 
+With a site water (``site_water``: the water stage's ``water.json``, as ``watergan run`` gives it) the
+generator's physical effects are the water stage's stack at its estimate, held (the default: the colour
+statistics term and the settling are off, and the discriminator trains the learned scattering alone) or
+trained under the prior of the estimate's intervals; nothing is started from the colour statistics
+(:mod:`watergan.site_water`).
+
 Files written to ``out_dir``: ``checkpoint.pt`` (states of both nets and optimisers, step, stack
 configuration, RNG state, the generator before settling for a resume; atomic), ``stack.json`` (the
 learned stack), ``train_log.jsonl`` (one line per iteration: losses and every learned physical
@@ -57,8 +63,15 @@ from .formation.effects.backscatter_conv import BackscatterConv
 from .imaging import gaussian_blur
 from .io import Encoding, to_jsonable
 from .nets.discriminator import Discriminator
-from .nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
+from .nets.generator import (
+    DEFAULT_EFFECTS,
+    INITIAL_BACKSCATTER_SPREAD,
+    WaterGenerator,
+    generator_stack_config,
+    select_state,
+)
 from .progress import TrainingBar
+from .site_water import SiteWater, SiteWaterStack, generator_config, hold_site_water, prior_loss, read_site_water
 
 CHECKPOINT = "checkpoint.pt"
 STACK_JSON = "stack.json"
@@ -112,6 +125,21 @@ class GanConfig:
     level, 3 numbers); None: ``lr``. Backscatter is smooth, and a fast-growing spread lets the z mask
     stand in for texture contrast (at 2e-3 the demo survey's green veil grew to a spread of 0.11 and
     eta_G rose 70 %); the restorer cannot undo such a random pattern."""
+    site_water: Path | None = None
+    """The water stage's ``water.json``: the generator's physical effects are its stack at its estimate
+    (:mod:`watergan.site_water`), and ``effects`` adds what it lacks (``backscatter_conv``); None: the stack
+    of ``effects`` learned from the colour statistics, started by ``init_from_data``."""
+    site_water_mode: SiteWater = SiteWater.held
+    """With ``site_water``: "held" (the estimate is fixed; the discriminator trains the learned scattering
+    alone) or "prior" (the physical parameters train under the colour-statistics term and a Gaussian prior
+    of the estimate's intervals); see :mod:`watergan.site_water`. "learned" (no site_water): the paper's
+    way, the water learned from the colour statistics (``watergan run`` then gives no site water)."""
+    site_water_scattering: bool = False
+    """With ``site_water``: keep the learned G-II scattering (``backscatter_conv``, trained by the discriminator) in
+    the generator beside the site water's analytic backscatter. Off by default: on the demo survey (off-centre
+    vignetting hidden and added) the discriminator grew its per-image veil to a spread of 0.04 in red (the red
+    backscatter itself is 0.03), which the restorer cannot undo: its board CIEDE2000 was 7.7 against 1.55
+    without it, at the same training."""
     gain_channels: int = 1
     """Values of the generator's ``gain``: 1 (one exposure factor, as the paper's camera model) or 3
     (a white balance per channel). A per-channel gain and a per-channel attenuation explain a frame's
@@ -212,7 +240,7 @@ class GanResult:
     iterations_per_s: float
     """Iterations per second of this run."""
     stopped_by: str
-    """"iterations", "epochs" or "budget"."""
+    """"iterations", "epochs", "budget" or "nothing to train" (a held site water and no learned effect)."""
     d_loss: float
     g_loss: float
     params: dict[str, list | float]
@@ -225,6 +253,9 @@ class GanResult:
     """Files left out with ``skip_bad``."""
     settle_loss: float | None = None
     """The colour-statistics term after :func:`settle_statistics` (None: not run)."""
+    site_water: dict | None = None
+    """With a site water: its file, the mode ("held" or "prior") and the effects of its stack left out of the
+    generator (per-frame); None: the water was learned from the colour statistics."""
     checkpoint: str = CHECKPOINT
     stack_json: str = STACK_JSON
     log: str = TRAIN_LOG
@@ -255,7 +286,10 @@ def _check_config(config: GanConfig) -> None:
         raise UserInputError(f"GanConfig.disc_blur_px must be >= 0, got {config.disc_blur_px}")
     if config.moment_weight < 0:
         raise UserInputError(f"GanConfig.moment_weight must be >= 0, got {config.moment_weight}")
-    if config.moment_weight == 0 and not config.adversarial_physics:
+    if config.site_water is not None and config.site_water_mode == SiteWater.learned:
+        raise UserInputError("GanConfig: site_water_mode 'learned' learns the water from the statistics and would "
+                             "ignore site_water; give 'held' or 'prior', or no site_water")
+    if config.moment_weight == 0 and not config.adversarial_physics and not _held(config):
         raise UserInputError("with moment_weight 0 and adversarial_physics off nothing moves the physical "
                              "parameters: set moment_weight > 0 or adversarial_physics")
     for name in ("iterations", "epochs", "batch_size", "gen_steps_per_disc_step", "disc_width", "z_dim",
@@ -267,6 +301,17 @@ def _check_config(config: GanConfig) -> None:
         raise UserInputError(f"GanConfig.budget_min must be positive, got {config.budget_min}")
     if config.depth_scale_m is not None and not config.depth_scale_m > 0:
         raise UserInputError(f"GanConfig.depth_scale_m must be positive, got {config.depth_scale_m}")
+
+
+def _held(config: GanConfig) -> bool:
+    """Whether the generator holds the site water fixed (:class:`SiteWater` ``held``)."""
+    return config.site_water is not None and config.site_water_mode == SiteWater.held
+
+
+def _moment_weight(config: GanConfig) -> float:
+    """The colour-statistics term's weight: ``moment_weight``, or 0 when the site water is held (nothing
+    physical trains, and the term would teach the learned scattering the in-air set's content)."""
+    return 0.0 if _held(config) else config.moment_weight
 
 
 def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: float,
@@ -289,11 +334,11 @@ def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: flo
 
 
 def physical_parameters(generator: WaterGenerator) -> list[torch.nn.Parameter]:
-    """The generator's physical parameters: every effect's bounded (``raw``) values and the batch-norm
-    scale and shift of ``backscatter_conv`` (the veil's spread and level)."""
+    """The generator's physical parameters that train: every effect's bounded (``raw``) values and the
+    batch-norm scale and shift of ``backscatter_conv`` (the veil's spread and level), those held left out."""
     params = [p for effect in generator.stack.effects for p in effect.raw.parameters() if p.requires_grad]
     if BackscatterConv.name in generator.stack.names:
-        params += list(generator.stack[BackscatterConv.name].norm.parameters())
+        params += [p for p in generator.stack[BackscatterConv.name].norm.parameters() if p.requires_grad]
     return params
 
 
@@ -304,11 +349,12 @@ SETTLE_TIMING_STEP = 10
 
 
 def settle_statistics(generator: WaterGenerator, air_state: FormationState, real: torch.Tensor, steps: int,
-                      weight: float, seed: int) -> float:
+                      weight: float, seed: int, site: SiteWaterStack | None = None) -> float:
     """Full-batch steps on the generator's physical parameters (:func:`physical_parameters`) of
 
-        L = weight |m(G(J, d, z)) - m(x)|^2
+        L = weight |m(G(J, d, z)) - m(x)|^2 [+ L_prior]
 
+    (L_prior: the site water's prior, :func:`watergan.site_water.prior_loss`, when ``site`` is given)
     with every in-air view (one fixed noise vector z each) against every real frame x, m the
     per-channel mean and texture contrast (:func:`colour_moments`), batch norm on its running
     statistics as at generation, Adam at SETTLE_LR decayed to 0 (cosine); z is drawn from ``seed``.
@@ -325,13 +371,18 @@ def settle_statistics(generator: WaterGenerator, air_state: FormationState, real
     target = colour_moments(real)
     opt = torch.optim.Adam(physics, SETTLE_LR)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1))
-    loss = moment_loss(generator.render(state), target, weight)
+
+    def objective() -> torch.Tensor:
+        loss = moment_loss(generator.render(state), target, weight)
+        return loss + prior_loss(generator.stack, site.prior).to(loss) if site is not None else loss
+
+    loss = objective()
     for _ in range(steps):
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         schedule.step()
-        loss = moment_loss(generator.render(state), target, weight)
+        loss = objective()
     for name, param in generator.named_parameters():
         param.requires_grad_(trainable[name])
     generator.train(was_training)
@@ -468,7 +519,7 @@ def _save_checkpoint(run: GanRun, step: int, trained_generator: dict | None = No
         "generator": run.generator.state_dict(),
         **({"generator_trained": trained_generator} if trained_generator is not None else {}),
         "discriminator": run.discriminator.state_dict(),
-        "opt_g": run.opt_g.state_dict(),
+        "opt_g": run.opt_g.state_dict() if run.opt_g is not None else {},
         "opt_d": run.opt_d.state_dict(),
         "stack": run.generator.to_config(),
         "rng": run.rng.get_state(),
@@ -500,14 +551,15 @@ def _read_resume_checkpoint(config: GanConfig, out: Path) -> dict | None:
 
 
 def _resume(checkpoint: dict | None, generator: WaterGenerator, discriminator: Discriminator,
-            opt_g: torch.optim.Optimizer, opt_d: torch.optim.Optimizer, rng: torch.Generator) -> int:
+            opt_g: torch.optim.Optimizer | None, opt_d: torch.optim.Optimizer, rng: torch.Generator) -> int:
     """Checkpoint: restore both nets (the generator as it was before settling when the checkpoint holds
     that), both optimisers and the batch generator; returns the iteration to go on from (0 without one)."""
     if checkpoint is None:
         return 0
     generator.load_state_dict(checkpoint.get("generator_trained", checkpoint["generator"]))
     discriminator.load_state_dict(checkpoint["discriminator"])
-    opt_g.load_state_dict(checkpoint["opt_g"])
+    if opt_g is not None:
+        opt_g.load_state_dict(checkpoint["opt_g"])
     opt_d.load_state_dict(checkpoint["opt_d"])
     rng.set_state(checkpoint["rng"])
     return int(checkpoint["step"])
@@ -602,8 +654,11 @@ def train_gan(config: GanConfig) -> GanResult:
     run = build_gan(config)
     log_path = _start_log(run)
     began = time.perf_counter()
-    with log_path.open("a") as log:
-        step, d_loss, g_loss, stopped_by = _train_iterations(run, log, began)
+    if run.opt_g is None:  # a held site water and no learned effect: the generator is the site water
+        step, d_loss, g_loss, stopped_by = run.start, float("nan"), float("nan"), "nothing to train"
+    else:
+        with log_path.open("a") as log:
+            step, d_loss, g_loss, stopped_by = _train_iterations(run, log, began)
     trained, settle_loss = _settle(run)
     seconds = time.perf_counter() - began
     _save_checkpoint(run, step, trained)
@@ -620,7 +675,8 @@ class GanRun:
     device: torch.device
     generator: WaterGenerator
     discriminator: Discriminator
-    opt_g: torch.optim.Optimizer
+    opt_g: torch.optim.Optimizer | None
+    """None when nothing of the generator trains (a held site water and no learned effect)."""
     opt_d: torch.optim.Optimizer
     physics: list[torch.nn.Parameter]
     """The generator's physical parameters (:func:`physical_parameters`)."""
@@ -643,6 +699,8 @@ class GanRun:
     """The nets and optimisers came from the checkpoint."""
     skipped: list[str]
     """Files left out with ``skip_bad``."""
+    site: SiteWaterStack | None = None
+    """The site water the generator holds or trains under a prior (None: learned from the statistics)."""
 
 
 # ---------------------------------------------------------------------------------------------- build
@@ -659,14 +717,15 @@ def build_gan(config: GanConfig) -> GanRun:
 
     checkpoint = _read_resume_checkpoint(config, out)
     torch.manual_seed(config.seed)
-    generator, depth_scale_m = _build_generator(config, checkpoint, rgbd, water, intrinsics, out / CHECKPOINT)
+    site = read_site_water(config.site_water) if config.site_water is not None else None
+    generator, depth_scale_m = _build_generator(config, checkpoint, rgbd, water, intrinsics, out / CHECKPOINT, site)
     discriminator = Discriminator(config.disc_width, config.image_hw)
     generator.to(device).train()
     discriminator.to(device).train()
     betas = (config.beta1, 0.999)
     groups = generator_param_groups(generator, config.lr, config.physics_lr, config.veil_lr, config.veil_spread_lr)
-    physics = physical_parameters(generator)
-    opt_g = torch.optim.Adam(groups, config.lr, betas)
+    physics = [] if _held(config) else physical_parameters(generator)  # held: what trains is the scattering
+    opt_g = torch.optim.Adam(groups, config.lr, betas) if groups else None
     opt_d = torch.optim.Adam(discriminator.parameters(), config.lr, betas)
     rng = torch.Generator().manual_seed(config.seed)
     start = _resume(checkpoint, generator, discriminator, opt_g, opt_d, rng)
@@ -677,7 +736,7 @@ def build_gan(config: GanConfig) -> GanRun:
     return GanRun(config=config, out=out, device=device, generator=generator, discriminator=discriminator,
                   opt_g=opt_g, opt_d=opt_d, physics=physics, rng=rng, air=air, depth=depth, real=real,
                   air_state=air_state, intrinsics=intrinsics, depth_scale_m=depth_scale_m, start=start,
-                  resumed=checkpoint is not None, skipped=skipped)
+                  resumed=checkpoint is not None, skipped=skipped, site=site)
 
 
 def _load_gan_data(config: GanConfig):
@@ -692,24 +751,41 @@ def _load_gan_data(config: GanConfig):
     return rgbd, water, skipped, intrinsics
 
 
-def _build_generator(config: GanConfig, checkpoint: dict | None, rgbd, water, intrinsics,
-                     ckpt_path: Path) -> tuple[WaterGenerator, float]:
+def _build_generator(config: GanConfig, checkpoint: dict | None, rgbd, water, intrinsics, ckpt_path: Path,
+                     site: SiteWaterStack | None) -> tuple[WaterGenerator, float]:
     """Build: the generator and its range normaliser, metres. On a resume the checkpoint's stack (which
-    must hold ``config.effects``); else a new stack of ``config.effects`` started from the data
-    (:func:`init_from_data`) when ``init_from_data``."""
-    if checkpoint is not None:
-        generator = WaterGenerator.from_config(checkpoint["stack"])
-        if generator.stack.names != [c["name"] for c in generator_stack_config(config.effects)]:
-            raise UserInputError(f"checkpoint {ckpt_path} holds effects {generator.stack.names}, not "
-                                 f"{list(config.effects)}: resume with the same effects or use a new --out-dir")
-        return generator, float(checkpoint["depth_scale_m"])
-    depth_scale_m = config.depth_scale_m or float(rgbd.depth_m.max())
+    must hold the same effects); else a new stack: with a site water, its stack at its estimate and the
+    effects of ``config.effects`` it lacks (:func:`watergan.site_water.generator_config`), the learned
+    scattering starting as a faint zero-mean pattern; without, ``config.effects`` started from the data
+    (:func:`init_from_data`) when ``init_from_data``. What the site water's mode holds is frozen
+    (:func:`watergan.site_water.hold_site_water`)."""
+    depth_scale_m = (float(checkpoint["depth_scale_m"]) if checkpoint is not None
+                     else config.depth_scale_m or float(rgbd.depth_m.max()))
     if not depth_scale_m > 0:
         raise DataError(f"every depth in {config.rgbd_dir} is 0: no depth to learn the water from")
-    generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw,
-                                     config.gain_channels)
-    if config.init_from_data:
-        init_from_data(generator, rgbd.rgb, rgbd.depth_m, water.images, intrinsics)
+    fresh = generator_stack_config(config.effects, depth_scale_m, config.z_dim, config.image_hw,
+                                   config.gain_channels)
+    if site is not None:
+        keep = [c for c in fresh if c["name"] != BackscatterConv.name or config.site_water_scattering]
+        fresh = generator_config(site, keep)
+    if checkpoint is not None:
+        generator = WaterGenerator.from_config(checkpoint["stack"])
+        if generator.stack.names != [c["name"] for c in fresh]:
+            raise UserInputError(f"checkpoint {ckpt_path} holds effects {generator.stack.names}, not "
+                                 f"{[c['name'] for c in fresh]}: resume with the same effects and site water or use "
+                                 f"a new --out-dir")
+    elif site is not None:
+        generator = WaterGenerator.from_config(fresh)
+        if BackscatterConv.name in generator.stack.names:
+            with torch.no_grad():
+                generator.stack[BackscatterConv.name].norm.weight.fill_(INITIAL_BACKSCATTER_SPREAD)
+    else:
+        generator = WaterGenerator.build(config.effects, depth_scale_m, config.z_dim, config.image_hw,
+                                         config.gain_channels)
+        if config.init_from_data:
+            init_from_data(generator, rgbd.rgb, rgbd.depth_m, water.images, intrinsics)
+    if site is not None:
+        hold_site_water(generator.stack, site, config.site_water_mode)
     return generator, depth_scale_m
 
 
@@ -768,7 +844,8 @@ def _generator_steps(run: GanRun, state_b: FormationState, real_b: torch.Tensor,
     config = run.config
     ones = torch.ones(config.batch_size, device=run.device)
     run.discriminator.requires_grad_(False)
-    real_moments = colour_moments(real_b) if config.moment_weight > 0 else None
+    weight = _moment_weight(config)
+    real_moments = colour_moments(real_b) if weight > 0 else None
     for _ in range(config.gen_steps_per_disc_step):
         fake = run.generator.render(state_b)
         loss_g = F.binary_cross_entropy_with_logits(run.discriminator(_disc_input(run, fake, noise_fake)), ones)
@@ -778,9 +855,13 @@ def _generator_steps(run: GanRun, state_b: FormationState, real_b: torch.Tensor,
             for param in run.physics:
                 param.grad = None
         if real_moments is not None:
-            loss_moments = moment_loss(fake, real_moments, config.moment_weight)
+            loss_moments = moment_loss(fake, real_moments, weight)
             loss_moments.backward()
             loss_g = loss_g + loss_moments
+        if run.site is not None and config.site_water_mode == SiteWater.prior:
+            loss_prior = prior_loss(run.generator.stack, run.site.prior)
+            loss_prior.backward()
+            loss_g = loss_g + loss_prior.to(loss_g)
         run.opt_g.step()
     run.discriminator.requires_grad_(True)
     return loss_g
@@ -799,7 +880,7 @@ def _stop_plan(config: GanConfig, n_air: int, n_water: int) -> tuple[int | None,
 
 def _will_settle(config: GanConfig) -> bool:
     """Whether :func:`settle_statistics` runs after training."""
-    return config.moment_weight > 0 and config.settle_steps > 0
+    return _moment_weight(config) > 0 and config.settle_steps > 0
 
 
 def _train_iterations(run: GanRun, log, began: float) -> tuple[int, float, float, str]:
@@ -845,7 +926,7 @@ def _settle(run: GanRun) -> tuple[dict | None, float | None]:
         return None, None
     trained = {name: value.clone() for name, value in run.generator.state_dict().items()}
     return trained, settle_statistics(run.generator, run.air_state, run.real, config.settle_steps,
-                                      config.moment_weight, config.seed + 3)
+                                      config.moment_weight, config.seed + 3, run.site)
 
 
 # ---------------------------------------------------------------------------------------------- write
@@ -889,6 +970,9 @@ def write_gan_result(run: GanRun, *, step: int, seconds: float, stopped_by: str,
             "generated": generated.std(dim=(0, 2, 3)).tolist(),
             "real": real.std(dim=(0, 2, 3)).tolist()},
         skipped=run.skipped, settle_loss=settle_loss,
+        site_water=None if run.site is None else {"water_json": str(run.config.site_water),
+                                                  "mode": str(run.config.site_water_mode),
+                                                  "left_out": run.site.left_out},
     )
     atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
     return result

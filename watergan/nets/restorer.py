@@ -48,6 +48,15 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   correlated -0.91 with the frame's range; with it 3.8 %, correlated 0.27, and the colour-board error
   fell from 0.091 to 0.059-0.064. Training frames take the median of their depth map.
 
+  Range (``range_input=True``, the RGB-D mode): the colour net's input also holds each pixel's range in
+  metres (the dense stage's, where the survey has it), one more map beside the estimated depth; the inverse's
+  gain exp(eta r) and offset follow it pixel by pixel, which neither relative depth nor the altitude gives.
+  Holes take the image's median range (:func:`fill_range_holes`). With the affine head the inverse's fields
+  are per-pixel functions of range and image position alone, g_c = eta_c r - ln(k_c V(u, v)) and
+  o_c = -B_c(r) exp(eta_c r) with B_c(r) = b_c (1 - exp(-beta_c r)), whatever the scene; a geometry branch, a
+  per-pixel MLP (1x1 convolutions, ``GEOMETRY_WIDTH`` wide, its last layer starting at zero) on [r, u, v, rho^2],
+  adds its fields to the core's, so the core only learns what the content adds.
+
   Position: the colour net's input also holds each pixel's place in the whole image
   (:func:`position_maps`: u, v in [-1, 1] and the squared radius, 1 at a corner), since vignetting
   darkens the corners and a convolutional net cannot otherwise tell a corner from the centre (without
@@ -187,6 +196,23 @@ POSITION_CHANNELS = 3
 """Channels of :func:`position_maps`."""
 IMAGE_CHANNELS = 4 + POSITION_CHANNELS
 """The colour net's input: RGB, estimated depth and the position maps."""
+RANGE_CHANNELS = 1
+"""The range map's channels (``range_input=True``)."""
+GEOMETRY_WIDTH = 32
+"""Hidden channels of the RGB-D colour net's geometry branch (see the module docstring)."""
+
+
+def fill_range_holes(range_m: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """(B,1,H,W) range in metres with holes (0 or NaN) -> the same with each image's holes set to the median of
+    its valid pixels, and the share of pixels filled. An image without any range is an error."""
+    valid = torch.isfinite(range_m) & (range_m > 0)
+    out = range_m.clone()
+    for b in range(range_m.shape[0]):
+        if not valid[b].any():
+            raise ValueError("an image has no range at any pixel: the RGB-D restorer needs range (use the monocular "
+                             "restorer, range_input=False)")
+        out[b][~valid[b]] = range_m[b][valid[b]].median()
+    return out, float((~valid).float().mean())
 
 
 def position_maps(height: int, width: int, device: torch.device | None = None) -> torch.Tensor:
@@ -230,34 +256,42 @@ class ColourNet(nn.Module):
     """In-air RGB at full resolution from the image and its estimated depth (see the module docstring)."""
 
     def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True,
-                 head: str = "affine", altitude: bool = False) -> None:
+                 head: str = "affine", altitude: bool = False, range_input: bool = False) -> None:
         super().__init__()
         if head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {head!r}")
-        self.factor, self.skip, self.head, self.altitude = factor, skip, head, altitude
+        self.factor, self.skip, self.head, self.altitude, self.range_input = factor, skip, head, altitude, range_input
+        self.in_channels = IMAGE_CHANNELS + (RANGE_CHANNELS if range_input else 0)
         channels = 6 if head == "affine" else 3
-        c_in = IMAGE_CHANNELS + CONTEXT_CHANNELS + (ALTITUDE_CHANNELS if altitude else 0)
+        c_in = self.in_channels + CONTEXT_CHANNELS + (ALTITUDE_CHANNELS if altitude else 0)
         self.core = SegNetCore(c_in, channels, widths.colour_core, widths.blocks_per_level)
         if head == "affine":  # zero fields: the net starts as the identity
             nn.init.zeros_(self.core.head.weight)
             nn.init.zeros_(self.core.head.bias)
+        self.geometry = None
+        if range_input and head == "affine":  # per-pixel fields of range and position (module docstring)
+            g = GEOMETRY_WIDTH
+            self.geometry = nn.Sequential(nn.Conv2d(RANGE_CHANNELS + POSITION_CHANNELS, g, 1), nn.ReLU(inplace=True),
+                                          nn.Conv2d(g, g, 1), nn.ReLU(inplace=True), nn.Conv2d(g, channels, 1))
+            nn.init.zeros_(self.geometry[-1].weight)
+            nn.init.zeros_(self.geometry[-1].bias)
         self.up = bilinear_upsampler(channels, factor)
         if skip:
             f = widths.full_res
-            self.skip1 = conv_block(IMAGE_CHANNELS, f)
+            self.skip1 = conv_block(self.in_channels, f)
             self.fuse = conv_block(3 + f, f, kernel=1)  # 1x1: the full-resolution cost is in skip1 and out
-            self.out = nn.Conv2d(f + IMAGE_CHANNELS, 3, 3, padding=1)
+            self.out = nn.Conv2d(f + self.in_channels, 3, 3, padding=1)
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
 
     def colours(self, core_out: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """The colours of a core output at the size of the input x (B,7,H,W): the output itself
+        """The colours of a core output at the size of the input x (B,C,H,W): the output itself
         (``head="direct"``) or its fields applied to x (:func:`apply_affine`)."""
         return core_out if self.head == "direct" else apply_affine(core_out, x[:, :3])
 
     def run_core(self, x_small: torch.Tensor, context: torch.Tensor | None = None,
                  altitude_m: torch.Tensor | None = None) -> torch.Tensor:
-        """The core on (B,7,h,w) image, depth and position at its resolution, with the image's context (B,6)
+        """The core on (B,C,h,w) image, depth, position [and range] at its resolution, with the image's context (B,6)
         (:func:`image_context`; None: that of ``x_small`` itself) and, when the net takes it, the altitude
         (B,) in metres, as constant maps."""
         context = image_context(x_small) if context is None else context
@@ -266,17 +300,20 @@ class ColourNet(nn.Module):
                 raise ValueError("this colour net takes each image's altitude (metres): give altitude_m")
             context = torch.cat([context, altitude_m.reshape(-1, 1).to(context)], dim=1)
         maps = context[:, :, None, None].expand(-1, -1, *x_small.shape[-2:])
-        return self.core(torch.cat([x_small, maps], dim=1))
+        out = self.core(torch.cat([x_small, maps], dim=1))
+        if self.geometry is not None:  # position (channels 4-6) and range (the last) at the core's resolution
+            out = out + self.geometry(torch.cat([x_small[:, 4:IMAGE_CHANNELS], x_small[:, IMAGE_CHANNELS:]], dim=1))
+        return out
 
     def core_colours(self, x_small: torch.Tensor, altitude_m: torch.Tensor | None = None) -> torch.Tensor:
-        """(B,7,h,w) image, depth and position at the core's resolution -> (B,3,h,w): the core alone
+        """(B,C,h,w) image, depth, position [and range] at the core's resolution -> (B,3,h,w): the core alone
         (stage 1)."""
         return self.colours(self.run_core(x_small, None, altitude_m), x_small)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None,
                 altitude_m: torch.Tensor | None = None) -> torch.Tensor:
-        """(B,7,H,W) image, depth and position, sides multiples of factor * 8 -> (B,3,H,W); ``context``: that of the
-        whole image when x is a crop of it (None: x's own); ``altitude_m`` (B,): see :meth:`run_core`."""
+        """(B,C,H,W) image, depth, position [and range], sides multiples of factor * 8 -> (B,3,H,W); ``context``:
+        that of the whole image when x is a crop of it (None: x's own); ``altitude_m`` (B,): see :meth:`run_core`."""
         coarse = self.colours(self.up(self.run_core(F.avg_pool2d(x, self.factor), context, altitude_m)), x)
         if not self.skip:
             return coarse
@@ -288,16 +325,22 @@ class Restorer(nn.Module):
     """Depth net + colour net. ``forward(image)`` -> (rgb, depth), both at the image's size."""
 
     def __init__(self, widths: RestorerWidths = CPU_WIDTHS, factor: int = 4, skip: bool = True,
-                 depth_hw: tuple[int, int] = (56, 56), head: str = "affine", altitude: bool = False) -> None:
+                 depth_hw: tuple[int, int] = (56, 56), head: str = "affine", altitude: bool = False,
+                 range_input: bool = False) -> None:
         super().__init__()
         self.widths, self.factor, self.skip, self.depth_hw = widths, factor, skip, tuple(depth_hw)
         self.depth_net = DepthNet(widths, depth_hw)
-        self.colour_net = ColourNet(widths, factor, skip, head, altitude)
+        self.colour_net = ColourNet(widths, factor, skip, head, altitude, range_input)
 
     @property
     def altitude(self) -> bool:
         """Whether the colour net takes each image's altitude (metres)."""
         return self.colour_net.altitude
+
+    @property
+    def range_input(self) -> bool:
+        """Whether the colour net takes each pixel's range (metres): the RGB-D mode."""
+        return self.colour_net.range_input
 
     @property
     def multiple(self) -> int:
@@ -307,7 +350,7 @@ class Restorer(nn.Module):
     def to_config(self) -> dict:
         return {"widths": asdict(self.widths), "factor": self.factor, "skip": self.skip,
                 "depth_hw": list(self.depth_hw), "head": str(self.colour_net.head),
-                "altitude": self.altitude}
+                "altitude": self.altitude, "range_input": self.range_input}
 
     @classmethod
     def from_config(cls, config: dict) -> Restorer:
@@ -315,31 +358,37 @@ class Restorer(nn.Module):
         widths = RestorerWidths(tuple(w["depth_core"]), tuple(w["colour_core"]), int(w["full_res"]),
                                 int(w["blocks_per_level"]))
         return cls(widths, int(config["factor"]), bool(config["skip"]), tuple(config["depth_hw"]), config["head"],
-                   bool(config["altitude"]))
+                   bool(config["altitude"]), bool(config.get("range_input", False)))
 
     def forward(self, image: torch.Tensor, position: torch.Tensor | None = None,
-                altitude_m: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                altitude_m: torch.Tensor | None = None,
+                range_m: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B,3,H,W), H and W multiples of ``multiple`` -> RGB (B,3,H,W) and relative depth (B,1,H,W):
-        depth d = bilinear(DepthNet(x)) and rgb = ColourNet([x, d, p]) with p the position maps (1,3,H,W)
-        (None: :func:`position_maps` of the image itself) and, when the net takes it, each image's altitude
-        (B,) in metres."""
+        depth d = bilinear(DepthNet(x)) and rgb = ColourNet([x, d, p(, r)]) with p the position maps (1,3,H,W)
+        (None: :func:`position_maps` of the image itself), r each pixel's range (B,1,H,W) in metres without holes
+        when the net takes it (RGB-D mode) and, when it takes it, each image's altitude (B,) in metres."""
         h, w = image.shape[-2:]
         depth = F.interpolate(self.depth_net(image), size=(h, w), mode="bilinear", align_corners=False)
         position = position_maps(h, w, image.device) if position is None else position
-        x = torch.cat([image, depth, position.expand(image.shape[0], -1, -1, -1)], dim=1)
-        return self.colour_net(x, None, altitude_m), depth
+        maps = [image, depth, position.expand(image.shape[0], -1, -1, -1)]
+        if self.range_input:
+            if range_m is None:
+                raise ValueError("this restorer takes each pixel's range (metres): give range_m")
+            maps.append(range_m.to(image))
+        return self.colour_net(torch.cat(maps, dim=1), None, altitude_m), depth
 
 
-def restore(model: Restorer, image: torch.Tensor,
-            altitude_m: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Correct (B,3,H,W) images of any size (``altitude_m`` (B,) metres when the model takes it):
-    replicate-pad the bottom and right to multiples of ``model.multiple``, run the model, crop back; both
-    outputs clamped to 0..1."""
+def restore(model: Restorer, image: torch.Tensor, altitude_m: torch.Tensor | None = None,
+            range_m: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Correct (B,3,H,W) images of any size (``altitude_m`` (B,) metres when the model takes it; ``range_m``
+    (B,1,H,W) metres without holes in RGB-D mode): replicate-pad the bottom and right to multiples of
+    ``model.multiple``, run the model, crop back; both outputs clamped to 0..1."""
     h, w = image.shape[-2:]
     m = model.multiple
-    pad_h, pad_w = -h % m, -w % m
-    x = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate") if pad_h or pad_w else image
-    position = position_maps(h, w, image.device)  # of the image itself, padded like it
-    position = F.pad(position, (0, pad_w, 0, pad_h), mode="replicate") if pad_h or pad_w else position
-    rgb, depth = model(x, position, altitude_m)
+
+    def pad(t: torch.Tensor) -> torch.Tensor:
+        return F.pad(t, (0, -w % m, 0, -h % m), mode="replicate") if (h % m or w % m) else t
+
+    position = pad(position_maps(h, w, image.device))  # of the image itself, padded like it
+    rgb, depth = model(pad(image), position, altitude_m, pad(range_m) if range_m is not None else None)
     return rgb[..., :h, :w].clamp(0.0, 1.0), depth[..., :h, :w].clamp(0.0, 1.0)
