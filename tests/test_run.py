@@ -283,8 +283,14 @@ def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
                           survey_dir="S", navigation=True)
     plan = stage_plan(ws, opts, survey)
     assert plan["diagnose"]().effects == ("attenuation", "backscatter") and plan["diagnose"]().add == ("gain",)
-    assert plan["gan"]().train.budget_min == 2.0 and plan["gan"]().train.effects[-1] == "gain"
-    by_count = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-iterations", "5"]), "S", "W")
+    with pytest.raises(UserInputError, match="WaterGAN needs the water stage"):
+        plan["gan"]()  # WaterGAN starts from the site water
+    learned = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-budget-min", "2", "--add",
+                                                  "gain", "--gan-site-water-mode", "learned"]), "S", "W")
+    gan = stage_plan(ws, learned, survey)["gan"]().train
+    assert gan.budget_min == 2.0 and gan.effects[-1] == "gain" and gan.site_water is None
+    by_count = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-iterations", "5",
+                                                   "--gan-site-water-mode", "learned"]), "S", "W")
     assert stage_plan(ws, by_count, survey)["gan"]().train.budget_min is None  # as train-gan: the count alone stops it
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "S", "--workspace", "W", "--restorer-head", "magic"])
