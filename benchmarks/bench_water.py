@@ -5,7 +5,9 @@ physics correction with the dense range against the oracle.
 
 For each survey (``demo0``/``demo1``: the demo preset with nothing hidden, seeds 0 and 1; ``mono0``: the demo
 without the right camera, scale from the navigation altitude, dense range from SfM neighbours; ``offc0``: the demo
-with ``vignetting_offcentre`` hidden, estimated with it added, as after ``--add vignetting_offcentre``) it simulates the
+with ``vignetting_offcentre`` hidden, estimated with it added, as after ``--add vignetting_offcentre``; ``auv0``:
+the auv preset, strobes declared in survey.json, the off-centre vignetting hidden; ``auv0_add``: it estimated with
+that effect added; ``--no-light-rig``: the declared lights left out of the stack) it simulates the
 survey, runs the pipeline's SfM and dense stages on it (reused when present), estimates the water with
 :func:`eval.water.estimate_water` from the raw frames, the SfM poses, the dense range and the board (pixel
 quads from the SfM poses) and prints per parameter the estimate, the truth (``truth/effects.json``), the
@@ -40,6 +42,11 @@ SURVEYS = {
     # before --add), and backscatter with beta equal to eta (a degenerate corner of the estimator's family)
     "offc0_before_add": {"seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",), "workspace": "offc0"},
     "beta_eq_eta0": {"seed": 0, "stereo": True, "beta_equals_eta": True},
+    # the auv preset (two strobes in darkness, declared in survey.json: modelled with the rig held) with the
+    # off-centre vignetting hidden; ``auv0_add``: the same survey estimated with that effect added
+    "auv0": {"preset": "auv", "seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",)},
+    "auv0_add": {"preset": "auv", "seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",),
+                 "add": ("vignetting_offcentre",), "workspace": "auv0"},
 }
 
 
@@ -54,7 +61,7 @@ def prepare(root: Path, name: str) -> Path:
     ws = Workspace(root / spec.get("workspace", name))
     survey = ws.stage_dir("survey")
     if not (survey / "truth" / "config.json").is_file():
-        cfg = make_config("demo", hidden=spec.get("hidden", ()), seed=spec["seed"])
+        cfg = make_config(spec.get("preset", "demo"), hidden=spec.get("hidden", ()), seed=spec["seed"])
         cfg = replace(cfg, trajectory=replace(cfg.trajectory, stereo=spec["stereo"]),
                       rgbd=replace(cfg.rgbd, n_scenes=1, views_per_scene=1))
         if spec.get("beta_equals_eta"):
@@ -186,7 +193,10 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if add:
         config = replace(config, effects=tuple(config.effects) + tuple(add))
     t = time.perf_counter()
-    estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config)
+    from pipeline.water import survey_lights
+
+    estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config,
+                              lights=survey_lights(ws_root / "00_survey"))
     water_seconds = time.perf_counter() - t
     truth = truth_params(ws_root / "00_survey")
     params = compare(estimate, truth)
@@ -196,10 +206,10 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
           f"{estimate.n_points} points, {estimate.n_observations} views, "
           f"{estimate.n_board} board patch views, {estimate.n_frames} frames")
     for key, row in params.items():
-        cover = "".join("y" if c else "N" for c in row.get("covered", [])) or "-"
-        est = " ".join(f"{v:.4f}" for v in row["estimate"])
-        tru = " ".join(f"{v:.4f}" for v in row["truth"])
-        rel = " ".join(f"{100 * v:+.1f}%" if np.isfinite(v) else "n/a" for v in row["rel_error"])
+        cover = "".join("y" if c else "N" for c in np.ravel(row.get("covered", []))) or "-"
+        est = " ".join(f"{v:.4f}" for v in np.ravel(row["estimate"]))  # per-light parameters: rows flattened
+        tru = " ".join(f"{v:.4f}" for v in np.ravel(row["truth"]))
+        rel = " ".join(f"{100 * v:+.1f}%" if np.isfinite(v) else "n/a" for v in np.ravel(row["rel_error"]))
         print(f"   {key:32s} est {est:30s} truth {tru:30s} err {rel:24s} covered {cover}")
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)
@@ -240,12 +250,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--surveys", default="demo0,demo1,mono0", help=f"comma-separated, of {', '.join(SURVEYS)}")
     parser.add_argument("--bootstrap", type=int, default=None, help="bootstrap replicates (default: WaterConfig's)")
     parser.add_argument("--tracks", action="store_true", help="also give the SfM tracks to the estimator")
+    parser.add_argument("--no-light-rig", action="store_true", help="leave the declared lights out of the stack "
+                        "(the estimate before the water stage modelled them)")
     parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "water.json")
     args = parser.parse_args(argv)
 
     from eval.water import WaterConfig
 
     config = WaterConfig() if args.bootstrap is None else WaterConfig(bootstrap=args.bootstrap)
+    if args.no_light_rig:
+        config = replace(config, light_rig=False)
     results = {}
     for name in args.surveys.split(","):
         results[name] = run_survey(args.out, name, config, args.tracks)

@@ -52,6 +52,7 @@ from tqdm import tqdm
 
 from watergan.errors import UserInputError
 from watergan.formation import Counts, MissingInputError, Stack, available, get
+from watergan.formation.rig import declared_rig, held_rig, rig_settings
 from watergan.io import atomic_write_json, atomic_write_text
 
 from .diagnose_fit import (
@@ -212,32 +213,16 @@ def survey_counts(meas: Measurements) -> Counts:
     return Counts(frames=len(meas.frames), lights=len(meas.lights) or None)
 
 
-def declared_rig(effect, meas: Measurements) -> tuple[str, ...]:
-    """The ``rig_params`` of an effect (class or instance) that every light survey.json declares gives."""
-    return tuple(k for k in effect.rig_params if meas.lights and all(k in light for light in meas.lights))
-
-
-def rig_settings(cls, meas: Measurements) -> dict:
-    """Initial values of an effect from the light rig survey.json declares (empty without lights or
-    ``rig_params``): the declared rig parameters, one row per light (the effect's other per-light
-    parameters get one row per light from :func:`survey_counts`)."""
-    if not meas.lights or not cls.rig_params:
-        return {}
-    return {key: [light[key] for light in meas.lights] for key in declared_rig(cls, meas)}
-
-
 def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ...]]:
-    """Known settings that are not fitted: the declared light rig (``rig_params``)."""
-    if not meas.lights:
-        return {}
-    return {e.name: declared_rig(e, meas) for e in stack.effects if e.rig_params}
+    """Known settings that are not fitted: the declared light rig (``rig_params``, :func:`held_rig`)."""
+    return held_rig(stack, meas.lights)
 
 
 def make_effect(name: str, meas: Measurements):
     """A candidate effect at its initial values for this survey (one row per frame or light of its per-frame
     and per-light parameters; the declared light rig for one with ``rig_params``)."""
     cls = get(name)
-    return cls(counts=survey_counts(meas), **rig_settings(cls, meas))
+    return cls(counts=survey_counts(meas), **rig_settings(cls, meas.lights))
 
 
 def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:
@@ -337,7 +322,8 @@ def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()
             skipped[name] = "has learned layers (no physical parameters to fit)"
             continue
         try:
-            absorbed = absorbed_by_albedo(stack, name, effect, state, meas.point[obs], declared_rig(effect, meas))
+            absorbed = absorbed_by_albedo(stack, name, effect, state, meas.point[obs],
+                                          declared_rig(effect, meas.lights))
         except MissingInputError as exc:
             skipped[name] = f"input missing: {exc}"
             continue

@@ -84,6 +84,42 @@ points alone resampled, before the board's patches were, 19 did; with one round 
 off-centre fit had stopped at red B_inf +12 %). Without a board (gain held at its true value) the
 correspondences alone: eta +2/-3/+6 %, B_inf +13/-6/-2 %, beta poorly pinned (green 0.50 against 0.32).
 
+A declared light rig (``lights``: survey.json's strobes, per light offset_m, tilt_deg, beam_deg; an AUV in
+darkness): the stack gets ``artificial_light`` (:func:`build_stack`), so each view's in-air colour is lit by
+
+    E_c(X) = ambient + sum_l P_l exp(-theta_l^2 / (2 sigma_l^2)) max(0, n . s_l / d_l) exp(-eta_c d_l) / d_l^2
+
+(X the point and n its surface normal in the view's camera frame, s_l = L_l - X, d_l = |s_l| the light-to-point
+distance; see :func:`watergan.formation.effects.artificial_light.light_irradiance`), and A = k_c E_c(X)
+exp(-eta_c r) / V(x). Without it the lights' fall-off with distance (1/d^2 and the light path's exp(-eta d),
+d ~ r for lights beside the camera) is read as attenuation: on the auv preset eta 1.17/0.81/0.76 per m against
+0.28/0.14/0.13. What pins what there:
+
+- offset_m, tilt_deg, beam_deg (the rig): declared, held (:func:`watergan.formation.rig.held_rig`, as the
+  diagnosis holds them); a fit that moved them would trade them against eta.
+- the light path's eta: tied to ``attenuation.eta_per_m`` (``WaterConfig.tied_params``: one water, one eta), so
+  the same multi-range views pin both paths; with the rig known the lights' 1/d^2 and beam pattern are
+  geometry, not parameters, and the remaining fall-off with range is the water's.
+- power P_l: its level is exactly degenerate with the gain (only k_c P_l is seen, the board included), so it is
+  held (``WaterConfig.held_params``, at the effect's initial value 4 unless ``initial`` gives one); the gain, and
+  B_inf's level (C = k_c B_inf ...), are then in units of that power: only k_c P_l and k_c B_inf,c are measured.
+  With the powers held the ratio between lights is the held one (equal by default).
+- ambient: brightness that does not fall with the distance from the lights (other light), against the lights'
+  pattern across the image and over range.
+- normals: each dense sample's normal is taken from its source frame's range map smoothed by
+  ``normal_smooth_px`` (:func:`normals_from_range`) and rotated into every view; SGBM range is noisy at the pixel
+  scale: on auv the normals' median error against the truth was 15 deg at sigma 3 px, 2.8 at 16, 2.3 at 24 (the
+  default), 3.2 at 48; the fused mesh's triangle normals 16 deg. Board patches take the mean normal inside the
+  patch; SfM tracks the normals of the sparse cloud (:func:`eval.diagnose_measure.pca_normals`).
+
+Measured on auv (seed 0, benchmarks/bench_water.py ``auv0``; off-centre vignetting hidden): eta +4.3/-11.9/-19.5 %
+(without the rig +315/+493/+492 %), B_inf +32/+93/+123 %, 2 of 6 intervals covering the truth; with the hidden
+effect added (``auv0_add``) eta +21/+12/+12 %. The hidden effect and the geometry limit it: with the true range,
+poses and normals the fit gives eta +2/-7/-13 % without the hidden effect in the stack and within 2.5 % with it;
+with the dense range and SfM poses but true normals +2/-11/-18 % and +10/+4/+5 % (README has the table). The veil
+over the survey's 2-4 m, k B_inf (1 - exp(-beta r)), is within 4-12 %; its asymptote B_inf is not (beta 0.12-0.17
+against 0.3: the strobes light little water and the span is short).
+
 Known limits: in a flat direction (red B_inf against beta, the two vignettings) a fit stops where a round of
 L-BFGS stops gaining, so what lies further along it is only as pinned as ``convergence_rtol`` says; the
 off-centre fit needed 600 iterations (the ``max_iterations`` default). The vignetting polynomial's b and c
@@ -109,7 +145,8 @@ import numpy as np
 import torch
 
 from watergan.errors import UserInputError
-from watergan.formation import Counts, FormationState, Stack
+from watergan.formation import Counts, FormationState, Stack, get
+from watergan.formation.rig import held_rig, rig_settings
 
 #: The water stack fitted by default: the simulator's visible physics (WaterGAN's learned backscatter
 #: network is replaced by its analytic counterpart, which has physical parameters to estimate).
@@ -130,12 +167,16 @@ class WaterFrame:
                     (The dense stage writes camera z in millimetres; r = z |K^-1 (x, y, 1)|.)
     world_from_cam: (4,4) camera-to-world pose (OpenCV camera axes), same metric frame for every frame;
                     None: the frame has no pose (it takes no part).
+    normals_cam:    optional (H,W,3) unit surface normals in the camera frame (e.g. of a fused mesh), read by
+                    effects that need them (``artificial_light``); None: :func:`normals_from_range` of
+                    ``range_m``.
     """
 
     name: str
     image: np.ndarray
     range_m: np.ndarray
     world_from_cam: np.ndarray | None
+    normals_cam: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -155,6 +196,20 @@ class WaterConfig:
 
     effects: tuple[str, ...] = DEFAULT_WATER_EFFECTS
     """Effects of the stack (any registered name), placed in scene-to-sensor order by their rank."""
+    light_rig: bool = True
+    """When the survey declares lights (survey.json's ``lights``), model them: the stack gets ``artificial_light``
+    (unless an effect with ``rig_params`` is already listed) with the declared rig (offset, tilt, beam) held."""
+    held_params: tuple[str, ...] = ("artificial_light.power",)
+    """Parameters ("effect.param") held at their starting values inside fitted effects. The lights' power is
+    exactly degenerate with the gain (only k_c P_l is seen, even with a board): it is held (at the effect's
+    initial value, or ``initial``'s), so the gain, and B_inf's level with it, are in units of that power."""
+    tied_params: tuple[tuple[str, str], ...] = (("artificial_light.eta_per_m", "attenuation.eta_per_m"),)
+    """(follower, leader) pairs that share one value when both effects are in the stack: the light-to-scene
+    path is attenuated by the same water as the scene-to-camera path (one water, one eta)."""
+    normal_smooth_px: float = 24.0
+    """Gaussian sigma (pixels) by which a range map is smoothed before surface normals are taken from it
+    (:func:`normals_from_range`; only effects that read normals use them). On the auv preset (SGBM range, 640x480)
+    the normals' median error against the truth was 15 deg at 3 px, 7.6 at 6, 2.8 at 16, 2.3 at 24, 3.2 at 48."""
     initial: tuple[dict, ...] = ()
     """Optional {name, params} entries giving starting (or, for fixed effects, held) values."""
     fixed_effects: tuple[str, ...] = ()
@@ -260,6 +315,8 @@ class Observations:
     board_points_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     board_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     board_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (B,) patch index
+    normals_cam: np.ndarray | None = None        # (N,3) unit surface normal in the view's camera frame
+    board_normals_cam: np.ndarray | None = None  # (B,3)
 
 
 def _rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -271,6 +328,60 @@ def _rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
 def _clean_range(r: np.ndarray) -> np.ndarray:
     r = np.asarray(r, np.float64)
     return np.where(np.isfinite(r) & (r > 0), r, np.nan)
+
+
+def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24.0) -> np.ndarray:
+    """(H,W,3) unit surface normals in the camera frame from a range map (metres along each ray; NaN or <= 0 =
+    none): z = r / |K^-1 (x, y, 1)|, smoothed by a Gaussian of sigma ``smooth_px`` over the pixels with range
+    (blur(z) / blur(valid)), then the normals of :func:`watergan.formation.state_from_rgbd` (cross product of
+    the lifted points' central differences, turned to face the camera). NaN where the pixel has no range."""
+    import cv2
+
+    from watergan.formation import state_from_rgbd
+
+    K = np.asarray(K, np.float64)
+    r = _clean_range(range_m)
+    h, w = r.shape
+    z = r / np.linalg.norm(_rays(K, h, w), axis=-1)
+    valid = np.isfinite(z)
+    if not valid.any():
+        return np.full((h, w, 3), np.nan)
+    z_filled = np.where(valid, z, 0.0)
+    if smooth_px > 0:
+        num = cv2.GaussianBlur(z_filled, (0, 0), float(smooth_px))
+        den = cv2.GaussianBlur(valid.astype(np.float64), (0, 0), float(smooth_px))
+        z_filled = np.where(den > 1e-3, num / np.maximum(den, 1e-3), 0.0)
+    z_filled = np.where(z_filled > 0, z_filled, float(np.median(z[valid])))
+    state = state_from_rgbd(torch.zeros(1, 3, h, w, dtype=torch.float64), torch.from_numpy(z_filled)[None, None],
+                            K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    normals = state.normals_cam[0].permute(1, 2, 0).numpy().copy()
+    normals[~valid] = np.nan
+    return normals
+
+
+def needs_normals(stack: Stack) -> bool:
+    """Whether an effect of the stack reads surface normals (it raises MissingInputError naming normals_cam on a
+    state without them)."""
+    from watergan.formation import MissingInputError
+
+    one = torch.ones(1, 1, 1, 1, dtype=torch.float64)
+    state = FormationState(direct=torch.ones(1, 3, 1, 1, dtype=torch.float64), range_m=2 * one, depth_m=2 * one,
+                           pixel_uv=torch.full((1, 2, 1, 1), 0.5, dtype=torch.float64), image_wh=(2, 2),
+                           points_cam=torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64).view(1, 3, 1, 1),
+                           frame_index=torch.zeros(1, dtype=torch.long))
+    try:
+        with torch.no_grad():
+            stack.to(torch.float64).render(state)
+    except MissingInputError as exc:
+        return "normals_cam" in str(exc)
+    return False
+
+
+def _normal_map(frame: WaterFrame, K: np.ndarray, config: WaterConfig) -> np.ndarray:
+    """The frame's normals (its own, else :func:`normals_from_range`)."""
+    if frame.normals_cam is not None:
+        return np.asarray(frame.normals_cam, np.float64)
+    return normals_from_range(frame.range_m, K, config.normal_smooth_px)
 
 
 def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -311,8 +422,9 @@ def _check_inputs(frames: list[WaterFrame], K: np.ndarray, config: WaterConfig) 
 
 
 def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
-            config: WaterConfig = WaterConfig()) -> Observations:
-    """The measurement table of the module docstring (dense correspondences, tracks, board)."""
+            config: WaterConfig = WaterConfig(), normals: bool = False) -> Observations:
+    """The measurement table of the module docstring (dense correspondences, tracks, board); with ``normals``
+    each view's surface normal in its camera frame too (for effects that read them, e.g. ``artificial_light``)."""
     import cv2
 
     K = np.asarray(K, np.float64)
@@ -325,8 +437,8 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     inner = np.zeros((h, w), bool)
     inner[m:h - m, m:w - m] = True
 
-    # 1. lift samples of every frame to world points
-    points = []
+    # 1. lift samples of every frame to world points (with their surface normals, world frame)
+    points, point_normals = [], []
     for k in usable:
         f = frames[k]
         r = _clean_range(f.range_m)
@@ -344,12 +456,14 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
         pc = rays[yy, xx] / ray_norm[yy, xx, None] * r[yy, xx, None]
         pose = np.asarray(f.world_from_cam, np.float64)
         points.append(pc @ pose[:3, :3].T + pose[:3, 3])
+        point_normals.append(_normal_map(f, K, config)[yy, xx] @ pose[:3, :3].T if normals else np.zeros((len(yy), 3)))
     if not points:
         raise WaterInputError("no frame has a pixel with range inside the image margin")
     xyz = np.concatenate(points)
+    normals_world = np.concatenate(point_normals)
 
     # 2. views of every point in every frame (occlusion test with that frame's own range)
-    rows = {key: [] for key in ("colour", "range", "depth", "uv", "pc", "point", "frame")}
+    rows = {key: [] for key in ("colour", "range", "depth", "uv", "pc", "nc", "point", "frame")}
     sigmas = (config.blur_px * 1.5 ** np.arange(6)) if config.blur_px > 0 else np.zeros(1)
     fx = float(K[0, 0])
     cache: dict[int, list[np.ndarray]] = {}
@@ -376,8 +490,9 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
             out[sel] = (1 - t[sel]) * _bilinear(levels[i], xy[sel]) + t[sel] * _bilinear(levels[i + 1], xy[sel])
         return out
 
-    def add(k: int, pid: np.ndarray, pc: np.ndarray, xy: np.ndarray) -> None:
+    def add(k: int, pid: np.ndarray, pc: np.ndarray, xy: np.ndarray, nw: np.ndarray) -> None:
         rows["colour"].append(sample(k, xy, pc[:, 2]))
+        rows["nc"].append(nw @ np.asarray(frames[k].world_from_cam, np.float64)[:3, :3])
         rows["range"].append(np.linalg.norm(pc, axis=1))
         rows["depth"].append(pc[:, 2])
         rows["uv"].append(np.stack([(xy[:, 0] + 0.5) / w, (xy[:, 1] + 0.5) / h], 1))
@@ -403,12 +518,23 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
         seen = np.abs(r_map - dist) <= config.range_tolerance * dist
         sel, xy = sel[seen], xy[seen]
         if len(sel):
-            add(k, sel, pc[sel], xy)
+            add(k, sel, pc[sel], xy, normals_world[sel])
 
     n_dense = len(xyz)
-    # 3. SfM tracks: their own observations (points appended after the dense ones)
+    # 3. SfM tracks: their own observations (points appended after the dense ones); normals of the sparse cloud
+    # (:func:`eval.diagnose_measure.pca_normals`, turned towards the mean centre of the frames that see a point)
     if tracks is not None and len(tracks.xyz):
+        from eval.diagnose_measure import pca_normals
+
         use = np.isin(tracks.obs_frame, usable)
+        centres = np.zeros((len(tracks.xyz), 3))
+        seen = np.zeros(len(tracks.xyz))
+        for k in np.unique(tracks.obs_frame[use]):
+            sel = tracks.obs_point[use & (tracks.obs_frame == k)]
+            centres[sel] += np.asarray(frames[k].world_from_cam, np.float64)[:3, 3]
+            seen[sel] += 1
+        track_normals = pca_normals(np.asarray(tracks.xyz, np.float64), centres / np.maximum(seen, 1)[:, None], 12) \
+            if normals else np.zeros((len(tracks.xyz), 3))
         for k in np.unique(tracks.obs_frame[use]):
             sel = np.flatnonzero(use & (tracks.obs_frame == k))
             pose = np.asarray(frames[k].world_from_cam, np.float64)
@@ -416,7 +542,8 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
             xy = np.asarray(tracks.obs_xy[sel], np.float64)
             ok = (pc[:, 2] > 0) & (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
             if ok.any():
-                add(int(k), n_dense + tracks.obs_point[sel][ok], pc[ok], xy[ok])
+                add(int(k), n_dense + tracks.obs_point[sel][ok], pc[ok], xy[ok],
+                    track_normals[tracks.obs_point[sel][ok]])
         n_total = n_dense + len(tracks.xyz)
     else:
         n_total = n_dense
@@ -437,28 +564,31 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     used = np.unique(cat["point"][order])
     remap[used] = np.arange(len(used))
     obs = Observations(colour=cat["colour"][order], range_m=cat["range"][order], depth_m=cat["depth"][order],
-                       pixel_uv=cat["uv"][order], points_cam=cat["pc"][order], point=remap[cat["point"][order]],
+                       pixel_uv=cat["uv"][order], points_cam=cat["pc"][order],
+                       normals_cam=cat["nc"][order] if normals else None,
+                       point=remap[cat["point"][order]],
                        frame=cat["frame"][order], n_points=len(used), image_wh=(w, h), n_frames=len(frames))
     if board is not None:
-        _add_board(obs, frames, usable, board, K, rays, ray_norm, config)
+        _add_board(obs, frames, usable, board, K, rays, ray_norm, config, normals)
     _check_diversity(obs, config)
     return obs
 
 
 def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], board, K: np.ndarray,
-               rays: np.ndarray, ray_norm: np.ndarray, config: WaterConfig) -> None:
+               rays: np.ndarray, ray_norm: np.ndarray, config: WaterConfig, normals: bool = False) -> None:
     """Board rows: per frame and visible patch, the mean raw colour inside the shrunk quad, its centroid and
     the median range there (patches with range on fewer than half their pixels are skipped)."""
     import cv2
 
     w, h = obs.image_wh
-    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "frame", "patch")}
+    rows = {key: [] for key in ("colour", "albedo", "range", "depth", "uv", "pc", "nc", "frame", "patch")}
     for k in usable:
         f = frames[k]
         quads = board.quads.get(f.name)
         if quads is None:
             continue
         r = _clean_range(f.range_m)
+        normal_map = _normal_map(f, K, config) if normals else None
         for p, quad in enumerate(np.asarray(quads, np.float64)):
             if not np.isfinite(quad).all():
                 continue
@@ -477,6 +607,9 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
             rr = float(np.nanmedian(r[inside]))
             ray = np.array([(xc - K[0, 2]) / K[0, 0], (yc - K[1, 2]) / K[1, 1], 1.0])
             pc = ray / np.linalg.norm(ray) * rr
+            if normal_map is not None:
+                n = np.nanmean(normal_map[inside], 0)
+                rows["nc"].append(n / max(float(np.linalg.norm(n)), 1e-12))
             rows["colour"].append(colour)
             rows["albedo"].append(board.true_linear_rgb[p])
             rows["range"].append(rr)
@@ -492,6 +625,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         obs.board_depth_m = np.array(rows["depth"], np.float64)
         obs.board_pixel_uv = np.array(rows["uv"], np.float64)
         obs.board_points_cam = np.array(rows["pc"], np.float64)
+        obs.board_normals_cam = np.array(rows["nc"], np.float64) if normals else None
         obs.board_frame = np.array(rows["frame"], np.int64)
         obs.board_patch = np.array(rows["patch"], np.int64)
 
@@ -512,16 +646,69 @@ def _check_diversity(obs: Observations, config: WaterConfig) -> None:
 # ------------------------------------------------------------------------------------------ fit
 
 
-def build_stack(config: WaterConfig, n_frames: int | None = None) -> Stack:
+#: The effect that models a declared light rig when the configured stack has none.
+RIG_EFFECT = "artificial_light"
+
+
+def rig_lights(config: WaterConfig, lights: list[dict] | None) -> list[dict]:
+    """The declared lights the fit models (none when ``config.light_rig`` is off)."""
+    return list(lights or []) if config.light_rig else []
+
+
+def build_stack(config: WaterConfig, n_frames: int | None = None, lights: list[dict] | None = None) -> Stack:
     """The stack to fit: ``config.effects`` by rank, starting values from ``config.initial``; parameters held per
-    frame (``Param(per="frame")``, e.g. a plugin's auto-exposure) get ``n_frames`` rows."""
+    frame (``Param(per="frame")``, e.g. a plugin's auto-exposure) get ``n_frames`` rows. With declared ``lights``
+    (survey.json's, see ``WaterConfig.light_rig``) the stack models the rig: ``RIG_EFFECT`` is added unless an
+    effect with ``rig_params`` is listed, each such effect takes the declared rig values
+    (:func:`watergan.formation.rig.rig_settings`) and one row per light of its other per-light parameters.
+    ``config.tied_params`` are then tied (:func:`tie_parameters`)."""
+    lights = rig_lights(config, lights)
     given = {e["name"]: dict(e.get("params", {})) for e in config.initial}
-    names = dict.fromkeys(list(config.effects) + list(given))
-    return Stack.ordered([{"name": n, "params": given.get(n, {})} for n in names],
-                         counts=Counts(frames=n_frames)).to(torch.float64)
+    names = list(dict.fromkeys(list(config.effects) + list(given)))
+    if lights and not any(get(n).rig_params for n in names):
+        names.append(RIG_EFFECT)
+    entries = [{"name": n, "params": {**given.get(n, {}), **rig_settings(get(n), lights)}} for n in names]
+    stack = Stack.ordered(entries, counts=Counts(frames=n_frames, lights=len(lights) or None)).to(torch.float64)
+    tie_parameters(stack, config.tied_params)
+    return stack
 
 
-def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.float64) -> FormationState:
+def tie_parameters(stack: Stack, tied: tuple[tuple[str, str], ...]) -> list[str]:
+    """Make each follower parameter ("effect.param") the same tensor as its leader where both effects are in the
+    stack (in place; the follower takes the leader's value): fitting the leader moves both. Returns the tied
+    followers. Raises ValueError when the two differ in bounds or shape (one raw value cannot serve both)."""
+    done = []
+    for follower, leader in tied:
+        (f_name, f_param), (l_name, l_param) = follower.split(".", 1), leader.split(".", 1)
+        if f_name not in stack.names or l_name not in stack.names:
+            continue
+        f_effect, l_effect = stack[f_name], stack[l_name]
+        f_spec, l_spec = f_effect._spec(f_param), l_effect._spec(l_param)
+        if (f_spec.lower, f_spec.upper) != (l_spec.lower, l_spec.upper) or \
+                f_effect.raw[f_param].shape != l_effect.raw[l_param].shape:
+            raise ValueError(f"cannot tie {follower} to {leader}: their bounds or shapes differ")
+        f_effect.raw[f_param] = l_effect.raw[l_param]
+        done.append(follower)
+    return done
+
+
+def held_parameters(stack: Stack, config: WaterConfig, lights: list[dict] | None) -> dict[str, str]:
+    """{"effect.param": why} of the parameters held inside fitted effects: the declared rig
+    (:func:`watergan.formation.rig.held_rig`), ``config.held_params`` and the tied followers."""
+    held = {}
+    for name, params in held_rig(stack, rig_lights(config, lights)).items():
+        held.update({f"{name}.{p}": "declared in survey.json's lights (a known setting, not fitted)" for p in params})
+    for key in config.held_params:
+        if key.split(".", 1)[0] in stack.names:
+            held.setdefault(key, "held at its starting value (see WaterConfig.held_params)")
+    for follower, leader in config.tied_params:
+        if follower.split(".", 1)[0] in stack.names and leader.split(".", 1)[0] in stack.names:
+            held[follower] = f"tied to {leader} (one water)"
+    return held
+
+
+def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.float64,
+           normals_cam=None) -> FormationState:
     n = len(range_m)
 
     def col(a):
@@ -529,7 +716,8 @@ def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.flo
 
     return FormationState(direct=torch.ones(n, 3, 1, 1, dtype=col(range_m).dtype), range_m=col(range_m),
                           depth_m=col(depth_m), pixel_uv=col(pixel_uv), image_wh=tuple(image_wh),
-                          points_cam=col(points_cam), frame_index=torch.from_numpy(np.asarray(frame, np.int64)))
+                          points_cam=col(points_cam), normals_cam=None if normals_cam is None else col(normals_cam),
+                          frame_index=torch.from_numpy(np.asarray(frame, np.int64)))
 
 
 def _affine_images(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
@@ -553,10 +741,13 @@ class _Problem:
     """The loss of the stack's free parameters given the observations and per-frame weights."""
 
     def __init__(self, stack: Stack, obs: Observations, config: WaterConfig, fixed: tuple[str, ...],
-                 float32: bool = False) -> None:
+                 float32: bool = False, held: dict[str, tuple[str, ...]] | None = None) -> None:
+        from eval.diagnose_fit import fitted_names
+
         self.stack, self.obs, self.config = stack, obs, config
         dt = np.float32 if float32 else np.float64
-        self.state = _state(obs.range_m, obs.depth_m, obs.pixel_uv, obs.points_cam, obs.frame, obs.image_wh, dt)
+        self.state = _state(obs.range_m, obs.depth_m, obs.pixel_uv, obs.points_cam, obs.frame, obs.image_wh, dt,
+                            obs.normals_cam)
         self.y = torch.from_numpy(obs.colour.astype(dt))
         self.point = torch.from_numpy(obs.point)
         self.has_board = len(obs.board_colour) > 0
@@ -564,17 +755,11 @@ class _Problem:
         self.patch_weight: torch.Tensor | None = None  # (patches,) bootstrap weights of the board's patches
         if self.has_board:
             self.board_state = _state(obs.board_range_m, obs.board_depth_m, obs.board_pixel_uv,
-                                      obs.board_points_cam, obs.board_frame, obs.image_wh, dt)
+                                      obs.board_points_cam, obs.board_frame, obs.image_wh, dt, obs.board_normals_cam)
             self.board_y = torch.from_numpy(obs.board_colour.astype(dt))
             self.board_j = torch.from_numpy(obs.board_albedo.astype(dt))
-        self.names = []
-        for i, effect in enumerate(stack.effects):
-            if effect.name in fixed:
-                continue
-            for p in effect.params:
-                if p.learnable:
-                    self.names.append(f"effects.{i}.raw.{p.name}")
-        by_name = dict(stack.named_parameters())
+        self.names = fitted_names(stack, replace(config, fixed_effects=tuple(fixed)), held or {})
+        by_name = dict(stack.named_parameters(remove_duplicate=False))  # a tied parameter under each name
         self.theta = [by_name[n] for n in self.names]
         for p in stack.parameters():
             p.requires_grad_(False)
@@ -705,6 +890,13 @@ PINNED_BY = {
     "vignetting_offcentre.c": "same point at different image positions; overall scale degenerate with strength",
     "vignetting_offcentre.strength": "ratios between channels only (s x polynomial: the scale is degenerate)",
     "gain.k": "the board's known colours (without a board: degenerate with the albedo scale, held fixed)",
+    "artificial_light.offset_m": "declared in survey.json's lights (held)",
+    "artificial_light.tilt_deg": "declared in survey.json's lights (held)",
+    "artificial_light.beam_deg": "declared in survey.json's lights (held)",
+    "artificial_light.power": "ratios between lights: brightness across the beams; level: degenerate with the gain "
+                              "(held)",
+    "artificial_light.eta_per_m": "tied to attenuation.eta_per_m (one water)",
+    "artificial_light.ambient": "brightness that does not fall with the distance from the lights (other light)",
 }
 
 
@@ -716,6 +908,8 @@ class WaterEstimate:
     params:       {"effect.param": {"value", "low", "high", "std", "p2_5", "p97_5", "units", "fitted",
                   "pinned_by"}}; fixed parameters have value only.
     fixed:        effects held at their values (e.g. gain without a board) and why.
+    held:         {"effect.param": why} parameters held (a declared light rig, the lights' power) or tied to
+                  another (the light path's eta to the attenuation's) inside fitted effects.
     tradeoffs:    [(a, b, correlation)] free parameter components whose bootstrap |correlation| > 0.95.
     n_points, n_observations, n_board, n_frames: sizes of the measurement table.
     rmse:         RMS residual of the views (linear colour); ``residuals``: per view (for plots).
@@ -725,6 +919,7 @@ class WaterEstimate:
     stack: Stack
     params: dict
     fixed: dict
+    held: dict
     tradeoffs: list
     n_points: int
     n_observations: int
@@ -742,7 +937,7 @@ class WaterEstimate:
     image centre, 1 at the corners); not in :meth:`to_json`."""
 
     def to_json(self) -> dict:
-        return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed,
+        return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed, "held": self.held,
                 "tradeoffs": self.tradeoffs, "n_points": self.n_points, "n_observations": self.n_observations,
                 "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
                 "iterations": self.iterations, "converged": self.converged,
@@ -763,21 +958,29 @@ class WaterEstimate:
         return "water: " + "; ".join(parts) + f" (rmse {self.rmse:.4f}, {self.n_points} points{unconverged})"
 
 
-def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> WaterEstimate:
-    """Fit the stack to a measurement table and bootstrap over frames (see the module docstring)."""
+def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
+                     lights: list[dict] | None = None) -> WaterEstimate:
+    """Fit the stack to a measurement table and bootstrap over frames (see the module docstring). ``lights``:
+    the light rig survey.json declares (see :func:`build_stack`)."""
     t0 = time.perf_counter()
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, config.threads))
     try:
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
         n_frames_total = int(frames.max()) + 1
-        stack = build_stack(config, obs.n_frames or n_frames_total)
+        stack = build_stack(config, obs.n_frames or n_frames_total, lights)
         fixed = {name: "held at its configured value" for name in config.fixed_effects}
         if len(obs.board_colour) == 0 and "gain" in stack.names:
             fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
-        problem = _Problem(stack, obs, config, tuple(fixed))
+        held = held_parameters(stack, config, lights)
+        by_effect: dict[str, tuple[str, ...]] = {}
+        for key in held:
+            name, param = key.split(".", 1)
+            by_effect[name] = (*by_effect.get(name, ()), param)
+        problem = _Problem(stack, obs, config, tuple(fixed), held=by_effect)
         _start_inside(problem)
-        fast = _Problem(stack, obs, config, tuple(fixed), float32=True) if config.float32 else problem
+        fast = _Problem(stack, obs, config, tuple(fixed), float32=True, held=by_effect) if config.float32 \
+            else problem
         ones = torch.zeros(n_frames_total, dtype=torch.float64)
         ones[torch.from_numpy(frames)] = 1.0
         iterations, converged = problem.converge(ones, config)
@@ -842,7 +1045,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig()) -> 
         for p in stack.parameters():
             p.requires_grad_(False)
         params, tradeoffs = _describe(stack, best, samples, fixed, spec, config.range_scale_sd)
-        return WaterEstimate(stack=stack, params=params, fixed=fixed, tradeoffs=tradeoffs, n_points=obs.n_points,
+        return WaterEstimate(stack=stack, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
+                             n_points=obs.n_points,
                              n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),
                              residuals={"residual": residual, "range_m": obs.range_m,
                                         "radius": np.hypot(*(2 * obs.pixel_uv - 1).T) / np.sqrt(2)},
@@ -898,19 +1102,21 @@ def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: 
 
 
 def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
-                   config: WaterConfig = WaterConfig()) -> WaterEstimate:
+                   config: WaterConfig = WaterConfig(), lights: list[dict] | None = None) -> WaterEstimate:
     """The site's water (see the module docstring).
 
     frames:  the survey's frames (raw linear image, range map in metres, pose; see :class:`WaterFrame`).
     K:       (3,3) pinhole intrinsics of the images, pixels (OpenCV centres).
     tracks:  optional SfM tracks (:class:`SparseTracks`, frame indices into ``frames``).
     board:   optional :class:`eval.colour.Board` (true linear colours; pixel quads per frame name): pins the gain.
+    lights:  the light rig survey.json declares (``lights``: per light offset_m, tilt_deg, beam_deg): modelled by
+             ``artificial_light`` with the rig held (:func:`build_stack`, ``WaterConfig.light_rig``).
     Raises :class:`WaterInputError` when the frames cannot pin the water (too few registered frames, too
     little range, too few points seen at different ranges)."""
     t0 = time.perf_counter()
-    obs = measure(frames, K, tracks, board, config)
+    obs = measure(frames, K, tracks, board, config, normals=needs_normals(build_stack(config, len(frames), lights)))
     t_measure = time.perf_counter() - t0
-    estimate = fit_observations(obs, config)
+    estimate = fit_observations(obs, config, lights)
     estimate.seconds = {"measure": round(t_measure, 2), **estimate.seconds,
                         "total": round(time.perf_counter() - t0, 2)}
     return estimate
@@ -920,7 +1126,8 @@ def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
 
 
 def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[dict],
-                    K: np.ndarray | None = None, frame_index: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                    K: np.ndarray | None = None, frame_index: int = 0, normals_cam: np.ndarray | None = None,
+                    normal_smooth_px: float = 24.0) -> tuple[np.ndarray, np.ndarray]:
     """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
     J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
     J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
@@ -928,8 +1135,11 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
     image:   (H,W,3) raw linear RGB.
     range_m: (H,W) metres along the ray; NaN or <= 0 = no range.
     stack:   a :class:`Stack` or its configuration (e.g. ``WaterEstimate.stack``).
-    K:       (3,3) intrinsics; gives effects the camera-frame points and depth (needed by e.g.
-             ``artificial_light``); without it depth = range and no points.
+    K:       (3,3) intrinsics; gives effects the camera-frame points, depth and surface normals (needed by e.g.
+             ``artificial_light``: J = (I - C) / A with A = k/V exp(-eta r) E(X, n), E the lights' irradiance);
+             without it depth = range and no points.
+    normals_cam: (H,W,3) unit normals in the camera frame (e.g. of a fused mesh); None with K:
+             :func:`normals_from_range` of ``range_m`` smoothed by ``normal_smooth_px``.
     frame_index: the frame's index in the survey (the estimate's frames list): the row that parameters held
              per frame take.
     Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
@@ -949,6 +1159,11 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
         pc = rays / np.linalg.norm(rays, axis=-1, keepdims=True) * r_filled[..., None]
         fields["points_cam"] = torch.from_numpy(pc.transpose(2, 0, 1)[None].copy())
         fields["depth_m"] = torch.from_numpy(pc[..., 2][None, None].copy())
+        if normals_cam is not None or needs_normals(stack):
+            n = normals_from_range(r, K, normal_smooth_px) if normals_cam is None else \
+                np.asarray(normals_cam, np.float64)
+            n = np.where(np.isfinite(n), n, np.array([0.0, 0.0, -1.0]))
+            fields["normals_cam"] = torch.from_numpy(n.transpose(2, 0, 1)[None].copy())
     else:
         fields["depth_m"] = torch.from_numpy(r_filled[None, None].copy())
     state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=torch.float64),

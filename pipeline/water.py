@@ -20,6 +20,15 @@ the mesh's range where the depth map has none or disagrees (the mesh fuses every
 outliers at relief edges do not survive it: on the monocular demo they raised the corrected frames' red
 inconsistency from 4.3e-5 to 5.7e-5 against the oracle's 3.8e-5); a pixel with neither is not guessed: it
 is written black and marked 0 in the mask (its share is ``unresolved_fraction``).
+
+A light rig: when the survey's ``survey.json`` declares ``lights`` (an AUV's strobes: offset_m, tilt_deg,
+beam_deg per light), the stack models them with ``artificial_light``, the rig held as declared, its power held
+(degenerate with the gain), its light-path attenuation tied to the water's eta (:func:`eval.water.build_stack`;
+``--no-light-rig`` leaves them out). Without it the strobes' fall-off with distance is read as attenuation
+(on the auv preset eta 1.17/0.81/0.76 per m against 0.28/0.14/0.13). The light needs each observation's point
+and surface normal in the camera frame: the points come from the dense range, the normals from the range map
+smoothed (:func:`eval.water.normals_from_range`), for the estimate (at each sample's source pixel) as for the
+correction (from the correction's range, dense and mesh).
 """
 
 from __future__ import annotations
@@ -115,6 +124,14 @@ def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None):
     return np.where(np.isfinite(t), t, np.nan), scene
 
 
+def survey_lights(survey: Path) -> list[dict]:
+    """The light rig the survey's ``survey.json`` declares (empty without one)."""
+    from watergan.io import read_survey_json
+
+    path = survey / "survey.json"
+    return list(read_survey_json(path).get("lights") or []) if path.is_file() else []
+
+
 def _board(ws: Workspace, cfg: WaterConfig, survey: Path):
     from eval.colour import load_board_json, truth_board
 
@@ -178,7 +195,8 @@ def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, ag
 
 
 def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack, images: Path,
-                   mesh_ply: Path | None, agreement: float, progress: bool) -> tuple[float, float]:
+                   mesh_ply: Path | None, agreement: float, progress: bool,
+                   normal_smooth_px: float = 24.0) -> tuple[float, float]:
     """Every frame through the inverse of ``stack`` with its range (:func:`correction_range`); returns (share of
     pixels ranged from the mesh, share with no range)."""
     from tqdm import tqdm
@@ -192,16 +210,22 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
         for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
             r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
             from_mesh.append(float(np.mean(meshed)))
-            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k)
+            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k,
+                                               normal_smooth_px=normal_smooth_px)
             unresolved.append(float(np.mean(~valid)))
             write_depth_png(out / "range" / f"{Path(f.name).stem}.png", r)
             _write_corrected(out, f.name, corrected, valid, bit_depth(images / f.name))
     return float(np.mean(from_mesh)), float(np.mean(unresolved))
 
 
+#: Fitted parameters whose lower bound is a physical value rather than a limit of the model: a survey in darkness
+#: has no light but the declared lights (``artificial_light.ambient`` = 0 is the auv preset's truth).
+PHYSICAL_LOWER_BOUNDS = ("artificial_light.ambient",)
+
+
 def at_bounds(estimate: WaterEstimate, tolerance: float = 1e-3) -> list[str]:
     """The fitted parameter components within ``tolerance`` (relative to the range, or absolute for an
-    unbounded side) of a bound."""
+    unbounded side) of a bound (a lower bound in ``PHYSICAL_LOWER_BOUNDS`` does not count)."""
     out = []
     for effect in estimate.stack.effects:
         for p in effect.params:
@@ -210,7 +234,8 @@ def at_bounds(estimate: WaterEstimate, tolerance: float = 1e-3) -> list[str]:
                 continue
             value = np.atleast_1d(effect.param(p.name).detach().numpy()).ravel()
             span = (p.upper - p.lower) if np.isfinite(p.upper) else 1.0
-            near = (np.abs(value - p.lower) <= tolerance * span) | (np.abs(p.upper - value) <= tolerance * span)
+            low = np.abs(value - p.lower) <= tolerance * span
+            near = (low & (key not in PHYSICAL_LOWER_BOUNDS)) | (np.abs(p.upper - value) <= tolerance * span)
             out += [f"{key}[{i}]" if value.size > 1 else key for i in np.flatnonzero(near)]
     return out
 
@@ -234,7 +259,8 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     if sfm.scale_method == "none":
         print("water: the SfM model has no metric scale: attenuation and backscatter coefficients are per SfM "
               "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
-    estimate = estimate_water(frames, K, board=board, config=cfg)
+    lights = survey_lights(survey)
+    estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights)
     estimate_s = time.perf_counter() - began
     out = ws.stage_dir("water")
     atomic_write_json(out / "water.json", estimate.to_json())
@@ -242,7 +268,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     _plot_residuals(estimate, out / "residuals.png")
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
     mesh_share, unresolved = correct_frames(ws, frames, K, estimate.stack, survey / "images", mesh_ply,
-                                            cfg.range_agreement, cfg.progress)
+                                            cfg.range_agreement, cfg.progress, cfg.normal_smooth_px)
     print(estimate.summary(), flush=True)
     if not estimate.converged:
         print(f"water: the fit had not converged after {estimate.iterations} iterations (raise `--max-iterations`, "
