@@ -613,8 +613,7 @@ def plot_ledger(records: list[dict], path: Path) -> None:
         ax.set_xlabel("ledger entry")
         ax.set_ylabel("board CIEDE2000" if key == "board_ciede2000" else "consistency (variance of c/(R+G+B))")
         ax.set_title("corrected frames per model version", fontsize=9)
-        if key == "consistency":
-            ax.set_yscale("log")
+        ax.set_yscale("log")  # raw frames sit one to two decades above the corrections
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90, bbox_inches="tight")
