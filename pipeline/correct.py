@@ -68,6 +68,8 @@ class CorrectResult:
     failed: list[str] = field(default_factory=list)
     """"path: reason" for each image that could not be read."""
     seconds: float = 0.0
+    range_input: bool = False
+    """Whether the restorer took each pixel's range (RGB-D mode)."""
 
 
 def _outputs(out: Path, stem: str) -> tuple[Path, Path, Path]:
@@ -220,7 +222,7 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
-    result = CorrectResult(out, 0, 0)
+    result = CorrectResult(out, 0, 0, range_input=model.range_input)
     todo = [p for p in files if force or not all(p.is_file() for p in _outputs(out, p.stem))]
     result.already_done = len(files) - len(todo)
 
@@ -287,13 +289,14 @@ def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
     restorer = ws.require("restorer", "correct")
     images = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     out = ws.stage_dir("correct")
-    rgbd = load_restorer(restorer.out_dir).range_input
-    ranges = ws.path(ws.require("water", "the RGB-D restorer").range_dir) if rgbd else None
+    water = ws.result("water")  # its range maps; read only by a restorer in RGB-D mode
+    ranges = ws.path(water.range_dir) if water is not None and water.range_dir else None
     result = correct_folder(restorer.out_dir, images, out, force=True, batch_size=cfg.batch_size,
                             progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges)
     return CorrectStageResult(corrected=result.corrected, failed=result.failed, seconds=result.seconds,
                               images=ws.relative(out / "images"), depth=ws.relative(out / "depth"),
-                              fps=result.corrected / max(result.seconds, 1e-9), mode="rgb-d" if rgbd else "monocular")
+                              fps=result.corrected / max(result.seconds, 1e-9),
+                              mode="rgb-d" if result.range_input else "monocular")
 
 
 @dataclass(frozen=True)
