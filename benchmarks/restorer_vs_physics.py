@@ -1,0 +1,64 @@
+"""A trained restorer against the physics correction on one workspace, and the floor its training pairs allow.
+
+    .venv/bin/python benchmarks/restorer_vs_physics.py --workspace WS [--model DIR] [--out DIR]
+
+1. Corrects the survey's frames with the restorer in ``--model`` (default: the workspace's ``02_restorer``;
+   an RGB-D restorer takes the water stage's range maps) into ``--out`` and prints frames per second, then
+   the board CIEDE2000 and the consistency per channel (:func:`eval.colour.board_accuracy`,
+   :func:`eval.colour.consistency`, as the eval stage measures them) of raw, the restorer and the physics
+   correction (``06_water/images``). Needs a simulated survey (the board's truth).
+2. Inverts the site water exactly (:func:`eval.water.correct_physics` with the gan stage's ``stack.json``) on
+   the first 20 of the gan stage's training pairs (``01_gan/generated``: underwater, range, in-air) and prints
+   the RMSE (stored sRGB) against the in-air images: what a restorer trained on those 8-bit pairs could reach.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from eval.colour import board_accuracy, consistency, truth_board
+from eval.tracks import Tracks
+from eval.water import correct_physics
+from pipeline.correct import correct_folder
+from watergan.io import linear_to_srgb, read_depth, read_image
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--workspace", required=True)
+    parser.add_argument("--model", default=None, help="restorer folder (default: WS/02_restorer)")
+    parser.add_argument("--out", default="/tmp/restorer_vs_physics")
+    args = parser.parse_args()
+    ws, out = Path(args.workspace), Path(args.out)
+    model = Path(args.model) if args.model else ws / "02_restorer"
+
+    r = correct_folder(model, ws / "00_survey" / "images", out, force=True, progress=False,
+                       range_dir=ws / "06_water" / "range")
+    print(f"corrected {r.corrected} frames in {r.seconds:.1f} s = {r.corrected / r.seconds:.1f} frames/s "
+          f"({'RGB-D' if r.range_input else 'monocular'})")
+    board = truth_board(ws / "00_survey")
+    folders = {"raw": ws / "00_survey" / "images", "restorer": out / "images", "physics": ws / "06_water" / "images"}
+    cons = consistency(Tracks.load(ws / "04_sfm" / "tracks.npz"), folders)
+    for name, path in folders.items():
+        print(f"{name:9} board CIEDE2000 {board_accuracy(path, board).mean_ciede2000:6.3f}  consistency "
+              + " ".join(f"{v:.2e}" for v in cons.scores[name].variance))
+
+    pairs = ws / "01_gan" / "generated"
+    stack = json.loads((ws / "01_gan" / "model" / "stack.json").read_text())
+    errors = []
+    for item in json.loads((pairs / "manifest.json").read_text())["items"][:20]:
+        inverted, valid = correct_physics(read_image(pairs / item["underwater"]), read_depth(pairs / item["range"]),
+                                          stack)
+        diff = linear_to_srgb(np.clip(inverted, 0, 1)) - linear_to_srgb(read_image(pairs / item["inair"]))
+        errors.append((diff[valid] ** 2).mean(0))
+    print("exact inverse of the site water on the training pairs, RMSE (stored sRGB) R G B:",
+          np.sqrt(np.mean(errors, 0)).round(4).tolist())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
