@@ -146,6 +146,14 @@ import torch
 
 from watergan.errors import UserInputError
 from watergan.formation import Counts, FormationState, Stack, get
+from watergan.formation.inverse import (
+    affine_images,
+    clean_range,
+    inverse_fields,
+    needs_normals,
+    normals_from_range,
+    rays_cam,
+)
 from watergan.formation.rig import held_rig, rig_settings
 
 #: The water stack fitted by default: the simulator's visible physics (WaterGAN's learned backscatter
@@ -319,64 +327,6 @@ class Observations:
     board_normals_cam: np.ndarray | None = None  # (B,3)
 
 
-def _rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
-    """(H,W,3) K^-1 (x, y, 1) (z = 1)."""
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    return np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
-
-
-def _clean_range(r: np.ndarray) -> np.ndarray:
-    r = np.asarray(r, np.float64)
-    return np.where(np.isfinite(r) & (r > 0), r, np.nan)
-
-
-def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24.0) -> np.ndarray:
-    """(H,W,3) unit surface normals in the camera frame from a range map (metres along each ray; NaN or <= 0 =
-    none): z = r / |K^-1 (x, y, 1)|, smoothed by a Gaussian of sigma ``smooth_px`` over the pixels with range
-    (blur(z) / blur(valid)), then the normals of :func:`watergan.formation.state_from_rgbd` (cross product of
-    the lifted points' central differences, turned to face the camera). NaN where the pixel has no range."""
-    import cv2
-
-    from watergan.formation import state_from_rgbd
-
-    K = np.asarray(K, np.float64)
-    r = _clean_range(range_m)
-    h, w = r.shape
-    z = r / np.linalg.norm(_rays(K, h, w), axis=-1)
-    valid = np.isfinite(z)
-    if not valid.any():
-        return np.full((h, w, 3), np.nan)
-    z_filled = np.where(valid, z, 0.0)
-    if smooth_px > 0:
-        num = cv2.GaussianBlur(z_filled, (0, 0), float(smooth_px))
-        den = cv2.GaussianBlur(valid.astype(np.float64), (0, 0), float(smooth_px))
-        z_filled = np.where(den > 1e-3, num / np.maximum(den, 1e-3), 0.0)
-    z_filled = np.where(z_filled > 0, z_filled, float(np.median(z[valid])))
-    state = state_from_rgbd(torch.zeros(1, 3, h, w, dtype=torch.float64), torch.from_numpy(z_filled)[None, None],
-                            K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-    normals = state.normals_cam[0].permute(1, 2, 0).numpy().copy()
-    normals[~valid] = np.nan
-    return normals
-
-
-def needs_normals(stack: Stack) -> bool:
-    """Whether an effect of the stack reads surface normals (it raises MissingInputError naming normals_cam on a
-    state without them)."""
-    from watergan.formation import MissingInputError
-
-    one = torch.ones(1, 1, 1, 1, dtype=torch.float64)
-    state = FormationState(direct=torch.ones(1, 3, 1, 1, dtype=torch.float64), range_m=2 * one, depth_m=2 * one,
-                           pixel_uv=torch.full((1, 2, 1, 1), 0.5, dtype=torch.float64), image_wh=(2, 2),
-                           points_cam=torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64).view(1, 3, 1, 1),
-                           frame_index=torch.zeros(1, dtype=torch.long))
-    try:
-        with torch.no_grad():
-            stack.to(torch.float64).render(state)
-    except MissingInputError as exc:
-        return "normals_cam" in str(exc)
-    return False
-
-
 def _normal_map(frame: WaterFrame, K: np.ndarray, config: WaterConfig) -> np.ndarray:
     """The frame's normals (its own, else :func:`normals_from_range`)."""
     if frame.normals_cam is not None:
@@ -430,7 +380,7 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     K = np.asarray(K, np.float64)
     usable = _check_inputs(frames, K, config)
     h, w = frames[usable[0]].image.shape[:2]
-    rays = _rays(K, h, w)
+    rays = rays_cam(K, h, w)
     ray_norm = np.linalg.norm(rays, axis=-1)
     rng = np.random.default_rng([config.seed, 17])
     m = config.margin_px
@@ -441,7 +391,7 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
     points, point_normals = [], []
     for k in usable:
         f = frames[k]
-        r = _clean_range(f.range_m)
+        r = clean_range(f.range_m)
         ok = inner & np.isfinite(r)
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
@@ -514,7 +464,7 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
             continue
         xy = np.stack([x[sel], y[sel]], 1)
         dist = np.linalg.norm(pc[sel], axis=1)
-        r_map = _clean_range(f.range_m)[np.rint(xy[:, 1]).astype(int), np.rint(xy[:, 0]).astype(int)]
+        r_map = clean_range(f.range_m)[np.rint(xy[:, 1]).astype(int), np.rint(xy[:, 0]).astype(int)]
         seen = np.abs(r_map - dist) <= config.range_tolerance * dist
         sel, xy = sel[seen], xy[seen]
         if len(sel):
@@ -587,7 +537,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         quads = board.quads.get(f.name)
         if quads is None:
             continue
-        r = _clean_range(f.range_m)
+        r = clean_range(f.range_m)
         normal_map = _normal_map(f, K, config) if normals else None
         for p, quad in enumerate(np.asarray(quads, np.float64)):
             if not np.isfinite(quad).all():
@@ -720,16 +670,9 @@ def _state(range_m, depth_m, pixel_uv, points_cam, frame, image_wh, dtype=np.flo
                           frame_index=torch.from_numpy(np.asarray(frame, np.int64)))
 
 
-def _affine_images(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
-    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0."""
-    c = stack.render(state.replace(direct=torch.zeros_like(state.direct), backscatter=None))
-    a = stack.render(state.replace(direct=torch.ones_like(state.direct), backscatter=None)) - c
-    return a, c
-
-
 def _affine(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
     """(A, C) of y = A J + C per observation (a batch of 1x1 images), (N,3)."""
-    a, c = _affine_images(stack, state)
+    a, c = affine_images(stack, state)
     return a[:, :, 0, 0], c[:, :, 0, 0]
 
 
@@ -1144,37 +1087,9 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
              per frame take.
     Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
     without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
-    if not isinstance(stack, Stack):
-        stack = Stack.from_config(stack)
-    image = np.asarray(image, np.float64)
-    h, w = image.shape[:2]
-    r = _clean_range(range_m)
-    valid = np.isfinite(r)
-    r_filled = np.where(valid, r, 1.0)
-    from watergan.formation import pixel_grid
-
-    fields = {}
-    if K is not None:
-        rays = _rays(np.asarray(K, np.float64), h, w)
-        pc = rays / np.linalg.norm(rays, axis=-1, keepdims=True) * r_filled[..., None]
-        fields["points_cam"] = torch.from_numpy(pc.transpose(2, 0, 1)[None].copy())
-        fields["depth_m"] = torch.from_numpy(pc[..., 2][None, None].copy())
-        if normals_cam is not None or needs_normals(stack):
-            n = normals_from_range(r, K, normal_smooth_px) if normals_cam is None else \
-                np.asarray(normals_cam, np.float64)
-            n = np.where(np.isfinite(n), n, np.array([0.0, 0.0, -1.0]))
-            fields["normals_cam"] = torch.from_numpy(n.transpose(2, 0, 1)[None].copy())
-    else:
-        fields["depth_m"] = torch.from_numpy(r_filled[None, None].copy())
-    state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=torch.float64),
-                           range_m=torch.from_numpy(r_filled[None, None].copy()),
-                           pixel_uv=pixel_grid(h, w, 1, torch.float64), image_wh=(w, h),
-                           valid=torch.from_numpy(valid)[None, None], frame_index=torch.tensor([frame_index]),
-                           **fields)
-    stack = stack.to(torch.float64)
-    with torch.no_grad():
-        a, c = _affine_images(stack, state)
+    a, c, valid = inverse_fields(range_m, stack, K, frame_index, normals_cam, normal_smooth_px)
     a, c = a[0].permute(1, 2, 0).numpy(), c[0].permute(1, 2, 0).numpy()
+    image = np.asarray(image, np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = (image - c) / a
     out[~valid] = np.nan

@@ -15,9 +15,11 @@ by default the ``survey.json`` beside the images folder); an image without one i
 work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's range in metres from
 ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take the image's
 median range, :func:`watergan.nets.restorer.fill_range_holes`); an image without a range map is an error before
-any work. Images already corrected (all three outputs present) are skipped unless ``force``. An unreadable
-or truncated image is reported and skipped. Every file is written atomically; the output folder may
-not be (or contain) the input folder's files.
+any work. A restorer that starts from a water's inverse (:func:`watergan.nets.restorer.water_fields`) takes the
+images' intrinsics from ``camera.json`` in the images folder or beside it (a water with lights needs them). Images
+already corrected (all three outputs present) are skipped unless ``force``. An unreadable or truncated image is
+reported and skipped. Every file is written atomically; the output folder may not be (or contain) the input
+folder's files.
 
 With ``scheduler`` (a Dask scheduler address, ``tcp://HOST:8786``) the images still to do are sent in
 chunks to the cluster's workers (:mod:`watergan.parallel`), each chunk corrected with the model loaded
@@ -41,14 +43,18 @@ from tqdm import tqdm
 from watergan.data import (
     IMAGE_SUFFIXES,
     DataError,
+    PinholeIntrinsics,
     atomic_write_bytes,
     encode_png,
     index_by_stem,
     list_files,
     read_image,
+    read_intrinsics,
     read_nav_altitudes,
 )
 from watergan.device import Device, pick_device
+from watergan.formation import Stack
+from watergan.formation.inverse import needs_normals
 from watergan.io import bit_depth, depth_or_zero, read_depth
 from watergan.nets.restorer import fill_range_holes, restore
 from watergan.train_restorer import load_restorer
@@ -100,6 +106,8 @@ class CorrectChunk:
     """Per path, the altitude above the seafloor in metres (None: the model does not take it)."""
     range_dir: Path | None = None
     """Folder of each path's range map ``<stem>.png`` (None: the model does not take range)."""
+    camera: PinholeIntrinsics | None = None
+    """The images' intrinsics, for a restorer that starts from a water (None: depth = range, no points)."""
 
 
 @dataclass
@@ -127,8 +135,9 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
         range_m = None
         if chunk.range_dir is not None:
             range_m = fill_range_holes(torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).float())[0].to(dev)
+        intrinsics = None if chunk.camera is None else chunk.camera.resized(*x.shape[-2:]).as_tuple()
         with torch.no_grad():
-            rgb, depth = restore(model, x, altitude, range_m)
+            rgb, depth = restore(model, x, altitude, range_m, intrinsics)
         rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().double().numpy()
         for k, (stem, _, bits, _, _) in enumerate(batch):
@@ -219,6 +228,10 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                             f"{len(lacking)} of the {len(files)} images have no range map (e.g. {lacking[0]}"
                             f"{'' if ranges is None else f' in {ranges}'}): give --range-dir (the water stage's "
                             f"range/), or train a monocular restorer (--no-range-input)")
+    camera = read_intrinsics(images_dir) if model.water is not None else None
+    if model.water is not None and camera is None and needs_normals(Stack.from_config(model.water)):
+        raise DataError(f"the restorer in {model_dir} inverts a water with lights, which needs the camera's "
+                        f"intrinsics: put the survey's camera.json in {images_dir} or beside it")
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
@@ -233,12 +246,12 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
-                                              altitude_of(todo), ranges), bar, model)
+                                              altitude_of(todo), ranges, camera), bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
-                             batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None)
+                             batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera)
                 for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):

@@ -27,8 +27,8 @@ beam_deg per light), the stack models them with ``artificial_light``, the rig he
 ``--no-light-rig`` leaves them out). Without it the strobes' fall-off with distance is read as attenuation
 (on the auv preset eta 1.17/0.81/0.76 per m against 0.28/0.14/0.13). The light needs each observation's point
 and surface normal in the camera frame: the points come from the dense range, the normals from the range map
-smoothed (:func:`eval.water.normals_from_range`), for the estimate (at each sample's source pixel) as for the
-correction (from the correction's range, dense and mesh).
+smoothed (:func:`watergan.formation.inverse.normals_from_range`), for the estimate (at each sample's source pixel)
+as for the correction (from the correction's range, dense and mesh).
 """
 
 from __future__ import annotations

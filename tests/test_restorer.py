@@ -197,9 +197,74 @@ def test_an_rgbd_restorer_trains_on_the_paired_range(tmp_path):
         train_restorer(_config(tmp_path, range_input=True))
     for i in range(3):
         write_depth_png(folder / "range" / f"f{i:02d}.png", read_depth(folder / "depth" / f"f{i:02d}.png") * 1.1)
-    result = train_restorer(_config(tmp_path, range_input=True))
+    with pytest.raises(DataError, match="manifest.json.*--no-water"):
+        train_restorer(_config(tmp_path, range_input=True))
+    result = train_restorer(_config(tmp_path, range_input=True, water=False))
     assert result.steps == (2, 2) and load_restorer(result.out_dir).range_input
+    assert load_restorer(result.out_dir).water is None
     assert np.isfinite(json.loads((result.out_dir / "validation.json").read_text())["rmse"]["restorer"]["R"])
+
+
+WATER = [{"name": "attenuation", "params": {"eta_per_m": [0.45, 0.14, 0.2]}},
+         {"name": "backscatter", "params": {"b_inf": [0.03, 0.16, 0.19], "beta_per_m": [0.44, 0.33, 0.32]}},
+         {"name": "vignetting", "params": {"a_margin": 0.3, "b": -0.05, "c": 0.09}},
+         {"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}}]
+
+
+def write_rendered_folder(root, stack, count=4, hw=(40, 48), seed=0):
+    """A `watergan generate` folder whose underwater images are ``stack`` rendered from random in-air images at
+    random ranges (8-bit sRGB, as generate writes them), with its manifest."""
+    from watergan.formation import FormationState, Stack, pixel_grid
+    from watergan.io import write_depth_png, write_srgb8
+
+    rng = np.random.default_rng(seed)
+    for sub in ("inair", "depth", "range", "underwater"):
+        (root / sub).mkdir(parents=True)
+    items = []
+    for i in range(count):
+        air = rng.uniform(0.05, 0.9, (*hw, 3))
+        range_m = rng.uniform(1.5, 3.5) + 0.5 * rng.random(hw)
+        state = FormationState(direct=torch.from_numpy(air.transpose(2, 0, 1)[None].copy()),
+                               range_m=torch.from_numpy(range_m[None, None].copy()),
+                               depth_m=torch.from_numpy(range_m[None, None].copy()),
+                               pixel_uv=pixel_grid(*hw, 1, torch.float64), image_wh=(hw[1], hw[0]))
+        with torch.no_grad():
+            under = Stack.from_config(stack).to(torch.float64).render(state)[0].numpy().transpose(1, 2, 0)
+        name = f"f{i:02d}.png"
+        write_srgb8(root / "inair" / name, air)
+        write_srgb8(root / "underwater" / name, under.clip(0, 1))
+        write_depth_png(root / "depth" / name, range_m)
+        write_depth_png(root / "range" / name, range_m)
+        items.append({"stem": f"f{i:02d}", "intrinsics": None})
+    (root / "manifest.json").write_text(json.dumps({"stack": stack, "items": items}))
+    return root
+
+
+def test_an_rgbd_restorer_starts_as_the_exact_inverse_of_the_pairs_water(tmp_path):
+    """Before any training, a restorer given the pairs' water corrects them to within the 8-bit rounding of the
+    pairs (its fields are the physics correction's: eval.water.correct_physics), where the same restorer without
+    the water leaves them as raw; the water travels with the saved model."""
+    from eval.water import correct_physics
+    from watergan.io import linear_to_srgb, read_image, srgb_to_linear
+
+    folder = write_rendered_folder(tmp_path / "gen", WATER)
+    untrained = dict(range_input=True, stage1_iterations=0, stage2_iterations=0, val_fraction=0.5)
+    result = train_restorer(_config(tmp_path, **untrained))
+    model = load_restorer(result.out_dir)
+    assert [e["name"] for e in model.water] == [e["name"] for e in WATER]
+    rmse = result.validation["restorer"]
+    assert max(rmse[c] for c in "RGB") < 0.006, rmse  # 8-bit rounding of the pairs, amplified by the inverse
+    assert min(result.validation["raw"][c] for c in "RGB") > 0.05
+    blind = train_restorer(_config(tmp_path, out_dir=tmp_path / "blind", water=False, **untrained))
+    assert min(blind.validation["restorer"][c] for c in "RGB") > 0.05
+    stored = read_image(folder / "underwater" / "f00.png", "linear")
+    range_m = read_depth(folder / "range" / "f00.png")
+    with torch.no_grad():
+        rgb, _ = restore(model, torch.from_numpy(stored.transpose(2, 0, 1)[None].copy()).float(),
+                         torch.tensor([2.5]), torch.from_numpy(range_m[None, None]).float())
+    physics, _ = correct_physics(srgb_to_linear(stored), range_m, WATER)
+    expected = linear_to_srgb(physics)
+    assert np.abs(rgb[0].numpy().transpose(1, 2, 0) - expected).max() < 2e-3
 
 
 def test_a_training_frame_s_altitude_is_its_median_depth(tmp_path):

@@ -26,7 +26,8 @@ Output folder::
                                 else the depth), 16-bit PNG of millimetres (0 = no value): the RGB-D
                                 restorer's input
     OUT/underwater/<stem>.png   the generated underwater image, 8-bit sRGB
-    OUT/manifest.json           model, size, seed, stack, and one entry per image
+    OUT/manifest.json           model, size, seed, stack, and one entry per image (with the intrinsics it was
+                                rendered with, fx, fy, cx, cy in pixels, or null)
 """
 
 from __future__ import annotations
@@ -189,7 +190,7 @@ def generate(config: GenerateConfig) -> GenerateResult:
         items.append({"stem": pair.stem, "inair": f"inair/{name}", "depth": f"depth/{name}", "range": f"range/{name}",
                       "underwater": f"underwater/{name}", "source_rgb": str(pair.rgb),
                       "source_depth": str(pair.depth), "height": size_hw[0], "width": size_hw[1],
-                      "recoloured": recoloured})
+                      "recoloured": recoloured, "intrinsics": None if intrinsics is None else list(intrinsics)})
     manifest = {"model_dir": str(config.model_dir), "rgbd_dir": str(config.rgbd_dir), "seed": config.seed,
                 "recolour_fraction": config.recolour_fraction,
                 "size_hw": list(config.size_hw) if config.size_hw else None,

@@ -1,11 +1,12 @@
 """Training the restorer (:mod:`watergan.nets.restorer`) on WaterGAN's paired output.
 
 Data: a ``watergan generate`` folder (``underwater/``, ``inair/`` 8-bit sRGB PNGs, ``depth/`` and, for the
-RGB-D mode (``range_input``), ``range/`` 16-bit millimetre PNGs, paired by stem). Pixels are the stored
-sRGB values scaled to 0..1 (the restorer corrects stored images, as the paper's 8-bit ones); depth targets are relative,
-d_rel = d / max(d) per image, with 0 (no value) left out of the depth loss. A frame's altitude
-(``altitude=True``) is the median of its valid depth, what an altimeter reads over the scene of a
-downward-looking camera. The frames are split 80/20 into training and validation by a seeded permutation.
+RGB-D mode (``range_input``), ``range/`` 16-bit millimetre PNGs, paired by stem; with ``water``, the stack and
+each frame's intrinsics from ``manifest.json``). Pixels are the stored sRGB values scaled to 0..1 (the restorer
+corrects stored images, as the paper's 8-bit ones); depth targets are relative, d_rel = d / max(d) per image,
+with 0 (no value) left out of the depth loss. A frame's altitude (``altitude=True``) is the median of its valid
+depth, what an altimeter reads over the scene of a downward-looking camera. The frames are split 80/20 into
+training and validation by a seeded permutation.
 
 Loss (Euclidean, per iteration on a batch drawn with replacement)::
 
@@ -51,8 +52,10 @@ from .nets.restorer import (
     WidthPreset,
     fill_range_holes,
     image_context,
+    invertible_water,
     position_maps,
     restore,
+    water_fields,
 )
 from .progress import TrainingBar
 
@@ -86,6 +89,10 @@ class RestorerConfig:
     """RGB-D mode: the colour net takes each pixel's range in metres (the paired set's ``range/`` here; the
     water stage's range maps, from the dense stage and the fused mesh, when correcting); False: the
     monocular restorer (image, and the altitude with ``altitude``)."""
+    water: bool = True
+    """RGB-D mode: the colour net starts from the exact inverse of the water the pairs were rendered with (the
+    ``generate`` folder's ``manifest.json`` stack, at each pixel's range; see :mod:`watergan.nets.restorer`) and
+    learns what that water does not hold; False: it learns the whole inverse (ignored in monocular mode)."""
     factor: int = 4
     """Average-pool factor from full resolution to the colour core (even)."""
     depth_hw: tuple[int, int] = (56, 56)
@@ -171,6 +178,11 @@ class PairedSet:
     depth_files: list[Path]
     range_m: list[torch.Tensor] | None = None
     """Per frame (1,H,W) float32 range in metres, holes filled (:func:`fill_range_holes`); None: not loaded."""
+    water: list[dict] | None = None
+    """The stack the pairs were rendered with, its effects that act pixel by pixel (``manifest.json``;
+    :func:`watergan.nets.restorer.invertible_water`); None: not loaded."""
+    water_fields: list[torch.Tensor] | None = None
+    """Per frame (6,H,W) float32 fields of that water's inverse at the frame's range (:func:`water_fields`)."""
 
 
 def _check_config(c: RestorerConfig) -> None:
@@ -210,9 +222,12 @@ def relative_depth(depth_m: np.ndarray) -> np.ndarray:
     return depth_m / top if top > 0 else depth_m
 
 
-def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56), with_range: bool = False) -> PairedSet:
+def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56), with_range: bool = False,
+                with_water: bool = False) -> PairedSet:
     """Every frame of a ``generate`` folder, paired by stem (a missing partner is an error naming it); with
-    ``with_range`` also its ``range/`` maps."""
+    ``with_range`` also its ``range/`` maps, and with ``with_water`` (and range) the stack of its ``manifest.json``
+    and each frame's fields of that stack's inverse (:func:`water_fields`, with the intrinsics the manifest gives
+    each frame)."""
     data_dir = Path(data_dir)
     names = ("underwater", "inair", "depth", "range") if with_range else ("underwater", "inair", "depth")
     folders = {name: data_dir / name for name in names}
@@ -251,8 +266,29 @@ def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56), with
                 ranges.append(fill_range_holes(r)[0][0])
             except ValueError:
                 raise DataError(f"range {paths['range']} holds no value (all 0)") from None
-    return PairedSet(stems, under, air, torch.stack(small), torch.tensor(altitude), depth_files,
+    data = PairedSet(stems, under, air, torch.stack(small), torch.tensor(altitude), depth_files,
                      ranges if with_range else None)
+    if with_range and with_water:
+        data.water, intrinsics = _manifest_water(data_dir)
+        data.water_fields = [water_fields(data.water, r[None], intrinsics.get(stem))[0]
+                             for stem, r in zip(stems, ranges, strict=True)]
+    return data
+
+
+def _manifest_water(data_dir: Path) -> tuple[list[dict], dict[str, tuple]]:
+    """(the pixel-by-pixel effects of the stack a ``generate`` folder was rendered with, {stem: (fx, fy, cx, cy)}
+    for the frames it gives intrinsics for)."""
+    path = data_dir / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+        stack = manifest["stack"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"{path} cannot give the water the pairs were rendered with ({type(exc).__name__}: {exc}): "
+                        f"run `watergan generate` again, or train without it (--no-water; in `watergan run`: "
+                        f"--no-restorer-water)") from None
+    intrinsics = {item["stem"]: tuple(item["intrinsics"]) for item in manifest.get("items", [])
+                  if item.get("intrinsics")}
+    return invertible_water(stack)[0], intrinsics
 
 
 def split_indices(count: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
@@ -315,7 +351,8 @@ def validate(model: Restorer, data: PairedSet, idx: list[int], device: torch.dev
         for i in idx:
             u, a = _float(data.underwater, [i], device), _float(data.inair, [i], device)
             range_m = data.range_m[i][None].to(device) if data.range_m is not None else None
-            rgb, depth = restore(model, u, data.altitude_m[i:i + 1].to(device), range_m)
+            water = data.water_fields[i][None].to(device) if data.water_fields is not None else None
+            rgb, depth = restore(model, u, data.altitude_m[i:i + 1].to(device), range_m, water=water)
             sums["raw"] += ((u - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
             sums["restorer"] += ((rgb - a) ** 2).sum(dim=(0, 2, 3)).double().cpu()
             pixels += u.shape[-1] * u.shape[-2]
@@ -382,6 +419,8 @@ class TrainingViews:
     """Context of each whole image (as at correction time)."""
     small_range: torch.Tensor | None = None
     """(N,1,h,w) range at ``core_hw``, metres (RGB-D mode; None: monocular)."""
+    small_water: torch.Tensor | None = None
+    """(N,6,h,w) the water's inverse fields area-averaged to ``core_hw`` (None: the net starts from no water)."""
 
 
 @dataclass
@@ -421,14 +460,14 @@ def build_restorer(config: RestorerConfig) -> RestorerRun:
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(config.device)
-    data = load_paired(config.data_dir, config.depth_hw, config.range_input)
+    data = load_paired(config.data_dir, config.depth_hw, config.range_input, config.water)
     train_idx, val_idx = split_indices(len(data.stems), config.val_fraction, config.seed)
     crop = _crop_side(config, data)
 
     checkpoint = _read_resume_checkpoint(config, out)
     torch.manual_seed(config.seed)
     model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head,
-                     config.altitude, config.range_input).to(device)
+                     config.altitude, config.range_input, data.water).to(device)
     rng = torch.Generator().manual_seed(config.seed)
     stage, start, stage1_steps, resume_opt = _resume(checkpoint, model, rng, val_idx, out / CHECKPOINT)
     return RestorerRun(config=config, out=out, device=device, data=data, train_idx=train_idx, val_idx=val_idx,
@@ -463,8 +502,13 @@ def _training_views(config: RestorerConfig, data: PairedSet, device: torch.devic
     small_range = None
     if data.range_m is not None:
         small_range = torch.stack([F.adaptive_avg_pool2d(r[None], config.core_hw)[0] for r in data.range_m]).to(device)
+    small_water = None
+    if data.water_fields is not None:
+        small_water = torch.stack([F.adaptive_avg_pool2d(f[None], config.core_hw)[0]
+                                   for f in data.water_fields]).to(device)
     return TrainingViews(small_u=small_u, small_a=small_a, depth_u=depth_u, depth_t=depth_t, altitudes=altitudes,
-                         small_pos=small_pos, full_pos=full_pos, contexts=contexts, small_range=small_range)
+                         small_pos=small_pos, full_pos=full_pos, contexts=contexts, small_range=small_range,
+                         small_water=small_water)
 
 
 # ----------------------------------------------------------------------------------------------- step
@@ -556,7 +600,8 @@ def _stage1_loss(run: RestorerRun, idx: list[int]) -> tuple[torch.Tensor, torch.
     maps = [views.small_u[idx], up, views.small_pos.expand(len(idx), -1, -1, -1)]
     if views.small_range is not None:
         maps.append(views.small_range[idx])
-    colour = model.colour_net.core_colours(torch.cat(maps, dim=1), views.altitudes[idx])
+    water = views.small_water[idx] if views.small_water is not None else None
+    colour = model.colour_net.core_colours(torch.cat(maps, dim=1), views.altitudes[idx], water)
     return F.mse_loss(colour, views.small_a[idx]), masked_mse(depth, views.depth_t[idx])
 
 
@@ -565,7 +610,7 @@ def _stage2_loss(run: RestorerRun, idx: list[int]) -> tuple[torch.Tensor, torch.
     ``run.rng``, frame by frame) and the depth net's masked MSE, of frames ``idx``."""
     views, model, data, crop, device = run.views, run.model, run.data, run.crop, run.device
     depth = model.depth_net.core(views.depth_u[idx])
-    inputs, targets = [], []
+    inputs, targets, water = [], [], []
     for k, i in enumerate(idx):
         h, w = data.underwater[i].shape[1:]
         y0 = int(torch.randint(h - crop + 1, (1,), generator=run.rng))
@@ -576,9 +621,12 @@ def _stage2_loss(run: RestorerRun, idx: list[int]) -> tuple[torch.Tensor, torch.
         maps = [u, d[0, :, y0:y0 + crop, x0:x0 + crop], position]
         if data.range_m is not None:
             maps.append(data.range_m[i][:, y0:y0 + crop, x0:x0 + crop].to(device))
+        if data.water_fields is not None:
+            water.append(data.water_fields[i][:, y0:y0 + crop, x0:x0 + crop].to(device))
         inputs.append(torch.cat(maps))
         targets.append(data.inair[i][:, y0:y0 + crop, x0:x0 + crop].to(device).float() / 255)
-    colour = model.colour_net(torch.stack(inputs), views.contexts[idx], views.altitudes[idx])
+    colour = model.colour_net(torch.stack(inputs), views.contexts[idx], views.altitudes[idx],
+                              torch.stack(water) if water else None)
     return F.mse_loss(colour, torch.stack(targets)), masked_mse(depth, views.depth_t[idx])
 
 

@@ -1,0 +1,125 @@
+"""A stack's inverse at every pixel of a range map: the fields A, C of y = A J + C.
+
+Every built-in effect but the learned scattering is affine in the in-air colour J, so a stack rendered at
+J = 0 and J = 1 gives the recorded colour of any J: y = A J + C, with C = render(J = 0) (backscatter, after the
+sensor's effects) and A = render(J = 1) - C (the direct signal's gain: gain, vignetting, transmission, lights).
+The inverse J = (y - C) / A is what the water stage's physics correction (:func:`eval.water.correct_physics`)
+applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`): both take the fields from
+:func:`inverse_fields`, so the two corrections invert the same water the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .stack import Stack
+from .state import FormationState, MissingInputError, pixel_grid, state_from_rgbd
+
+
+def rays_cam(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(H,W,3) K^-1 (x, y, 1) (z = 1)."""
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+
+
+def clean_range(r: np.ndarray) -> np.ndarray:
+    """A range map (metres) as float64 with NaN wherever it holds no range (NaN, inf or <= 0)."""
+    r = np.asarray(r, np.float64)
+    return np.where(np.isfinite(r) & (r > 0), r, np.nan)
+
+
+def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24.0) -> np.ndarray:
+    """(H,W,3) unit surface normals in the camera frame from a range map (metres along each ray; NaN or <= 0 =
+    none): z = r / |K^-1 (x, y, 1)|, smoothed by a Gaussian of sigma ``smooth_px`` over the pixels with range
+    (blur(z) / blur(valid)), then the normals of :func:`watergan.formation.state_from_rgbd` (cross product of
+    the lifted points' central differences, turned to face the camera). NaN where the pixel has no range."""
+    import cv2
+
+    K = np.asarray(K, np.float64)
+    r = clean_range(range_m)
+    h, w = r.shape
+    z = r / np.linalg.norm(rays_cam(K, h, w), axis=-1)
+    valid = np.isfinite(z)
+    if not valid.any():
+        return np.full((h, w, 3), np.nan)
+    z_filled = np.where(valid, z, 0.0)
+    if smooth_px > 0:
+        num = cv2.GaussianBlur(z_filled, (0, 0), float(smooth_px))
+        den = cv2.GaussianBlur(valid.astype(np.float64), (0, 0), float(smooth_px))
+        z_filled = np.where(den > 1e-3, num / np.maximum(den, 1e-3), 0.0)
+    z_filled = np.where(z_filled > 0, z_filled, float(np.median(z[valid])))
+    state = state_from_rgbd(torch.zeros(1, 3, h, w, dtype=torch.float64), torch.from_numpy(z_filled)[None, None],
+                            K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    normals = state.normals_cam[0].permute(1, 2, 0).numpy().copy()
+    normals[~valid] = np.nan
+    return normals
+
+
+def needs_normals(stack: Stack) -> bool:
+    """Whether an effect of the stack reads surface normals (it raises MissingInputError naming normals_cam on a
+    state without them)."""
+    one = torch.ones(1, 1, 1, 1, dtype=torch.float64)
+    state = FormationState(direct=torch.ones(1, 3, 1, 1, dtype=torch.float64), range_m=2 * one, depth_m=2 * one,
+                           pixel_uv=torch.full((1, 2, 1, 1), 0.5, dtype=torch.float64), image_wh=(2, 2),
+                           points_cam=torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64).view(1, 3, 1, 1),
+                           frame_index=torch.zeros(1, dtype=torch.long))
+    try:
+        with torch.no_grad():
+            stack.to(torch.float64).render(state)
+    except MissingInputError as exc:
+        return "normals_cam" in str(exc)
+    return False
+
+
+def affine_images(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
+    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0."""
+    c = stack.render(state.replace(direct=torch.zeros_like(state.direct), backscatter=None))
+    a = stack.render(state.replace(direct=torch.ones_like(state.direct), backscatter=None)) - c
+    return a, c
+
+
+def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray | None = None,
+                   frame_index: int = 0, normals_cam: np.ndarray | None = None,
+                   normal_smooth_px: float = 24.0,
+                   dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """(A, C, valid): the fields of y = A J + C at every pixel of a range map, A and C (1,3,H,W) tensors of ``dtype``
+    (float32 is twice as fast, for the restorer; float64 for the physics correction), ``valid``
+    (H,W) where the map holds range (elsewhere A and C are those of a 1 m range: mark those pixels, never use them).
+
+    range_m: (H,W) metres along the ray; NaN or <= 0 = no range.
+    stack:   a :class:`Stack` or its configuration.
+    K:       (3,3) intrinsics; gives effects the camera-frame points, depth and surface normals (needed by e.g.
+             ``artificial_light``: A = k/V exp(-eta r) E(X, n), E the lights' irradiance); without it depth = range
+             and no points (an effect that needs them raises :class:`MissingInputError`).
+    normals_cam: (H,W,3) unit normals in the camera frame (e.g. of a fused mesh); None with K:
+             :func:`normals_from_range` of ``range_m`` smoothed by ``normal_smooth_px``, when the stack reads normals.
+    frame_index: the frame's index in the survey: the row that parameters held per frame take."""
+    if not isinstance(stack, Stack):
+        stack = Stack.from_config(stack)
+    r = clean_range(range_m)
+    h, w = r.shape
+    valid = np.isfinite(r)
+    r_filled = np.where(valid, r, 1.0)
+    fields = {}
+    if K is not None:
+        rays = rays_cam(np.asarray(K, np.float64), h, w)
+        pc = rays / np.linalg.norm(rays, axis=-1, keepdims=True) * r_filled[..., None]
+        fields["points_cam"] = torch.from_numpy(pc.transpose(2, 0, 1)[None].copy())
+        fields["depth_m"] = torch.from_numpy(pc[..., 2][None, None].copy())
+        if normals_cam is not None or needs_normals(stack):
+            n = normals_from_range(r, K, normal_smooth_px) if normals_cam is None else \
+                np.asarray(normals_cam, np.float64)
+            n = np.where(np.isfinite(n), n, np.array([0.0, 0.0, -1.0]))
+            fields["normals_cam"] = torch.from_numpy(n.transpose(2, 0, 1)[None].copy())
+    else:
+        fields["depth_m"] = torch.from_numpy(r_filled[None, None].copy())
+    state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=dtype),
+                           range_m=torch.from_numpy(r_filled[None, None].copy()).to(dtype),
+                           pixel_uv=pixel_grid(h, w, 1, dtype), image_wh=(w, h),
+                           valid=torch.from_numpy(valid)[None, None], frame_index=torch.tensor([frame_index]),
+                           **{k: v.to(dtype) for k, v in fields.items()})
+    stack = stack.to(dtype)
+    with torch.no_grad():
+        a, c = affine_images(stack, state)
+    return a, c, valid
