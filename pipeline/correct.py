@@ -33,6 +33,9 @@ import io
 import json
 import sys
 import time
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -117,9 +120,32 @@ class ChunkResult:
     """"path: reason" for each unreadable image."""
 
 
+IO_THREADS = 2
+"""Threads that read the next images and write the last ones while the restorer runs (OpenCV's PNG codecs and file
+I/O release the GIL, so they overlap the nets)."""
+
+
+def _read_one(chunk: CorrectChunk, path: Path) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """An image to correct (stored values 0..1), its bit depth and, for an RGB-D restorer, its range map; a
+    DataError names what is wrong."""
+    image = read_image(path, "linear")
+    bits = bit_depth(path)
+    range_m = None
+    if chunk.range_dir is not None:
+        range_path = chunk.range_dir / f"{path.stem}.png"
+        range_m = depth_or_zero(read_depth(range_path))
+        if range_m.shape != image.shape[:2]:
+            raise DataError(f"range map {range_path} is {range_m.shape[1]}x{range_m.shape[0]}, the image "
+                            f"{image.shape[1]}x{image.shape[0]}")
+        if not (range_m > 0).any():
+            raise DataError(f"range map {range_path} holds no range")
+    return image, bits, range_m
+
+
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
     """Correct ``chunk.paths`` into ``chunk.out_dir`` (every file written atomically), consecutive images of one
-    size ``batch_size`` at a time; the model is loaded here unless given. ``bar`` (local runs): advanced per
+    size ``batch_size`` at a time; the model is loaded here unless given. Up to ``IO_THREADS`` threads read the
+    next batch's images and write the last batch's outputs while the nets run. ``bar`` (local runs): advanced per
     image, and unreadable images are reported as they come."""
     dev = pick_device(chunk.device)
     model = (model if model is not None else load_restorer(chunk.model_dir)).to(dev)
@@ -128,6 +154,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
     batch: list[tuple[str, np.ndarray, int, float, np.ndarray | None]] = []
+    writes: deque[Future] = deque()
 
     def flush() -> None:
         x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).float().to(dev)
@@ -140,39 +167,47 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
             rgb, depth = restore(model, x, altitude, range_m, intrinsics)
         rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().double().numpy()
-        for k, (stem, _, bits, _, _) in enumerate(batch):
-            _write(out, stem, rgb_np[k], depth_np[k], bits)
+        while len(writes) > 1:  # at most two batches in flight: memory stays bounded on long sequences
+            writes.popleft().result()
+        items = [(stem, rgb_np[k], depth_np[k], bits) for k, (stem, _, bits, _, _) in enumerate(batch)]
+        writes.append(pool.submit(lambda: [_write(out, *item) for item in items]))
         result.corrected += len(batch)
         if bar is not None:
             bar.update(len(batch))
         batch.clear()
 
-    for k, path in enumerate(chunk.paths):
-        try:
-            image = read_image(path, "linear")  # the stored values, 0..1
-            bits = bit_depth(path)
-            range_m = None
-            if chunk.range_dir is not None:
-                range_m = depth_or_zero(read_depth(chunk.range_dir / f"{path.stem}.png"))
-                if range_m.shape != image.shape[:2]:
-                    raise DataError(f"range map {chunk.range_dir / f'{path.stem}.png'} is {range_m.shape[1]}x"
-                                    f"{range_m.shape[0]}, the image {image.shape[1]}x{image.shape[0]}")
-                if not (range_m > 0).any():
-                    raise DataError(f"range map {chunk.range_dir / f'{path.stem}.png'} holds no range")
-        except DataError as exc:
-            result.failed.append(str(exc))
-            if bar is not None:
-                tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
-                bar.update(1)
-            continue
-        if batch and batch[0][1].shape != image.shape:
+    with ThreadPoolExecutor(IO_THREADS) as pool:
+        for k, path, read in _read_ahead(pool, chunk, 2 * chunk.batch_size):
+            try:
+                image, bits, range_m = read.result()
+            except DataError as exc:
+                result.failed.append(str(exc))
+                if bar is not None:
+                    tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
+                    bar.update(1)
+                continue
+            if batch and batch[0][1].shape != image.shape:
+                flush()
+            batch.append((path.stem, image, bits, chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0,
+                          range_m))
+            if len(batch) == chunk.batch_size:
+                flush()
+        if batch:
             flush()
-        batch.append((path.stem, image, bits, chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m))
-        if len(batch) == chunk.batch_size:
-            flush()
-    if batch:
-        flush()
+        for done in writes:
+            done.result()
     return result
+
+
+def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int) -> Iterator[tuple[int, Path, Future]]:
+    """(index, path, the future of :func:`_read_one`) of each path in order, with up to ``ahead`` reads
+    submitted before the one yielded."""
+    reads: deque[tuple[int, Path, Future]] = deque()
+    for k, path in enumerate(chunk.paths):
+        reads.append((k, path, pool.submit(_read_one, chunk, path)))
+        if len(reads) > ahead:
+            yield reads.popleft()
+    yield from reads
 
 
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,

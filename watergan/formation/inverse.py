@@ -73,7 +73,12 @@ def needs_normals(stack: Stack) -> bool:
 
 
 def affine_images(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
-    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0."""
+    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0 (for one image, in one render of a
+    batch of two: the fields of one image broadcast over it, so range and position terms are computed once)."""
+    if state.direct.shape[0] == 1:
+        both = stack.render(state.replace(direct=torch.cat([torch.zeros_like(state.direct),
+                                                            torch.ones_like(state.direct)]), backscatter=None))
+        return both[1:] - both[:1], both[:1]
     c = stack.render(state.replace(direct=torch.zeros_like(state.direct), backscatter=None))
     a = stack.render(state.replace(direct=torch.ones_like(state.direct), backscatter=None)) - c
     return a, c
