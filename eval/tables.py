@@ -273,8 +273,11 @@ def point_variances(tracks, folders: dict[str, Path], patch_px: int, min_views: 
     return out
 
 
-def fidelity(folder: Path, truth_dir: Path, names: list[str]) -> tuple[float, float]:
-    """Mean over frames of PSNR (dB) and SSIM of the sRGB-encoded frames against the in-air truth."""
+def fidelity(folder: Path, truth_dir: Path, names: list[str], mask_dir: Path | None = None) -> tuple[float, float]:
+    """Mean over frames of PSNR (dB) and SSIM of the sRGB-encoded frames against the in-air truth. With
+    ``mask_dir`` (``<stem>.png``, 0 = a pixel the method marked as not corrected, e.g. the physics correction's
+    pixels without range) both are taken over the pixels the method corrected: PSNR = 10 log10(1 / MSE) over them,
+    and the mean of the SSIM map over them (a mark is not a guess; the share marked is reported beside)."""
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
     from eval.colour import read_rgb
@@ -282,9 +285,33 @@ def fidelity(folder: Path, truth_dir: Path, names: list[str]) -> tuple[float, fl
     psnr, ssim = [], []
     for name in names:
         a, b = read_rgb(folder / name, linear=False), read_rgb(truth_dir / name, linear=False)
-        psnr.append(peak_signal_noise_ratio(b, a, data_range=1.0))
-        ssim.append(structural_similarity(b, a, channel_axis=2, data_range=1.0))
+        if mask_dir is None:
+            psnr.append(peak_signal_noise_ratio(b, a, data_range=1.0))
+            ssim.append(structural_similarity(b, a, channel_axis=2, data_range=1.0))
+            continue
+        keep = _mask(mask_dir / f"{Path(name).stem}.png", a.shape[:2])
+        mse = float(np.mean((a[keep] - b[keep]) ** 2)) if keep.any() else float("nan")
+        psnr.append(10.0 * np.log10(1.0 / max(mse, 1e-12)))
+        _, ssim_map = structural_similarity(b, a, channel_axis=2, data_range=1.0, full=True)
+        ssim.append(float(ssim_map[keep].mean()) if keep.any() else float("nan"))
     return float(np.mean(psnr)), float(np.mean(ssim))
+
+
+def marked_share(mask_dir: Path, names: list[str]) -> float:
+    """The share of the frames' pixels a method marked as not corrected (0 in ``mask_dir/<stem>.png``)."""
+    shares = [1.0 - float(_mask(mask_dir / f"{Path(name).stem}.png", None).mean()) for name in names]
+    return float(np.mean(shares)) if shares else 0.0
+
+
+def _mask(path: Path, hw: tuple[int, int] | None) -> np.ndarray:
+    import cv2
+
+    mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if mask is None:
+        raise FileNotFoundError(f"mask {path} is missing or unreadable")
+    if hw is not None and mask.shape != hw:
+        raise ValueError(f"mask {path} is {mask.shape[1]}x{mask.shape[0]}, the frame {hw[1]}x{hw[0]}")
+    return mask > 0
 
 
 def ours_seconds(correct_dir: Path) -> float | None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import io
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ from eval.tables import (
     example_frames,
     fidelity,
     make_table,
+    marked_share,
     measure_board,
     method_inputs,
     missing_files,
@@ -56,6 +57,9 @@ class _Folders:
     reference: tuple[str, ...]
     skipped: dict[str, str]
     per_frame_s: dict[str, float | None]
+    masks: dict[str, tuple[Path, float]] = field(default_factory=dict)
+    """Per method that marks pixels it did not correct (the physics correction: no range), its mask folder and the
+    share of the frames' pixels marked."""
 
 
 def _survey_dirs(ws: Workspace, cfg: EvaluateConfig) -> tuple[Path, Path]:
@@ -87,6 +91,7 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     per_frame = run_baselines(names, images, methods, out / "baselines", ranges, coefficients, geometry,
                               cfg.scheduler or None, progress=cfg.progress)
     folders = {m: out / "baselines" / m for m in methods}
+    masks: dict[str, tuple[Path, float]] = {}
     correct_dir, ours_dir = _correct_dirs(ws, cfg)
     if ours_dir is None or not ours_dir.is_dir():
         skipped[OURS] = f"no corrected images in {ours_dir or 'the correct stage'} (run `watergan correct`)"
@@ -100,6 +105,8 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     if water is not None and not missing_files(ws.path(water.images), names):
         folders[PHYSICS] = ws.path(water.images)
         per_frame[PHYSICS] = (water.seconds - water.estimate_seconds) / max(len(names), 1)
+        if water.mask and not missing_files(ws.path(water.mask), [f"{Path(n).stem}.png" for n in names]):
+            masks[PHYSICS] = (ws.path(water.mask), marked_share(ws.path(water.mask), names))
     methods = [m for m in [*methods, OURS, PHYSICS] if m != "oracle" and m in folders] + \
         (["oracle"] if "oracle" in folders else [])
     reference: tuple[str, ...] = ()
@@ -107,7 +114,7 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
         folders[INAIR] = survey / "truth" / "inair"
         reference = (INAIR,)
     folders = {m: folders[m] for m in [*methods, *reference]}
-    return _Folders(folders, methods, reference, skipped, per_frame), ranges
+    return _Folders(folders, methods, reference, skipped, per_frame, masks), ranges
 
 
 def _depth_compare(ws: Workspace, correct_dir: Path | None) -> str:
@@ -136,7 +143,9 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
             {"label": "PSNR (dB)", "values": [fid[m][0] for m in methods], "better": "higher"},
             {"label": "SSIM", "values": [fid[m][1] for m in methods], "better": "higher"}], "row",
             note=f"sRGB-encoded frames against truth/inair, mean over {n_frames} frames. Methods that cannot "
-                 f"know the exposure (all but Jaffe-McGlamery and the oracle) are not rescaled."))
+                 f"know the exposure (all but Jaffe-McGlamery and the oracle) are not rescaled." +
+                 "".join(f" {m}: over the pixels it corrected ({100 * f.masks[m][1]:.1f} % marked as without "
+                         f"range, written black)." for m in methods if m in f.masks)))
     else:
         tables.append(make_table("fidelity", "Fidelity against the in-air truth", [], [],
                                  status="not measured: not a simulated survey (no truth/inair)"))
@@ -213,7 +222,8 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
                                    point_variances(tracks, f.folders, cfg.patch_px, cfg.min_views, colours).items()})
     atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
     board, board_results, board_note = measure_board(cfg, survey, f.folders)
-    fid = {m: fidelity(f.folders[m], f.folders[INAIR], names) for m in f.methods} if f.reference else {}
+    fid = {m: fidelity(f.folders[m], f.folders[INAIR], names, f.masks[m][0] if m in f.masks else None)
+           for m in f.methods} if f.reference else {}
     depth_note = _depth_compare(ws, _correct_dirs(ws, cfg)[0])
     if depth_note:
         f.skipped["depth comparison"] = depth_note

@@ -304,3 +304,27 @@ def test_evaluate_command_prints_the_verdict_of_the_finished_stage(evaluated, ca
     printed = capsys.readouterr().out
     assert f"{result.seconds:.1f} s" in printed and "ours loses to oracle on mean board distance" in printed
     assert str(ws.root / "07_eval" / "tables.md") in printed
+
+
+def test_fidelity_is_taken_over_the_pixels_a_method_corrected(tmp_path):
+    """A method that marks the pixels it could not correct (written black, 0 in its mask) is scored over the
+    others: its PSNR is that of its error there, and the share it marked is reported."""
+    import cv2
+
+    from eval.tables import fidelity, marked_share
+
+    rng = np.random.default_rng(0)
+    for sub in ("truth", "method", "mask"):
+        (tmp_path / sub).mkdir()
+    truth = rng.integers(40, 200, (32, 40, 3)).astype(np.uint8)
+    method = (truth.astype(int) + rng.choice([-3, 3], truth.shape)).astype(np.uint8)
+    method[:8] = 0
+    mask = np.full((32, 40), 255, np.uint8)
+    mask[:8] = 0
+    for sub, image in (("truth", truth), ("method", method), ("mask", mask)):
+        cv2.imwrite(str(tmp_path / sub / "f.png"), image)
+    whole, _ = fidelity(tmp_path / "method", tmp_path / "truth", ["f.png"])
+    corrected, ssim = fidelity(tmp_path / "method", tmp_path / "truth", ["f.png"], tmp_path / "mask")
+    assert corrected == pytest.approx(10 * np.log10(1 / (3 / 255) ** 2), abs=1e-6)
+    assert whole < corrected - 10 and 0.9 < ssim <= 1.0
+    assert marked_share(tmp_path / "mask", ["f.png"]) == pytest.approx(0.25)
