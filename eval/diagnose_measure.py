@@ -19,9 +19,20 @@ Geometry sources are plain functions returning :class:`Geometry`:
 truth of a simulated survey); :func:`measure` needs nothing but the
 :class:`Geometry`.
 
-Observed colour is the mean of a ``patch_px`` x ``patch_px`` patch of the sRGB-decoded (linear)
-image, bilinearly interpolated at the sub-pixel projection (OpenCV pixel centres: pixel (i, j)
-is centred at (i, j)).
+Observed colour: the sRGB-decoded (linear) image averaged over the same patch of *surface* in every view of a
+point (``same_footprint``, the default) or over a ``patch_px`` x ``patch_px`` patch of pixels, bilinearly
+interpolated at the sub-pixel projection (OpenCV pixel centres: pixel (i, j) is centred at (i, j)).
+
+Why the same footprint on the surface: a fixed patch of pixels averages more of the seafloor's texture in a far
+view than in a near one, so a point on a bright texel reads darker the farther the view, and one on a dark texel
+brighter; the fit's least squares weighs the bright points most, so the views seem to fall faster with range
+than the water makes them. On the small simulated surveys (eval.diagnose.small_survey_config, seeds 1-3, noise-free
+16-bit images, the model fitted to convergence) 5-pixel patch means put green and blue eta 9-15 % high and
+turned the backscatter to b_inf = 1 with beta 0.006-0.14 per m on seed 2; read at one footprint, eta came within
+5 % (-4.9 to +3.1 %; the red backscatter, which these surveys hardly pin, still wandered). On the noisy 8-bit
+images the diagnosis fit's bootstrap intervals then covered eta on all six seed-channels of seeds 2 and 3 where
+they had missed green and blue on seed 3 (eval.diagnose_fit). :mod:`eval.water` reads its colours at a fixed
+footprint for the same reason.
 """
 
 from __future__ import annotations
@@ -52,7 +63,15 @@ class MeasureConfig:
     min_views: int = 3
     """Frames a point must be seen in to be kept."""
     patch_px: int = 5
-    """Side of the square patch whose mean is a point's observed colour, pixels (odd)."""
+    """Side of the square patch whose mean is a point's observed colour, pixels (odd); with ``same_footprint``,
+    the patch the farthest view of each point averages (a Gaussian of the same standard deviation,
+    patch_px / sqrt(12) pixels), and the margin kept from the image border."""
+    same_footprint: bool = True
+    """Read every view of a point over the same patch of surface: a view at camera depth d is blurred by a
+    Gaussian of sigma = patch_px / sqrt(12) x d_far / d pixels, d_far the depth of the point's farthest view
+    (sigma is interpolated between 8 blur levels 1.5x apart, so views nearer than d_far / 17 are blurred less
+    than that). False: the ``patch_px`` box mean in every view (a far view then averages more texture, which
+    biases the attenuation; see the module docstring)."""
     depth_tol_m: float = 0.02
     """Largest difference between a point's camera z and the frame's depth there for it to count
     as seen (occlusion test), metres."""
@@ -379,6 +398,46 @@ def bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
             + (1 - fx) * fy * image[y0 + 1, x0] + fx * fy * image[y0 + 1, x0 + 1])
 
 
+#: Blur levels of :func:`blurred_sample`: sigma_0 x FOOTPRINT_STEP^j, j = 0 .. FOOTPRINT_LEVELS - 1.
+FOOTPRINT_STEP = 1.5
+FOOTPRINT_LEVELS = 8
+
+
+def footprint_sigmas(geometry: Geometry, patch_px: int) -> np.ndarray:
+    """(N,) Gaussian blur of each observation, pixels, so that every view of a point averages the same patch of
+    surface: sigma_o = s d_far / d_o, s = patch_px / sqrt(12) (the standard deviation of a patch_px box), d_o the
+    observation's camera depth and d_far the largest over the point's views (a pixel's footprint on the surface
+    grows as d / f)."""
+    poses = geometry.world_from_cam[geometry.obs_frame]
+    xw = geometry.points_world[geometry.obs_point]
+    depth = np.einsum("ni,ni->n", poses[:, :3, 2], xw - poses[:, :3, 3])
+    far = np.zeros(len(geometry.points_world))
+    np.maximum.at(far, geometry.obs_point, depth)
+    return patch_px / math.sqrt(12.0) * far[geometry.obs_point] / np.maximum(depth, 1e-9)
+
+
+def blurred_sample(image: np.ndarray, px: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """(N,C) values of an (H,W,C) image blurred by a Gaussian of ``sigma`` (N,) pixels at ``px`` (N,2): bilinear
+    samples of the two nearest of the blur levels min(sigma) x 1.5^j (j < FOOTPRINT_LEVELS), interpolated
+    linearly in log sigma (clamped to the levels)."""
+    s0 = float(sigma.min())
+    pos = np.clip(np.log(sigma / s0) / math.log(FOOTPRINT_STEP), 0.0, FOOTPRINT_LEVELS - 1.001)
+    low = np.floor(pos).astype(int)
+    t = (pos - low)[:, None]
+    out = np.zeros((len(px), image.shape[2]))
+    blurred: dict[int, np.ndarray] = {}
+
+    def level(j: int) -> np.ndarray:
+        if j not in blurred:
+            blurred[j] = cv2.GaussianBlur(image, (0, 0), s0 * FOOTPRINT_STEP ** j).astype(np.float64)
+        return blurred[j]
+
+    for j in np.unique(low):
+        sel = low == j
+        out[sel] = (1 - t[sel]) * bilinear(level(j), px[sel]) + t[sel] * bilinear(level(j + 1), px[sel])
+    return out
+
+
 def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str) -> Measurements:
     """Observed colour and every per-observation quantity for the points of ``geometry``.
 
@@ -387,7 +446,8 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     predicts, and a few of them (a white board patch) would otherwise make a sensor curve with a
     saturation level look like a missing effect.
 
-    colour = bilinear sample of the patch-mean (box filter) of the sRGB-decoded image;
+    colour = bilinear sample of the sRGB-decoded image blurred by the point's footprint (``same_footprint``:
+    :func:`footprint_sigmas`, interpolated between blur levels), else by the ``patch_px`` box filter;
     grad_energy = E[L^2] - E[L]^2 over the patch, L the Laplacian of the grey linear image;
     view angle = acos(n . (c - X)/|c - X|), c the camera centre.
     """
@@ -400,6 +460,7 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     grad = np.zeros(n_obs)
     clipped = np.zeros(n_obs, bool)
     k_size = (config.patch_px, config.patch_px)
+    sigma = footprint_sigmas(geometry, config.patch_px) if config.same_footprint else None
     for k in np.unique(geometry.obs_frame):
         path = survey / "images" / geometry.frames[k]
         image = read_png(path)
@@ -413,7 +474,10 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
         mean_lap = cv2.blur(lap, k_size)
         energy = cv2.blur(lap * lap, k_size) - mean_lap * mean_lap
         sel = geometry.obs_frame == k
-        colour[sel] = bilinear(cv2.blur(linear, k_size).astype(np.float64), geometry.obs_px[sel])
+        if sigma is None:
+            colour[sel] = bilinear(cv2.blur(linear, k_size).astype(np.float64), geometry.obs_px[sel])
+        else:
+            colour[sel] = blurred_sample(linear, geometry.obs_px[sel], sigma[sel])
         grad[sel] = bilinear(energy[..., None].astype(np.float64), geometry.obs_px[sel])[:, 0]
         clipped[sel] = bilinear(near[..., None].astype(np.float64), geometry.obs_px[sel])[:, 0] > 0
 
