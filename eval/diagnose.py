@@ -8,7 +8,9 @@ name the missing effect, and keep a ledger of model versions.
 Pieces (each usable alone):
 
 - :mod:`eval.diagnose_measure`: the measurement table (points seen in >= 3 views), geometry from the
-  SfM tracks of a workspace or from the simulator's truth.
+  SfM tracks of a workspace or from the simulator's truth; or, in a workspace where the water stage
+  ran, the water estimate's own table (:func:`eval.diagnose_measure.measure_observations`), so the
+  water and the ranking are judged on the same views.
 - :mod:`eval.diagnose_fit`: fit a stack with per-point albedos; held-out error; Laplace uncertainties.
 - :mod:`eval.diagnose_residuals`: residuals binned along every axis, structure scores, plots, PLY.
 - this module: candidate ranking, verdict, ledger, and :func:`diagnose` (all of it on one survey);
@@ -161,8 +163,8 @@ class DiagnoseResult:
     geometry: str
     seconds: float
     measurements: str = ""
-    """Which measurement table the fit and the ranking used, with its size (e.g. "water stage (06_water/
-    observations.npz): 41210 observations of 6012 points; its 310 board rows not used")."""
+    """Which measurement table the fit and the ranking used, with its size (e.g. "water stage (scale: stereo)
+    (06_water/observations.npz): 25403 observations of 4560 points; its 214 board rows not used ...")."""
 
 
 #: Hidden parameters of the small survey other than the effects' ``simulation_params``: caustics' cell

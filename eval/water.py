@@ -72,8 +72,9 @@ smaller patch of the seafloor's texture than a far view, so the views of one poi
 whose size depends on range; the profiled least squares then biases the ratio of near to far views, i.e. eta
 (on the demo +3-7 %, gain +3 %, B_inf green +16 %, with the true geometry as much as with SfM's). Reading
 every view at the same footprint (``footprint_m``) removes most of it (eta within 2 % without the board's
-extra weight). This is the likely cause of the diagnosis fit's high eta (it reads 5 px patches at SfM
-features), along with its few points.
+extra weight). This is the likely cause of the high eta of the diagnosis fit when it measures a survey itself (5 px
+patches at SfM features), along with its few points; in a workspace it takes this table instead
+(``Observations.save``, :func:`eval.diagnose_measure.measure_observations`).
 
 Measured (benchmarks/bench_water.py, results/water.json; 2-core machine shared with other jobs): on the demo
 with the board (seeds 0 and 1, stereo) eta within 1.2 % and B_inf within 2 % of the truth, beta within 5 %,
