@@ -8,7 +8,9 @@ name the missing effect, and keep a ledger of model versions.
 Pieces (each usable alone):
 
 - :mod:`eval.diagnose_measure`: the measurement table (points seen in >= 3 views), geometry from the
-  SfM tracks of a workspace or from the simulator's truth.
+  SfM tracks of a workspace or from the simulator's truth; or, in a workspace where the water stage
+  ran, the water estimate's own table (:func:`eval.diagnose_measure.measure_observations`), so the
+  water and the ranking are judged on the same views.
 - :mod:`eval.diagnose_fit`: fit a stack with per-point albedos; held-out error; Laplace uncertainties.
 - :mod:`eval.diagnose_residuals`: residuals binned along every axis, structure scores, plots, PLY.
 - this module: candidate ranking, verdict, ledger, and :func:`diagnose` (all of it on one survey);
@@ -79,9 +81,11 @@ class DiagnoseConfig:
     """The diagnose stage."""
 
     geometry: GeometrySource = GeometrySource.auto
-    """Where the 3D points and their views come from: "sfm" (the sfm stage's tracks),
-    "truth" (the simulator's depth maps and poses) or "auto" (sfm when the workspace has tracks, else
-    truth when the survey is simulated)."""
+    """Where the 3D points and their views come from: "water" (the water stage's measurement table, the
+    one its estimate was fitted to: a workspace only), "sfm" (the sfm stage's tracks, sampled and measured
+    here), "truth" (the simulator's depth maps and poses) or "auto" (water when the workspace's water stage
+    saved its table, else sfm when the workspace has tracks, else truth when the survey is simulated). On the
+    water's table the ``measure`` options other than ``patch_px`` (the gradient-energy patch) do not apply."""
     effects: tuple[str, ...] = ()
     """Effects of the current model (empty: the survey's visible stack from truth/effects.json when
     simulated, with its parameters as the starting point, else attenuation,backscatter,vignetting,gain)."""
@@ -142,7 +146,8 @@ class DiagnoseResult:
     """What the diagnose stage wrote (``out_dir``, absolute) and found: the model, its held-out
     RMSE, the verdict, the best significant candidate (or None), the ranking, the skipped effects
     with reasons, axes with unexplained structure, the base model's structure scores, the geometry
-    source ("truth" or "sfm (scale: METHOD)"), wall time."""
+    source ("truth", "sfm (scale: METHOD)" or "water stage (scale: METHOD)"), wall time, and which
+    measurements were used."""
 
     out_dir: str
     stack: list[str]
@@ -157,6 +162,9 @@ class DiagnoseResult:
     scores: dict[str, float]
     geometry: str
     seconds: float
+    measurements: str = ""
+    """Which measurement table the fit and the ranking used, with its size (e.g. "water stage (scale: stereo)
+    (06_water/observations.npz): 25403 observations of 4560 points; its 214 board rows not used ...")."""
 
 
 #: Hidden parameters of the small survey other than the effects' ``simulation_params``: caustics' cell
@@ -629,29 +637,40 @@ def _ledger_record(fit: FitResult, kind: str, meas: Measurements, colour: dict) 
 
 def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig = DiagnoseConfig(),
              tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None,
-             model: list[dict] | None = None) -> DiagnoseResult:
-    """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), fit
-    the model, analyse residuals, rank candidates, write everything to ``out`` and append the fits
-    to the ledger in ``ledger_dir`` (with ``colour``, the image folders' consistency and board error
-    when they were measured). ``model``: the stack to start from (the water stage's estimate; see
-    :func:`default_stack`). Torch runs on one thread: the tensors are small (observations x 3), and
-    a thread pool competing with other processes for the cores made a fit 30 times slower (150 s
-    instead of 5 s on the demo survey)."""
+             model: list[dict] | None = None, measurements: Measurements | None = None,
+             described: str = "") -> DiagnoseResult:
+    """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), or take
+    ``measurements`` as given (the workspace stage passes the water stage's table, :func:`eval.diagnose_measure.
+    measure_observations`; ``described`` says where it came from), fit the model, analyse residuals, rank
+    candidates, write everything to ``out`` and append the fits to the ledger in ``ledger_dir`` (with ``colour``,
+    the image folders' consistency and board error when they were measured). ``model``: the stack to start from
+    (the water stage's estimate; see :func:`default_stack`). Torch runs on one thread: the tensors are small
+    (observations x 3), and a thread pool competing with other processes for the cores made a fit 30 times
+    slower (150 s instead of 5 s on the demo survey)."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():
-        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model)
+        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model, measurements, described)
+
+
+def describe_measurements(meas: Measurements, where: str = "") -> str:
+    """One line: the measurement table's source (and ``where`` it was read from), observations and points."""
+    return (f"{meas.source}{f' ({where})' if where else ''}: {meas.n_obs} observations of {meas.n_points} points"
+            + ("" if meas.source.startswith("water") else f", {meas.patch_px} px patches"))
 
 
 def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig, tracks: Path | None, scale: str,
-              colour: dict, model: list[dict] | None) -> DiagnoseResult:
+              colour: dict, model: list[dict] | None, measurements: Measurements | None = None,
+              described: str = "") -> DiagnoseResult:
     start = time.perf_counter()
     progress = config.progress
     survey = check_survey_folder(survey)
     for name in (*config.effects, *config.add):
         get(name)
     out.mkdir(parents=True, exist_ok=True)
-    meas = measure_survey(survey, config.measure, config.geometry, tracks, scale)
+    meas = measurements if measurements is not None else measure_survey(survey, config.measure, config.geometry,
+                                                                        tracks, scale)
+    described = described or describe_measurements(meas)
     stack = default_stack(survey, config.effects, model, survey_counts(meas))
     added = [name for name in config.add if name not in stack.names]
     for name in added:
@@ -664,6 +683,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     base_scores = scores(analysis)
     atomic_write_json(out / "fit.json", {**base.summary(), "n_points": meas.n_points, "n_obs": meas.n_obs,
                                          "patch_px": meas.patch_px, "geometry_source": meas.source,
+                                         "measurements": described,
                                          "clipped_obs_dropped": meas.clipped_obs,
                                          "degeneracy": f"effects {list(config.fit.fixed_effects)} are held at "
                                                        f"their configured values: a gain and the albedos' "
@@ -698,7 +718,8 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
                     "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "
                     "a board or navigation altitudes")
     ranking_json = [{**r.__dict__, "ci95": list(r.ci95)} for r in ranking]
-    atomic_write_json(out / "ranking.json", {"base_heldout_rmse": base.heldout_rmse, "base_scores": base_scores,
+    atomic_write_json(out / "ranking.json", {"measurements": described,
+                                             "base_heldout_rmse": base.heldout_rmse, "base_scores": base_scores,
                                              "base_structure": relative_amplitudes(analysis, base),
                                              "candidates": ranking_json, "skipped": skipped})
     atomic_write_text(out / "verdict.txt", verdict + "\n")
@@ -707,4 +728,4 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
                           n_points=meas.n_points, n_obs=meas.n_obs, verdict=verdict,
                           best=best.name if best else None, ranking=ranking_json, skipped=skipped,
                           unexplained_axes=unexplained, scores=base_scores, geometry=meas.source,
-                          seconds=time.perf_counter() - start)
+                          seconds=time.perf_counter() - start, measurements=described)

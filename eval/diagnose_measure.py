@@ -19,6 +19,11 @@ Geometry sources are plain functions returning :class:`Geometry`:
 truth of a simulated survey); :func:`measure` needs nothing but the
 :class:`Geometry`.
 
+In a workspace where the water stage ran, the diagnosis does not measure at all: it takes the water
+estimate's own measurement table (``06_water/observations.npz``) through :func:`measure_observations`
+(source "water stage (scale: METHOD)"), so the water estimate and the candidate ranking are computed on
+the same views (``geometry="water"``, which ``auto`` picks there; :mod:`pipeline.diagnose`).
+
 Observed colour: the sRGB-decoded (linear) image averaged over the same patch of *surface* in every view of a
 point (``same_footprint``, the default) or over a ``patch_px`` x ``patch_px`` patch of pixels, bilinearly
 interpolated at the sub-pixel projection (OpenCV pixel centres: pixel (i, j) is centred at (i, j)).
@@ -120,6 +125,7 @@ class GeometrySource(StrEnum):
     auto = "auto"
     truth = "truth"
     sfm = "sfm"
+    water = "water"
 
 
 GEOMETRY_SOURCES = tuple(GeometrySource)
@@ -438,6 +444,23 @@ def blurred_sample(image: np.ndarray, px: np.ndarray, sigma: np.ndarray) -> np.n
     return out
 
 
+def patch_energy(linear: np.ndarray, patch_px: int) -> np.ndarray:
+    """(H,W) variance of the Laplacian of the grey (channel mean) linear image over a ``patch_px`` square."""
+    k_size = (patch_px, patch_px)
+    lap = cv2.Laplacian(linear.mean(axis=2), cv2.CV_32F)
+    mean_lap = cv2.blur(lap, k_size)
+    return cv2.blur(lap * lap, k_size) - mean_lap * mean_lap
+
+
+def _linear_image(path: Path, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray, int]:
+    """(sRGB-decoded linear float32 image, the raw image, its full-scale value)."""
+    image = read_png(path)
+    if image.ndim != 3 or image.shape[:2] != (intr.height, intr.width):
+        raise UserInputError(f"image {path} is not a {intr.width}x{intr.height} RGB image")
+    top = 255 if image.dtype == np.uint8 else 65535
+    return srgb_decode(image / float(top)).astype(np.float32), image, top
+
+
 def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str) -> Measurements:
     """Observed colour and every per-observation quantity for the points of ``geometry``.
 
@@ -452,8 +475,6 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     view angle = acos(n . (c - X)/|c - X|), c the camera centre.
     """
     survey_json = read_survey_json(survey / "survey.json") if (survey / "survey.json").is_file() else {}
-    lights = list(survey_json.get("lights") or [])
-    site_depth = float(survey_json.get("site_depth_m", 0.0))
     intr = geometry.intrinsics
     n_obs = len(geometry.obs_point)
     colour = np.zeros((n_obs, 3))
@@ -462,17 +483,10 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     k_size = (config.patch_px, config.patch_px)
     sigma = footprint_sigmas(geometry, config.patch_px) if config.same_footprint else None
     for k in np.unique(geometry.obs_frame):
-        path = survey / "images" / geometry.frames[k]
-        image = read_png(path)
-        if image.ndim != 3 or image.shape[:2] != (intr.height, intr.width):
-            raise UserInputError(f"image {path} is not a {intr.width}x{intr.height} RGB image")
-        top = 255 if image.dtype == np.uint8 else 65535
-        linear = srgb_decode(image / float(top)).astype(np.float32)
+        linear, image, top = _linear_image(survey / "images" / geometry.frames[k], intr)
         at_limit = ((image == 0) | (image == top)).any(axis=2).astype(np.float32)
         near = cv2.blur(at_limit, (config.patch_px + 2, config.patch_px + 2))  # > 0 within the sampled pixels
-        lap = cv2.Laplacian(linear.mean(axis=2), cv2.CV_32F)
-        mean_lap = cv2.blur(lap, k_size)
-        energy = cv2.blur(lap * lap, k_size) - mean_lap * mean_lap
+        energy = patch_energy(linear, config.patch_px)
         sel = geometry.obs_frame == k
         if sigma is None:
             colour[sel] = bilinear(cv2.blur(linear, k_size).astype(np.float64), geometry.obs_px[sel])
@@ -491,13 +505,23 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
     rot = poses[:, :3, :3]
     pc = np.einsum("nji,nj->ni", rot, xw - poses[:, :3, 3])
     nc = np.einsum("nji,nj->ni", rot, nw)
+    return _table(geometry, colour, grad, pc, nc, survey_json, config.patch_px, source, int(clipped.sum()))
+
+
+def _table(geometry: Geometry, colour: np.ndarray, grad: np.ndarray, pc: np.ndarray, nc: np.ndarray,
+           survey_json: dict, patch_px: int, source: str, clipped_obs: int) -> Measurements:
+    """The measurement table from the geometry, each view's colour, patch gradient energy, camera-frame point and
+    normal: range, view angle, image position, light distances, heights and water depths derived from them."""
+    lights = list(survey_json.get("lights") or [])
+    site_depth = float(survey_json.get("site_depth_m", 0.0))
+    intr = geometry.intrinsics
     rng_m = np.linalg.norm(pc, axis=1)
     cos_view = np.clip(-(nc * pc).sum(1) / rng_m, -1.0, 1.0)
     w, h = intr.width, intr.height
     uv = (geometry.obs_px + 0.5) / np.array([w, h])
     radius = np.hypot((uv[:, 0] - 0.5) * w, (uv[:, 1] - 0.5) * h) / (0.5 * math.hypot(w, h))
     light_d = np.stack([np.linalg.norm(np.asarray(light["offset_m"], float) - pc, axis=1) for light in lights], 1) \
-        if lights else np.zeros((n_obs, 0))
+        if lights else np.zeros((len(pc), 0))
     return Measurements(
         point=geometry.obs_point.astype(np.int64), frame=geometry.obs_frame.astype(np.int64), colour=colour,
         px=geometry.obs_px, pixel_uv=uv, radius=radius, range_m=rng_m, depth_m=pc[:, 2], points_cam=pc,
@@ -506,8 +530,65 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
         normals_world=geometry.normals_world, height_m=geometry.points_world[:, 2],
         water_depth_m=site_depth - geometry.points_world[:, 2] if geometry.water_depth_m is None
         else geometry.water_depth_m, image_wh=(w, h), site_depth_m=site_depth,
-        patch_px=config.patch_px, lights=lights, frames=list(geometry.frames), source=source,
-        clipped_obs=int(clipped.sum()))
+        patch_px=patch_px, lights=lights, frames=list(geometry.frames), source=source,
+        clipped_obs=clipped_obs)
+
+
+def measure_observations(survey: str | Path, obs, tracks_path: str | Path, scale: str = "unknown",
+                         config: MeasureConfig = MeasureConfig()) -> Measurements:
+    """The diagnosis's measurement table from the water stage's (:class:`eval.water.Observations`, frame indices
+    into the sfm stage's image list ``tracks_path``): the same views, in the same order, with the same colours
+    (the water estimate's footprint-blurred reads), ranges, camera z, camera-frame points and normals, world points
+    and normals (each point's lifted sample or SfM point). What the water's table does not hold is derived, not
+    invented: pixel positions from its image fractions; view angle, light distances (survey.json's ``lights``),
+    heights and water depths (navigation depths, else ``site_depth_m`` - z) as :func:`measure` derives them; the
+    gradient energy (the ``spatial_frequency`` axis) from the raw image in a ``config.patch_px`` patch at each
+    view's pixel. The water's board rows are not used (their albedo is known; the diagnosis fits a free albedo per
+    point). Views of a point need not number ``min_views``: the water keeps points seen twice, and so does this.
+
+    Of ``config``, ``n_points`` bounds the points taken (all of them when the table has no more; else that many
+    drawn with ``seed``, every view of each kept, in the table's order: the diagnosis's cost grows with the
+    views, and ``watergan run`` diagnoses 1500 points) and ``patch_px`` sizes the gradient patch; the sampling
+    options (``min_views``, ``depth_tol_m``, ...) belong to the diagnosis's own measurement and do not apply."""
+    from eval.tracks import Tracks
+
+    survey = check_survey_folder(survey)
+    if obs.points_world is None or obs.normals_cam is None or obs.normals_world is None:
+        raise UserInputError("the water stage's observations lack the points' world positions or normals (saved by "
+                             "an earlier version): rerun the water stage (`watergan water --workspace WS --force`)")
+    if config.patch_px < 1 or config.patch_px % 2 == 0:
+        raise UserInputError(f"patch_px must be a positive odd number of pixels, got {config.patch_px}")
+    rows = np.arange(len(obs.point))
+    points = np.arange(obs.n_points)
+    if obs.n_points > config.n_points:
+        points = np.sort(np.random.default_rng([config.seed, 7]).permutation(obs.n_points)[:config.n_points])
+        rows = np.flatnonzero(np.isin(obs.point, points))
+    new_point = np.full(obs.n_points, -1, np.int64)
+    new_point[points] = np.arange(len(points))
+    tracks = Tracks.load(tracks_path)
+    K = np.asarray(tracks.K, float)
+    intr = Intrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                      width=int(tracks.width), height=int(tracks.height))
+    if tuple(obs.image_wh) != (intr.width, intr.height):
+        raise UserInputError(f"the water stage's observations are of {obs.image_wh[0]}x{obs.image_wh[1]} images, the "
+                             f"sfm stage's of {intr.width}x{intr.height}: rerun the water stage")
+    px = obs.pixel_uv[rows] * np.array([intr.width, intr.height]) - 0.5
+    geometry = Geometry(points_world=np.asarray(obs.points_world, float)[points],
+                        normals_world=np.asarray(obs.normals_world, float)[points],
+                        obs_point=new_point[obs.point[rows]],
+                        obs_frame=obs.frame[rows].astype(np.int64), obs_px=px,
+                        world_from_cam=np.asarray(tracks.world_from_cam, float), intrinsics=intr,
+                        frames=[str(n) for n in tracks.image_names], scale=scale)
+    geometry = replace(geometry, water_depth_m=_navigation_water_depth(survey, geometry))
+    grad = np.zeros(len(px))
+    for k in np.unique(geometry.obs_frame):
+        linear, _, _ = _linear_image(survey / "images" / geometry.frames[k], intr)
+        sel = geometry.obs_frame == k
+        grad[sel] = bilinear(patch_energy(linear, config.patch_px)[..., None].astype(np.float64), px[sel])[:, 0]
+    survey_json = read_survey_json(survey / "survey.json") if (survey / "survey.json").is_file() else {}
+    return _table(geometry, np.asarray(obs.colour, float)[rows], grad, np.asarray(obs.points_cam, float)[rows],
+                  np.asarray(obs.normals_cam, float)[rows], survey_json, config.patch_px,
+                  f"water stage (scale: {scale})", 0)
 
 
 def choose_geometry(survey: Path, geometry: str = "auto", tracks: Path | None = None) -> str:
@@ -515,6 +596,9 @@ def choose_geometry(survey: Path, geometry: str = "auto", tracks: Path | None = 
     given, else the simulator's truth when the survey has it."""
     if geometry not in GEOMETRY_SOURCES:
         raise UserInputError(f"geometry must be one of {', '.join(GEOMETRY_SOURCES)}, not '{geometry}'")
+    if geometry == "water":
+        raise UserInputError("the water stage's observations are in a workspace: run `watergan water --workspace WS` "
+                             "and diagnose the workspace (a survey folder is measured on its tracks or its truth)")
     if geometry == "sfm" and tracks is None:
         raise UserInputError("no SfM tracks: run `watergan sfm --workspace WORKSPACE` first and diagnose the "
                              "workspace, or diagnose on the simulator's truth (--geometry truth)")

@@ -72,8 +72,9 @@ smaller patch of the seafloor's texture than a far view, so the views of one poi
 whose size depends on range; the profiled least squares then biases the ratio of near to far views, i.e. eta
 (on the demo +3-7 %, gain +3 %, B_inf green +16 %, with the true geometry as much as with SfM's). Reading
 every view at the same footprint (``footprint_m``) removes most of it (eta within 2 % without the board's
-extra weight). This is the likely cause of the diagnosis fit's high eta (it reads 5 px patches at SfM
-features), along with its few points.
+extra weight). This is the likely cause of the high eta of the diagnosis fit when it measures a survey itself (5 px
+patches at SfM features), along with its few points; in a workspace it takes this table instead
+(``Observations.save``, :func:`eval.diagnose_measure.measure_observations`).
 
 Measured (benchmarks/bench_water.py, results/water.json; 2-core machine shared with other jobs): on the demo
 with the board (seeds 0 and 1, stereo) eta within 1.2 % and B_inf within 2 % of the truth, beta within 5 %,
@@ -303,7 +304,12 @@ class WaterConfig:
 
 @dataclass
 class Observations:
-    """The measurement table (one row per view): colour, geometry, point and frame; plus the board rows."""
+    """The measurement table (one row per view): colour, geometry, point and frame; plus the board rows.
+
+    Rows are sorted by point, then frame. ``points_world`` (P,3) is each point's world position (the lifted
+    sample, or the SfM point) and ``normals_world`` (P,3) its surface normal (None when measured without normals).
+    The water stage saves the table (:meth:`save`, ``06_water/observations.npz``) and the diagnose stage ranks its
+    candidates on it (:func:`eval.diagnose_measure.measure_observations`): one table for both."""
 
     colour: np.ndarray      # (N,3) linear
     range_m: np.ndarray     # (N,)
@@ -325,6 +331,29 @@ class Observations:
     board_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (B,) patch index
     normals_cam: np.ndarray | None = None        # (N,3) unit surface normal in the view's camera frame
     board_normals_cam: np.ndarray | None = None  # (B,3)
+    points_world: np.ndarray | None = None       # (P,3) world position of each point
+    normals_world: np.ndarray | None = None      # (P,3) its unit surface normal, world frame
+
+    def save(self, path) -> None:
+        """An npz of every array (float64, as fitted; fields that are None left out), written atomically."""
+        import io
+        from dataclasses import fields
+
+        from watergan.io import atomic_write_bytes
+
+        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None}
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **arrays)
+        atomic_write_bytes(path, buffer.getvalue())
+
+    @classmethod
+    def load(cls, path) -> Observations:
+        """The table :meth:`save` wrote."""
+        with np.load(path) as data:
+            values = {k: data[k] for k in data.files}
+        values["n_points"], values["n_frames"] = int(values["n_points"]), int(values.get("n_frames", 0))
+        values["image_wh"] = tuple(int(v) for v in values["image_wh"])
+        return cls(**values)
 
 
 def _normal_map(frame: WaterFrame, K: np.ndarray, config: WaterConfig) -> np.ndarray:
@@ -495,6 +524,8 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
                 add(int(k), n_dense + tracks.obs_point[sel][ok], pc[ok], xy[ok],
                     track_normals[tracks.obs_point[sel][ok]])
         n_total = n_dense + len(tracks.xyz)
+        xyz = np.concatenate([xyz, np.asarray(tracks.xyz, np.float64)])
+        normals_world = np.concatenate([normals_world, track_normals])
     else:
         n_total = n_dense
     cache.clear()
@@ -517,7 +548,8 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
                        pixel_uv=cat["uv"][order], points_cam=cat["pc"][order],
                        normals_cam=cat["nc"][order] if normals else None,
                        point=remap[cat["point"][order]],
-                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h), n_frames=len(frames))
+                       frame=cat["frame"][order], n_points=len(used), image_wh=(w, h), n_frames=len(frames),
+                       points_world=xyz[used], normals_world=normals_world[used] if normals else None)
     if board is not None:
         _add_board(obs, frames, usable, board, K, rays, ray_norm, config, normals)
     _check_diversity(obs, config)
@@ -878,6 +910,9 @@ class WaterEstimate:
     residuals: dict | None = None
     """Per view: residual (N,3) (observed - fitted, linear), range_m (N,), radius (N,) (distance from the
     image centre, 1 at the corners); not in :meth:`to_json`."""
+    observations: Observations | None = None
+    """The measurement table the estimate was fitted to (:func:`estimate_water` sets it; not in :meth:`to_json`:
+    the water stage saves it beside water.json for the diagnosis)."""
 
     def to_json(self) -> dict:
         return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed, "held": self.held,
@@ -1045,7 +1080,8 @@ def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: 
 
 
 def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
-                   config: WaterConfig = WaterConfig(), lights: list[dict] | None = None) -> WaterEstimate:
+                   config: WaterConfig = WaterConfig(), lights: list[dict] | None = None,
+                   normals: bool = False) -> WaterEstimate:
     """The site's water (see the module docstring).
 
     frames:  the survey's frames (raw linear image, range map in metres, pose; see :class:`WaterFrame`).
@@ -1054,12 +1090,17 @@ def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
     board:   optional :class:`eval.colour.Board` (true linear colours; pixel quads per frame name): pins the gain.
     lights:  the light rig survey.json declares (``lights``: per light offset_m, tilt_deg, beam_deg): modelled by
              ``artificial_light`` with the rig held (:func:`build_stack`, ``WaterConfig.light_rig``).
+    normals: measure each view's surface normal even when the stack reads none (the water stage does, so that
+             the diagnosis's candidates that read normals can be fitted to the same table; the fit is unchanged).
+    The measurement table is kept in ``estimate.observations``.
     Raises :class:`WaterInputError` when the frames cannot pin the water (too few registered frames, too
     little range, too few points seen at different ranges)."""
     t0 = time.perf_counter()
-    obs = measure(frames, K, tracks, board, config, normals=needs_normals(build_stack(config, len(frames), lights)))
+    obs = measure(frames, K, tracks, board, config,
+                  normals=normals or needs_normals(build_stack(config, len(frames), lights)))
     t_measure = time.perf_counter() - t0
     estimate = fit_observations(obs, config, lights)
+    estimate.observations = obs
     estimate.seconds = {"measure": round(t_measure, 2), **estimate.seconds,
                         "total": round(time.perf_counter() - t0, 2)}
     return estimate

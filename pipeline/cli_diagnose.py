@@ -1,7 +1,7 @@
 """The diagnosis commands of the `watergan` console script (options:
 :class:`eval.diagnose.DiagnoseConfig`, nested ones prefixed: ``--measure-n-points``, ``--fit-iterations``).
 
-    watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|truth|sfm] [--effects A,B,...] [--add NAME[,NAME]]
+    watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|water|sfm|truth] [--effects A,B,...] [--add NAME[,NAME]]
                       [--candidates A,B,...] [--measure-n-points N] [--fit-iterations N] [--no-plots] [--force]
     watergan ledger WORKSPACE
 
@@ -28,6 +28,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     print(f"model: {' -> '.join(result.stack)}")
     print(f"{result.n_points} points, {result.n_obs} observations (geometry: {result.geometry}); "
           f"held-out RMSE {result.heldout_rmse:.5f} (linear)")
+    if result.geometry.startswith("water"):
+        print(f"measurements: {result.measurements} (the water estimate's own)")
     print("structure score per axis (about 1 = no structure): "
           + ", ".join(f"{axis} {score:.1f}" for axis, score in result.scores.items()))
     print("candidates (held-out error change, 95% CI, p, axis flattened; * accepted, ! implausible values):")

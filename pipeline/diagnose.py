@@ -1,10 +1,15 @@
 """The diagnose stage: the discovery loop (:mod:`eval.diagnose`) on a workspace or a survey folder.
 
-In a workspace it measures the survey on the sfm stage's tracks (when it ran; else the simulator's
-truth), starts from the water stage's estimate (one site water for the correction and the diagnosis),
-writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``) at the
-workspace's root, with the colour of the image folders ``watergan consistency`` measured. On a bare
-survey folder it writes into ``SURVEY/diagnose/`` (ledger there too).
+In a workspace where the water stage ran, the diagnosis starts from the water stage's estimate and ranks
+its candidates on the water stage's own measurement table (``06_water/observations.npz``, converted by
+:func:`eval.diagnose_measure.measure_observations`): one model and one set of measurements for the
+correction and the diagnosis, so ``--add EFFECT`` refits the water with the effect on the views the
+ranking judged it on. Before, the diagnosis sampled and measured its own points on the SfM tracks (5 px
+patches at the features), so its held-out error and the water estimate came from different data; that
+remains the path without a water stage (``--geometry sfm`` asks for it; the simulator's truth when there
+are no tracks either). It writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``)
+at the workspace's root, with the colour of the image folders ``watergan consistency`` measured. On a bare
+survey folder it measures the survey itself and writes into ``SURVEY/diagnose/`` (ledger there too).
 """
 
 from __future__ import annotations
@@ -12,8 +17,16 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from eval.diagnose import DiagnoseConfig, DiagnoseResult, diagnose
-from eval.diagnose_measure import MeasureConfig, Measurements, check_survey_folder, measure_survey
+from eval.diagnose import DiagnoseConfig, DiagnoseResult, describe_measurements, diagnose
+from eval.diagnose_measure import (
+    GeometrySource,
+    MeasureConfig,
+    Measurements,
+    check_survey_folder,
+    measure_observations,
+    measure_survey,
+)
+from watergan.errors import UserInputError
 from watergan.io import atomic_write_json, read_json
 
 from .workspace import Workspace
@@ -76,13 +89,44 @@ def _sfm_tracks(ws: Workspace) -> tuple[Path | None, str]:
     return (ws.path(sfm.tracks), sfm.scale_method) if sfm is not None else (None, "unknown")
 
 
+def water_measurements(ws: Workspace, geometry: str = "auto", config: MeasureConfig | None = None
+                       ) -> tuple[Measurements, str] | None:
+    """(the water stage's measurement table as the diagnosis's :class:`Measurements`, at most ``config.n_points``
+    of its points with all their views (:func:`measure_observations`), one line saying so) when ``geometry`` is
+    "water", or "auto" and the water stage saved its table; None otherwise (the diagnosis then measures the survey
+    itself). "water" without a saved table is an error saying what to run."""
+    if geometry not in (GeometrySource.auto, GeometrySource.water):
+        return None
+    water = ws.result("water")
+    tracks, scale = _sfm_tracks(ws)
+    path = ws.path(water.observations) if water is not None and water.observations else None
+    if path is None or tracks is None or not path.is_file():
+        if geometry == GeometrySource.water:
+            raise UserInputError("the workspace has no water-stage observations: run `watergan water --workspace WS` "
+                                 "(or `watergan run`) first, or diagnose with --geometry sfm")
+        return None
+    from eval.water import Observations
+
+    obs = Observations.load(path)
+    meas = measure_observations(ws.stage_dir("survey"), obs, tracks, scale, config or MeasureConfig())
+    whole = meas.n_points == obs.n_points
+    note = "" if whole else f" (drawn from its {len(obs.point)} observations of {obs.n_points} points: " \
+                            f"--measure-n-points)"
+    board = len(obs.board_colour)
+    note += f"; its {board} board rows not used (known albedo: the diagnosis fits one per point)" if board else ""
+    return meas, describe_measurements(meas, ws.relative(path)) + note
+
+
 def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseResult:
     """Workspace stage (see the module docstring). The model starts from the site water the water stage
-    estimated (its stack and values) when it ran and ``cfg.effects`` names none."""
+    estimated (its stack and values) when it ran and ``cfg.effects`` names none, and is fitted and ranked on the
+    water stage's measurement table (:func:`water_measurements`) unless ``cfg.geometry`` asks for another."""
     tracks, scale = _sfm_tracks(ws)
     water = ws.result("water")
+    measured = water_measurements(ws, cfg.geometry, cfg.measure)
+    meas, described = measured if measured is not None else (None, "")
     return diagnose(ws.stage_dir("survey"), ws.stage_dir("diagnose"), ws.root, cfg, tracks, scale, colour_summary(ws),
-                    model=water.stack if water is not None else None)
+                    model=water.stack if water is not None else None, measurements=meas, described=described)
 
 
 def run_diagnose(target: str | Path, config: DiagnoseConfig | None = None, progress: bool | None = None,
@@ -104,11 +148,14 @@ def run_diagnose(target: str | Path, config: DiagnoseConfig | None = None, progr
 
 def measure_target(target: str | Path, config: MeasureConfig | None = None, geometry: str = "auto"
                    ) -> Measurements:
-    """The diagnosis's measurements of a workspace (its survey, on the sfm stage's tracks when it ran) or
-    of a survey folder."""
+    """The diagnosis's measurements of a workspace (the water stage's table when it saved one, else its survey
+    on the sfm stage's tracks when it ran) or of a survey folder."""
     config = config or MeasureConfig()
     if is_workspace(target):
         ws = Workspace(target)
+        measured = water_measurements(ws, geometry, config)
+        if measured is not None:
+            return measured[0]
         tracks, scale = _sfm_tracks(ws)
         return measure_survey(ws.stage_dir("survey"), config, geometry, tracks, scale)
     return measure_survey(target, config, geometry)

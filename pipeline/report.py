@@ -400,6 +400,9 @@ def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
     if verdict.is_file():
         parts.insert(0, f"<p class='verdict'><b>Diagnosis:</b> {_esc(verdict.read_text().strip())}</p>")
         info["verdict"] = verdict.read_text().strip()
+    if diagnosed is not None and diagnosed.measurements:
+        parts.insert(1 if verdict.is_file() else 0, f"<p class='note'>Measurements: {_esc(diagnosed.measurements)}</p>")
+        info["measurements"] = diagnosed.measurements
     return "".join(parts), info
 
 

@@ -7,6 +7,8 @@ what stays degenerate: its module docstring), and inverts it at every pixel with
 (:func:`eval.water.correct_physics`). Writes into the stage's folder:
 
     water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings
+    observations.npz        the measurement table the estimate was fitted to (:class:`eval.water.Observations`,
+                            each view's surface normal included): the diagnose stage ranks its candidates on it
     summary.txt             one line: eta and B_inf with their intervals
     residuals.png           the fit's residuals against range and image position
     images/<name>.png       the physics-corrected frames, sRGB, the input's bit depth (8 or 16)
@@ -85,6 +87,14 @@ class WaterResult:
     """Wall time of the estimate alone."""
     range_dir: str = ""
     """Workspace-relative folder of the range maps the frames were corrected with (16-bit millimetre PNGs)."""
+    observations: str = ""
+    """Workspace-relative path of the measurement table the estimate was fitted to (observations.npz,
+    :class:`eval.water.Observations`; frame indices into the sfm stage's image list): the diagnose stage ranks
+    its candidates on it. Empty in workspaces written before it was saved."""
+    n_observations: int = 0
+    """Views in that table (board rows not counted)."""
+    n_points: int = 0
+    """Surface points in that table."""
 
 
 def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
@@ -260,10 +270,11 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
         print("water: the SfM model has no metric scale: attenuation and backscatter coefficients are per SfM "
               "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
     lights = survey_lights(survey)
-    estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights)
+    estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights, normals=True)
     estimate_s = time.perf_counter() - began
     out = ws.stage_dir("water")
     atomic_write_json(out / "water.json", estimate.to_json())
+    estimate.observations.save(out / "observations.npz")
     atomic_write_text(out / "summary.txt", estimate.summary() + "\n")
     _plot_residuals(estimate, out / "residuals.png")
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
@@ -284,4 +295,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
                        mask=ws.relative(out / "mask"), mesh_fraction=mesh_share, unresolved_fraction=unresolved,
                        board=board is not None, at_bounds=bounds, converged=estimate.converged,
                        seconds=time.perf_counter() - began,
-                       estimate_seconds=estimate_s, range_dir=ws.relative(out / "range"))
+                       estimate_seconds=estimate_s, range_dir=ws.relative(out / "range"),
+                       observations=ws.relative(out / "observations.npz"),
+                       n_observations=int(len(estimate.observations.colour)),
+                       n_points=int(estimate.observations.n_points))

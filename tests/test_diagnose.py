@@ -554,3 +554,95 @@ def test_bad_input_is_a_clear_error(tmp_path, clean):
         measure_survey(clean, MeasureConfig(n_points=400), geometry="sfm")
     with pytest.raises(UserInputError, match="geometry must be one of"):
         measure_survey(clean, geometry="colmap")
+    with pytest.raises(UserInputError, match="in a workspace"):  # a survey folder has no water stage
+        measure_survey(clean, geometry="water")
+
+
+# ------------------------------------------------------------ the workspace: the water stage's measurements
+@pytest.fixture(scope="module")
+def water_ws(surveys, tmp_path_factory):
+    """A workspace on the small survey hiding off-centre vignetting: the sfm stage's record holding the truth's
+    tracks (:func:`_tracks_from_truth`), the dense stage's the true depth maps, and the water stage run on them
+    (no bootstrap, 150 samples per frame)."""
+    from eval.water import WaterConfig
+    from pipeline.dense import DenseConfig, DenseResult
+    from watergan.io import write_depth_png
+
+    root = tmp_path_factory.mktemp("water-ws") / "ws"
+    ws = Workspace(root)
+    survey = surveys("vignetting_offcentre")
+    (root / "00_survey").symlink_to(survey)
+    _tracks_from_truth(survey, root)
+    truth = load_truth(survey)
+    depth = ws.stage_dir("dense") / "depth"
+    for k, name in enumerate(truth.frames):
+        write_depth_png(depth / f"{Path(name).stem}.png", truth.depth_m(k))
+    ws.save("dense", DenseConfig(), DenseResult(depth_dir=ws.relative(depth), pairs={}, coverage={}, mean_coverage=1.0))
+    return ws, ws.run("water", WaterConfig(bootstrap=0, samples_per_frame=150, progress=False))
+
+
+def water_board_rows(ws: Workspace) -> int:
+    from eval.water import Observations
+
+    return len(Observations.load(ws.path(ws.result("water").observations)).board_colour)
+
+
+def test_the_diagnosis_of_a_workspace_takes_the_water_stages_observations(water_ws):
+    from eval.tracks import Tracks
+    from eval.water import Observations
+
+    ws, water = water_ws
+    obs = Observations.load(ws.path(water.observations))
+    assert water.observations == "06_water/observations.npz" and len(obs.colour) == water.n_observations
+    m = measure_target(ws.root, MeasureConfig(n_points=10 ** 6))  # auto: the water stage's table, all of it
+    assert m.source == "water stage (scale: stereo)" and (m.n_obs, m.n_points) == (len(obs.colour), obs.n_points)
+    for name in ("colour", "range_m", "depth_m", "pixel_uv", "points_cam", "normals_cam", "point", "frame"):
+        np.testing.assert_array_equal(getattr(m, name), getattr(obs, name), err_msg=name)  # the same rows
+    # each row's point, in the world, is where its view saw it (the table's world points are the fitted ones)
+    poses = Tracks.load(ws.path(ws.result("sfm").tracks)).world_from_cam[m.frame]
+    pc = np.einsum("nji,nj->ni", poses[:, :3, :3], m.points_world[m.point] - poses[:, :3, 3])
+    np.testing.assert_allclose(pc, m.points_cam, atol=1e-9)
+    assert (m.grad_energy > 0).mean() > 0.9 and np.isfinite(m.view_angle_deg).all()
+    assert np.abs(m.water_depth_m - (20.0 - m.height_m)).max() < 0.05  # from the navigation depths
+    # --measure-n-points bounds the points: every view of each point drawn, the same rows
+    few = measure_target(ws.root, MeasureConfig(n_points=100))
+    assert few.n_points == 100 and set(map(tuple, few.colour)) <= set(map(tuple, obs.colour))
+    assert measure_target(ws.root, MeasureConfig(n_points=100), geometry="sfm").source == "sfm (scale: stereo)"
+
+
+def test_the_workspace_diagnosis_finds_the_hidden_effect_on_the_water_stages_observations(water_ws):
+    """On all of the water's table (colours read at the water's footprint, points seen twice kept) off-centre
+    vignetting ranks first and cuts the held-out error by about half."""
+    ws, water = water_ws
+    result = run_diagnose(ws.root, replace(FAST, measure=MeasureConfig(n_points=10 ** 6)), progress=False)
+    assert result.geometry == "water stage (scale: stereo)" and result.n_obs == water.n_observations
+    assert result.measurements == (f"water stage (scale: stereo) (06_water/observations.npz): {water.n_observations} "
+                                   f"observations of {water.n_points} points; its {water_board_rows(ws)} board rows "
+                                   f"not used (known albedo: the diagnosis fits one per point)")
+    assert json.loads((ws.folder("diagnose") / "ranking.json").read_text())["measurements"] == result.measurements
+    top = result.ranking[0]
+    assert result.best == top["name"] == "vignetting_offcentre", result.verdict
+    assert top["significant"] and top["change"] <= -0.4, result.verdict
+
+
+@pytest.mark.slow
+def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp_path):
+    """What `watergan run --add vignetting_offcentre` does to these two stages: the water is refitted with the
+    effect on the same table, and the diagnosis starts from that water, on the same rows."""
+    import shutil
+
+    from eval.water import DEFAULT_WATER_EFFECTS, WaterConfig
+
+    ws, water = water_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws.root, copy, symlinks=True)
+    ws = Workspace(copy)
+    every = replace(FAST, measure=MeasureConfig(n_points=10 ** 6))  # all of the water's table
+    before = run_diagnose(ws.root, every, progress=False)
+    added = ws.run("water", WaterConfig(effects=(*DEFAULT_WATER_EFFECTS, "vignetting_offcentre"), bootstrap=0,
+                                        samples_per_frame=150, progress=False))
+    assert added.n_observations == water.n_observations  # the same table, refitted
+    after = run_diagnose(ws.root, replace(every, add=("vignetting_offcentre",)), progress=False)
+    assert "vignetting_offcentre" in after.stack and after.n_obs == before.n_obs == water.n_observations
+    assert after.heldout_rmse < 0.6 * before.heldout_rmse and after.best is None, after.verdict
+    assert [r["kind"] for r in read_ledger(ws.root / "model_ledger.jsonl")].count("model") == 2

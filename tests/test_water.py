@@ -227,6 +227,11 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
         np.testing.assert_allclose(p["value"], truth[key], rtol=0.25, err_msg=key)
     assert result.board and result.summary.startswith("water: eta_per_m") and result.unresolved_fraction < 0.2
     assert result.at_bounds == []  # nothing hidden: the stack fits
+    from eval.water import Observations  # the table the estimate was fitted to, for the diagnosis
+
+    obs = Observations.load(ws.path(result.observations))
+    assert len(obs.colour) == result.n_observations == water["n_observations"] and obs.n_points == water["n_points"]
+    assert obs.points_world.shape == obs.normals_world.shape == (obs.n_points, 3) and obs.normals_cam is not None
     names = sorted(p.name for p in (survey / "images").iterdir())
     assert sorted(p.name for p in ws.path(result.images).iterdir()) == names
     frame = cv2.imread(str(ws.path(result.images) / names[0]), cv2.IMREAD_UNCHANGED)
