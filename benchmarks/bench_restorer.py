@@ -1,7 +1,13 @@
 """Restorer speed: frames per second correcting 640x480 images (depth + colour nets, pad/un-pad included),
 on the CPU with 2 threads and on CUDA when present, with peak memory.
 
-    .venv/bin/python benchmarks/bench_restorer.py [--widths cpu|paper] [--batch 4] [--repeats 5]
+    .venv/bin/python benchmarks/bench_restorer.py [--widths cpu|paper] [--batch 4] [--repeats 5] [--workspace WS]
+
+With ``--workspace`` (a ``watergan run`` workspace) it also times ``watergan correct`` as the correct stage runs it
+(:func:`pipeline.correct.correct_folder` on the survey's frames with the workspace's restorer and, in RGB-D mode,
+the water stage's range maps: model load, file reading and writing included; best of ``--repeats`` passes, at
+most 3), and the parts of one batch: the water's inverse fields (:func:`watergan.nets.restorer.water_fields`) and
+the nets given them. Writes ``benchmarks/results/restorer.json``.
 
 Peak memory: the process's maximum resident set (``resource.getrusage``, CPU) and
 ``torch.cuda.max_memory_allocated`` (CUDA). Untrained weights: the speed does not depend on them.
@@ -10,9 +16,12 @@ Peak memory: the process's maximum resident set (``resource.getrusage``, CPU) an
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from watergan.nets.restorer import WIDTH_PRESETS, Restorer, restore
@@ -35,16 +44,58 @@ def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int
     return batch / best
 
 
+def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
+    """``correct_folder`` on the workspace's frames (best of the passes), and one batch of 4 split into its parts."""
+    from pipeline.correct import correct_folder
+    from watergan.data import read_intrinsics
+    from watergan.io import depth_or_zero, read_depth, read_image
+    from watergan.nets.restorer import fill_range_holes, water_fields
+    from watergan.train_restorer import load_restorer
+
+    ranges = ws / "06_water" / "range"
+    best = float("inf")
+    for _ in range(max(1, min(repeats, 3))):
+        began = time.perf_counter()
+        result = correct_folder(ws / "02_restorer", ws / "00_survey" / "images", out, force=True, progress=False,
+                                range_dir=ranges if ranges.is_dir() else None)
+        best = min(best, time.perf_counter() - began)
+    model = load_restorer(ws / "02_restorer")
+    paths = sorted((ws / "00_survey" / "images").glob("*.png"))[:4]
+    x = torch.from_numpy(np.stack([read_image(p, "linear") for p in paths]).transpose(0, 3, 1, 2)).float()
+    parts = {}
+    with torch.no_grad():
+        range_m = water = None
+        if model.range_input:
+            range_m = fill_range_holes(torch.stack([torch.from_numpy(depth_or_zero(read_depth(ranges / p.name)))
+                                                    for p in paths])[:, None].float())[0]
+        camera = read_intrinsics(ws / "00_survey")
+        intrinsics = camera.resized(*x.shape[-2:]).as_tuple() if camera is not None else None
+        if model.water is not None:
+            began = time.perf_counter()
+            water = water_fields(model.water, range_m, intrinsics)
+            parts["water_fields_s_per_frame"] = (time.perf_counter() - began) / len(paths)
+        altitude = torch.full((len(paths),), 2.5) if model.altitude else None
+        restore(model, x, altitude, range_m, intrinsics, water)  # warm-up
+        began = time.perf_counter()
+        restore(model, x, altitude, range_m, intrinsics, water)
+        parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
+    return {"workspace": str(ws), "frames": result.corrected, "mode": "rgb-d" if result.range_input else "monocular",
+            "water": model.water is not None, "best_s": best, "frames_per_s": result.corrected / best, **parts}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--widths", choices=sorted(WIDTH_PRESETS), default="cpu")
     parser.add_argument("--batch", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--workspace", type=Path, default=None, help="also time `correct` on this workspace")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/bench_restorer_correct"),
+                        help="where --workspace's corrected frames go")
     args = parser.parse_args()
     torch.set_num_threads(2)
     model = Restorer(WIDTH_PRESETS[args.widths]).eval()
     params = sum(p.numel() for p in model.parameters())
-    fps = frames_per_s(model, torch.device("cpu"), args.batch, args.repeats)
+    fps = cpu_fps = frames_per_s(model, torch.device("cpu"), args.batch, args.repeats)
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"cpu (2 threads), widths {args.widths} ({params} parameters), batch {args.batch}: "
           f"{fps:.1f} frames/s at 640x480; peak RSS {peak_mib:.0f} MiB")
@@ -56,6 +107,15 @@ def main() -> None:
         peak = torch.cuda.max_memory_allocated() / 2**20
         print(f"cuda ({torch.cuda.get_device_name()}), widths {args.widths}, batch {args.batch}: "
               f"{fps:.1f} frames/s at 640x480; peak allocated {peak:.0f} MiB")
+    if args.workspace is not None:
+        record = {"untrained_nets_cpu_frames_per_s": cpu_fps, **correct_speed(args.workspace, args.repeats, args.out)}
+        print(f"correct on {record['workspace']} ({record['mode']}, water {record['water']}): {record['frames']} "
+              f"frames in {record['best_s']:.2f} s = {record['frames_per_s']:.2f} frames/s with file I/O; one batch "
+              f"of 4: fields {1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
+              f"{1000 * record['nets_s_per_frame']:.0f} ms/frame")
+        path = Path(__file__).resolve().parent / "results" / "restorer.json"
+        path.write_text(json.dumps({"command": "benchmarks/bench_restorer.py --workspace " + str(args.workspace),
+                                    "threads": torch.get_num_threads(), **record}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -270,7 +270,7 @@ def load_paired(data_dir: str | Path, depth_hw: tuple[int, int] = (56, 56), with
                      ranges if with_range else None)
     if with_range and with_water:
         data.water, intrinsics = _manifest_water(data_dir)
-        data.water_fields = [water_fields(data.water, r[None], intrinsics.get(stem))[0]
+        data.water_fields = [water_fields(data.water, r[None], intrinsics.get(stem), exact=True)[0]
                              for stem, r in zip(stems, ranges, strict=True)]
     return data
 

@@ -128,3 +128,52 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
     with torch.no_grad():
         a, c = affine_images(stack, state)
     return a, c, valid
+
+
+#: The grid of :func:`interpolated_fields`: (rows, columns) of pixel positions and the number of ranges.
+LUT_POSITIONS = (49, 65)
+LUT_RANGES = 32
+
+
+def interpolated_fields(range_m: torch.Tensor, stack: Stack, K: np.ndarray | None = None,
+                        positions: tuple[int, int] = LUT_POSITIONS, ranges: int = LUT_RANGES) -> torch.Tensor:
+    """(B,6,H,W) the inverse's log gain g = -ln A and offset o = -C / A per channel at every pixel of range maps
+    (B,1,H,W) (metres, holes filled), interpolated trilinearly in (x, y, r) from the stack evaluated on a grid of
+    ``positions`` pixel positions (corner to corner) by ``ranges`` ranges (the batch's least to largest), for stacks
+    whose fields depend on the pixel's position and range alone (not on surface normals: check
+    :func:`needs_normals`). With K the grid's points and depths come from the pixels' rays, as in
+    :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs): on the demo's site
+    water (with off-centre vignetting) at 640x480, four frames at 2.45-3.96 m, the grid of 49 x 65 x 32 is within
+    3.8e-4 of the exact log gain and 1.1e-5 of the exact offset (25 x 33 x 64: 1.5e-3 and 2.6e-6), for a sixth of
+    the stack's work per batch of four frames."""
+    dtype, device = range_m.dtype, range_m.device
+    b, _, h, w = range_m.shape
+    r_lo, r_hi = float(range_m.min()), float(range_m.max())
+    r_hi = max(r_hi, r_lo + 1e-3)
+    rows, cols = positions
+    xs = torch.linspace(0.0, w - 1.0, cols, dtype=torch.float64)
+    ys = torch.linspace(0.0, h - 1.0, rows, dtype=torch.float64)
+    rs = torch.linspace(r_lo, r_hi, ranges, dtype=torch.float64)
+    r_grid, y_grid, x_grid = torch.meshgrid(rs, ys, xs, indexing="ij")  # (ranges, rows, cols)
+    shape = (1, 1, ranges * rows, cols)
+    uv = torch.stack([(x_grid + 0.5) / w, (y_grid + 0.5) / h]).reshape(1, 2, ranges * rows, cols)
+    fields = {"depth_m": r_grid.reshape(shape)}
+    if K is not None:
+        K = np.asarray(K, np.float64)
+        ray = torch.stack([(x_grid - K[0, 2]) / K[0, 0], (y_grid - K[1, 2]) / K[1, 1], torch.ones_like(x_grid)])
+        points = ray / ray.norm(dim=0, keepdim=True) * r_grid
+        fields = {"points_cam": points.reshape(1, 3, ranges * rows, cols), "depth_m": points[2].reshape(shape)}
+    state = FormationState(direct=torch.zeros(1, 3, ranges * rows, cols, dtype=torch.float64),
+                           range_m=r_grid.reshape(shape), pixel_uv=uv, image_wh=(w, h),
+                           frame_index=torch.tensor([0]), **fields)
+    with torch.no_grad():
+        a, c = affine_images(stack.to(torch.float64), state)
+    a = a.clamp_min(1e-12)
+    table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, ranges, rows, cols).to(device, dtype)
+    py, px = torch.meshgrid(torch.arange(h, dtype=dtype, device=device), torch.arange(w, dtype=dtype, device=device),
+                            indexing="ij")
+    grid = torch.stack([(2.0 * px / max(w - 1, 1) - 1.0).expand(b, h, w),
+                        (2.0 * py / max(h - 1, 1) - 1.0).expand(b, h, w),
+                        2.0 * (range_m[:, 0] - r_lo) / (r_hi - r_lo) - 1.0], dim=-1)
+    return torch.nn.functional.grid_sample(table.expand(b, -1, -1, -1, -1), grid[:, None], mode="bilinear",
+                                           padding_mode="border", align_corners=True)[:, :, 0]
