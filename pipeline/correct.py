@@ -126,9 +126,10 @@ I/O release the GIL, so they overlap the nets)."""
 
 
 def _read_one(chunk: CorrectChunk, path: Path) -> tuple[np.ndarray, int, np.ndarray | None]:
-    """An image to correct (stored values 0..1), its bit depth and, for an RGB-D restorer, its range map; a
-    DataError names what is wrong."""
-    image = read_image(path, "linear")
+    """An image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer, its range map
+    (float32 metres, holes filled: :func:`watergan.nets.restorer.fill_range_holes`); a DataError names what is
+    wrong. Runs in the I/O threads, off the nets' thread."""
+    image = read_image(path, "linear").astype(np.float32)
     bits = bit_depth(path)
     range_m = None
     if chunk.range_dir is not None:
@@ -139,6 +140,7 @@ def _read_one(chunk: CorrectChunk, path: Path) -> tuple[np.ndarray, int, np.ndar
                             f"{image.shape[1]}x{image.shape[0]}")
         if not (range_m > 0).any():
             raise DataError(f"range map {range_path} holds no range")
+        range_m = fill_range_holes(torch.from_numpy(range_m).float()[None, None])[0][0, 0].numpy()
     return image, bits, range_m
 
 
@@ -157,11 +159,11 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     writes: deque[Future] = deque()
 
     def flush() -> None:
-        x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).float().to(dev)
+        x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).to(dev)
         altitude = torch.tensor([b[3] for b in batch], device=dev) if chunk.altitude_m is not None else None
         range_m = None
         if chunk.range_dir is not None:
-            range_m = fill_range_holes(torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).float())[0].to(dev)
+            range_m = torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).to(dev)
         intrinsics = None if chunk.camera is None else chunk.camera.resized(*x.shape[-2:]).as_tuple()
         with torch.no_grad():
             rgb, depth = restore(model, x, altitude, range_m, intrinsics)
