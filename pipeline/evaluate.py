@@ -144,8 +144,8 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
             {"label": "SSIM", "values": [fid[m][1] for m in methods], "better": "higher"}], "row",
             note=f"sRGB-encoded frames against truth/inair, mean over {n_frames} frames. Methods that cannot "
                  f"know the exposure (all but Jaffe-McGlamery and the oracle) are not rescaled." +
-                 "".join(f" {m}: over the pixels it corrected ({100 * f.masks[m][1]:.1f} % marked as without "
-                         f"range, written black)." for m in methods if m in f.masks)))
+                 "".join(f" {LABELS.get(m, m)}: over the pixels it corrected ({100 * f.masks[m][1]:.1f} % marked "
+                         f"as without range, written black)." for m in methods if m in f.masks)))
     else:
         tables.append(make_table("fidelity", "Fidelity against the in-air truth", [], [],
                                  status="not measured: not a simulated survey (no truth/inair)"))
