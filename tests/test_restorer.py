@@ -282,6 +282,8 @@ def test_unknown_head_is_refused(tmp_path):
     with pytest.raises(UserInputError, match="head"):
         train_restorer(RestorerConfig(data_dir=write_generate_folder(tmp_path / "d"), out_dir=tmp_path / "m",
                                       head="rgb"))
+    with pytest.raises(UserInputError, match="affine head.*--no-water"):
+        train_restorer(RestorerConfig(data_dir=tmp_path / "d", out_dir=tmp_path / "m", head="direct", range_input=True))
 
 
 def test_two_training_steps_reduce_the_loss():

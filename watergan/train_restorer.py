@@ -190,6 +190,9 @@ def _check_config(c: RestorerConfig) -> None:
         raise UserInputError(f"widths must be one of {sorted(WIDTH_PRESETS)}, got {c.widths!r}")
     if c.head not in HEADS:
         raise UserInputError(f"head must be one of {HEADS}, got {c.head!r}")
+    if c.range_input and c.water and c.head != Head.affine:
+        raise UserInputError("the pairs' water (--water) is added to the affine head's fields: use --head affine, or "
+                             "--no-water")
     if c.warmup_iterations < 0:
         raise UserInputError(f"RestorerConfig.warmup_iterations must be >= 0, got {c.warmup_iterations}")
     for name in ("batch_size", "checkpoint_every"):
