@@ -291,7 +291,7 @@ def _manifest_water(data_dir: Path) -> tuple[list[dict], dict[str, tuple]]:
                         f"--no-restorer-water)") from None
     intrinsics = {item["stem"]: tuple(item["intrinsics"]) for item in manifest.get("items", [])
                   if item.get("intrinsics")}
-    return invertible_water(stack)[0], intrinsics
+    return invertible_water(stack), intrinsics
 
 
 def split_indices(count: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:

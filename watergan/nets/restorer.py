@@ -224,14 +224,12 @@ def fill_range_holes(range_m: torch.Tensor) -> tuple[torch.Tensor, float]:
     return out, float((~valid).float().mean())
 
 
-def invertible_water(stack: list[dict]) -> tuple[list[dict], list[str]]:
-    """(the effects of a stack configuration that act pixel by pixel, the names of those left out): effects on
-    whole-image neighbourhoods (``needs_image``: blur, the learned scattering's masks) have no per-pixel inverse;
-    the nets learn them."""
+def invertible_water(stack: list[dict]) -> list[dict]:
+    """The effects of a stack configuration that act pixel by pixel: effects on whole-image neighbourhoods
+    (``needs_image``: blur, the learned scattering's masks) have no per-pixel inverse; the nets learn them."""
     from watergan.formation import get
 
-    kept = [e for e in stack if not get(e["name"]).needs_image]
-    return kept, [e["name"] for e in stack if get(e["name"]).needs_image]
+    return [e for e in stack if not get(e["name"]).needs_image]
 
 
 def water_fields(water: list[dict], range_m: torch.Tensor,
@@ -388,7 +386,7 @@ class Restorer(nn.Module):
             raise ValueError("a restorer starts from a water's inverse only in RGB-D mode (range_input) with the "
                              "affine head")
         self.widths, self.factor, self.skip, self.depth_hw = widths, factor, skip, tuple(depth_hw)
-        self.water = None if water is None else invertible_water(water)[0]
+        self.water = None if water is None else invertible_water(water)
         """The stack configuration whose inverse the colour net starts from (see the module docstring)."""
         self.depth_net = DepthNet(widths, depth_hw)
         self.colour_net = ColourNet(widths, factor, skip, head, altitude, range_input)
