@@ -6,8 +6,10 @@ on the CPU with 2 threads and on CUDA when present, with peak memory.
 With ``--workspace`` (a ``watergan run`` workspace) it also times ``watergan correct`` as the correct stage runs it
 (:func:`pipeline.correct.correct_folder` on the survey's frames with the workspace's restorer and, in RGB-D mode,
 the water stage's range maps: model load, file reading and writing included; best of ``--repeats`` passes, at
-most 3), and the parts of one batch: the water's inverse fields (:func:`watergan.nets.restorer.water_fields`) and
-the nets given them. Writes ``benchmarks/results/restorer.json``.
+most 3), and the parts of one batch of 4 as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
+thread): the water's inverse fields (:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the
+lookup per frame) and the nets given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference` copy).
+Writes ``benchmarks/results/restorer.json``.
 
 Peak memory: the process's maximum resident set (``resource.getrusage``, CPU) and
 ``torch.cuda.max_memory_allocated`` (CUDA). Untrained weights: the speed does not depend on them.
@@ -46,10 +48,10 @@ def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int
 
 def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
     """``correct_folder`` on the workspace's frames (best of the passes), and one batch of 4 split into its parts."""
-    from pipeline.correct import correct_folder
+    from pipeline.correct import correct_folder, cpu_lanes
     from watergan.data import read_intrinsics
     from watergan.io import depth_or_zero, read_depth, read_image
-    from watergan.nets.restorer import fill_range_holes, water_fields
+    from watergan.nets.restorer import WaterFields, fill_range_holes
     from watergan.train_restorer import load_restorer
 
     ranges = ws / "06_water" / "range"
@@ -59,10 +61,13 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
         result = correct_folder(ws / "02_restorer", ws / "00_survey" / "images", out, force=True, progress=False,
                                 range_dir=ranges if ranges.is_dir() else None)
         best = min(best, time.perf_counter() - began)
-    model = load_restorer(ws / "02_restorer")
+    lanes = cpu_lanes()
+    model = load_restorer(ws / "02_restorer").for_inference()
     paths = sorted((ws / "00_survey" / "images").glob("*.png"))[:4]
     x = torch.from_numpy(np.stack([read_image(p, "linear") for p in paths]).transpose(0, 3, 1, 2)).float()
     parts = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as one lane
     with torch.no_grad():
         range_m = water = None
         if model.range_input:
@@ -71,16 +76,22 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
         camera = read_intrinsics(ws / "00_survey")
         intrinsics = camera.resized(*x.shape[-2:]).as_tuple() if camera is not None else None
         if model.water is not None:
+            fields = WaterFields(model.water)
             began = time.perf_counter()
-            water = water_fields(model.water, range_m, intrinsics)
+            fields(range_m, intrinsics)
+            parts["water_grid_build_s"] = time.perf_counter() - began
+            began = time.perf_counter()
+            water = fields(range_m, intrinsics)
             parts["water_fields_s_per_frame"] = (time.perf_counter() - began) / len(paths)
         altitude = torch.full((len(paths),), 2.5) if model.altitude else None
         restore(model, x, altitude, range_m, intrinsics, water)  # warm-up
         began = time.perf_counter()
         restore(model, x, altitude, range_m, intrinsics, water)
         parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
-    return {"workspace": str(ws), "frames": result.corrected, "mode": "rgb-d" if result.range_input else "monocular",
-            "water": model.water is not None, "best_s": best, "frames_per_s": result.corrected / best, **parts}
+    torch.set_num_threads(threads)
+    return {"lanes": lanes, "workspace": str(ws), "frames": result.corrected,
+            "mode": "rgb-d" if result.range_input else "monocular", "water": model.water is not None,
+            "best_s": best, "frames_per_s": result.corrected / best, **parts}
 
 
 def main() -> None:
@@ -110,8 +121,9 @@ def main() -> None:
     if args.workspace is not None:
         record = {"untrained_nets_cpu_frames_per_s": cpu_fps, **correct_speed(args.workspace, args.repeats, args.out)}
         print(f"correct on {record['workspace']} ({record['mode']}, water {record['water']}): {record['frames']} "
-              f"frames in {record['best_s']:.2f} s = {record['frames_per_s']:.2f} frames/s with file I/O; one batch "
-              f"of 4: fields {1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
+              f"frames in {record['best_s']:.2f} s = {record['frames_per_s']:.2f} frames/s with file I/O "
+              f"({record['lanes']} lanes); one batch of 4 on one thread: fields "
+              f"{1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
               f"{1000 * record['nets_s_per_frame']:.0f} ms/frame")
         path = Path(__file__).resolve().parent / "results" / "restorer.json"
         path.write_text(json.dumps({"command": "benchmarks/bench_restorer.py --workspace " + str(args.workspace),

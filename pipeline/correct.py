@@ -59,7 +59,7 @@ from watergan.device import Device, pick_device
 from watergan.formation import Stack
 from watergan.formation.inverse import needs_normals
 from watergan.io import bit_depth, depth_or_zero, read_depth
-from watergan.nets.restorer import fill_range_holes, restore
+from watergan.nets.restorer import WaterFields, fill_range_holes, restore
 from watergan.train_restorer import load_restorer
 
 SUMMARY = "summary.json"
@@ -121,8 +121,16 @@ class ChunkResult:
 
 
 IO_THREADS = 2
-"""Threads that read the next images and write the last ones while the restorer runs (OpenCV's PNG codecs and file
-I/O release the GIL, so they overlap the nets)."""
+"""Threads that read the next images while the nets run (OpenCV's PNG codecs and file I/O release the GIL, so they
+overlap the nets)."""
+
+
+def cpu_lanes() -> int:
+    """Batches the nets correct at once on a CPU: one per intra-op thread torch would use, each lane running its
+    batch on one thread. The restorer's convolutions are narrow (3-16 channels at full resolution) and split poorly
+    across threads; whole batches side by side keep every core busy, and a lane whose core is taken by another job
+    waits alone instead of stalling the other thread at every layer."""
+    return max(1, torch.get_num_threads())
 
 
 def _read_one(chunk: CorrectChunk, path: Path) -> tuple[np.ndarray, int, np.ndarray | None]:
@@ -144,21 +152,26 @@ def _read_one(chunk: CorrectChunk, path: Path) -> tuple[np.ndarray, int, np.ndar
     return image, bits, range_m
 
 
+Item = tuple[str, np.ndarray, int, float, np.ndarray | None]
+"""One image to correct: stem, image (H,W,3), bit depth, altitude (metres; 0 when not used), range map or None."""
+
+
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
     """Correct ``chunk.paths`` into ``chunk.out_dir`` (every file written atomically), consecutive images of one
-    size ``batch_size`` at a time; the model is loaded here unless given. Up to ``IO_THREADS`` threads read the
-    next batch's images and write the last batch's outputs while the nets run. ``bar`` (local runs): advanced per
-    image, and unreadable images are reported as they come."""
+    size ``batch_size`` at a time; the model is loaded here unless given. On a CPU, :func:`cpu_lanes` batches run
+    side by side, each on one thread, and write their own outputs; on CUDA one at a time. ``IO_THREADS`` threads
+    read the next batches' images meanwhile. ``bar`` (local runs): advanced per image, and unreadable images are
+    reported as they come."""
     dev = pick_device(chunk.device)
-    model = (model if model is not None else load_restorer(chunk.model_dir)).to(dev)
+    model = (model if model is not None else load_restorer(chunk.model_dir)).for_inference().to(dev)
+    fields = WaterFields(model.water) if model.water is not None else None
     out = chunk.out_dir
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
-    batch: list[tuple[str, np.ndarray, int, float, np.ndarray | None]] = []
-    writes: deque[Future] = deque()
+    lanes = cpu_lanes() if dev.type == "cpu" else 1
 
-    def flush() -> None:
+    def correct_batch(batch: list[Item]) -> int:
         x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).to(dev)
         altitude = torch.tensor([b[3] for b in batch], device=dev) if chunk.altitude_m is not None else None
         range_m = None
@@ -166,38 +179,56 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
             range_m = torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).to(dev)
         intrinsics = None if chunk.camera is None else chunk.camera.resized(*x.shape[-2:]).as_tuple()
         with torch.no_grad():
-            rgb, depth = restore(model, x, altitude, range_m, intrinsics)
+            water = fields(range_m, intrinsics) if fields is not None else None
+            rgb, depth = restore(model, x, altitude, range_m, intrinsics, water)
         rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().double().numpy()
-        while len(writes) > 1:  # at most two batches in flight: memory stays bounded on long sequences
-            writes.popleft().result()
-        items = [(stem, rgb_np[k], depth_np[k], bits) for k, (stem, _, bits, _, _) in enumerate(batch)]
-        writes.append(pool.submit(lambda: [_write(out, *item) for item in items]))
-        result.corrected += len(batch)
-        if bar is not None:
-            bar.update(len(batch))
-        batch.clear()
+        for k, (stem, _, bits, _, _) in enumerate(batch):
+            _write(out, stem, rgb_np[k], depth_np[k], bits)
+        return len(batch)
 
-    with ThreadPoolExecutor(IO_THREADS) as pool:
-        for k, path, read in _read_ahead(pool, chunk, 2 * chunk.batch_size):
-            try:
-                image, bits, range_m = read.result()
-            except DataError as exc:
-                result.failed.append(str(exc))
-                if bar is not None:
-                    tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
-                    bar.update(1)
-                continue
-            if batch and batch[0][1].shape != image.shape:
-                flush()
-            batch.append((path.stem, image, bits, chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0,
-                          range_m))
-            if len(batch) == chunk.batch_size:
-                flush()
-        if batch:
-            flush()
-        for done in writes:
-            done.result()
+    running: deque[Future] = deque()
+
+    def collect(keep: int) -> None:
+        """Wait for the oldest batches until at most ``keep`` are running (memory stays bounded)."""
+        while len(running) > keep:
+            done = running.popleft().result()
+            result.corrected += done
+            if bar is not None:
+                bar.update(done)
+
+    threads = torch.get_num_threads()
+    if lanes > 1:
+        torch.set_num_threads(1)  # each lane runs its batch on one thread
+    try:
+        with ThreadPoolExecutor(IO_THREADS) as reader, ThreadPoolExecutor(lanes) as nets:
+            batch: list[Item] = []
+
+            def submit() -> None:
+                collect(lanes)
+                running.append(nets.submit(correct_batch, list(batch)))
+                batch.clear()
+
+            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * chunk.batch_size):
+                try:
+                    image, bits, range_m = read.result()
+                except DataError as exc:
+                    result.failed.append(str(exc))
+                    if bar is not None:
+                        tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
+                        bar.update(1)
+                    continue
+                if batch and batch[0][1].shape != image.shape:
+                    submit()
+                batch.append((path.stem, image, bits,
+                              chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m))
+                if len(batch) == chunk.batch_size:
+                    submit()
+            if batch:
+                submit()
+            collect(0)
+    finally:
+        torch.set_num_threads(threads)
     return result
 
 

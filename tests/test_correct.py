@@ -137,3 +137,28 @@ def test_an_rgbd_restorer_corrects_with_each_pixel_s_range(tmp_path):
     correct_folder(tmp_path / "model", images, tmp_path / "far", progress=False, range_dir=far)
     a_near, a_far = (cv2.imread(str(tmp_path / d / "images" / "a.png")).astype(int) for d in ("near", "far"))
     assert np.abs(a_near - a_far).max() > 2
+
+
+def test_lanes_side_by_side_write_the_same_files_and_leave_torch_s_threads(tmp_path, monkeypatch):
+    """Batches corrected side by side on the CPU (pipeline.correct.cpu_lanes) give the bytes one lane gives, with
+    batches of every size (a short last batch), and torch's thread count is left as it was."""
+    import pipeline.correct as correct
+
+    model = Restorer(TINY, depth_hw=(16, 16)).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+    save_restorer(tmp_path / "model" / "restorer.pt", model)
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(3)
+    for k in range(7):
+        cv2.imwrite(str(images / f"f{k}.png"), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    threads = torch.get_num_threads()
+    outputs = {}
+    for lanes in (1, 3):
+        monkeypatch.setattr(correct, "cpu_lanes", lambda lanes=lanes: lanes)
+        result = correct_folder(tmp_path / "model", images, tmp_path / f"out{lanes}", batch_size=2, progress=False)
+        assert result.corrected == 7 and torch.get_num_threads() == threads
+        outputs[lanes] = {p.relative_to(tmp_path / f"out{lanes}"): p.read_bytes()
+                          for p in sorted((tmp_path / f"out{lanes}").rglob("*")) if p.suffix in (".png", ".npy")}
+    assert len(outputs[1]) == 21 and outputs[1] == outputs[3]

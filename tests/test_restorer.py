@@ -22,6 +22,7 @@ from watergan.nets.restorer import (
     restore,
     srgb_decode,
     srgb_encode,
+    water_fields,
 )
 from watergan.train_restorer import RestorerConfig, load_paired, load_restorer, masked_mse, train_restorer
 
@@ -373,8 +374,6 @@ def test_the_learning_rate_warms_up_then_decays_over_each_stage(tmp_path):
 def test_interpolated_water_fields_match_the_exact_ones(with_intrinsics):
     """The fields correct uses (a grid of positions and ranges, interpolated) are within 1e-3 of the exact log gain
     and 1e-4 of the exact offset over a range map with relief and holes filled, off-centre vignetting included."""
-    from watergan.nets.restorer import water_fields
-
     water = [*WATER[:3], {"name": "vignetting_offcentre", "params": {"centre_uv": [0.6, 0.44]}}, WATER[3]]
     rng = np.random.default_rng(1)
     relief = cv2.GaussianBlur(rng.uniform(-0.6, 0.6, (120, 160)), (0, 0), 3)
@@ -385,3 +384,52 @@ def test_interpolated_water_fields_match_the_exact_ones(with_intrinsics):
     error = (exact - interpolated).abs()
     assert error[:, :3].max() < 1e-3 and error[:, 3:].max() < 1e-4
     assert exact[:, :3].std() > 0.05  # the fields vary: the test is not comparing constants
+
+
+def test_the_inference_copy_gives_the_same_colours_and_depth():
+    """for_inference folds each batch norm into its convolution (with trained, not default, statistics) and lays out
+    the output convolution channels-last; the outputs are those of the model itself."""
+    torch.manual_seed(0)
+    model = Restorer(range_input=True).eval()
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, torch.nn.BatchNorm2d):
+                module.running_mean.uniform_(-0.5, 0.5)
+                module.running_var.uniform_(0.5, 2.0)
+                module.weight.uniform_(0.5, 1.5)
+                module.bias.uniform_(-0.2, 0.2)
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+        torch.nn.init.normal_(model.colour_net.out.weight, std=0.1)
+        image, range_m = torch.rand(2, 3, 64, 96), 1.0 + 2.0 * torch.rand(2, 1, 64, 96)
+        rgb, depth = restore(model, image, range_m=range_m)
+        fast = model.for_inference()
+        rgb_fast, depth_fast = restore(fast, image, range_m=range_m)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())  # the model itself is left as it was
+    assert (rgb - rgb_fast).abs().max() < 1e-5 and (depth - depth_fast).abs().max() < 1e-5
+    assert rgb.std() > 0.05 and (rgb - image).abs().mean() > 0.01  # the comparison is not of an identity
+
+
+def test_water_fields_keep_their_grid_while_it_covers_the_frames():
+    """WaterFields builds its grid once for frames within its (rounded) range span, rebuilds it over both spans for
+    farther frames or another camera, and matches the exact fields throughout."""
+    from watergan.nets.restorer import WaterFields
+
+    fields = WaterFields(WATER)
+    rng = np.random.default_rng(2)
+    intrinsics = (140.0, 140.0, 79.5, 59.5)
+
+    def frame(lo, hi):
+        return torch.from_numpy(rng.uniform(lo, hi, (1, 1, 120, 160))).float()
+
+    tables = []
+    for range_m, k in ((frame(2.1, 2.9), intrinsics), (frame(2.2, 2.8), intrinsics), (frame(3.5, 4.4), intrinsics),
+                       (frame(2.2, 2.8), intrinsics), (frame(2.2, 2.8), None)):
+        got = fields(range_m, k)
+        exact = water_fields(WATER, range_m, k, exact=True)
+        assert (got - exact)[:, :3].abs().max() < 1e-3 and (got - exact)[:, 3:].abs().max() < 1e-4
+        tables.append(fields._table)
+    assert tables[0] is tables[1]  # covered: kept
+    assert tables[2] is not tables[1] and (tables[2].r_lo_m, tables[2].r_hi_m) == (2.0, 4.5)  # farther: both spans
+    assert tables[3] is tables[2]
+    assert tables[4] is not tables[3] and tables[4].K is None  # another camera

@@ -10,6 +10,8 @@ applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`)
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 import torch
 
@@ -130,51 +132,103 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
     return a, c, valid
 
 
-#: The grid of :func:`interpolated_fields`: (rows, columns) of pixel positions and the number of ranges.
+#: The grid of :class:`FieldTable`: (rows, columns) of pixel positions, corner to corner.
 LUT_POSITIONS = (49, 65)
-LUT_RANGES = 32
+#: The grid's step in range, metres.
+LUT_RANGE_STEP_M = 0.05
+#: A table's range span is rounded outwards to multiples of this (metres), so that the next frames' ranges, a
+#: little nearer or farther, are still covered.
+LUT_RANGE_ROUND_M = 0.5
 
 
-def interpolated_fields(range_m: torch.Tensor, stack: Stack, K: np.ndarray | None = None,
-                        positions: tuple[int, int] = LUT_POSITIONS, ranges: int = LUT_RANGES) -> torch.Tensor:
-    """(B,6,H,W) the inverse's log gain g = -ln A and offset o = -C / A per channel at every pixel of range maps
-    (B,1,H,W) (metres, holes filled), interpolated trilinearly in (x, y, r) from the stack evaluated on a grid of
-    ``positions`` pixel positions (corner to corner) by ``ranges`` ranges (the batch's least to largest), for stacks
-    whose fields depend on the pixel's position and range alone (not on surface normals: check
+@dataclass
+class FieldTable:
+    """The inverse's log gain g = -ln A and offset o = -C / A per channel of a stack, on a grid of pixel positions
+    (``LUT_POSITIONS``, corner to corner) by ranges (``r_lo_m`` to ``r_hi_m`` every ``LUT_RANGE_STEP_M`` or less),
+    for images of one size and camera, interpolated trilinearly in (x, y, r) at each pixel (:meth:`sample`). For
+    stacks whose fields depend on the pixel's position and range alone (not on surface normals: check
     :func:`needs_normals`). With K the grid's points and depths come from the pixels' rays, as in
     :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs): on the demo's site
-    water (with off-centre vignetting) at 640x480, four frames at 2.45-3.96 m, the grid of 49 x 65 x 32 is within
-    3.8e-4 of the exact log gain and 1.1e-5 of the exact offset (25 x 33 x 64: 1.5e-3 and 2.6e-6), with the stack
-    evaluated at 102k grid points per batch instead of 1.2M pixels for four frames: 18 ms per frame with the lookup
-    on a quiet 2-core machine (benchmarks/bench_restorer.py --workspace)."""
-    dtype, device = range_m.dtype, range_m.device
-    b, _, h, w = range_m.shape
-    r_lo, r_hi = float(range_m.min()), float(range_m.max())
-    r_hi = max(r_hi, r_lo + 1e-3)
-    rows, cols = positions
-    xs = torch.linspace(0.0, w - 1.0, cols, dtype=torch.float64)
-    ys = torch.linspace(0.0, h - 1.0, rows, dtype=torch.float64)
-    rs = torch.linspace(r_lo, r_hi, ranges, dtype=torch.float64)
-    r_grid, y_grid, x_grid = torch.meshgrid(rs, ys, xs, indexing="ij")  # (ranges, rows, cols)
-    shape = (1, 1, ranges * rows, cols)
-    uv = torch.stack([(x_grid + 0.5) / w, (y_grid + 0.5) / h]).reshape(1, 2, ranges * rows, cols)
-    fields = {"depth_m": r_grid.reshape(shape)}
-    if K is not None:
-        K = np.asarray(K, np.float64)
-        ray = torch.stack([(x_grid - K[0, 2]) / K[0, 0], (y_grid - K[1, 2]) / K[1, 1], torch.ones_like(x_grid)])
-        points = ray / ray.norm(dim=0, keepdim=True) * r_grid
-        fields = {"points_cam": points.reshape(1, 3, ranges * rows, cols), "depth_m": points[2].reshape(shape)}
-    state = FormationState(direct=torch.zeros(1, 3, ranges * rows, cols, dtype=torch.float64),
-                           range_m=r_grid.reshape(shape), pixel_uv=uv, image_wh=(w, h),
-                           frame_index=torch.tensor([0]), **fields)
-    with torch.no_grad():
-        a, c = affine_images(stack.to(torch.float64), state)
-    a = a.clamp_min(1e-12)
-    table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, ranges, rows, cols).to(device, dtype)
-    py, px = torch.meshgrid(torch.arange(h, dtype=dtype, device=device), torch.arange(w, dtype=dtype, device=device),
-                            indexing="ij")
-    grid = torch.stack([(2.0 * px / max(w - 1, 1) - 1.0).expand(b, h, w),
-                        (2.0 * py / max(h - 1, 1) - 1.0).expand(b, h, w),
-                        2.0 * (range_m[:, 0] - r_lo) / (r_hi - r_lo) - 1.0], dim=-1)
-    return torch.nn.functional.grid_sample(table.expand(b, -1, -1, -1, -1), grid[:, None], mode="bilinear",
-                                           padding_mode="border", align_corners=True)[:, :, 0]
+    water (with off-centre vignetting) at 640x480, frames at 2.45-3.96 m, a grid of 49 x 65 positions every
+    0.049 m of range is within 3.8e-4 of the exact log gain and 1.1e-5 of the exact offset. A table is built once
+    and sampled for every frame it covers: building one evaluates the stack at 100k-300k grid points."""
+
+    table: torch.Tensor
+    """(1,6,R,rows,cols) float32: g then o per channel."""
+    width: int
+    height: int
+    r_lo_m: float
+    r_hi_m: float
+    K: tuple[float, ...] | None
+    """The intrinsics (fx, fy, cx, cy) the table was built with (None: depth = range)."""
+    _grid_xy: torch.Tensor | None = field(default=None, repr=False)
+
+    @classmethod
+    def build(cls, stack: Stack, width: int, height: int, K: np.ndarray | None, r_lo_m: float, r_hi_m: float,
+              positions: tuple[int, int] = LUT_POSITIONS, range_step_m: float = LUT_RANGE_STEP_M) -> FieldTable:
+        """The table of ``stack`` for ``width`` x ``height`` images with intrinsics K (3x3, or None), over ranges
+        ``r_lo_m``..``r_hi_m`` (metres)."""
+        w, h = width, height
+        r_hi_m = max(r_hi_m, r_lo_m + 1e-3)
+        rows, cols = positions
+        xs = torch.linspace(0.0, w - 1.0, cols, dtype=torch.float64)
+        ys = torch.linspace(0.0, h - 1.0, rows, dtype=torch.float64)
+        rs = torch.linspace(r_lo_m, r_hi_m, max(2, int(np.ceil((r_hi_m - r_lo_m) / range_step_m)) + 1),
+                            dtype=torch.float64)
+        r_grid, y_grid, x_grid = torch.meshgrid(rs, ys, xs, indexing="ij")  # (ranges, rows, cols)
+        shape = (1, 1, len(rs) * rows, cols)
+        uv = torch.stack([(x_grid + 0.5) / w, (y_grid + 0.5) / h]).reshape(1, 2, len(rs) * rows, cols)
+        fields = {"depth_m": r_grid.reshape(shape)}
+        if K is not None:
+            K = np.asarray(K, np.float64)
+            ray = torch.stack([(x_grid - K[0, 2]) / K[0, 0], (y_grid - K[1, 2]) / K[1, 1], torch.ones_like(x_grid)])
+            points = ray / ray.norm(dim=0, keepdim=True) * r_grid
+            fields = {"points_cam": points.reshape(1, 3, len(rs) * rows, cols), "depth_m": points[2].reshape(shape)}
+        state = FormationState(direct=torch.zeros(1, 3, len(rs) * rows, cols, dtype=torch.float64),
+                               range_m=r_grid.reshape(shape), pixel_uv=uv, image_wh=(w, h),
+                               frame_index=torch.tensor([0]), **fields)
+        with torch.no_grad():
+            a, c = affine_images(stack.to(torch.float64), state)
+        a = a.clamp_min(1e-12)
+        table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, len(rs), rows, cols).float()
+        k = None if K is None else tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        return cls(table, w, h, float(rs[0]), float(rs[-1]), k)
+
+    def serves(self, height: int, width: int, K: np.ndarray | None) -> bool:
+        """Whether the table is for images of this size and these intrinsics (3x3, or None)."""
+        k = None if K is None else tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        return (height, width) == (self.height, self.width) and k == self.K
+
+    def covers(self, range_m: torch.Tensor, K: np.ndarray | None) -> bool:
+        """Whether the table serves range maps (B,1,H,W) of these intrinsics: same size and camera, ranges within."""
+        return (self.serves(*range_m.shape[-2:], K) and float(range_m.min()) >= self.r_lo_m
+                and float(range_m.max()) <= self.r_hi_m)
+
+    def sample(self, range_m: torch.Tensor) -> torch.Tensor:
+        """(B,6,H,W) the fields at every pixel of range maps (B,1,H,W) (metres, holes filled), in their dtype and
+        on their device; ranges outside the table take its nearest range."""
+        b, _, h, w = range_m.shape
+        if self._grid_xy is None:  # the pixels' places in the table, the same for every frame
+            py, px = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                                    indexing="ij")
+            self._grid_xy = torch.stack([2.0 * px / max(w - 1, 1) - 1.0, 2.0 * py / max(h - 1, 1) - 1.0], dim=-1)
+        xy = self._grid_xy.to(range_m.device, range_m.dtype)
+        rz = 2.0 * (range_m[:, 0] - self.r_lo_m) / (self.r_hi_m - self.r_lo_m) - 1.0
+        grid = torch.cat([xy.expand(b, h, w, 2), rz[..., None]], dim=-1)
+        table = self.table.to(range_m.device, range_m.dtype)
+        return torch.nn.functional.grid_sample(table.expand(b, -1, -1, -1, -1), grid[:, None], mode="bilinear",
+                                               padding_mode="border", align_corners=True)[:, :, 0]
+
+
+def range_span(range_m: torch.Tensor, round_m: float = LUT_RANGE_ROUND_M) -> tuple[float, float]:
+    """(least, largest) range of maps (metres), rounded outwards to multiples of ``round_m`` (least >= 0)."""
+    lo, hi = float(range_m.min()), float(range_m.max())
+    return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
+
+
+def interpolated_fields(range_m: torch.Tensor, stack: Stack, K: np.ndarray | None = None) -> torch.Tensor:
+    """(B,6,H,W) the inverse's fields at every pixel of range maps (B,1,H,W) (metres, holes filled) from a
+    :class:`FieldTable` built over their range span (:func:`range_span`); to correct many frames, keep the table
+    and sample it (as :class:`watergan.nets.restorer.WaterFields` does)."""
+    h, w = range_m.shape[-2:]
+    return FieldTable.build(stack, w, h, K, *range_span(range_m)).sample(range_m)
