@@ -1,7 +1,7 @@
 """The product (issue 18): what the corrected frames achieve, the physics correction's and the restorer's, run
 after run, beside raw and every baseline.
 
-    .venv/bin/python benchmarks/bench_product.py [--out DIR] [--cases demo,demo_add,clean,generic,mono]
+    .venv/bin/python benchmarks/bench_product.py [--out DIR] [--cases demo,demo_add,clean,generic,mono,mono_add]
                                                  [--runs 2] [--once clean,mono,generic] [--preset demo]
                                                  [extra `watergan run` options...]
 
@@ -11,16 +11,20 @@ Cases (each a `watergan` command line on a simulated survey; a case's workspace 
 - ``demo_add``: then ``watergan demo --add vignetting_offcentre`` on the same workspace (the loop's step);
 - ``clean``: the demo preset with nothing hidden (``watergan simulate`` then ``watergan run``);
 - ``generic``: ``clean`` with WaterGAN given the generic in-air set instead of the site-matched one;
-- ``mono``: ``clean`` with the monocular restorer (``--no-restorer-range-input``; a copy of the clean run's workspace,
-  so only the restorer and what follows it rerun).
+- ``mono``: ``clean`` corrected in monocular mode (``--correct-mode monocular``: the RGB-D restorer at a flat
+  seafloor's range at each frame's altitude, as for frames without range; a copy of the clean run's workspace, so only
+  the correct stage and what follows it rerun);
+- ``mono_add``: the same on a copy of ``demo_add``'s workspace (``watergan demo --add ... --correct-mode monocular``);
+- ``mono_net``: ``clean`` with the paper's monocular restorer (``--no-restorer-range-input``: trained on the image
+  and altitude alone; a copy of the clean run's workspace).
 
 Each case runs ``--runs`` times (run r in ``OUT/<case>_r<r>``; the same code and seed: the spread is what the
 budgeted training varies). Per run it records, from the eval stage's result, the board CIEDE2000 and the
 consistency (variance of c/(R+G+B) across views, per channel) of raw, every baseline, the physics correction
 and the restorer ("ours", with the correct stage's mode), the stage times and the correct stage's frames per
 second, and checks issue 18's targets: the RGB-D restorer's board <= 1.5x the physics correction's and its
-consistency below raw's and every baseline's in every channel; the monocular restorer's board <= 2.0 and its
-consistency below raw's; from ``demo`` to ``demo_add`` the board and mean consistency of both corrections fall;
+consistency below raw's and every baseline's in every channel; in monocular mode (each mono case) the board <= 2.0
+and the consistency below raw's; from ``demo`` to ``demo_add`` the board and mean consistency of both corrections fall;
 with the generic in-air set the restorer's board changes by <= 20 %. Writes
 ``benchmarks/results/product.json``.
 """
@@ -67,6 +71,12 @@ def _generic_rgbd(out: Path) -> Path:
     return folder
 
 
+def _copy_of(ws: Path, source: Path) -> None:
+    """Start ``ws`` as a copy of the finished workspace ``source`` (only what a case changes then reruns)."""
+    if not ws.exists() and (source / "run_summary.json").is_file():
+        shutil.copytree(source, ws, symlinks=True)
+
+
 def run_case(case: str, ws: Path, out: Path, preset: str, extra: list[str]) -> float:
     """Run one case into workspace ``ws``; returns the command's wall time."""
     common = ["--no-progress", *extra]
@@ -74,14 +84,16 @@ def run_case(case: str, ws: Path, out: Path, preset: str, extra: list[str]) -> f
         return watergan("demo", "--preset", preset, "--out", str(ws), *common)
     if case == "demo_add":
         return watergan("demo", "--preset", preset, "--out", str(ws), "--add", HIDDEN, *common)
+    if case == "mono_add":  # demo_add's workspace (this run's), corrected in monocular mode
+        _copy_of(ws, ws.parent / ws.name.replace("mono_add", "demo"))
+        return watergan("demo", "--preset", preset, "--out", str(ws), "--add", HIDDEN, "--correct-mode", "monocular",
+                        *common)
     survey = _clean_survey(out, preset)
     if case == "generic":
         common += ["--rgbd-dir", str(_generic_rgbd(out))]
-    if case == "mono":  # the clean run's workspace with the restorer retrained monocular (geometry and water reused)
-        clean = ws.parent / ws.name.replace("mono", "clean")
-        if not ws.exists() and (clean / "run_summary.json").is_file():
-            shutil.copytree(clean, ws, symlinks=True)
-        common += ["--no-restorer-range-input"]
+    if case in ("mono", "mono_net"):  # the clean run's workspace (geometry and water reused)
+        _copy_of(ws, ws.parent / ws.name.replace(case, "clean"))
+        common += ["--correct-mode", "monocular"] if case == "mono" else ["--no-restorer-range-input"]
     return watergan("run", str(survey), "--workspace", str(ws), *common)
 
 
@@ -113,11 +125,12 @@ def targets(runs: dict[str, list[dict]]) -> dict:
                     b["ours"] <= 1.5 * b["physics"])
                 out.setdefault(f"{case}: rgb-d consistency below raw and every baseline, every channel", []).append(
                     all(c["ours"][k] < min(c[m][k] for m in BASELINES if m in c) for k in range(3)))
-    for rec in runs.get("mono", []):
-        b, c = rec["board_ciede2000"], rec["consistency"]
-        out.setdefault("mono: board <= 2.0", []).append(b["ours"] <= 2.0)
-        out.setdefault("mono: consistency below raw, every channel", []).append(
-            all(c["ours"][k] < c["raw"][k] for k in range(3)))
+    for case in ("mono", "mono_add", "mono_net"):
+        for rec in runs.get(case, []):
+            b, c = rec["board_ciede2000"], rec["consistency"]
+            out.setdefault(f"{case}: board <= 2.0", []).append(b["ours"] <= 2.0)
+            out.setdefault(f"{case}: consistency below raw, every channel", []).append(
+                all(c["ours"][k] < c["raw"][k] for k in range(3)))
     for before, after in zip(runs.get("demo", []), runs.get("demo_add", []), strict=False):
         for method in ("physics", "ours"):
             out.setdefault(f"--add lowers {method}'s board", []).append(
@@ -144,7 +157,7 @@ def print_run(case: str, r: int, rec: dict) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="/tmp/bench_product")
-    parser.add_argument("--cases", default="demo,demo_add,clean,generic,mono")
+    parser.add_argument("--cases", default="demo,demo_add,clean,generic,mono,mono_add")
     parser.add_argument("--runs", type=int, default=2)
     parser.add_argument("--once", default="", help="cases run in the first run only (e.g. clean,mono,generic)")
     parser.add_argument("--preset", default="demo")

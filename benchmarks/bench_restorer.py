@@ -90,7 +90,7 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
         parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
     torch.set_num_threads(threads)
     return {"lanes": lanes, "workspace": str(ws), "frames": result.corrected,
-            "mode": "rgb-d" if result.range_input else "monocular", "water": model.water is not None,
+            "mode": result.mode, "water": model.water is not None,
             "best_s": best, "frames_per_s": result.corrected / best, **parts}
 
 

@@ -39,7 +39,7 @@ def main() -> int:
     r = correct_folder(model, ws / "00_survey" / "images", out, force=True, progress=False,
                        range_dir=ws / "06_water" / "range")
     print(f"corrected {r.corrected} frames in {r.seconds:.1f} s = {r.corrected / r.seconds:.1f} frames/s "
-          f"({'RGB-D' if r.range_input else 'monocular'})")
+          f"({r.mode} mode)")
     board = truth_board(ws / "00_survey")
     folders = {"raw": ws / "00_survey" / "images", "restorer": out / "images", "physics": ws / "06_water" / "images"}
     cons = consistency(Tracks.load(ws / "04_sfm" / "tracks.npz"), folders)

@@ -33,9 +33,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     c = config_from_args(CorrectConfig, args)
     result = correct_folder(c.model_dir, c.images_dir, c.out_dir, force=c.force, batch_size=c.batch_size,
                             device=c.device, scheduler=c.scheduler or None, navigation=c.navigation,
-                            range_dir=c.range_dir)
-    print(f"corrected {result.corrected}, already done {result.already_done}, failed {len(result.failed)} "
-          f"in {result.seconds:.1f} s -> {result.out_dir} (images/, depth/, summary.json)")
+                            range_dir=c.range_dir, mode=str(c.mode))
+    print(f"corrected {result.corrected} ({result.mode} mode), already done {result.already_done}, "
+          f"failed {len(result.failed)} in {result.seconds:.1f} s -> {result.out_dir} (images/, depth/, summary.json)")
     for line in result.failed:
         print(f"  {line}")
     return 0

@@ -12,14 +12,22 @@ The restorer works on the stored (sRGB-encoded) values scaled to 0..1, so the ou
 input's encoding. A restorer trained with ``altitude`` also takes each image's altitude above the
 seafloor (metres), the ``nav_altitude_m`` of a navigation file (:func:`watergan.data.read_nav_altitudes`;
 by default the ``survey.json`` beside the images folder); an image without one is an error before any
-work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's range in metres from
-``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take the image's
-median range, :func:`watergan.nets.restorer.fill_range_holes`); an image without a range map is an error before
-any work. A restorer that starts from a water's inverse (:func:`watergan.nets.restorer.water_fields`) takes the
-images' intrinsics from ``camera.json`` in the images folder or beside it (a water with lights needs them). Images
-already corrected (all three outputs present) are skipped unless ``force``. An unreadable or truncated image is
-reported and skipped. Every file is written atomically; the output folder may not be (or contain) the input
-folder's files.
+work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's range in metres, in one of two modes
+(``mode``; ``auto``: RGB-D when ``range_dir`` is given, else monocular):
+
+- ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take
+  the image's median range, :func:`watergan.nets.restorer.fill_range_holes`); an image without a range map is an
+  error before any work;
+- ``monocular``, for frames without range (a live camera, a survey without stereo overlap): the range of a flat
+  seafloor at the frame's altitude below a nadir camera (:func:`watergan.formation.inverse.flat_floor_range`), from
+  the navigation's altitude and the camera's intrinsics. The restorer's depth net cannot stand in: on the demo its
+  relative depth scaled to the altitude is 4.0 % off the true range (median per frame), the flat seafloor 2.3 %.
+
+A restorer trained monocular (``--no-range-input``, the paper's) takes the image and its altitude only. A restorer
+that starts from a water's inverse (:func:`watergan.nets.restorer.water_fields`) takes the images' intrinsics from
+``camera.json`` in the images folder or beside it (a water with lights needs them). Images already corrected (all
+three outputs present) are skipped unless ``force``. An unreadable or truncated image is reported and skipped.
+Every file is written atomically; the output folder may not be (or contain) the input folder's files.
 
 With ``scheduler`` (a Dask scheduler address, ``tcp://HOST:8786``) the images still to do are sent in
 chunks to the cluster's workers (:mod:`watergan.parallel`), each chunk corrected with the model loaded
@@ -37,6 +45,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +66,7 @@ from watergan.data import (
 )
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
-from watergan.formation.inverse import needs_normals
+from watergan.formation.inverse import flat_floor_range, needs_normals
 from watergan.io import bit_depth, depth_or_zero, read_depth
 from watergan.nets.restorer import WaterFields, fill_range_holes, restore
 from watergan.train_restorer import load_restorer
@@ -77,8 +86,8 @@ class CorrectResult:
     failed: list[str] = field(default_factory=list)
     """"path: reason" for each image that could not be read."""
     seconds: float = 0.0
-    range_input: bool = False
-    """Whether the restorer took each pixel's range (RGB-D mode)."""
+    mode: str = "monocular"
+    """"rgb-d" (each pixel's range from its range map) or "monocular" (see the module docstring)."""
 
 
 def _outputs(out: Path, stem: str) -> tuple[Path, Path, Path]:
@@ -108,9 +117,12 @@ class CorrectChunk:
     altitude_m: tuple[float, ...] | None = None
     """Per path, the altitude above the seafloor in metres (None: the model does not take it)."""
     range_dir: Path | None = None
-    """Folder of each path's range map ``<stem>.png`` (None: the model does not take range)."""
+    """Folder of each path's range map ``<stem>.png`` (None: no range maps)."""
     camera: PinholeIntrinsics | None = None
     """The images' intrinsics, for a restorer that starts from a water (None: depth = range, no points)."""
+    flat_floor: bool = False
+    """An RGB-D restorer in monocular mode: each image's range is a flat seafloor's at its altitude (needs
+    ``altitude_m`` and ``camera``)."""
 
 
 @dataclass
@@ -133,14 +145,19 @@ def cpu_lanes() -> int:
     return max(1, torch.get_num_threads())
 
 
-def _read_one(chunk: CorrectChunk, path: Path) -> tuple[np.ndarray, int, np.ndarray | None]:
-    """An image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer, its range map
-    (float32 metres, holes filled: :func:`watergan.nets.restorer.fill_range_holes`); a DataError names what is
-    wrong. Runs in the I/O threads, off the nets' thread."""
+def _read_one(chunk: CorrectChunk, k: int, path: Path) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer,
+    its range (float32 metres): its range map, holes filled (:func:`watergan.nets.restorer.fill_range_holes`), or a
+    flat seafloor's (``chunk.flat_floor``); a DataError names what is wrong. Runs in the I/O threads, off the nets'
+    thread."""
     image = read_image(path, "linear").astype(np.float32)
     bits = bit_depth(path)
     range_m = None
-    if chunk.range_dir is not None:
+    if chunk.flat_floor:
+        h, w = image.shape[:2]
+        K = chunk.camera.resized(h, w).K
+        range_m = flat_floor_range(chunk.altitude_m[k], K, h, w).astype(np.float32)
+    elif chunk.range_dir is not None:
         range_path = chunk.range_dir / f"{path.stem}.png"
         range_m = depth_or_zero(read_depth(range_path))
         if range_m.shape != image.shape[:2]:
@@ -173,9 +190,9 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
 
     def correct_batch(batch: list[Item]) -> int:
         x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).to(dev)
-        altitude = torch.tensor([b[3] for b in batch], device=dev) if chunk.altitude_m is not None else None
+        altitude = torch.tensor([b[3] for b in batch], device=dev) if model.altitude else None
         range_m = None
-        if chunk.range_dir is not None:
+        if batch[0][4] is not None:
             range_m = torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).to(dev)
         intrinsics = None if chunk.camera is None else chunk.camera.resized(*x.shape[-2:]).as_tuple()
         with torch.no_grad():
@@ -237,16 +254,24 @@ def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int) -> It
     submitted before the one yielded."""
     reads: deque[tuple[int, Path, Future]] = deque()
     for k, path in enumerate(chunk.paths):
-        reads.append((k, path, pool.submit(_read_one, chunk, path)))
+        reads.append((k, path, pool.submit(_read_one, chunk, k, path)))
         if len(reads) > ahead:
             yield reads.popleft()
     yield from reads
 
 
+class CorrectMode(StrEnum):
+    """How an RGB-D restorer gets each pixel's range (see the module docstring)."""
+
+    auto = "auto"
+    rgbd = "rgb-d"
+    monocular = "monocular"
+
+
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
                    batch_size: int = 4, device: str = "auto", progress: bool = True, scheduler=None,
                    chunk_size: int = 64, navigation: str | Path | None = None,
-                   range_dir: str | Path | None = None) -> CorrectResult:
+                   range_dir: str | Path | None = None, mode: str = "auto") -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
     images of the same size are corrected together, ``batch_size`` at a time.
 
@@ -256,8 +281,9 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     writing to ``out_dir`` on the shared file system (:mod:`watergan.parallel`). Same files either way.
 
     ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
-    ``images_dir``), read only for a restorer trained with ``altitude``. ``range_dir``: the folder of each
-    image's range map, for a restorer trained with ``range_input`` (the RGB-D mode)."""
+    ``images_dir``), read for a restorer trained with ``altitude`` and in monocular mode. ``range_dir``: the folder
+    of each image's range map, for a restorer trained with ``range_input`` in RGB-D mode. ``mode``: a
+    :class:`CorrectMode` (auto: RGB-D when ``range_dir`` is given)."""
     from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     began = time.perf_counter()
@@ -266,6 +292,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         raise DataError(f"image folder {images_dir} does not exist")
     if batch_size < 1:
         raise DataError(f"batch_size must be at least 1, got {batch_size}")
+    if mode not in tuple(CorrectMode):
+        raise DataError(f"mode must be one of {', '.join(CorrectMode)}, not '{mode}'")
     targets = {p.resolve() for p in (out, out / "images", out / "depth")}
     if images_dir.resolve() in targets:
         raise DataError(f"the output folder {out} would write into the input folder {images_dir}: choose another")
@@ -277,49 +305,63 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     if not distributed or device not in ("auto", "cpu", "cuda"):
         pick_device(device)  # a bad device name fails here (a cluster's workers may have CUDA where this has none)
     model = load_restorer(model_dir)  # a missing or torn model fails here, before any work is sent
-    if model.altitude:
+    if not model.range_input and mode == CorrectMode.rgbd:
+        raise DataError(f"the restorer in {model_dir} was trained monocular (no range input): it has no RGB-D mode; "
+                        f"correct with --mode monocular, or train one with --range-input")
+    if mode == CorrectMode.auto:
+        mode = CorrectMode.rgbd if (model.range_input and range_dir) else CorrectMode.monocular
+    flat_floor = model.range_input and mode == CorrectMode.monocular
+    camera = read_intrinsics(images_dir) if (model.water is not None or flat_floor) else None
+    if flat_floor and camera is None:
+        raise DataError(f"the restorer in {model_dir} takes each pixel's range; without range maps (monocular mode) "
+                        f"it takes a flat seafloor's at each frame's altitude, which needs the camera's intrinsics: "
+                        f"put the survey's camera.json in {images_dir} or beside it, or give --range-dir")
+    if model.altitude or flat_floor:
         nav = Path(navigation) if navigation else images_dir.parent / "survey.json"
+        needs = "takes each image's altitude above the seafloor" if model.altitude else \
+            "takes each pixel's range, and without range maps (monocular mode) a flat seafloor's at the altitude"
         if not nav.is_file():
-            raise DataError(f"the restorer in {model_dir} takes each image's altitude above the seafloor, and there "
-                            f"is no navigation file {nav}: give one with nav_altitude_m per frame (--navigation), "
-                            f"or train a restorer with --no-altitude")
+            raise DataError(f"the restorer in {model_dir} {needs}, and there is no navigation file {nav}: give one "
+                            f"with nav_altitude_m per frame (--navigation)"
+                            + (", or train a restorer with --no-altitude" if model.altitude and not flat_floor else
+                               ", or give each frame's range map (--range-dir)" if flat_floor else ""))
         altitudes = read_nav_altitudes(nav, [p.name for p in files])
         lacking = [p.name for p in files if p.name not in altitudes]
         if lacking:
             raise DataError(f"the navigation has no altitude for {len(lacking)} of the {len(files)} images "
                             f"(e.g. {lacking[0]}): the restorer in {model_dir} needs one per image")
-    ranges = Path(range_dir) if (model.range_input and range_dir) else None
-    if model.range_input:
-        lacking = [p.name for p in files if ranges is None or not (ranges / f"{p.stem}.png").is_file()]
+    ranges = Path(range_dir) if (model.range_input and mode == CorrectMode.rgbd) else None
+    if ranges is not None:
+        lacking = [p.name for p in files if not (ranges / f"{p.stem}.png").is_file()]
         if lacking:
             raise DataError(f"the restorer in {model_dir} takes each pixel's range (RGB-D mode), and "
-                            f"{len(lacking)} of the {len(files)} images have no range map (e.g. {lacking[0]}"
-                            f"{'' if ranges is None else f' in {ranges}'}): give --range-dir (the water stage's "
-                            f"range/), or train a monocular restorer (--no-range-input)")
-    camera = read_intrinsics(images_dir) if model.water is not None else None
+                            f"{len(lacking)} of the {len(files)} images have no range map (e.g. {lacking[0]} in "
+                            f"{ranges}): give the water stage's range/ of these frames, or correct every frame in "
+                            f"monocular mode (--mode monocular: a flat seafloor at the navigation's altitude)")
     if model.water is not None and camera is None and needs_normals(Stack.from_config(model.water)):
         raise DataError(f"the restorer in {model_dir} inverts a water with lights, which needs the camera's "
                         f"intrinsics: put the survey's camera.json in {images_dir} or beside it")
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
-    result = CorrectResult(out, 0, 0, range_input=model.range_input)
+    result = CorrectResult(out, 0, 0, mode=str(mode))
     todo = [p for p in files if force or not all(p.is_file() for p in _outputs(out, p.stem))]
     result.already_done = len(files) - len(todo)
 
     def altitude_of(paths: list[Path]) -> tuple[float, ...] | None:
-        return tuple(altitudes[p.name] for p in paths) if model.altitude else None
+        return tuple(altitudes[p.name] for p in paths) if (model.altitude or flat_floor) else None
 
     if not distributed:
         with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
-                                              altitude_of(todo), ranges, camera), bar, model)
+                                              altitude_of(todo), ranges, camera, flat_floor), bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
-                             batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera)
+                             batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera,
+                             flat_floor)
                 for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):
@@ -342,6 +384,9 @@ class CorrectStage:
     """Frames to correct; empty: the survey's images."""
     batch_size: int = 4
     """Images per batch."""
+    mode: CorrectMode = CorrectMode.auto
+    """How an RGB-D restorer gets each pixel's range: auto (the water stage's range maps when it wrote them, else
+    monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, as for frames without range)."""
     scheduler: str = field(default="", metadata={"hash": False})
     """Dask scheduler address (tcp://HOST:8786) for the per-image work; empty: this machine."""
     progress: bool = field(default=True, metadata={"hash": False})
@@ -360,24 +405,25 @@ class CorrectStageResult:
     fps: float
     """Frames per second, file I/O and model loading included."""
     mode: str = "monocular"
-    """"rgb-d" (each pixel's range from the water stage) or "monocular" (the image, and the altitude when the
-    restorer takes it)."""
+    """"rgb-d" (each pixel's range from the water stage) or "monocular" (the image and, when the restorer takes
+    them, the altitude and a flat seafloor's range at it)."""
 
 
 def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
     """Correct the survey's frames with the restorer stage's model into the stage's folder; a restorer in RGB-D
-    mode takes each pixel's range from the water stage's range maps."""
+    mode takes each pixel's range from the water stage's range maps (``cfg.mode``)."""
     restorer = ws.require("restorer", "correct")
     images = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     out = ws.stage_dir("correct")
     water = ws.result("water")  # its range maps; read only by a restorer in RGB-D mode
     ranges = ws.path(water.range_dir) if water is not None and water.range_dir else None
     result = correct_folder(restorer.out_dir, images, out, force=True, batch_size=cfg.batch_size,
-                            progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges)
+                            progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges,
+                            mode=str(cfg.mode))
     return CorrectStageResult(corrected=result.corrected, failed=result.failed, seconds=result.seconds,
                               images=ws.relative(out / "images"), depth=ws.relative(out / "depth"),
                               fps=result.corrected / max(result.seconds, 1e-9),
-                              mode="rgb-d" if result.range_input else "monocular")
+                              mode=result.mode)
 
 
 @dataclass(frozen=True)
@@ -396,6 +442,9 @@ class CorrectConfig:
     range_dir: Path | None = None
     """Folder of each image's range map (<stem>.png, 16-bit millimetres; a workspace's 06_water/range), for a
     restorer trained in RGB-D mode."""
+    mode: CorrectMode = CorrectMode.auto
+    """How a restorer trained in RGB-D mode gets each pixel's range: auto (rgb-d with --range-dir, else monocular),
+    rgb-d (the range maps), or monocular (a flat seafloor at each frame's navigation altitude; needs camera.json)."""
     force: bool = False
     """Redo images already corrected."""
     batch_size: int = 4

@@ -255,7 +255,8 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
 
 #: How the correct stage's restorer corrected the frames (its result's ``mode``).
 OURS_MODES = {"rgb-d": "RGB-D mode (each pixel's range from the water stage)",
-              "monocular": "monocular mode (the image, and the altitude when the restorer takes it)",
+              "monocular": "monocular mode (the image, and the altitude when the restorer takes it; a restorer trained "
+                           "with range takes a flat seafloor's at the altitude)",
               "unknown": "frames given with ours_dir (mode not recorded)"}
 
 

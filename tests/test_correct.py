@@ -121,13 +121,13 @@ def test_an_rgbd_restorer_corrects_with_each_pixel_s_range(tmp_path):
     rng = np.random.default_rng(0)
     for name in ("a.png", "b.png"):
         cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
-    with pytest.raises(DataError, match="2 of the 2 images have no range map .*--range-dir"):
+    with pytest.raises(DataError, match="without range maps .monocular mode.*camera.json.*or give --range-dir"):
         correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
     near, far = tmp_path / "near_range", tmp_path / "far_range"
     near_m = np.full((32, 40), 1.5)
     near_m[:4] = 0  # a hole
     write_depth_png(near / "a.png", near_m)
-    with pytest.raises(DataError, match="1 of the 2 images have no range map .e.g. b.png"):
+    with pytest.raises(DataError, match="1 of the 2 images have no range map .e.g. b.png.*--mode monocular"):
         correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False, range_dir=near)
     assert not (tmp_path / "out").exists()
     write_depth_png(near / "b.png", near_m)
@@ -162,3 +162,52 @@ def test_lanes_side_by_side_write_the_same_files_and_leave_torch_s_threads(tmp_p
         outputs[lanes] = {p.relative_to(tmp_path / f"out{lanes}"): p.read_bytes()
                           for p in sorted((tmp_path / f"out{lanes}").rglob("*")) if p.suffix in (".png", ".npy")}
     assert len(outputs[1]) == 21 and outputs[1] == outputs[3]
+
+
+def test_an_rgbd_restorer_in_monocular_mode_takes_a_flat_seafloor_at_the_altitude(tmp_path):
+    """Without range maps an RGB-D restorer corrects each frame at the range of a flat seafloor at its navigation
+    altitude (with the camera's intrinsics; each missing input is a clear error): the same colours as range maps of
+    that floor give, another colour at another altitude; a monocular restorer has no RGB-D mode."""
+    from watergan.data import PinholeIntrinsics
+    from watergan.formation.inverse import flat_floor_range
+    from watergan.io import write_depth_png
+
+    model = Restorer(TINY, depth_hw=(16, 16), range_input=True).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+    save_restorer(tmp_path / "model" / "restorer.pt", model)
+    images = tmp_path / "survey" / "images"
+    images.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    camera = PinholeIntrinsics(30.0, 30.0, 19.5, 15.5, 40, 32)
+    (tmp_path / "survey" / "camera.json").write_text(json.dumps(camera.to_json()))
+    with pytest.raises(DataError, match="no navigation file .*--range-dir"):
+        correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
+    (tmp_path / "survey" / "survey.json").write_text(json.dumps({"frames": ["a.png", "b.png"],
+                                                                  "nav_altitude_m": [1.5, 3.0]}))
+    mono = correct_folder(tmp_path / "model", images, tmp_path / "mono", progress=False)
+    assert (mono.mode, mono.corrected) == ("monocular", 2)
+    floor = tmp_path / "floor"
+    for name, altitude_m in (("a.png", 1.5), ("b.png", 3.0)):
+        write_depth_png(floor / name, flat_floor_range(altitude_m, camera.K, 32, 40))
+    rgbd = correct_folder(tmp_path / "model", images, tmp_path / "rgbd", progress=False, range_dir=floor)
+    assert rgbd.mode == "rgb-d"
+    for name in ("a.png", "b.png"):
+        m, r = (cv2.imread(str(tmp_path / d / "images" / name)).astype(int) for d in ("mono", "rgbd"))
+        assert np.abs(m - r).max() <= 1  # the range maps hold millimetres
+    far = correct_folder(tmp_path / "model", images, tmp_path / "far", progress=False, range_dir=floor,
+                         mode="monocular")
+    assert far.mode == "monocular"  # the mode wins over the range maps
+    a_floor = flat_floor_range(1.5, camera.K, 32, 40)
+    corner_m = 1.5 * np.sqrt(1 + (19.5 / 30) ** 2 + (15.5 / 30) ** 2)  # r = a |K^-1 (x, y, 1)| at pixel (0, 0)
+    assert a_floor.min() == pytest.approx(1.5, abs=0.01) and a_floor[0, 0] == pytest.approx(corner_m, rel=1e-9)
+    a_15 = cv2.imread(str(tmp_path / "mono" / "images" / "a.png")).astype(int)
+    (tmp_path / "survey" / "survey.json").write_text(json.dumps({"frames": ["a.png", "b.png"],
+                                                                  "nav_altitude_m": [3.0, 3.0]}))
+    correct_folder(tmp_path / "model", images, tmp_path / "a3", progress=False)
+    assert np.abs(a_15 - cv2.imread(str(tmp_path / "a3" / "images" / "a.png")).astype(int)).max() > 2
+    save_restorer(tmp_path / "mono_model" / "restorer.pt", Restorer(TINY, depth_hw=(16, 16)).eval())
+    with pytest.raises(DataError, match="trained monocular .* no RGB-D mode"):
+        correct_folder(tmp_path / "mono_model", images, tmp_path / "x", progress=False, mode="rgb-d")

@@ -25,6 +25,11 @@ def rays_cam(K: np.ndarray, h: int, w: int) -> np.ndarray:
     return np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
 
 
+def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(H,W) the range (metres) of a flat seafloor ``altitude_m`` below a nadir camera: r = a |K^-1 (x, y, 1)|."""
+    return altitude_m * np.linalg.norm(rays_cam(np.asarray(K, np.float64), h, w), axis=-1)
+
+
 def clean_range(r: np.ndarray) -> np.ndarray:
     """A range map (metres) as float64 with NaN wherever it holds no range (NaN, inf or <= 0)."""
     r = np.asarray(r, np.float64)
