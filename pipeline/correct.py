@@ -18,9 +18,10 @@ work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's rang
 - ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take
   the image's median range, :func:`watergan.nets.restorer.fill_range_holes`); an image without a range map is an
   error before any work;
-- ``monocular``, for frames without range (a live camera, a survey without stereo overlap): the range of a flat
-  seafloor at the frame's altitude below a nadir camera (:func:`watergan.formation.inverse.flat_floor_range`), from
-  the navigation's altitude and the camera's intrinsics. The restorer's depth net cannot stand in: on the demo its
+- ``monocular``, for frames without range (a live camera, a survey without stereo overlap): the range of a flat,
+  level seafloor at the frame's altitude (:func:`watergan.formation.inverse.flat_floor_range`), from the navigation's
+  altitude, its attitude where it gives one (``nav_down_cam``: :func:`watergan.data.read_nav_down`; else a nadir
+  camera) and the camera's intrinsics. The restorer's depth net cannot stand in: on the demo its
   relative depth scaled to the altitude is 4.0 % off the true range (median per frame), the flat seafloor 2.3 %.
 
 A restorer trained monocular (``--no-range-input``, the paper's) takes the image and its altitude only. A restorer
@@ -63,6 +64,7 @@ from watergan.data import (
     read_image,
     read_intrinsics,
     read_nav_altitudes,
+    read_nav_down,
 )
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
@@ -123,6 +125,8 @@ class CorrectChunk:
     flat_floor: bool = False
     """An RGB-D restorer in monocular mode: each image's range is a flat seafloor's at its altitude (needs
     ``altitude_m`` and ``camera``)."""
+    down_cam: tuple[tuple[float, float, float], ...] | None = None
+    """Per path, "down" in the camera frame from the navigation's attitude (None: nadir cameras)."""
 
 
 @dataclass
@@ -156,7 +160,8 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path) -> tuple[np.ndarray, int,
     if chunk.flat_floor:
         h, w = image.shape[:2]
         K = chunk.camera.resized(h, w).K
-        range_m = flat_floor_range(chunk.altitude_m[k], K, h, w).astype(np.float32)
+        down = chunk.down_cam[k] if chunk.down_cam is not None else None
+        range_m = flat_floor_range(chunk.altitude_m[k], K, h, w, down).astype(np.float32)
     elif chunk.range_dir is not None:
         range_path = chunk.range_dir / f"{path.stem}.png"
         range_m = depth_or_zero(read_depth(range_path))
@@ -316,6 +321,7 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         raise DataError(f"the restorer in {model_dir} takes each pixel's range; without range maps (monocular mode) "
                         f"it takes a flat seafloor's at each frame's altitude, which needs the camera's intrinsics: "
                         f"put the survey's camera.json in {images_dir} or beside it, or give --range-dir")
+    downs = None
     if model.altitude or flat_floor:
         nav = Path(navigation) if navigation else images_dir.parent / "survey.json"
         needs = "takes each image's altitude above the seafloor" if model.altitude else \
@@ -326,6 +332,7 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                             + (", or train a restorer with --no-altitude" if model.altitude and not flat_floor else
                                ", or give each frame's range map (--range-dir)" if flat_floor else ""))
         altitudes = read_nav_altitudes(nav, [p.name for p in files])
+        downs = read_nav_down(nav, [p.name for p in files]) if flat_floor else None
         lacking = [p.name for p in files if p.name not in altitudes]
         if lacking:
             raise DataError(f"the navigation has no altitude for {len(lacking)} of the {len(files)} images "
@@ -351,17 +358,21 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     def altitude_of(paths: list[Path]) -> tuple[float, ...] | None:
         return tuple(altitudes[p.name] for p in paths) if (model.altitude or flat_floor) else None
 
+    def down_of(paths: list[Path]) -> tuple[tuple[float, float, float], ...] | None:
+        return tuple(tuple(downs[p.name]) for p in paths) if downs else None
+
     if not distributed:
         with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
-                                              altitude_of(todo), ranges, camera, flat_floor), bar, model)
+                                              altitude_of(todo), ranges, camera, flat_floor, down_of(todo)),
+                                 bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
                              batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera,
-                             flat_floor)
+                             flat_floor, down_of(part))
                 for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):

@@ -211,3 +211,31 @@ def test_an_rgbd_restorer_in_monocular_mode_takes_a_flat_seafloor_at_the_altitud
     save_restorer(tmp_path / "mono_model" / "restorer.pt", Restorer(TINY, depth_hw=(16, 16)).eval())
     with pytest.raises(DataError, match="trained monocular .* no RGB-D mode"):
         correct_folder(tmp_path / "mono_model", images, tmp_path / "x", progress=False, mode="rgb-d")
+
+
+def test_a_flat_seafloor_s_range_follows_the_camera_s_attitude(tmp_path):
+    """With the navigation's "down" in the camera frame (an attitude sensor's gravity), the flat seafloor's range is
+    that of the tilted camera's rays: for a camera pitched by 30 degrees, the ray along "down" meets the floor at the
+    altitude and the optical axis at a / cos 30; a malformed vector is a clear error."""
+    from watergan.data import read_nav_down
+    from watergan.formation.inverse import flat_floor_range
+
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
+    tilt = np.radians(30.0)
+    down = np.array([0.0, np.sin(tilt), np.cos(tilt)])  # the floor below appears towards the image's bottom
+    r = flat_floor_range(2.0, K, 121, 101, down)
+    assert r[40, 50] == pytest.approx(2.0 / np.cos(tilt))
+    y_down = int(round(40 + 100 * np.tan(tilt)))  # the pixel whose ray is "down"
+    assert r[y_down, 50] == pytest.approx(2.0, rel=2e-3) and r[:, 50].min() == pytest.approx(2.0, rel=2e-3)
+    assert r[0, 50] > r[40, 50] > r[80, 50]  # farther towards the horizon, nearer towards "down"
+    np.testing.assert_allclose(flat_floor_range(2.0, K, 81, 101, (0.0, 0.0, 1.0)), flat_floor_range(2.0, K, 81, 101))
+    survey = tmp_path / "survey.json"
+    survey.write_text(json.dumps({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0, 2.0],
+                                  "nav_down_cam": [list(down), [0.0, 0.0, 1.0]]}))
+    np.testing.assert_allclose(read_nav_down(survey)["a.png"], down)
+    survey.write_text(json.dumps({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0, 2.0],
+                                  "nav_down_cam": [list(down), [0.0, 0.0, -1.0]]}))
+    with pytest.raises(DataError, match="nav_down_cam is not a unit vector .* for 1 frames .e.g. b.png"):
+        read_nav_down(survey)
+    survey.write_text(json.dumps({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0, 2.0]}))
+    assert read_nav_down(survey) is None

@@ -73,6 +73,11 @@ def test_layout_has_every_file(tiny):
     assert survey["frames"] == truth.frames and len(survey["nav_altitude_m"]) == n
     # navigation altitude is the camera's height above the flat board area (~2.5 m) give or take
     assert 2.0 < min(survey["nav_altitude_m"]) and max(survey["nav_altitude_m"]) == survey["max_altitude_m"] < 3.2
+    # the attitude sensor's "down" in each camera's frame is the world's -z seen from the camera's true pose
+    down = np.asarray(survey["nav_down_cam"])
+    np.testing.assert_allclose(down, np.einsum("nij,i->nj", truth.world_from_cam[:, :3, :3], [0.0, 0.0, -1.0]),
+                               atol=1e-6)
+    assert (down[:, 2] > 0.99).all()  # the tiny survey looks down
 
 
 def test_hidden_effects_in_truth_not_in_visible(tiny):

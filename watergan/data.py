@@ -201,6 +201,29 @@ def read_nav_altitudes(survey_json: str | Path, names: list[str] | None = None) 
     return {str(f): float(a) for f, a in zip(frames, altitudes, strict=True)}
 
 
+def read_nav_down(survey_json: str | Path, names: list[str] | None = None) -> dict[str, np.ndarray] | None:
+    """Image file name -> the unit vector of "down" (gravity) in the camera's frame (x right, y down the image, z
+    along the optical axis), as the vehicle's attitude sensor gives it, from a survey file's ``nav_down_cam`` (three
+    numbers per frame, beside ``frames`` as :func:`read_nav_altitudes` reads them); None when the file has none (a
+    nadir camera is then assumed: (0, 0, 1)). A count that differs, or a vector not of unit length within 1 % or
+    pointing up the optical axis, is an error naming the file."""
+    path = Path(survey_json)
+    survey = read_survey_json(path) if path.is_file() else {}
+    if "nav_down_cam" not in survey:
+        return None
+    frames = survey.get("frames", names)
+    down = np.asarray(survey["nav_down_cam"], dtype=np.float64)
+    if frames is None or down.ndim != 2 or down.shape != (len(frames), 3):
+        raise DataError(f"navigation file {path}: nav_down_cam needs three numbers per frame "
+                        f"({0 if frames is None else len(frames)} frames), got shape {down.shape}")
+    norm = np.linalg.norm(down, axis=1)
+    bad = [str(f) for f, n, d in zip(frames, norm, down, strict=True) if not (abs(n - 1) < 0.01 and d[2] > 0)]
+    if bad:
+        raise DataError(f"navigation file {path}: nav_down_cam is not a unit vector with a positive z (the camera "
+                        f"looking downwards) for {len(bad)} frames (e.g. {bad[0]})")
+    return {str(f): d / n for f, d, n in zip(frames, down, norm, strict=True)}
+
+
 def rgbd_folders(folder: str | Path) -> tuple[Path, Path]:
     """The (rgb, depth) subfolders of an RGB-D folder (``DIR/rgb`` + ``DIR/depth``, or ``DIR/rgbd/...``)."""
     folder = Path(folder)

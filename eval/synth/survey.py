@@ -235,6 +235,7 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
         "stereo": stereo,
         "bit_depth": f.bit_depth,
         "nav_altitude_m": altitudes.round(4).tolist(),
+        "nav_down_cam": (-trajectory.world_from_cam[:, 2, :3]).round(6).tolist(),  # R^T (0, 0, -1): the IMU's gravity
         "nav_depth_m": (config.render.site_depth_m - trajectory.world_from_cam[:, 2, 3]).round(4).tolist(),
         "max_altitude_m": round(float(altitudes.max()), 4),
         "site_depth_m": config.render.site_depth_m,

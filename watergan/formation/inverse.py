@@ -25,9 +25,16 @@ def rays_cam(K: np.ndarray, h: int, w: int) -> np.ndarray:
     return np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
 
 
-def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int) -> np.ndarray:
-    """(H,W) the range (metres) of a flat seafloor ``altitude_m`` below a nadir camera: r = a |K^-1 (x, y, 1)|."""
-    return altitude_m * np.linalg.norm(rays_cam(np.asarray(K, np.float64), h, w), axis=-1)
+def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int,
+                     down_cam: np.ndarray | None = None) -> np.ndarray:
+    """(H,W) the range (metres) of a flat, level seafloor ``altitude_m`` below the camera, along each pixel's ray
+    d = K^-1 (x, y, 1): r = a |d| / (d . g), g the unit "down" in the camera frame (``down_cam``; None: a nadir
+    camera, g = (0, 0, 1), r = a |d|). Rays at or above the horizon (d . g <= 1 % of |d|) take 100 a."""
+    rays = rays_cam(np.asarray(K, np.float64), h, w)
+    g = np.array([0.0, 0.0, 1.0]) if down_cam is None else np.asarray(down_cam, np.float64)
+    length = np.linalg.norm(rays, axis=-1)
+    along = rays @ (g / np.linalg.norm(g))
+    return altitude_m * length / np.maximum(along, 0.01 * length)
 
 
 def clean_range(r: np.ndarray) -> np.ndarray:
