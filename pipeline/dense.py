@@ -471,15 +471,17 @@ def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: P
     import pycolmap
 
     from eval.depth import write_depth_png
+    from pipeline.sfm import colmap_errors_only
 
     start = time.perf_counter()
     mvs, depth_dir = out_dir / "mvs", out_dir / "depth"
     shutil.rmtree(mvs, ignore_errors=True)
     depth_dir.mkdir(parents=True, exist_ok=True)
-    pycolmap.undistort_images(mvs, model_dir, images_dir)
     options = pycolmap.PatchMatchOptions()
     options.geom_consistency = True
-    pycolmap.patch_match_stereo(mvs, options=options)
+    with colmap_errors_only():  # else a few hundred INFO lines per view
+        pycolmap.undistort_images(mvs, model_dir, images_dir)
+        pycolmap.patch_match_stereo(mvs, options=options)
     pairs, coverage, skipped, depths = {}, {}, [], {}
     for k in np.flatnonzero(tracks.registered):
         name = str(tracks.image_names[k])
