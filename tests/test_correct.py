@@ -15,6 +15,25 @@ from watergan.train_restorer import save_restorer
 TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
 
 
+def save_model(folder, **kwargs):
+    """A tiny untrained restorer (``kwargs``: Restorer's modes) whose colour core does not start as the identity, so
+    that what it is given changes what it writes."""
+    model = Restorer(TINY, depth_hw=(16, 16), **kwargs).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+    save_restorer(folder / "restorer.pt", model)
+    return folder
+
+
+def write_images(folder, names=("a.png", "b.png"), seed=0):
+    """Random 40x32 8-bit frames."""
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for name in names:
+        cv2.imwrite(str(folder / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    return folder
+
+
 @pytest.fixture
 def model_dir(tmp_path):
     save_restorer(tmp_path / "model" / "restorer.pt", Restorer(TINY, depth_hw=(16, 16)).eval())
@@ -82,15 +101,8 @@ def test_shared_stems_are_an_error(tmp_path, model_dir, images):
 def test_a_restorer_that_takes_altitude_reads_the_navigation(tmp_path):
     """Without a navigation file, or with one that lacks an image, nothing is corrected and the error says
     what to give; with altitudes, the same image corrected at another altitude comes out differently."""
-    model = Restorer(TINY, depth_hw=(16, 16), altitude=True).eval()
-    with torch.no_grad():
-        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
-    save_restorer(tmp_path / "model" / "restorer.pt", model)
-    images = tmp_path / "survey" / "images"
-    images.mkdir(parents=True)
-    rng = np.random.default_rng(0)
-    for name in ("a.png", "b.png"):
-        cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    save_model(tmp_path / "model", altitude=True)
+    images = write_images(tmp_path / "survey" / "images")
     with pytest.raises(DataError, match="no navigation file .*--no-altitude"):
         correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
     survey = tmp_path / "survey" / "survey.json"  # the default: beside the images folder
@@ -112,15 +124,8 @@ def test_an_rgbd_restorer_corrects_with_each_pixel_s_range(tmp_path):
     image's median range; a farther range map gives another correction of the same image."""
     from watergan.io import write_depth_png
 
-    model = Restorer(TINY, depth_hw=(16, 16), range_input=True).eval()
-    with torch.no_grad():
-        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
-    save_restorer(tmp_path / "model" / "restorer.pt", model)
-    images = tmp_path / "images"
-    images.mkdir()
-    rng = np.random.default_rng(0)
-    for name in ("a.png", "b.png"):
-        cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    save_model(tmp_path / "model", range_input=True)
+    images = write_images(tmp_path / "images")
     with pytest.raises(DataError, match="without range maps .monocular mode.*camera.json.*or give --range-dir"):
         correct_folder(tmp_path / "model", images, tmp_path / "out", progress=False)
     near, far = tmp_path / "near_range", tmp_path / "far_range"
@@ -144,15 +149,8 @@ def test_lanes_side_by_side_write_the_same_files_and_leave_torch_s_threads(tmp_p
     batches of every size (a short last batch), and torch's thread count is left as it was."""
     import pipeline.correct as correct
 
-    model = Restorer(TINY, depth_hw=(16, 16)).eval()
-    with torch.no_grad():
-        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
-    save_restorer(tmp_path / "model" / "restorer.pt", model)
-    images = tmp_path / "images"
-    images.mkdir()
-    rng = np.random.default_rng(3)
-    for k in range(7):
-        cv2.imwrite(str(images / f"f{k}.png"), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    save_model(tmp_path / "model")
+    images = write_images(tmp_path / "images", [f"f{k}.png" for k in range(7)], seed=3)
     threads = torch.get_num_threads()
     outputs = {}
     for lanes in (1, 3):
@@ -172,15 +170,8 @@ def test_an_rgbd_restorer_in_monocular_mode_takes_a_flat_seafloor_at_the_altitud
     from watergan.formation.inverse import flat_floor_range
     from watergan.io import write_depth_png
 
-    model = Restorer(TINY, depth_hw=(16, 16), range_input=True).eval()
-    with torch.no_grad():
-        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
-    save_restorer(tmp_path / "model" / "restorer.pt", model)
-    images = tmp_path / "survey" / "images"
-    images.mkdir(parents=True)
-    rng = np.random.default_rng(0)
-    for name in ("a.png", "b.png"):
-        cv2.imwrite(str(images / name), rng.integers(0, 256, (32, 40, 3), dtype=np.uint8))
+    save_model(tmp_path / "model", range_input=True)
+    images = write_images(tmp_path / "survey" / "images")
     camera = PinholeIntrinsics(30.0, 30.0, 19.5, 15.5, 40, 32)
     (tmp_path / "survey" / "camera.json").write_text(json.dumps(camera.to_json()))
     with pytest.raises(DataError, match="no navigation file .*--range-dir"):
