@@ -153,6 +153,11 @@ LUT_RANGE_STEP_M = 0.05
 LUT_RANGE_ROUND_M = 0.5
 
 
+def _intrinsics(K: np.ndarray | None) -> tuple[float, float, float, float] | None:
+    """(fx, fy, cx, cy) of a 3x3 camera matrix (None: None)."""
+    return None if K is None else (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+
+
 @dataclass
 class FieldTable:
     """The inverse's log gain g = -ln A and offset o = -C / A per channel of a stack, on a grid of pixel positions
@@ -171,7 +176,7 @@ class FieldTable:
     height: int
     r_lo_m: float
     r_hi_m: float
-    K: tuple[float, ...] | None
+    K: tuple[float, float, float, float] | None
     """The intrinsics (fx, fy, cx, cy) the table was built with (None: depth = range)."""
     _grid_xy: torch.Tensor | None = field(default=None, repr=False)
 
@@ -203,13 +208,11 @@ class FieldTable:
             a, c = affine_images(stack.to(torch.float64), state)
         a = a.clamp_min(1e-12)
         table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, len(rs), rows, cols).float()
-        k = None if K is None else tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-        return cls(table, w, h, float(rs[0]), float(rs[-1]), k)
+        return cls(table, w, h, float(rs[0]), float(rs[-1]), _intrinsics(K))
 
     def serves(self, height: int, width: int, K: np.ndarray | None) -> bool:
         """Whether the table is for images of this size and these intrinsics (3x3, or None)."""
-        k = None if K is None else tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-        return (height, width) == (self.height, self.width) and k == self.K
+        return (height, width) == (self.height, self.width) and _intrinsics(K) == self.K
 
     def covers(self, range_m: torch.Tensor, K: np.ndarray | None) -> bool:
         """Whether the table serves range maps (B,1,H,W) of these intrinsics: same size and camera, ranges within."""
@@ -236,11 +239,3 @@ def range_span(range_m: torch.Tensor, round_m: float = LUT_RANGE_ROUND_M) -> tup
     """(least, largest) range of maps (metres), rounded outwards to multiples of ``round_m`` (least >= 0)."""
     lo, hi = float(range_m.min()), float(range_m.max())
     return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
-
-
-def interpolated_fields(range_m: torch.Tensor, stack: Stack, K: np.ndarray | None = None) -> torch.Tensor:
-    """(B,6,H,W) the inverse's fields at every pixel of range maps (B,1,H,W) (metres, holes filled) from a
-    :class:`FieldTable` built over their range span (:func:`range_span`); to correct many frames, keep the table
-    and sample it (as :class:`watergan.nets.restorer.WaterFields` does)."""
-    h, w = range_m.shape[-2:]
-    return FieldTable.build(stack, w, h, K, *range_span(range_m)).sample(range_m)
