@@ -9,8 +9,8 @@ DEMO_OUT ?= demo_out
 $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv .venv
 	@# torch first, pinned: an unpinned torch pulls gigabytes of CUDA packages.
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet --no-cache-dir torch==2.13.0
+	$(PY) -m pip install --quiet --no-cache-dir -e '.[dev]'
 	@# open3d needs Debian's libusb-1.0-0; install it when open3d cannot import.
 	@$(PY) -c "import open3d" 2>/dev/null || { \
 		echo "open3d cannot import: installing Debian's libusb-1.0-0"; \

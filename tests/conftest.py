@@ -1,13 +1,20 @@
 import os
+import shutil
 import tempfile
 import zlib  # noqa: F401  load before pycolmap (pycolmap first makes zlib corrupt the heap)
 
 import pytest
 import torch
 
-os.environ.setdefault("MPLCONFIGDIR", tempfile.mkdtemp(prefix="mpl-"))
+# One scratch folder for the whole session (shared surveys, matplotlib's cache), removed when it ends.
+SCRATCH = tempfile.mkdtemp(prefix="watergan-tests-")
+os.environ.setdefault("MPLCONFIGDIR", os.path.join(SCRATCH, "mpl"))
 
 from watergan.formation import FormationState, pixel_grid  # noqa: E402
+
+
+def pytest_sessionfinish(session, exitstatus):
+    shutil.rmtree(SCRATCH, ignore_errors=True)
 
 
 def make_state(batch: int = 2, height: int = 6, width: int = 8, dtype=torch.float64, seed: int = 0,

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import SCRATCH
 from test_sfm import survey_and_sfm
 
 from eval.colour import observation_colours
@@ -116,7 +117,7 @@ def test_baselines_and_colour_sampling_on_the_cluster_match_local(cluster):
     tracks = Tracks.load(shared.path(record.tracks))
     runs = {}
     for label, scheduler in (("local", ""), ("remote", address)):
-        ws = Workspace(Path(tempfile.mkdtemp(prefix=f"watergan-par-{label}-")) / "ws")
+        ws = Workspace(Path(tempfile.mkdtemp(prefix=f"watergan-par-{label}-", dir=SCRATCH)) / "ws")
         shutil.copytree(survey, ws.root / "00_survey")
         shutil.copytree(shared.root / "04_sfm", ws.root / "04_sfm")
         cfg = EvaluateConfig(methods=("raw", "gray_world", "jaffe", "seathru", "oracle"), range_source="truth",

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SCRATCH
 from test_sfm import survey_and_sfm
 
 from eval.tables import (
@@ -41,7 +42,7 @@ VALIDATION = {"val_count": 2, "units": "stored sRGB 0..1; relative depth 0..1",
 
 def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
     survey, shared, _ = survey_and_sfm()
-    ws = Workspace(Path(tempfile.mkdtemp(prefix=prefix)) / "ws")
+    ws = Workspace(Path(tempfile.mkdtemp(prefix=prefix, dir=SCRATCH)) / "ws")
     shutil.copytree(survey, ws.root / "00_survey")
     shutil.copytree(shared.root / "04_sfm", ws.root / "04_sfm")
     return ws.root / "00_survey", ws

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SCRATCH
 
 from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, run_sfm_folder, similarity_align
 from pipeline.workspace import Workspace
@@ -26,7 +27,7 @@ def survey_and_sfm() -> tuple[Path, Workspace, dict]:
     base = make_config("tiny")
     config = replace(base, camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0),
                      trajectory=replace(base.trajectory, n_lines=2, frames_per_line=5, forward_overlap=0.75))
-    ws = Workspace(Path(tempfile.mkdtemp(prefix="watergan-3d-")) / "ws")
+    ws = Workspace(Path(tempfile.mkdtemp(prefix="watergan-3d-", dir=SCRATCH)) / "ws")
     survey = ws.stage_dir("survey")
     simulate_survey(survey, config, force=True)
     record = ws.run("sfm", SfmConfig())
