@@ -28,9 +28,9 @@ beam_deg per light), the stack models them with ``artificial_light``, the rig he
 (degenerate with the gain), its light-path attenuation tied to the water's eta (:func:`eval.water.build_stack`;
 ``--no-light-rig`` leaves them out). Without it the strobes' fall-off with distance is read as attenuation
 (on the auv preset eta 1.17/0.81/0.76 per m against 0.28/0.14/0.13). The light needs each observation's point
-and surface normal in the camera frame: the points come from the dense range, the normals from the range map
+and surface normal in the camera frame: the points come from the dense range, the normals from the dense range
 smoothed (:func:`watergan.formation.inverse.normals_from_range`), for the estimate (at each sample's source pixel)
-as for the correction (from the correction's range, dense and mesh).
+as for the correction (:func:`correction_normals`: the mesh's range only where the dense range has none).
 """
 
 from __future__ import annotations
@@ -204,24 +204,46 @@ def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, ag
     return np.where(keep, r, meshed), from_mesh, scene
 
 
+def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, smooth_px: float) -> np.ndarray:
+    """(H,W,3) camera-frame surface normals for the correction, as the estimate takes them: the frame's own
+    (``frame.normals_cam``) when it has them, else those of its dense range smoothed by ``smooth_px``
+    (:func:`watergan.formation.inverse.normals_from_range`); and those of
+    the correction's range ``range_m`` (:func:`correction_range`) where the dense range has none. Not the
+    correction's range throughout: where it switches between the dense range and the mesh's, a step of a percent
+    or two tilts the smoothed normals along the seam (on the auv preset the normals' median error against the
+    truth went from 3.6 to 2.7 degrees, p90 from 11.4 to 7.1, and the board's CIEDE2000 from 1.35 to 1.25,
+    against 1.22 with the true normals)."""
+    from watergan.formation.inverse import normals_from_range
+
+    normals = normals_from_range(frame.range_m, K, smooth_px) if frame.normals_cam is None else \
+        np.array(frame.normals_cam, np.float64)
+    missing = ~np.isfinite(normals).all(axis=-1)
+    if missing.any():
+        normals[missing] = normals_from_range(range_m, K, smooth_px)[missing]
+    return normals
+
+
 def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack, images: Path,
                    mesh_ply: Path | None, agreement: float, progress: bool,
                    normal_smooth_px: float = 24.0) -> tuple[float, float]:
-    """Every frame through the inverse of ``stack`` with its range (:func:`correction_range`); returns (share of
-    pixels ranged from the mesh, share with no range)."""
+    """Every frame through the inverse of ``stack`` with its range (:func:`correction_range`) and, when the stack
+    reads surface normals, :func:`correction_normals`; returns (share of pixels ranged from the mesh, share with no
+    range)."""
     from tqdm import tqdm
 
     from eval.synth.imaging import single_torch_thread
     from eval.water import correct_physics
+    from watergan.formation.inverse import needs_normals
 
     out = ws.stage_dir("water")
     from_mesh, unresolved, scene = [], [], None
+    with_normals = needs_normals(stack)
     with single_torch_thread():
         for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
             r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
             from_mesh.append(float(np.mean(meshed)))
-            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k,
-                                               normal_smooth_px=normal_smooth_px)
+            normals = correction_normals(f, r, K, normal_smooth_px) if with_normals else None
+            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
             unresolved.append(float(np.mean(~valid)))
             write_depth_png(out / "range" / f"{Path(f.name).stem}.png", r)
             _write_corrected(out, f.name, corrected, valid, bit_depth(images / f.name))

@@ -317,6 +317,30 @@ def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disag
     assert not from_mesh.any() and np.isnan(r[:10]).all()
 
 
+def test_the_correction_takes_its_normals_from_the_dense_range_not_across_the_mesh_seams():
+    """Where the correction's range switched to the mesh with a 2 % step, the normals of that range tilt along
+    the seam; the correction's normals are the dense range's, and the mesh range's only where the dense has none."""
+    from pipeline.water import correction_normals
+    from watergan.formation.inverse import normals_from_range
+
+    _, true_range, _ = render(pose(0.0, 0.0, 2.0), Stack.from_config(TRUE))  # a level floor 2 m below
+    dense = true_range.copy()
+    dense[:, :20] = np.nan  # no dense range: the mesh fills it
+    combined = true_range.copy()
+    combined[25:50, 35:65] *= 1.02  # the mesh's range where it disagreed with the dense by 2 %
+    frame = WaterFrame(name="a.png", image=np.zeros((H, W, 3), np.float32), range_m=dense.astype(np.float32),
+                       world_from_cam=None)
+    floor = np.array([0.0, 0.0, -1.0])  # facing the camera
+
+    def tilt_deg(normals):
+        return np.degrees(np.arccos(np.clip(normals @ floor, -1.0, 1.0)))
+
+    assert tilt_deg(normals_from_range(combined, K, 4)).max() > 5.0  # the seam
+    normals = correction_normals(frame, combined, K, 4)
+    assert np.isfinite(normals).all()
+    assert tilt_deg(normals).max() < 0.5
+
+
 def test_a_fit_stopped_before_convergence_says_so(survey):
     """Rounds of L-BFGS run until one gains less than convergence_rtol; a fit cut short by max_iterations is
     reported as not converged (in the estimate and its summary line), one given room converges."""
