@@ -207,14 +207,13 @@ def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, ag
 def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, smooth_px: float) -> np.ndarray:
     """(H,W,3) camera-frame surface normals for the correction, as the estimate takes them: the frame's own
     (``frame.normals_cam``) when it has them, else those of its dense range smoothed by ``smooth_px``
-    (:func:`watergan.formation.inverse.normals_from_range`); and those of
-    the correction's range ``range_m`` (:func:`correction_range`) where the dense range has none. Not the
-    correction's range throughout: where it switches between the dense range and the mesh's, a step of a percent
-    or two tilts the smoothed normals along the seam. On the auv preset (seed 0, 47 % of the pixels ranged from
-    the mesh) the normals' error against the truth went from a median of 5.3 to 2.3 degrees (p90 21.9 to 7.8)
-    and the board's CIEDE2000 from 1.35 to 1.25 (1.22 with the true normals); on seed 1 (26 % from the mesh) the
-    error stayed as it was (mean 3.2 degrees) and the board went from 1.37 to 1.39 (1.37 with the true normals):
-    ``benchmarks/RESULTS.md``."""
+    (:func:`watergan.formation.inverse.normals_from_range`); and those of the correction's range ``range_m``
+    (:func:`correction_range`) where the dense range has none. Not the correction's range throughout: where it
+    switches between the dense range and the mesh's, a step of a percent or two tilts the smoothed normals along the
+    seam. On the auv preset (seed 0, 47 % of the pixels ranged from the mesh) the normals' error against the truth
+    went from a median of 5.3 to 2.3 degrees (p90 21.9 to 7.8) and the board's CIEDE2000 from 1.35 to 1.25 (1.22
+    with the true normals); on seed 1 (26 % from the mesh) the error stayed as it was (mean 3.2 degrees) and the
+    board went from 1.37 to 1.39 (1.37 with the true normals): ``benchmarks/RESULTS.md``."""
     from watergan.formation.inverse import normals_from_range
 
     normals = normals_from_range(frame.range_m, K, smooth_px) if frame.normals_cam is None else \
