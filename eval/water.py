@@ -356,11 +356,12 @@ class Observations:
         return cls(**values)
 
 
-def _normal_map(frame: WaterFrame, K: np.ndarray, config: WaterConfig) -> np.ndarray:
-    """The frame's normals (its own, else :func:`normals_from_range`)."""
+def frame_normals(frame: WaterFrame, K: np.ndarray, smooth_px: float) -> np.ndarray:
+    """(H,W,3) the frame's camera-frame normals: its own (``frame.normals_cam``), else those of its range smoothed by
+    ``smooth_px`` (:func:`normals_from_range`; NaN where it has no range). A new array either way."""
     if frame.normals_cam is not None:
-        return np.asarray(frame.normals_cam, np.float64)
-    return normals_from_range(frame.range_m, K, config.normal_smooth_px)
+        return np.array(frame.normals_cam, np.float64)
+    return normals_from_range(frame.range_m, K, smooth_px)
 
 
 def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -435,7 +436,8 @@ def measure(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None
         pc = rays[yy, xx] / ray_norm[yy, xx, None] * r[yy, xx, None]
         pose = np.asarray(f.world_from_cam, np.float64)
         points.append(pc @ pose[:3, :3].T + pose[:3, 3])
-        point_normals.append(_normal_map(f, K, config)[yy, xx] @ pose[:3, :3].T if normals else np.zeros((len(yy), 3)))
+        point_normals.append(frame_normals(f, K, config.normal_smooth_px)[yy, xx] @ pose[:3, :3].T if normals
+                             else np.zeros((len(yy), 3)))
     if not points:
         raise WaterInputError("no frame has a pixel with range inside the image margin")
     xyz = np.concatenate(points)
@@ -570,7 +572,7 @@ def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], b
         if quads is None:
             continue
         r = clean_range(f.range_m)
-        normal_map = _normal_map(f, K, config) if normals else None
+        normal_map = frame_normals(f, K, config.normal_smooth_px) if normals else None
         for p, quad in enumerate(np.asarray(quads, np.float64)):
             if not np.isfinite(quad).all():
                 continue

@@ -335,8 +335,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         if not nav.is_file():
             raise DataError(f"the restorer in {model_dir} {needs}, and there is no navigation file {nav}: give one "
                             f"with nav_altitude_m per frame (--navigation)"
-                            + (", or train a restorer with --no-altitude" if model.altitude and not flat_floor else
-                               ", or give each frame's range map (--range-dir)" if flat_floor else ""))
+                            + (", or give each frame's range map (--range-dir)" if flat_floor else
+                               ", or train a restorer with --no-altitude"))
         altitudes = read_nav_altitudes(nav, [p.name for p in files])
         downs = read_nav_down(nav, [p.name for p in files]) if flat_floor else None
         lacking = [p.name for p in files if p.name not in altitudes]

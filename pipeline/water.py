@@ -214,10 +214,10 @@ def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, sm
     went from a median of 5.3 to 2.3 degrees (p90 21.9 to 7.8) and the board's CIEDE2000 from 1.35 to 1.25 (1.22
     with the true normals); on seed 1 (26 % from the mesh) the error stayed as it was (mean 3.2 degrees) and the
     board went from 1.37 to 1.39 (1.37 with the true normals): ``benchmarks/RESULTS.md``."""
+    from eval.water import frame_normals
     from watergan.formation.inverse import normals_from_range
 
-    normals = normals_from_range(frame.range_m, K, smooth_px) if frame.normals_cam is None else \
-        np.array(frame.normals_cam, np.float64)
+    normals = frame_normals(frame, K, smooth_px)
     missing = ~np.isfinite(normals).all(axis=-1)
     if missing.any():
         normals[missing] = normals_from_range(range_m, K, smooth_px)[missing]
