@@ -28,8 +28,8 @@ from pathlib import Path
 import torch
 
 from eval.diagnose import DiagnoseConfig, run_diagnose, small_survey_config
-from eval.diagnose_fit import FitConfig
 from eval.diagnose_measure import MeasureConfig
+from eval.fit import FitConfig
 from eval.synth import HIDDEN_DEFAULTS, make_config, simulate_survey
 
 ALL = (*HIDDEN_DEFAULTS, "none")

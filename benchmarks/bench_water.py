@@ -12,9 +12,9 @@ survey, runs the pipeline's SfM and dense stages on it (reused when present), es
 :func:`eval.water.estimate_water` from the raw frames, the SfM poses, the dense range and the board (pixel
 quads from the SfM poses) and prints per parameter the estimate, the truth (``truth/effects.json``), the
 relative error and whether the 95 % interval covers the truth. Then it corrects every frame with
-:func:`eval.water.correct_physics` with the water stage's range (dense, the fused mesh where the dense range
-has none or disagrees; pixels with neither take the nearest valid pixel's range, as the evaluation does for the
-range-based baselines; the mesh and filled fractions are printed) and measures
+:func:`watergan.formation.inverse.correct_physics` with the water stage's range (dense, the fused mesh where the
+dense range has none or disagrees; pixels with neither take the nearest valid pixel's range, as the evaluation does
+for the range-based baselines; the mesh and filled fractions are printed) and measures
 board CIEDE2000 (:func:`eval.colour.board_accuracy`), consistency per channel on the SfM tracks
 (:func:`eval.colour.consistency`) and PSNR against the in-air truth (:func:`eval.tables.fidelity`), beside the
 oracle (:func:`eval.baselines.oracle`, the true stack and the true geometry) and the true stack with the dense
@@ -130,10 +130,10 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
 
     from eval.baselines import oracle
     from eval.tables import OracleGeometry, fill_nearest
-    from eval.water import correct_physics
     from pipeline.water import correction_range
     from watergan.data import write_srgb8
     from watergan.formation import Stack
+    from watergan.formation.inverse import correct_physics
 
     survey = ws_root / "00_survey"
     geometry = OracleGeometry(survey)
@@ -257,7 +257,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from eval.water import WaterConfig
 
-    config = WaterConfig() if args.bootstrap is None else WaterConfig(bootstrap=args.bootstrap)
+    config = WaterConfig() if args.bootstrap is None else \
+        WaterConfig(fit=replace(WaterConfig().fit, bootstrap=args.bootstrap))
     if args.no_light_rig:
         config = replace(config, light_rig=False)
     results = {}

@@ -27,10 +27,9 @@ import numpy as np
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tables import OracleGeometry
 from eval.tracks import Tracks
-from eval.water import correct_physics
 from pipeline.water import _write_corrected, correction_normals, correction_range, water_frames
 from watergan.formation import Stack
-from watergan.formation.inverse import normals_from_range
+from watergan.formation.inverse import correct_physics, normals_from_range
 
 
 def angle_deg(normals: np.ndarray, truth: np.ndarray) -> np.ndarray:

@@ -7,8 +7,9 @@
    the board CIEDE2000 and the consistency per channel (:func:`eval.colour.board_accuracy`,
    :func:`eval.colour.consistency`, as the eval stage measures them) of raw, the restorer and the physics
    correction (``06_water/images``). Needs a simulated survey (the board's truth).
-2. Inverts the site water exactly (:func:`eval.water.correct_physics` with the gan stage's ``stack.json``) on
-   the first 20 of the gan stage's training pairs (``01_gan/generated``: underwater, range, in-air) and prints
+2. Inverts the site water exactly (:func:`watergan.formation.inverse.correct_physics` with the gan stage's
+   ``stack.json``) on the first 20 of the gan stage's training pairs (``01_gan/generated``: underwater, range,
+   in-air) and prints
    the RMSE (stored sRGB) against the in-air images: what a restorer trained on those 8-bit pairs could reach.
 """
 
@@ -22,8 +23,8 @@ import numpy as np
 
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tracks import Tracks
-from eval.water import correct_physics
 from pipeline.correct import correct_folder
+from watergan.formation.inverse import correct_physics
 from watergan.io import linear_to_srgb, read_depth, read_image
 
 

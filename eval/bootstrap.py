@@ -1,11 +1,10 @@
-"""The two-way bootstrap of a survey fit: frames drawn with replacement, and each surface point's views
-weighted Poisson(1) times.
+"""The bootstrap of a survey fit: frames drawn with replacement, and each surface point's views (and each board
+patch's) weighted Poisson(1) times.
 
-Frames alone are not independent units (the views of one point share its texture and registration
-errors), nor are points alone (the views of one frame share its exposure, pose and range errors); a
-replicate draws both, and an observation's weight is the product of its frame's count and its point's
-weight. :mod:`eval.water` resamples its frames and points the same way (with the board's frames drawn
-apart); :mod:`eval.diagnose_fit` uses these helpers for its parameter intervals.
+Frames alone are not independent units (the views of one point share its texture and registration errors), nor are
+points alone (the views of one frame share its exposure, pose and range errors); a replicate draws both, and a
+view's weight is the product of its frame's count and its point's weight. :func:`eval.fit.bootstrap` draws its
+replicates with :func:`replicate_weights`.
 """
 
 from __future__ import annotations
@@ -13,15 +12,19 @@ from __future__ import annotations
 import numpy as np
 
 
-def two_way_weights(rng: np.random.Generator, frame: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """(N,) weights of one replicate for N observations of frames ``frame`` and points ``point`` (integer
-    labels): w_o = m_f(o) q_p(o), m the number of times each frame present is drawn when as many frames are
-    drawn with replacement, q ~ Poisson(1) per point."""
-    frames, frame_index = np.unique(frame, return_inverse=True)
-    points, point_index = np.unique(point, return_inverse=True)
-    frame_count = np.bincount(rng.integers(0, len(frames), len(frames)), minlength=len(frames))
-    point_weight = rng.poisson(1.0, len(points))
-    return (frame_count[frame_index] * point_weight[point_index]).astype(np.float64)
+def replicate_weights(rng: np.random.Generator, frame_groups: list[np.ndarray], n_points: int,
+                      n_patches: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One replicate: (frame counts indexed by frame label, (n_points,) point weights, (n_patches,) patch weights).
+    Each group of frame labels (e.g. the frames that see the board, and the others) is drawn with replacement as
+    many times as it has frames, so every replicate keeps every group; points and patches weigh Poisson(1)."""
+    size = max((int(g.max()) + 1 for g in frame_groups if len(g)), default=0)
+    counts = np.zeros(size)
+    for group in frame_groups:
+        if len(group):
+            np.add.at(counts, rng.choice(group, len(group), replace=True), 1.0)
+    points = rng.poisson(1.0, n_points).astype(np.float64)
+    patches = rng.poisson(1.0, n_patches).astype(np.float64) if n_patches else np.zeros(0)
+    return counts, points, patches
 
 
 def normal_interval(estimate: np.ndarray, samples: np.ndarray, lower: float, upper: float,

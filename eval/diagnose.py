@@ -7,11 +7,12 @@ name the missing effect, and keep a ledger of model versions.
 
 Pieces (each usable alone):
 
-- :mod:`eval.diagnose_measure`: the measurement table (points seen in >= 3 views), geometry from the
-  SfM tracks of a workspace or from the simulator's truth; or, in a workspace where the water stage
-  ran, the water estimate's own table (:func:`eval.diagnose_measure.measure_observations`), so the
-  water and the ranking are judged on the same views.
-- :mod:`eval.diagnose_fit`: fit a stack with per-point albedos; held-out error; Laplace uncertainties.
+- :mod:`eval.diagnose_measure`: the measurement table (:mod:`eval.observations`: points seen in >= 3 views),
+  geometry from the SfM tracks of a workspace or from the simulator's truth; or, in a workspace where the water
+  stage ran, the water estimate's own table (:func:`eval.diagnose_measure.with_survey`), so the water and the
+  ranking are judged on the same views.
+- :mod:`eval.fit`: the one fitter (the water's too): a stack with per-point albedos; held-out error; Laplace
+  uncertainties and bootstrap intervals.
 - :mod:`eval.diagnose_residuals`: residuals binned along every axis, structure scores, plots, PLY.
 - this module: candidate ranking, verdict, ledger, and :func:`diagnose` (all of it on one survey);
   the workspace stage is :func:`pipeline.diagnose.run_diagnose_stage`.
@@ -57,7 +58,10 @@ from watergan.formation import Counts, MissingInputError, Stack, available, get
 from watergan.formation.rig import declared_rig, held_rig, rig_settings
 from watergan.io import atomic_write_json, atomic_write_text
 
-from .diagnose_fit import (
+from .diagnose_measure import GeometrySource, MeasureConfig, check_survey_folder, measure_survey
+from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
+from .fit import (
+    DEFAULT_EFFECTS,
     FitConfig,
     FitResult,
     copy_stack,
@@ -67,10 +71,8 @@ from .diagnose_fit import (
     observation_state,
     soft_l1,
 )
-from .diagnose_measure import GeometrySource, MeasureConfig, Measurements, check_survey_folder, measure_survey
-from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
+from .observations import Observations
 
-DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 LEDGER_NAME = "model_ledger.jsonl"
 #: Training observations on which the start grid is evaluated.
 START_GRID_OBS = 300
@@ -216,24 +218,24 @@ def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | No
     return Stack.from_names(list(DEFAULT_EFFECTS), counts)
 
 
-def survey_counts(meas: Measurements) -> Counts:
+def survey_counts(meas: Observations) -> Counts:
     """The survey's frames and declared lights: the rows of per-frame and per-light parameters."""
     return Counts(frames=len(meas.frames), lights=len(meas.lights) or None)
 
 
-def frozen_settings(stack: Stack, meas: Measurements) -> dict[str, tuple[str, ...]]:
+def frozen_settings(stack: Stack, meas: Observations) -> dict[str, tuple[str, ...]]:
     """Known settings that are not fitted: the declared light rig (``rig_params``, :func:`held_rig`)."""
     return held_rig(stack, meas.lights)
 
 
-def make_effect(name: str, meas: Measurements):
+def make_effect(name: str, meas: Observations):
     """A candidate effect at its initial values for this survey (one row per frame or light of its per-frame
     and per-light parameters; the declared light rig for one with ``rig_params``)."""
     cls = get(name)
     return cls(counts=survey_counts(meas), **rig_settings(cls, meas.lights))
 
 
-def grid_start(trial: Stack, name: str, base: FitResult, meas: Measurements, split, config: DiagnoseConfig) -> None:
+def grid_start(trial: Stack, name: str, base: FitResult, meas: Observations, split, config: DiagnoseConfig) -> None:
     """Set the starting values of candidate ``name`` in ``trial`` (in place) to the best point of its
     start grid (``start_grid`` of the class; nothing without one): each combination
     is scored by the soft-L1 loss of the base fit (parameters and albedos) with the candidate added,
@@ -294,7 +296,7 @@ def grid_losses(probe: Stack, name: str, state, y: torch.Tensor, grid: dict[str,
     return losses
 
 
-def start_added(stack: Stack, added: list[str], meas: Measurements, split, config: DiagnoseConfig) -> None:
+def start_added(stack: Stack, added: list[str], meas: Observations, split, config: DiagnoseConfig) -> None:
     """Starting values of the effects just added to the model (``--add``) that have a start grid, as
     a candidate gets them: the grid is scored against a fit of the model without them (one more fit),
     in place. Without this an added caustics effect would start from its initial cell size and drift
@@ -308,7 +310,7 @@ def start_added(stack: Stack, added: list[str], meas: Measurements, split, confi
         grid_start(stack, name, prior, meas, split, config)
 
 
-def candidate_names(stack: Stack, meas: Measurements, only: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
+def candidate_names(stack: Stack, meas: Observations, only: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
     """Candidates to try and {name: reason} for the registered effects that are skipped. Effects named in
     ``only`` are tried even when the per-point albedo seems to absorb them (the screen of
     :func:`absorbed_by_albedo` is a judgement; the other reasons are things the fit cannot do)."""
@@ -405,7 +407,7 @@ def paired_bootstrap(base: FitResult, cand: FitResult, n: int, seed: int) -> tup
     return float(change), (float(np.quantile(d, 0.025)), float(np.quantile(d, 0.975))), float(np.mean(d >= 0))
 
 
-def rank_candidates(stack: Stack, meas: Measurements, base: FitResult, base_scores: dict, config: DiagnoseConfig,
+def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
                     split, names: list[str], progress: bool | None = None) -> list[CandidateResult]:
     """Refit with each candidate added; sorted by held-out change (best first)."""
     results = []
@@ -628,7 +630,7 @@ def plot_ledger(records: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _ledger_record(fit: FitResult, kind: str, meas: Measurements, colour: dict) -> dict:
+def _ledger_record(fit: FitResult, kind: str, meas: Observations, colour: dict) -> dict:
     return {"time": time.strftime("%Y-%m-%d %H:%M:%S"), "kind": kind, "stack": fit.stack.names,
             "params": {e: {p: v["value"] for p, v in d.items()} for e, d in fit.params.items()},
             "heldout_rmse": fit.heldout_rmse, "train_rmse": fit.train_rmse, "n_obs": meas.n_obs,
@@ -637,11 +639,11 @@ def _ledger_record(fit: FitResult, kind: str, meas: Measurements, colour: dict) 
 
 def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig = DiagnoseConfig(),
              tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None,
-             model: list[dict] | None = None, measurements: Measurements | None = None,
+             model: list[dict] | None = None, measurements: Observations | None = None,
              described: str = "") -> DiagnoseResult:
     """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), or take
     ``measurements`` as given (the workspace stage passes the water stage's table, :func:`eval.diagnose_measure.
-    measure_observations`; ``described`` says where it came from), fit the model, analyse residuals, rank
+    with_survey`; ``described`` says where it came from), fit the model, analyse residuals, rank
     candidates, write everything to ``out`` and append the fits to the ledger in ``ledger_dir`` (with ``colour``,
     the image folders' consistency and board error when they were measured). ``model``: the stack to start from
     (the water stage's estimate; see :func:`default_stack`). Torch runs on one thread: the tensors are small
@@ -653,14 +655,14 @@ def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig =
         return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model, measurements, described)
 
 
-def describe_measurements(meas: Measurements, where: str = "") -> str:
+def describe_measurements(meas: Observations, where: str = "") -> str:
     """One line: the measurement table's source (and ``where`` it was read from), observations and points."""
     return (f"{meas.source}{f' ({where})' if where else ''}: {meas.n_obs} observations of {meas.n_points} points"
             + ("" if meas.source.startswith("water") else f", {meas.patch_px} px patches"))
 
 
 def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig, tracks: Path | None, scale: str,
-              colour: dict, model: list[dict] | None, measurements: Measurements | None = None,
+              colour: dict, model: list[dict] | None, measurements: Observations | None = None,
               described: str = "") -> DiagnoseResult:
     start = time.perf_counter()
     progress = config.progress

@@ -1,50 +1,34 @@
-"""Measurements for the diagnosis: 3D points seen in several views and what each view records.
+"""The diagnosis's measurement of a survey folder: 3D points seen in several views, into the one measurement table
+(:class:`eval.observations.Observations`).
 
-A measurement table has one row per *observation* (a point seen in a frame) and one row per
-*point*. The geometry (which world point is seen where) comes from a geometry source; the colour
-and every derived quantity are then read from the survey's images by :func:`measure`.
+The geometry (which world point is seen where) comes from a geometry source; the colour and every derived quantity
+are then read from the survey's images by :func:`measure`. Geometry sources are plain functions returning
+:class:`Geometry`:
 
-Geometry sources are plain functions returning :class:`Geometry`:
+- :func:`geometry_from_tracks`: the SfM reconstruction (the sfm stage's ``tracks.npz``), what a real survey has.
+  Points are the sparse points, observations their feature positions (within ``max_reprojection_px`` of the point's
+  projection); normals from the neighbouring sparse points.
+- :func:`geometry_from_truth`: the simulator's truth (depth maps and poses), for tests and simulated surveys without
+  a reconstruction. Points are sampled by unprojecting random pixels of random frames and projected into every
+  frame; a point is seen in a frame when it lands inside the image (with the patch margin) and the frame's true
+  depth there agrees with its camera z within ``depth_tol_m``.
 
-- :func:`geometry_from_tracks`: the SfM reconstruction (the sfm stage's ``tracks.npz``), what a
-  real survey has. Points are the sparse points, observations their feature positions (within
-  ``max_reprojection_px`` of the point's projection); normals from the neighbouring sparse points.
-- :func:`geometry_from_truth`: the simulator's truth (depth maps and poses), for tests and
-  simulated surveys without a reconstruction. Points are sampled by unprojecting random pixels of
-  random frames and projected into every frame; a point is seen in a frame when it lands inside the
-  image (with the patch margin) and the frame's true depth there agrees with its camera z within
-  ``depth_tol_m``.
+:func:`measure_survey` picks the source (``geometry="auto"``: the SfM tracks when given, else the truth of a
+simulated survey). In a workspace where the water stage ran, the diagnosis does not measure at all: it takes the
+water estimate's own table (:func:`with_survey` adds what the diagnosis reads beside it: the survey's frame names,
+lights, water depths and each view's gradient energy), so the water estimate and the candidate ranking are computed
+on the same views (``geometry="water"``, which ``auto`` picks there; :mod:`pipeline.diagnose`).
 
-:func:`measure_survey` picks the source (``geometry="auto"``: the SfM tracks when given, else the
-truth of a simulated survey); :func:`measure` needs nothing but the
-:class:`Geometry`.
-
-In a workspace where the water stage ran, the diagnosis does not measure at all: it takes the water
-estimate's own measurement table (``06_water/observations.npz``) through :func:`measure_observations`
-(source "water stage (scale: METHOD)"), so the water estimate and the candidate ranking are computed on
-the same views (``geometry="water"``, which ``auto`` picks there; :mod:`pipeline.diagnose`).
-
-Observed colour: the sRGB-decoded (linear) image averaged over the same patch of *surface* in every view of a
-point (``same_footprint``, the default) or over a ``patch_px`` x ``patch_px`` patch of pixels, bilinearly
-interpolated at the sub-pixel projection (OpenCV pixel centres: pixel (i, j) is centred at (i, j)).
-
-Why the same footprint on the surface: a fixed patch of pixels averages more of the seafloor's texture in a far
-view than in a near one, so a point on a bright texel reads darker the farther the view, and one on a dark texel
-brighter; the fit's least squares weighs the bright points most, so the views seem to fall faster with range
-than the water makes them. On the small simulated surveys (eval.diagnose.small_survey_config, seeds 1-3, noise-free
-16-bit images, the model fitted to convergence) 5-pixel patch means put green and blue eta 9-15 % high and
-turned the backscatter to b_inf = 1 with beta 0.006-0.14 per m on seed 2; read at one footprint, eta came within
-5 % (-4.9 to +3.1 %; the red backscatter, which these surveys hardly pin, still wandered). On the noisy 8-bit
-images the diagnosis fit's bootstrap intervals then covered eta on all six seed-channels of seeds 2 and 3 where
-they had missed green and blue on seed 3 (eval.diagnose_fit). :mod:`eval.water` reads its colours at a fixed
-footprint for the same reason.
+Observed colour: the sRGB-decoded (linear) image averaged over the same patch of *surface* in every view of a point
+(``same_footprint``, the default) or over a ``patch_px`` x ``patch_px`` patch of pixels, bilinearly interpolated at
+the sub-pixel projection (OpenCV pixel centres). A fixed patch of pixels averages more of the seafloor's texture in a
+far view than in a near one, which biases the attenuation (see :mod:`eval.observations`).
 """
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
 
@@ -57,6 +41,8 @@ from eval.synth.io import read_png, srgb_decode
 from watergan.errors import UserInputError
 from watergan.formation import state_from_rgbd
 from watergan.io import read_survey_json
+
+from .observations import Observations, pca_normals
 
 
 @dataclass(frozen=True)
@@ -129,81 +115,6 @@ class GeometrySource(StrEnum):
 
 
 GEOMETRY_SOURCES = tuple(GeometrySource)
-
-
-@dataclass(frozen=True)
-class Measurements:
-    """The measurement table. Per observation (N rows):
-
-    point:            (N,) point index; frame: (N,) frame index.
-    colour:           (N,3) observed linear RGB (patch mean, 0..1).
-    px:               (N,2) pixel coordinates (x, y), OpenCV centres.
-    pixel_uv:         (N,2) pixel centre as a fraction of the image: ((x + 0.5)/W, (y + 0.5)/H).
-    radius:           (N,) distance from the image centre / half diagonal.
-    range_m:          (N,) camera-to-point distance, metres; depth_m: (N,) camera z, metres.
-    points_cam:       (N,3) point in the camera frame, metres; normals_cam: (N,3) its normal.
-    view_angle_deg:   (N,) angle between the surface normal and the direction to the camera.
-    light_distance_m: (N,L) distance from each declared light to the point (L = 0 without lights).
-    grad_energy:      (N,) variance of the Laplacian of the linear grey image in the patch.
-
-    Per point (P rows): points_world, normals_world, height_m (world z), water_depth_m
-    (site depth - z). Scalars: image_wh, site_depth_m, patch_px; lights as declared in survey.json;
-    frames (file names); source (which geometry source made it: "truth", or "sfm (scale: METHOD)");
-    clipped_obs: observations dropped because their patch held a clipped pixel.
-    """
-
-    point: np.ndarray
-    frame: np.ndarray
-    colour: np.ndarray
-    px: np.ndarray
-    pixel_uv: np.ndarray
-    radius: np.ndarray
-    range_m: np.ndarray
-    depth_m: np.ndarray
-    points_cam: np.ndarray
-    normals_cam: np.ndarray
-    view_angle_deg: np.ndarray
-    light_distance_m: np.ndarray
-    grad_energy: np.ndarray
-    points_world: np.ndarray
-    normals_world: np.ndarray
-    height_m: np.ndarray
-    water_depth_m: np.ndarray
-    image_wh: tuple[int, int]
-    site_depth_m: float
-    patch_px: int
-    lights: list[dict]
-    frames: list[str]
-    source: str
-    clipped_obs: int = 0
-
-    @property
-    def n_obs(self) -> int:
-        return len(self.point)
-
-    @property
-    def n_points(self) -> int:
-        return len(self.points_world)
-
-    def save(self, path: str | Path) -> None:
-        """Compact npz (float32 arrays; metadata as one JSON string)."""
-        arrays, meta = {}, {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, np.ndarray):
-                arrays[f.name] = value.astype(np.float32) if value.dtype == np.float64 else value
-            else:
-                meta[f.name] = value
-        np.savez_compressed(path, meta=np.array(json.dumps(meta)), **arrays)
-
-    @classmethod
-    def load(cls, path: str | Path) -> Measurements:
-        with np.load(path) as data:
-            meta = json.loads(str(data["meta"]))
-            arrays = {k: data[k].astype(np.float64) if data[k].dtype == np.float32 else data[k]
-                      for k in data.files if k != "meta"}
-        meta["image_wh"] = tuple(meta["image_wh"])
-        return cls(**arrays, **meta)
 
 
 def check_survey_folder(survey: str | Path) -> Path:
@@ -305,23 +216,6 @@ def drop_observations(geometry: Geometry, keep: np.ndarray, min_views: int) -> t
     return replace(geometry, points_world=geometry.points_world[ok], normals_world=geometry.normals_world[ok],
                    obs_point=new_point[geometry.obs_point[index]], obs_frame=geometry.obs_frame[index],
                    obs_px=geometry.obs_px[index], water_depth_m=depth), index
-
-
-def pca_normals(points: np.ndarray, centres: np.ndarray, neighbours: int) -> np.ndarray:
-    """(P,3) unit normals of a point cloud: the direction of least variance of each point's
-    ``neighbours`` nearest points (the eigenvector of the smallest eigenvalue of their covariance),
-    turned towards ``centres`` (P,3), e.g. the mean centre of the cameras that see the point:
-    n . (c - X) > 0."""
-    from scipy.spatial import cKDTree
-
-    k = int(min(max(neighbours, 3), len(points)))
-    _, idx = cKDTree(points).query(points, k=k)
-    local = points[idx] - points[idx].mean(1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("pki,pkj->pij", local, local))
-    normals = vectors[:, :, 0]
-    flip = ((centres - points) * normals).sum(1) < 0
-    normals[flip] *= -1.0
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def geometry_from_tracks(tracks_path: str | Path, survey: Path, config: MeasureConfig,
@@ -461,7 +355,7 @@ def _linear_image(path: Path, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray,
     return srgb_decode(image / float(top)).astype(np.float32), image, top
 
 
-def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str) -> Measurements:
+def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str) -> Observations:
     """Observed colour and every per-observation quantity for the points of ``geometry``.
 
     Observations whose patch holds a clipped pixel (a channel at 0 or at full scale) are dropped
@@ -509,62 +403,42 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
 
 
 def _table(geometry: Geometry, colour: np.ndarray, grad: np.ndarray, pc: np.ndarray, nc: np.ndarray,
-           survey_json: dict, patch_px: int, source: str, clipped_obs: int) -> Measurements:
-    """The measurement table from the geometry, each view's colour, patch gradient energy, camera-frame point and
-    normal: range, view angle, image position, light distances, heights and water depths derived from them."""
-    lights = list(survey_json.get("lights") or [])
-    site_depth = float(survey_json.get("site_depth_m", 0.0))
+           survey_json: dict, patch_px: int, source: str, clipped_obs: int) -> Observations:
+    """The measurement table from the geometry and each view's colour, patch gradient energy, camera-frame point and
+    normal (range, image position, lights and water depths follow from them: :class:`Observations`)."""
     intr = geometry.intrinsics
-    rng_m = np.linalg.norm(pc, axis=1)
-    cos_view = np.clip(-(nc * pc).sum(1) / rng_m, -1.0, 1.0)
-    w, h = intr.width, intr.height
-    uv = (geometry.obs_px + 0.5) / np.array([w, h])
-    radius = np.hypot((uv[:, 0] - 0.5) * w, (uv[:, 1] - 0.5) * h) / (0.5 * math.hypot(w, h))
-    light_d = np.stack([np.linalg.norm(np.asarray(light["offset_m"], float) - pc, axis=1) for light in lights], 1) \
-        if lights else np.zeros((len(pc), 0))
-    return Measurements(
-        point=geometry.obs_point.astype(np.int64), frame=geometry.obs_frame.astype(np.int64), colour=colour,
-        px=geometry.obs_px, pixel_uv=uv, radius=radius, range_m=rng_m, depth_m=pc[:, 2], points_cam=pc,
-        normals_cam=nc, view_angle_deg=np.degrees(np.arccos(cos_view)), light_distance_m=light_d,
-        grad_energy=np.maximum(grad, 0.0), points_world=geometry.points_world,
-        normals_world=geometry.normals_world, height_m=geometry.points_world[:, 2],
-        water_depth_m=site_depth - geometry.points_world[:, 2] if geometry.water_depth_m is None
-        else geometry.water_depth_m, image_wh=(w, h), site_depth_m=site_depth,
-        patch_px=patch_px, lights=lights, frames=list(geometry.frames), source=source,
+    return Observations(
+        colour=colour, range_m=np.linalg.norm(pc, axis=1), depth_m=pc[:, 2],
+        pixel_uv=(geometry.obs_px + 0.5) / np.array([intr.width, intr.height]), points_cam=pc,
+        point=geometry.obs_point.astype(np.int64), frame=geometry.obs_frame.astype(np.int64),
+        n_points=len(geometry.points_world), image_wh=(intr.width, intr.height), n_frames=len(geometry.frames),
+        normals_cam=nc, grad_energy=np.maximum(grad, 0.0), points_world=geometry.points_world,
+        normals_world=geometry.normals_world, nav_water_depth_m=geometry.water_depth_m,
+        frames=list(geometry.frames), lights=list(survey_json.get("lights") or []),
+        site_depth_m=float(survey_json.get("site_depth_m", 0.0)), source=source, patch_px=patch_px,
         clipped_obs=clipped_obs)
 
 
-def measure_observations(survey: str | Path, obs, tracks_path: str | Path, scale: str = "unknown",
-                         config: MeasureConfig = MeasureConfig()) -> Measurements:
-    """The diagnosis's measurement table from the water stage's (:class:`eval.water.Observations`, frame indices
-    into the sfm stage's image list ``tracks_path``): the same views, in the same order, with the same colours
-    (the water estimate's footprint-blurred reads), ranges, camera z, camera-frame points and normals, world points
-    and normals (each point's lifted sample or SfM point). What the water's table does not hold is derived, not
-    invented: pixel positions from its image fractions; view angle, light distances (survey.json's ``lights``),
-    heights and water depths (navigation depths, else ``site_depth_m`` - z) as :func:`measure` derives them; the
-    gradient energy (the ``spatial_frequency`` axis) from the raw image in a ``config.patch_px`` patch at each
-    view's pixel. The water's board rows are not used (their albedo is known; the diagnosis fits a free albedo per
-    point). Views of a point need not number ``min_views``: the water keeps points seen twice, and so does this.
-
-    Of ``config``, ``n_points`` bounds the points taken (all of them when the table has no more; else that many
-    drawn with ``seed``, every view of each kept, in the table's order: the diagnosis's cost grows with the
-    views, and ``watergan run`` diagnoses 1500 points) and ``patch_px`` sizes the gradient patch; the sampling
-    options (``min_views``, ``depth_tol_m``, ...) belong to the diagnosis's own measurement and do not apply."""
+def with_survey(obs: Observations, survey: str | Path, tracks_path: str | Path, scale: str = "unknown",
+                config: MeasureConfig = MeasureConfig()) -> Observations:
+    """The water stage's table (frame indices into the sfm stage's image list ``tracks_path``) with what the diagnosis
+    reads beside the fitted views: the frames' names, survey.json's ``lights`` and ``site_depth_m``, each point's
+    water depth from the navigation depths (else ``site_depth_m`` - z) and each view's gradient energy (the
+    ``spatial_frequency`` axis) from the raw image in a ``config.patch_px`` patch; ``source`` says where it came from.
+    The views, colours and geometry are the water's, unchanged. Of ``config``, ``n_points`` bounds the points taken
+    (all when the table has no more; else that many drawn with ``seed``, every view of each kept) and ``patch_px``
+    sizes the gradient patch; the sampling options belong to :func:`measure_survey` and do not apply."""
     from eval.tracks import Tracks
 
     survey = check_survey_folder(survey)
     if obs.points_world is None or obs.normals_cam is None or obs.normals_world is None:
-        raise UserInputError("the water stage's observations lack the points' world positions or normals (saved by "
-                             "an earlier version): rerun the water stage (`watergan water --workspace WS --force`)")
+        raise UserInputError("the water stage's observations lack the points' world positions or normals: rerun the "
+                             "water stage (`watergan water --workspace WS --force`)")
     if config.patch_px < 1 or config.patch_px % 2 == 0:
         raise UserInputError(f"patch_px must be a positive odd number of pixels, got {config.patch_px}")
-    rows = np.arange(len(obs.point))
-    points = np.arange(obs.n_points)
     if obs.n_points > config.n_points:
-        points = np.sort(np.random.default_rng([config.seed, 7]).permutation(obs.n_points)[:config.n_points])
-        rows = np.flatnonzero(np.isin(obs.point, points))
-    new_point = np.full(obs.n_points, -1, np.int64)
-    new_point[points] = np.arange(len(points))
+        obs = obs.take_points(np.sort(np.random.default_rng([config.seed, 7]).permutation(obs.n_points)
+                                      [:config.n_points]))
     tracks = Tracks.load(tracks_path)
     K = np.asarray(tracks.K, float)
     intr = Intrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
@@ -572,23 +446,21 @@ def measure_observations(survey: str | Path, obs, tracks_path: str | Path, scale
     if tuple(obs.image_wh) != (intr.width, intr.height):
         raise UserInputError(f"the water stage's observations are of {obs.image_wh[0]}x{obs.image_wh[1]} images, the "
                              f"sfm stage's of {intr.width}x{intr.height}: rerun the water stage")
-    px = obs.pixel_uv[rows] * np.array([intr.width, intr.height]) - 0.5
-    geometry = Geometry(points_world=np.asarray(obs.points_world, float)[points],
-                        normals_world=np.asarray(obs.normals_world, float)[points],
-                        obs_point=new_point[obs.point[rows]],
-                        obs_frame=obs.frame[rows].astype(np.int64), obs_px=px,
+    geometry = Geometry(points_world=np.asarray(obs.points_world, float), normals_world=np.asarray(obs.normals_world),
+                        obs_point=obs.point, obs_frame=obs.frame.astype(np.int64), obs_px=obs.px,
                         world_from_cam=np.asarray(tracks.world_from_cam, float), intrinsics=intr,
                         frames=[str(n) for n in tracks.image_names], scale=scale)
-    geometry = replace(geometry, water_depth_m=_navigation_water_depth(survey, geometry))
-    grad = np.zeros(len(px))
-    for k in np.unique(geometry.obs_frame):
+    grad = np.zeros(obs.n_obs)
+    for k in np.unique(obs.frame):
         linear, _, _ = _linear_image(survey / "images" / geometry.frames[k], intr)
-        sel = geometry.obs_frame == k
-        grad[sel] = bilinear(patch_energy(linear, config.patch_px)[..., None].astype(np.float64), px[sel])[:, 0]
+        sel = obs.frame == k
+        grad[sel] = bilinear(patch_energy(linear, config.patch_px)[..., None].astype(np.float64), obs.px[sel])[:, 0]
     survey_json = read_survey_json(survey / "survey.json") if (survey / "survey.json").is_file() else {}
-    return _table(geometry, np.asarray(obs.colour, float)[rows], grad, np.asarray(obs.points_cam, float)[rows],
-                  np.asarray(obs.normals_cam, float)[rows], survey_json, config.patch_px,
-                  f"water stage (scale: {scale})", 0)
+    return replace(obs, grad_energy=np.maximum(grad, 0.0), nav_water_depth_m=_navigation_water_depth(survey, geometry),
+                   frames=list(geometry.frames), n_frames=max(obs.n_frames, len(geometry.frames)),
+                   lights=list(survey_json.get("lights") or []),
+                   site_depth_m=float(survey_json.get("site_depth_m", 0.0)),
+                   source=f"water stage (scale: {scale})", patch_px=config.patch_px, clipped_obs=0)
 
 
 def choose_geometry(survey: Path, geometry: str = "auto", tracks: Path | None = None) -> str:
@@ -613,7 +485,7 @@ def choose_geometry(survey: Path, geometry: str = "auto", tracks: Path | None = 
 
 
 def measure_survey(survey: str | Path, config: MeasureConfig = MeasureConfig(), geometry: str = "auto",
-                   tracks: str | Path | None = None, scale: str = "unknown") -> Measurements:
+                   tracks: str | Path | None = None, scale: str = "unknown") -> Observations:
     """Measurements of a survey folder, the geometry from the source :func:`choose_geometry` picks
     (``tracks``: the SfM stage's tracks.npz, ``scale`` its ``scale_method``)."""
     if config.patch_px < 1 or config.patch_px % 2 == 0:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .diagnose_measure import Measurements
+from .observations import Observations
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class ResidualConfig:
     """Observations a bin needs to count in the structure score."""
 
 
-def axis_values(meas: Measurements, predicted: np.ndarray) -> dict[str, np.ndarray]:
+def axis_values(meas: Observations, predicted: np.ndarray) -> dict[str, np.ndarray]:
     """The value of each 1-D axis per observation (image_position is handled as 2-D)."""
     values = {
         "range": meas.range_m,
@@ -88,7 +88,7 @@ def structure_amplitude(stats: dict, min_count: int) -> float:
     return 0.0 if dev is None else float(np.sqrt(np.mean(dev[0] ** 2)))
 
 
-def analyse(meas: Measurements, predicted: np.ndarray, residual: np.ndarray,
+def analyse(meas: Observations, predicted: np.ndarray, residual: np.ndarray,
             config: ResidualConfig = ResidualConfig()) -> dict:
     """{axis: {"edges" or "grid", "count", "mean", "se", "score", "amplitude"}} (JSON-ready lists)."""
     out = {}
@@ -168,7 +168,7 @@ def plot_residuals(analysis: dict, out_dir: Path, title: str) -> list[Path]:
     return paths
 
 
-def write_residual_ply(meas: Measurements, residual: np.ndarray, path: Path) -> None:
+def write_residual_ply(meas: Observations, residual: np.ndarray, path: Path) -> None:
     """The points coloured by their mean residual (grey level, mean over views and channels) on a
     diverging map: blue = observed darker than predicted, red = brighter; limits +-98th percentile."""
     import matplotlib

@@ -1,13 +1,12 @@
 """The diagnose stage: the discovery loop (:mod:`eval.diagnose`) on a workspace or a survey folder.
 
 In a workspace where the water stage ran, the diagnosis starts from the water stage's estimate and ranks
-its candidates on the water stage's own measurement table (``06_water/observations.npz``, converted by
-:func:`eval.diagnose_measure.measure_observations`): one model and one set of measurements for the
+its candidates on the water stage's own measurement table (its ``observations.npz``, with the survey's
+annotations added by :func:`eval.diagnose_measure.with_survey`): one model and one set of measurements for the
 correction and the diagnosis, so ``--add EFFECT`` refits the water with the effect on the views the
-ranking judged it on. Before, the diagnosis sampled and measured its own points on the SfM tracks (5 px
-patches at the features), so its held-out error and the water estimate came from different data; that
-remains the path without a water stage (``--geometry sfm`` asks for it; the simulator's truth when there
-are no tracks either). It writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``)
+ranking judged it on. Without a water stage it measures its own points on the SfM tracks (``--geometry sfm``
+asks for it; the simulator's truth when there are no tracks either).
+It writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``)
 at the workspace's root, with the colour of the image folders ``watergan consistency`` measured. On a bare
 survey folder it measures the survey itself and writes into ``SURVEY/diagnose/`` (ledger there too).
 """
@@ -21,11 +20,11 @@ from eval.diagnose import DiagnoseConfig, DiagnoseResult, describe_measurements,
 from eval.diagnose_measure import (
     GeometrySource,
     MeasureConfig,
-    Measurements,
     check_survey_folder,
-    measure_observations,
     measure_survey,
+    with_survey,
 )
+from eval.observations import Observations
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json, read_json
 
@@ -90,9 +89,9 @@ def _sfm_tracks(ws: Workspace) -> tuple[Path | None, str]:
 
 
 def water_measurements(ws: Workspace, geometry: str = "auto", config: MeasureConfig | None = None
-                       ) -> tuple[Measurements, str] | None:
-    """(the water stage's measurement table as the diagnosis's :class:`Measurements`, at most ``config.n_points``
-    of its points with all their views (:func:`measure_observations`), one line saying so) when ``geometry`` is
+                       ) -> tuple[Observations, str] | None:
+    """(the water stage's measurement table with the survey's annotations, at most ``config.n_points`` of its
+    points with all their views (:func:`with_survey`), one line saying so) when ``geometry`` is
     "water", or "auto" and the water stage saved its table; None otherwise (the diagnosis then measures the survey
     itself). "water" without a saved table is an error saying what to run."""
     if geometry not in (GeometrySource.auto, GeometrySource.water):
@@ -105,10 +104,8 @@ def water_measurements(ws: Workspace, geometry: str = "auto", config: MeasureCon
             raise UserInputError("the workspace has no water-stage observations: run `watergan water --workspace WS` "
                                  "(or `watergan run`) first, or diagnose with --geometry sfm")
         return None
-    from eval.water import Observations
-
     obs = Observations.load(path)
-    meas = measure_observations(ws.stage_dir("survey"), obs, tracks, scale, config or MeasureConfig())
+    meas = with_survey(obs, ws.stage_dir("survey"), tracks, scale, config or MeasureConfig())
     whole = meas.n_points == obs.n_points
     note = "" if whole else f" (drawn from its {len(obs.point)} observations of {obs.n_points} points: " \
                             f"--measure-n-points)"
@@ -147,7 +144,7 @@ def run_diagnose(target: str | Path, config: DiagnoseConfig | None = None, progr
 
 
 def measure_target(target: str | Path, config: MeasureConfig | None = None, geometry: str = "auto"
-                   ) -> Measurements:
+                   ) -> Observations:
     """The diagnosis's measurements of a workspace (the water stage's table when it saved one, else its survey
     on the sfm stage's tracks when it ran) or of a survey folder."""
     config = config or MeasureConfig()

@@ -197,7 +197,7 @@ def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[]
         return with_values(cfg, {("measure", "seed"): opts.seed, ("fit", "seed"): opts.seed})
 
     def water():
-        base = _configured("water", opts)
+        base = with_values(_configured("water", opts), {("measure", "seed"): opts.seed, ("fit", "seed"): opts.seed})
         return dataclasses.replace(base, effects=tuple(dict.fromkeys(base.effects + opts.add)))
 
     def mesh():

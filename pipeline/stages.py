@@ -87,7 +87,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           ("images_dir", "scheduler", "progress"), "dense"),
     Stage("water", "06_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
           ("sfm", "dense"), "the site's water from the survey's geometry, and the physics correction with each "
-          "pixel's range", ("range_scale_sd", "seed", "progress"), "water"),
+          "pixel's range", ("range_scale_sd", "measure.seed", "fit.seed", "progress"), "water"),
     Stage("gan", "01_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult",
           "pipeline.gan:run_gan_stage", ("survey", "water"),
           "train WaterGAN on the site water, then render the paired set for the restorer"),

@@ -4,10 +4,10 @@ It reads the raw frames (survey), their poses (sfm), their dense range (dense: c
 ray length) and the colour board when there is one (the simulator's, or ``board_json``), estimates the
 formation stack with :func:`eval.water.estimate_water` (which constraint pins which parameter, and
 what stays degenerate: its module docstring), and inverts it at every pixel with that pixel's range
-(:func:`eval.water.correct_physics`). Writes into the stage's folder:
+(:func:`watergan.formation.inverse.correct_physics`). Writes into the stage's folder:
 
     water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings
-    observations.npz        the measurement table the estimate was fitted to (:class:`eval.water.Observations`,
+    observations.npz        the measurement table the estimate was fitted to (:class:`eval.observations.Observations`,
                             each view's surface normal included): the diagnose stage ranks its candidates on it
     summary.txt             one line: eta and B_inf with their intervals
     residuals.png           the fit's residuals against range and image position
@@ -42,8 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
+from eval.observations import WaterFrame
 from eval.tracks import Tracks
-from eval.water import WaterConfig, WaterEstimate, WaterFrame
+from eval.water import WaterConfig, WaterEstimate
 from watergan.errors import UserInputError
 from watergan.io import (
     atomic_write_json,
@@ -89,7 +90,7 @@ class WaterResult:
     """Workspace-relative folder of the range maps the frames were corrected with (16-bit millimetre PNGs)."""
     observations: str = ""
     """Workspace-relative path of the measurement table the estimate was fitted to (observations.npz,
-    :class:`eval.water.Observations`; frame indices into the sfm stage's image list): the diagnose stage ranks
+    :class:`eval.observations.Observations`; frame indices into the sfm stage's image list): the diagnose stage ranks
     its candidates on it. Empty in workspaces written before it was saved."""
     n_observations: int = 0
     """Views in that table (board rows not counted)."""
@@ -214,7 +215,7 @@ def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, sm
     went from a median of 5.3 to 2.3 degrees (p90 21.9 to 7.8) and the board's CIEDE2000 from 1.35 to 1.25 (1.22
     with the true normals); on seed 1 (26 % from the mesh) the error stayed as it was (mean 3.2 degrees) and the
     board went from 1.37 to 1.39 (1.37 with the true normals): ``benchmarks/RESULTS.md``."""
-    from eval.water import frame_normals
+    from eval.observations import frame_normals
     from watergan.formation.inverse import normals_from_range
 
     normals = frame_normals(frame, K, smooth_px)
@@ -233,8 +234,7 @@ def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack
     from tqdm import tqdm
 
     from eval.synth.imaging import single_torch_thread
-    from eval.water import correct_physics
-    from watergan.formation.inverse import needs_normals
+    from watergan.formation.inverse import correct_physics, needs_normals
 
     out = ws.stage_dir("water")
     from_mesh, unresolved, scene = [], [], None
@@ -302,11 +302,11 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     _plot_residuals(estimate, out / "residuals.png")
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
     mesh_share, unresolved = correct_frames(ws, frames, K, estimate.stack, survey / "images", mesh_ply,
-                                            cfg.range_agreement, cfg.progress, cfg.normal_smooth_px)
+                                            cfg.range_agreement, cfg.progress, cfg.measure.normal_smooth_px)
     print(estimate.summary(), flush=True)
     if not estimate.converged:
-        print(f"water: the fit had not converged after {estimate.iterations} iterations (raise `--max-iterations`, "
-              "`--water-max-iterations` in `watergan run`); "
+        print(f"water: the fit had not converged after {estimate.iterations} iterations (raise "
+              "`--fit-max-iterations`, `--water-fit-max-iterations` in `watergan run`); "
               "its parameters are where it stopped", file=sys.stderr)
     bounds = at_bounds(estimate)
     if bounds:

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from eval.bootstrap import normal_interval, two_way_weights
+from eval.bootstrap import normal_interval, replicate_weights
 from eval.diagnose import DEFAULT_EFFECTS, small_survey_config
-from eval.diagnose_fit import FitConfig, fit_stack, make_split
 from eval.diagnose_measure import MeasureConfig, measure_survey
+from eval.fit import FitConfig, fit_stack, make_split
 from eval.synth import simulate_survey
 from watergan.formation import Stack
 
@@ -29,7 +29,8 @@ def test_two_way_weights_are_a_frame_count_times_a_point_weight():
     point = np.tile(np.arange(20), 10)
     frames_kept, points_kept = [], []
     for _ in range(300):
-        w = two_way_weights(rng, frame, point).reshape(10, 20)
+        counts, point_weight, _ = replicate_weights(rng, [np.arange(10)], 20)
+        w = (counts[frame] * point_weight[point]).reshape(10, 20)
         assert np.allclose(w * w.sum(), np.outer(w.sum(1), w.sum(0)))
         frames_kept.append((w > 0).any(1).mean() if w.sum() else 0.0)
         points_kept.append((w > 0).any(0).mean() if w.sum() else 0.0)
@@ -73,7 +74,7 @@ def coverage(tmp_path_factory):
 @pytest.mark.slow
 def test_bootstrap_intervals_cover_the_truth_where_the_laplace_std_does_not(coverage):
     """Measured: 35 of 36 components covered (97 %) against 10 of 36 (28 %) by estimate +- 1.96 Laplace std (30 of
-    36 and 6 of 36 with 5-pixel patch means and L-BFGS replicates, see eval.diagnose_fit)."""
+    36 and 6 of 36 with 5-pixel patch means and L-BFGS replicates, see eval.fit)."""
     boot, laplace, misses = coverage
     assert boot >= 0.8 and laplace <= 0.3, (boot, laplace, misses)
 
@@ -81,6 +82,6 @@ def test_bootstrap_intervals_cover_the_truth_where_the_laplace_std_does_not(cove
 @pytest.mark.slow
 def test_bootstrap_intervals_cover_90_percent_of_the_parameters(coverage):
     """Measured: 35 of 36 (red eta on seed 1, 2.3 % low, is missed); 24 of 24 on seeds 4 and 5, which were held
-    out while the causes of the earlier 30 of 36 were found (eval.diagnose_fit's module docstring)."""
+    out while the causes of the earlier 30 of 36 were found (benchmarks/RESULTS.md)."""
     boot, _, misses = coverage
     assert boot >= 0.9, misses

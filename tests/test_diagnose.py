@@ -33,8 +33,8 @@ from eval.diagnose import (
     survey_counts,
     why_implausible,
 )
-from eval.diagnose_fit import FitConfig, fit_stack, make_split
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
+from eval.fit import FitConfig, fit_stack, make_split
 from eval.synth import load_truth, simulate_survey
 from eval.synth.config import default_visible_stack
 from eval.synth.presets import NOT_SIMULATED
@@ -564,7 +564,8 @@ def water_ws(surveys, tmp_path_factory):
     """A workspace on the small survey hiding off-centre vignetting: the sfm stage's record holding the truth's
     tracks (:func:`_tracks_from_truth`), the dense stage's the true depth maps, and the water stage run on them
     (no bootstrap, 150 samples per frame)."""
-    from eval.water import WaterConfig
+    from test_water import water_config
+
     from pipeline.dense import DenseConfig, DenseResult
     from watergan.io import write_depth_png
 
@@ -578,18 +579,18 @@ def water_ws(surveys, tmp_path_factory):
     for k, name in enumerate(truth.frames):
         write_depth_png(depth / f"{Path(name).stem}.png", truth.depth_m(k))
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=ws.relative(depth), pairs={}, coverage={}, mean_coverage=1.0))
-    return ws, ws.run("water", WaterConfig(bootstrap=0, samples_per_frame=150, progress=False))
+    return ws, ws.run("water", water_config(bootstrap=0, samples_per_frame=150, progress=False))
 
 
 def water_board_rows(ws: Workspace) -> int:
-    from eval.water import Observations
+    from eval.observations import Observations
 
     return len(Observations.load(ws.path(ws.result("water").observations)).board_colour)
 
 
 def test_the_diagnosis_of_a_workspace_takes_the_water_stages_observations(water_ws):
+    from eval.observations import Observations
     from eval.tracks import Tracks
-    from eval.water import Observations
 
     ws, water = water_ws
     obs = Observations.load(ws.path(water.observations))
@@ -631,7 +632,9 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     effect on the same table, and the diagnosis starts from that water, on the same rows."""
     import shutil
 
-    from eval.water import DEFAULT_WATER_EFFECTS, WaterConfig
+    from test_water import water_config
+
+    from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
 
     ws, water = water_ws
     copy = tmp_path / "ws"
@@ -639,7 +642,7 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     ws = Workspace(copy)
     every = replace(FAST, measure=MeasureConfig(n_points=10 ** 6))  # all of the water's table
     before = run_diagnose(ws.root, every, progress=False)
-    added = ws.run("water", WaterConfig(effects=(*DEFAULT_WATER_EFFECTS, "vignetting_offcentre"), bootstrap=0,
+    added = ws.run("water", water_config(effects=(*DEFAULT_WATER_EFFECTS, "vignetting_offcentre"), bootstrap=0,
                                         samples_per_frame=150, progress=False))
     assert added.n_observations == water.n_observations  # the same table, refitted
     after = run_diagnose(ws.root, replace(every, add=("vignetting_offcentre",)), progress=False)

@@ -51,7 +51,8 @@ def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
 @pytest.fixture(scope="module")
 def evaluated():
     """A workspace with every input the evaluation and the report use, evaluated."""
-    from eval.water import WaterConfig
+    from test_water import water_config
+
     from pipeline.correct import CorrectStage, CorrectStageResult
     from pipeline.dense import DenseConfig, DenseResult
     from pipeline.mesh import MeshConfig
@@ -82,7 +83,7 @@ def evaluated():
         {"time": "2026-01-01 00:00:00", "kind": "model", "heldout_rmse": 0.02, "stack": ["attenuation", "gain"]},
         {"time": "2026-01-01 00:01:00", "kind": "candidate", "heldout_rmse": 0.012,
          "stack": ["attenuation", "gain", "vignetting_offcentre"]})))
-    ws.run("water", WaterConfig(bootstrap=4, progress=False))  # the physics correction: one more method
+    ws.run("water", water_config(bootstrap=4, progress=False))  # the physics correction: one more method
     record = ws.run("eval", EvaluateConfig(range_source="dense"))
     tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
     return survey, ws, record, tables

@@ -243,9 +243,9 @@ def write_rendered_folder(root, stack, count=4, hw=(40, 48), seed=0):
 
 def test_an_rgbd_restorer_starts_as_the_exact_inverse_of_the_pairs_water(tmp_path):
     """Before any training, a restorer given the pairs' water corrects them to within the 8-bit rounding of the
-    pairs (its fields are the physics correction's: eval.water.correct_physics), where the same restorer without
-    the water leaves them as raw; the water travels with the saved model."""
-    from eval.water import correct_physics
+    pairs (its fields are the physics correction's: watergan.formation.inverse.correct_physics), where the same
+    restorer without the water leaves them as raw; the water travels with the saved model."""
+    from watergan.formation.inverse import correct_physics
     from watergan.io import linear_to_srgb, read_image, srgb_to_linear
 
     folder = write_rendered_folder(tmp_path / "gen", WATER)

@@ -11,16 +11,12 @@ import pytest
 import torch
 
 from eval.colour import Board
-from eval.water import (
-    DEFAULT_WATER_EFFECTS,
-    SparseTracks,
-    WaterConfig,
-    WaterFrame,
-    WaterInputError,
-    correct_physics,
-    estimate_water,
-)
+from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
+from eval.fit import FitConfig
+from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
+from eval.water import WaterConfig, estimate_water
 from watergan.formation import FormationState, Stack, pixel_grid
+from watergan.formation.inverse import correct_physics
 
 W, H, F = 96, 72, 60.0
 K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
@@ -36,6 +32,20 @@ BOARD_ORIGIN, PATCH = np.array([-0.75, -0.5]), 0.25  # board: 6 x 4 patches of 0
 #: several % on the board's sharp patch edges.
 FOOTPRINT_M = 0.06
 BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
+
+
+def water_config(base: WaterConfig | None = None, **flat) -> WaterConfig:
+    """``base`` (default: WaterConfig()) changed by flat field names: those of the measurement
+    (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to its nested configurations."""
+    from dataclasses import fields, replace
+
+    base = base or WaterConfig()
+    nested = {}
+    for name, cls in (("measure", DenseMeasureConfig), ("fit", FitConfig)):
+        own = {k: flat.pop(k) for k in [f.name for f in fields(cls)] if k in flat}
+        nested[name] = replace(getattr(base, name), **own)
+    return replace(base, **flat, **nested)
+
 
 
 def albedo(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -118,7 +128,7 @@ def _value(estimate, key):
 
 def test_estimate_recovers_the_rendered_water(survey):
     frames, board = survey
-    config = WaterConfig(samples_per_frame=250, bootstrap=8, margin_px=4, footprint_m=FOOTPRINT_M)
+    config = water_config(samples_per_frame=250, bootstrap=8, margin_px=4, footprint_m=FOOTPRINT_M)
     est = estimate_water(frames, K, board=board, config=config)
     assert est.stack.names == list(DEFAULT_WATER_EFFECTS)
     assert est.n_board > 20 and est.n_frames == 12
@@ -139,7 +149,7 @@ def test_estimate_recovers_the_rendered_water(survey):
 
 def test_without_a_board_the_gain_is_held_and_said(survey):
     frames, _ = survey
-    config = WaterConfig(samples_per_frame=150, bootstrap=0, margin_px=4, iterations=80, footprint_m=FOOTPRINT_M,
+    config = water_config(samples_per_frame=150, bootstrap=0, margin_px=4, iterations=80, footprint_m=FOOTPRINT_M,
                          initial=({"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}},))
     est = estimate_water(frames, K, config=config)
     assert "gain" in est.fixed and not est.params["gain.k"]["fitted"]
@@ -160,11 +170,10 @@ def test_tracks_add_points(survey):
             obs_xy.append(uv[p])
     tracks = SparseTracks(xyz=xyz, obs_point=np.array(obs_point), obs_frame=np.array(obs_frame),
                           obs_xy=np.array(obs_xy))
-    from eval.water import measure
 
-    config = WaterConfig(samples_per_frame=50, margin_px=4)
-    with_tracks = measure(frames, K, tracks, board, config)
-    without = measure(frames, K, None, board, config)
+    config = water_config(samples_per_frame=50, margin_px=4)
+    with_tracks = measure_frames(frames, K, tracks, board, config.measure)
+    without = measure_frames(frames, K, None, board, config.measure)
     assert with_tracks.n_points == without.n_points + 2
 
 
@@ -189,11 +198,11 @@ def test_too_little_input_is_refused_with_what_to_give(survey):
     frames, _ = survey
     no_pose = [WaterFrame(f.name, f.image, f.range_m, None) for f in frames[:10]] + frames[10:]
     with pytest.raises(WaterInputError, match="stereo frames"):
-        estimate_water(no_pose, K, config=WaterConfig(bootstrap=0))
+        estimate_water(no_pose, K, config=water_config(bootstrap=0))
     sparse_range = [WaterFrame(f.name, f.image, np.where(np.random.default_rng(0).random(f.range_m.shape) < 0.05,
                                                          f.range_m, np.nan), f.world_from_cam) for f in frames]
     with pytest.raises(WaterInputError, match="dense range covers"):
-        estimate_water(sparse_range, K, config=WaterConfig(bootstrap=0))
+        estimate_water(sparse_range, K, config=water_config(bootstrap=0))
 
 
 # ------------------------------------------------------------------------------- the pipeline's stage
@@ -207,7 +216,7 @@ def water_workspace():
 
     survey, ws, _ = survey_and_sfm()
     ws.run("dense", DenseConfig(progress=False))
-    return survey, ws, ws.run("water", WaterConfig(bootstrap=8, progress=False))
+    return survey, ws, ws.run("water", water_config(bootstrap=8, progress=False))
 
 
 def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspace):
@@ -227,7 +236,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
         np.testing.assert_allclose(p["value"], truth[key], rtol=0.25, err_msg=key)
     assert result.board and result.summary.startswith("water: eta_per_m") and result.unresolved_fraction < 0.2
     assert result.at_bounds == []  # nothing hidden: the stack fits
-    from eval.water import Observations  # the table the estimate was fitted to, for the diagnosis
+    from eval.observations import Observations  # the table the estimate was fitted to, for the diagnosis
 
     obs = Observations.load(ws.path(result.observations))
     assert len(obs.colour) == result.n_observations == water["n_observations"] and obs.n_points == water["n_points"]
@@ -256,10 +265,10 @@ def test_a_parameter_at_a_bound_is_reported(survey):
     from pipeline.water import at_bounds
 
     frames, board = survey
-    wrong = estimate_water(frames, K, board=board, config=WaterConfig(effects=("backscatter", "vignetting", "gain"),
+    wrong = estimate_water(frames, K, board=board, config=water_config(effects=("backscatter", "vignetting", "gain"),
                                                                       bootstrap=0))
     assert "backscatter.beta_per_m[1]" in at_bounds(wrong)
-    assert at_bounds(estimate_water(frames, K, board=board, config=WaterConfig(bootstrap=0))) == []
+    assert at_bounds(estimate_water(frames, K, board=board, config=water_config(bootstrap=0))) == []
 
 
 def test_the_water_stage_needs_the_dense_range(tmp_path):
@@ -273,15 +282,14 @@ def test_the_water_stage_needs_the_dense_range(tmp_path):
                                           matching="", scale_method="stereo", scale_factor=1.0, scale_spread=0.0,
                                           seconds=0.0))
     with pytest.raises(UserInputError, match="run the dense stage first"):
-        ws.run("water", WaterConfig())
+        ws.run("water", water_config())
 
 
 def test_board_patches_are_bootstrap_units(survey):
     """Every board row names its patch (the bootstrap weighs each patch's views together)."""
-    from eval.water import measure
 
     frames, board = survey
-    obs = measure(frames, K, board=board, config=WaterConfig(samples_per_frame=50, margin_px=4))
+    obs = measure_frames(frames, K, board=board, config=DenseMeasureConfig(samples_per_frame=50, margin_px=4))
     assert len(obs.board_patch) == len(obs.board_colour) > 20
     np.testing.assert_array_equal(obs.board_albedo, BOARD_RGB[obs.board_patch])
 
@@ -345,10 +353,10 @@ def test_a_fit_stopped_before_convergence_says_so(survey):
     """Rounds of L-BFGS run until one gains less than convergence_rtol; a fit cut short by max_iterations is
     reported as not converged (in the estimate and its summary line), one given room converges."""
     frames, board = survey
-    short = estimate_water(frames, K, board=board, config=WaterConfig(iterations=2, max_iterations=3, bootstrap=0,
+    short = estimate_water(frames, K, board=board, config=water_config(iterations=2, max_iterations=3, bootstrap=0,
                                                                       margin_px=4, footprint_m=FOOTPRINT_M))
     assert not short.converged and short.iterations == 2 and "not converged in 2 iterations" in short.summary()
-    full = estimate_water(frames, K, board=board, config=WaterConfig(bootstrap=0, margin_px=4,
+    full = estimate_water(frames, K, board=board, config=water_config(bootstrap=0, margin_px=4,
                                                                      footprint_m=FOOTPRINT_M))
     assert full.converged and 150 < full.iterations <= 600 and "not converged" not in full.summary()
     assert full.to_json()["converged"] is True
@@ -379,7 +387,7 @@ def test_a_per_frame_effect_is_sized_by_the_survey_and_inverted_frame_by_frame(s
     log_gain = np.array([0.12, -0.1, 0.05, -0.14, 0.0, 0.1, -0.06, 0.14, -0.12, 0.08, -0.02, 0.03])
     exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
                for f, g in zip(frames, log_gain, strict=True)]
-    config = WaterConfig(effects=(*DEFAULT_WATER_EFFECTS, "water_test_exposure"), fixed_effects=("attenuation",),
+    config = water_config(effects=(*DEFAULT_WATER_EFFECTS, "water_test_exposure"), fixed_effects=("attenuation",),
                          initial=(TRUE[0],), samples_per_frame=250, bootstrap=0, margin_px=4,
                          footprint_m=FOOTPRINT_M)
     est = estimate_water(exposed, K, board=board, config=config)
@@ -420,7 +428,7 @@ def test_a_declared_strobe_rig_is_modelled_and_the_water_recovered(lit_survey):
     declared the water stack holds it and recovers eta; without it the strobes' fall-off with distance
     (1/d^2, and exp(-eta d) on the light's path) is read as attenuation: eta comes out far too high."""
     frames, board = lit_survey
-    config = WaterConfig(samples_per_frame=250, bootstrap=4, margin_px=4, footprint_m=FOOTPRINT_M)
+    config = water_config(samples_per_frame=250, bootstrap=4, margin_px=4, footprint_m=FOOTPRINT_M)
     est = estimate_water(frames, K, board=board, config=config, lights=LIGHTS)
     assert est.stack.names[0] == "artificial_light"
     light = est.stack["artificial_light"]
@@ -438,16 +446,10 @@ def test_a_declared_strobe_rig_is_modelled_and_the_water_recovered(lit_survey):
     # the rig's power is held at the truth's (the effect's initial value, 4): the gain is then the truth's too
     np.testing.assert_allclose(_value(est, "gain.k"), [1.5] * 3, rtol=0.05)
 
-    blind = estimate_water(frames, K, board=board, config=replace_config(config, light_rig=False, bootstrap=0),
+    blind = estimate_water(frames, K, board=board, config=water_config(config, light_rig=False, bootstrap=0),
                            lights=LIGHTS)
     assert "artificial_light" not in blind.stack.names
     assert (_value(blind, "attenuation.eta_per_m") > 1.5 * np.array(LIT_ETA)).all()
-
-
-def replace_config(config: WaterConfig, **changes) -> WaterConfig:
-    from dataclasses import replace
-
-    return replace(config, **changes)
 
 
 def test_correct_physics_undoes_the_strobes(lit_survey):

@@ -3,7 +3,7 @@
 Every built-in effect but the learned scattering is affine in the in-air colour J, so a stack rendered at
 J = 0 and J = 1 gives the recorded colour of any J: y = A J + C, with C = render(J = 0) (backscatter, after the
 sensor's effects) and A = render(J = 1) - C (the direct signal's gain: gain, vignetting, transmission, lights).
-The inverse J = (y - C) / A is what the water stage's physics correction (:func:`eval.water.correct_physics`)
+The inverse J = (y - C) / A is what the physics correction (:func:`correct_physics`)
 applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`): both take the fields from
 :func:`inverse_fields`, so the two corrections invert the same water the same way.
 """
@@ -239,3 +239,31 @@ def range_span(range_m: torch.Tensor, round_m: float = LUT_RANGE_ROUND_M) -> tup
     """(least, largest) range of maps (metres), rounded outwards to multiples of ``round_m`` (least >= 0)."""
     lo, hi = float(range_m.min()), float(range_m.max())
     return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
+
+
+def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[dict],
+                    K: np.ndarray | None = None, frame_index: int = 0, normals_cam: np.ndarray | None = None,
+                    normal_smooth_px: float = 24.0) -> tuple[np.ndarray, np.ndarray]:
+    """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
+    J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
+    J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
+
+    image:   (H,W,3) raw linear RGB.
+    range_m: (H,W) metres along the ray; NaN or <= 0 = no range.
+    stack:   a :class:`Stack` or its configuration (e.g. the water estimate's stack).
+    K:       (3,3) intrinsics; gives effects the camera-frame points, depth and surface normals (needed by e.g.
+             ``artificial_light``: J = (I - C) / A with A = k/V exp(-eta r) E(X, n), E the lights' irradiance);
+             without it depth = range and no points.
+    normals_cam: (H,W,3) unit normals in the camera frame (e.g. of a fused mesh); None with K:
+             :func:`normals_from_range` of ``range_m`` smoothed by ``normal_smooth_px``.
+    frame_index: the frame's index in the survey (the water estimate's frames list): the row that parameters held
+             per frame take.
+    Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
+    without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
+    a, c, valid = inverse_fields(range_m, stack, K, frame_index, normals_cam, normal_smooth_px)
+    a, c = a[0].permute(1, 2, 0).numpy(), c[0].permute(1, 2, 0).numpy()
+    image = np.asarray(image, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = (image - c) / a
+    out[~valid] = np.nan
+    return out.astype(np.float32), valid

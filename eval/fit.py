@@ -1,0 +1,657 @@
+"""The one fitter of a formation stack with per-point albedos, to the measurement table (:mod:`eval.observations`).
+
+The water estimate (:mod:`eval.water`) and the diagnosis (:mod:`eval.diagnose`) both fit with it; they differ only
+in their :class:`FitConfig` (:data:`WATER_FIT` and the default).
+
+Model of view o of point p (linear RGB, per channel c): y_oc = F_theta(J_p, state_o)_c, F the stack
+(``Stack.render``) with parameters theta, J_p >= 0 the point's in-air colour (albedo, shading included), state_o
+the view's geometry (a batch of 1x1 images, every tensor (N,C,1,1)). Board rows have their albedo known.
+
+Loss: soft-L1 on the residual e, rho(e) = 2 f^2 (sqrt(1 + (e/f)^2) - 1), f = ``loss_scale``, summed over channels
+and averaged over views with weights w_o (a bootstrap replicate's; 1 in the fit); plus ``board_weight`` times the
+same mean over the board rows:
+
+    L(theta) = sum_o w_o sum_c rho(e_oc) / sum_o w_o  +  board_weight sum_b w_b sum_c rho(e_bc) / sum_b w_b.
+
+Albedo projection (variable projection): each point's albedo is its weighted least-squares value given theta, in
+closed form when the stack is affine in J (J_p = sum_v w A (y - C) / sum_v w A^2, A = F(1) - F(0), C = F(0)), else
+by ``secant_steps`` secant steps; clamped to [``albedo_min``, ``albedo_max``]. L is then a function of theta alone.
+
+Minimisation: the fitted parameters start ``START_MARGIN`` of their span inside their bounds (a value on a bound has
+no gradient through the sigmoid); rounds of L-BFGS (``iterations`` each, strong-Wolfe line search) until a round
+lowers L by less than ``convergence_rtol`` or ``max_iterations`` are spent; then optionally a trust-region least
+squares on the same residuals (``refine_evaluations``: L-BFGS stops where the loss changes little per step, which
+in a flat direction can be far from the optimum); then optionally a joint polish of theta and the log albedos
+(``polish_iterations``).
+
+Bootstrap (``bootstrap`` replicates; :func:`bootstrap`): frames drawn with replacement (the frames that see the
+board apart from the others, so every replicate keeps the board), each point's views weighted Poisson(1) and each
+board patch's too (the views of one point, or of one patch, share its errors). Each replicate is refitted from the
+full fit: ``newton`` (one Newton step with the full fit's Hessian, halved until it lowers the replicate's loss, then
+``bootstrap_iterations`` L-BFGS iterations) or ``least_squares`` (``bootstrap_iterations`` evaluations of the
+trust-region least squares).
+
+Held-out error (:func:`fit_stack`, ``holdout_fraction``): those points take no part in the fit; with theta frozen
+each one's albedo is fitted from half of its views and the error measured on the other half.
+
+Degeneracy: a per-channel gain and the albedos' scale are exactly degenerate (k J = (k s)(J / s)): effects in
+``fixed_effects`` keep their values (the water frees the gain when a board pins it).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+import torch
+from torch.func import functional_call
+
+from watergan.formation import Effect, FormationState, Stack
+from watergan.formation.inverse import affine_images
+from watergan.formation.params import to_json_value
+
+from .bootstrap import normal_interval, replicate_weights
+from .observations import Observations
+
+#: The stack fitted by default (water and diagnosis): the simulator's visible physics, with WaterGAN's learned
+#: backscatter replaced by its analytic counterpart, which has physical parameters to estimate.
+DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
+#: Fraction of a parameter's span kept from its bounds at the start of a fit (see start_inside_bounds).
+START_MARGIN = 0.01
+
+
+class Refit(StrEnum):
+    """How a bootstrap replicate is refitted from the full fit."""
+
+    newton = "newton"
+    least_squares = "least_squares"
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """How a stack is fitted to the measurement table (defaults: the diagnosis's; the water's: :data:`WATER_FIT`)."""
+
+    loss_scale: float = 0.02
+    """Scale f of the soft-L1 loss, linear colour units: residuals above it count linearly."""
+    iterations: int = 100
+    """L-BFGS iterations of a round over the parameters, the albedos projected out."""
+    max_iterations: int = 0
+    """L-BFGS iterations of a fit at most: rounds run until one lowers the loss by less than ``convergence_rtol``
+    (0: one round)."""
+    convergence_rtol: float = 1e-3
+    """A fit has converged when a round lowers its loss by less than this fraction."""
+    step_rtol: float = 1e-8
+    """A round of L-BFGS stops when a step changes the loss by less than this fraction of its starting value."""
+    refine_evaluations: int = 0
+    """Residual evaluations of a trust-region least squares after the L-BFGS rounds (0: none)."""
+    polish_iterations: int = 20
+    """L-BFGS iterations of a joint fit of the parameters and the log albedos after that (0: none)."""
+    secant_steps: int = 4
+    """Secant steps of each least-squares albedo when the stack is not affine in the albedo."""
+    albedo_min: float = 1e-3
+    """Least albedo of the projection."""
+    albedo_max: float = 10.0
+    """Largest albedo of the projection."""
+    board_weight: float = 10.0
+    """Weight of the board term (mean over board rows) beside the views' (mean over views)."""
+    holdout_fraction: float = 0.2
+    """Fraction of the points held out of the fit to measure the error (:func:`fit_stack`)."""
+    fixed_effects: tuple[str, ...] = ("gain",)
+    """Effects whose parameters are not fitted (gain: degenerate with the albedos' scale)."""
+    bootstrap: int = 20
+    """Bootstrap replicates (0: none)."""
+    bootstrap_refit: Refit = Refit.least_squares
+    """How each replicate is refitted from the full fit: a Newton step then L-BFGS, or trust-region least squares."""
+    bootstrap_iterations: int = 40
+    """L-BFGS iterations (newton) or residual evaluations (least_squares) of each replicate's refit."""
+    bootstrap_points: bool = True
+    """Resample the points and the board's patches too (each one's views weigh Poisson(1) times)."""
+    float32: bool = False
+    """Bootstrap replicates evaluate the model in float32 (parameters and loss stay float64)."""
+    seed: int = 0
+    """Seed of the held-out split and of the bootstrap."""
+    threads: int = field(default=1, metadata={"hash": False})
+    """Torch threads of the fit (not hashed: the fit does not depend on it)."""
+
+
+#: The water estimate's fit: the dense table's views and the board, albedos >= 0 (dark points pin the backscatter),
+#: rounds to convergence, Newton-step replicates in float32.
+WATER_FIT = FitConfig(loss_scale=0.01, iterations=150, max_iterations=600, step_rtol=1e-9, polish_iterations=0,
+                      albedo_min=0.0, albedo_max=math.inf, holdout_fraction=0.0, fixed_effects=(), bootstrap=30,
+                      bootstrap_refit=Refit.newton, bootstrap_iterations=5, float32=True)
+
+
+def soft_l1(e: torch.Tensor, scale: float) -> torch.Tensor:
+    """rho(e) = 2 f^2 (sqrt(1 + (e/f)^2) - 1): e^2 for |e| << f, 2 f |e| for |e| >> f."""
+    return 2.0 * scale * scale * (torch.sqrt(1.0 + (e / scale) ** 2) - 1.0)
+
+
+def robust_residual(e: torch.Tensor, scale: float) -> torch.Tensor:
+    """r(e) with r^2 = rho(e) (:func:`soft_l1`) and the sign of e: e sqrt(2 / (1 + sqrt(1 + (e/f)^2)))."""
+    return e * torch.sqrt(2.0 / (1.0 + torch.sqrt(1.0 + (e / scale) ** 2)))
+
+
+def copy_stack(stack: Stack) -> Stack:
+    """An independent copy with the same parameter values."""
+    return Stack.from_config(stack.to_config())
+
+
+def insert_by_rank(stack: Stack, effect: Effect) -> Stack:
+    """A copy of ``stack`` with ``effect`` inserted by rank (see :meth:`Stack.with_effect`)."""
+    return copy_stack(stack).with_effect(effect)
+
+
+def fitted_names(stack: Stack, fixed_effects: tuple[str, ...], frozen: dict[str, tuple[str, ...]]) -> list[str]:
+    """Names (as in ``stack.named_parameters()``) of the raw parameters to fit: learnable ones of effects not in
+    ``fixed_effects``, minus ``frozen`` {effect: params} (known settings, tied followers)."""
+    return [f"effects.{i}.raw.{p.name}" for i, effect in enumerate(stack.effects) if effect.name not in fixed_effects
+            for p in effect.params if p.learnable and p.name not in frozen.get(effect.name, ())]
+
+
+def start_inside_bounds(stack: Stack, names: list[str], margin: float = START_MARGIN) -> None:
+    """Move the starting value of each fitted raw parameter ``names`` at least ``margin`` inside its bounds (in
+    place): sigmoid parameters to p = (v - lower)/(upper - lower) in [margin, 1 - margin], softplus ones to
+    v - lower >= margin (on a bound d value / d raw ~ 1e-9: a fit cannot move it)."""
+    by_name = dict(stack.named_parameters(remove_duplicate=False))
+    limit = math.log(margin) - math.log1p(-margin)  # logit(margin) < 0; softplus(limit) ~ margin
+    with torch.no_grad():
+        for name in names:
+            spec = stack.effects[int(name.split(".")[1])]._spec(name.rsplit(".", 1)[1])
+            by_name[name].clamp_(limit, -limit) if spec.bounded_above else by_name[name].clamp_(min=limit)
+
+
+def _column(a: np.ndarray, n: int, dtype) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(np.asarray(a, dtype).reshape(n, -1, 1, 1)))
+
+
+def observation_state(obs: Observations, rows: np.ndarray, dtype=np.float64) -> FormationState:
+    """The state of the views ``rows`` as a batch of 1x1 images; ``direct`` is a placeholder of ones. Per-point
+    fields (world point and normal, water depth) are given when the table holds them."""
+    n, p = len(rows), obs.point[rows]
+    known_depth = obs.nav_water_depth_m is not None or obs.site_depth_m > 0
+    return FormationState(
+        direct=torch.ones(n, 3, 1, 1, dtype=torch.float32 if dtype == np.float32 else torch.float64),
+        range_m=_column(obs.range_m[rows], n, dtype), depth_m=_column(obs.depth_m[rows], n, dtype),
+        pixel_uv=_column(obs.pixel_uv[rows], n, dtype), image_wh=tuple(obs.image_wh),
+        points_cam=_column(obs.points_cam[rows], n, dtype),
+        normals_cam=None if obs.normals_cam is None else _column(obs.normals_cam[rows], n, dtype),
+        points_world=None if obs.points_world is None else _column(obs.points_world[p], n, dtype),
+        normals_world=None if obs.normals_world is None else _column(obs.normals_world[p], n, dtype),
+        water_depth_m=_column(obs.water_depth_m[p], n, dtype) if known_depth and obs.points_world is not None
+        else None,
+        frame_index=torch.from_numpy(np.asarray(obs.frame[rows], np.int64)))
+
+
+def board_state(obs: Observations, dtype=np.float64) -> FormationState:
+    """The state of the board rows as a batch of 1x1 images."""
+    n = len(obs.board_colour)
+    return FormationState(
+        direct=torch.ones(n, 3, 1, 1, dtype=torch.float32 if dtype == np.float32 else torch.float64),
+        range_m=_column(obs.board_range_m, n, dtype), depth_m=_column(obs.board_depth_m, n, dtype),
+        pixel_uv=_column(obs.board_pixel_uv, n, dtype), image_wh=tuple(obs.image_wh),
+        points_cam=_column(obs.board_points_cam, n, dtype),
+        normals_cam=None if obs.board_normals_cam is None else _column(obs.board_normals_cam, n, dtype),
+        frame_index=torch.from_numpy(np.asarray(obs.board_frame, np.int64)))
+
+
+def is_affine_in_albedo(stack: Stack, state: FormationState) -> bool:
+    """True when F(1) - F(0.5) = F(0.5) - F(0) for these views (no sensor curve or clipping), in float64."""
+    one = torch.ones(state.direct.shape[0], 3, dtype=torch.float64)
+    with torch.no_grad():
+        f0, f1, f2 = (_render(stack, state, k * one) for k in (0.0, 0.5, 1.0))
+    return bool(torch.allclose(f2 - f1, f1 - f0, atol=1e-9, rtol=1e-6))
+
+
+def _render(stack: Stack, state: FormationState, albedo: torch.Tensor) -> torch.Tensor:
+    return stack.render(state.replace(direct=albedo.reshape(-1, 3, 1, 1).to(state.direct.dtype)))[:, :, 0, 0]
+
+
+class Problem:
+    """The loss of a stack's fitted parameters on rows of a table (and its board rows), the albedos projected out.
+
+    ``names``: the raw parameters fitted (:func:`fitted_names`); ``rows``: the views used (default all);
+    ``board``: use the table's board rows. ``frame_weight`` (per frame index), ``point_weight`` (per point of the
+    rows, in :attr:`points` order) and ``patch_weight`` (per board patch) weigh the views (None: 1)."""
+
+    def __init__(self, stack: Stack, obs: Observations, config: FitConfig, names: list[str],
+                 rows: np.ndarray | None = None, board: bool = True, float32: bool = False) -> None:
+        self.stack, self.obs, self.config, self.names = stack, obs, config, names
+        self.rows = np.arange(obs.n_obs) if rows is None else np.asarray(rows)
+        dt = np.float32 if float32 else np.float64
+        self.state = observation_state(obs, self.rows, dt)
+        self.y = torch.from_numpy(obs.colour[self.rows].astype(dt))
+        self.frame = torch.from_numpy(np.asarray(obs.frame[self.rows], np.int64))
+        points, local = np.unique(obs.point[self.rows], return_inverse=True)
+        self.points, self.local = points, torch.from_numpy(local.astype(np.int64))
+        self.has_board = board and len(obs.board_colour) > 0
+        if self.has_board:
+            self.board_state = board_state(obs, dt)
+            self.board_y = torch.from_numpy(obs.board_colour.astype(dt))
+            self.board_j = torch.from_numpy(obs.board_albedo.astype(dt))
+            self.board_frame = torch.from_numpy(np.asarray(obs.board_frame, np.int64))
+            self.board_patch = torch.from_numpy(np.asarray(obs.board_patch, np.int64))
+        self.frame_weight: torch.Tensor | None = None
+        self.point_weight: torch.Tensor | None = None
+        self.patch_weight: torch.Tensor | None = None
+        by_name = dict(stack.named_parameters(remove_duplicate=False))  # a tied parameter under each name
+        self.theta = [by_name[n] for n in names]
+        for p in stack.parameters():
+            p.requires_grad_(False)
+        for p in self.theta:
+            p.requires_grad_(True)
+        self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
+        self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
+
+    # ------------------------------------------------------------------ weights, albedos, residuals
+    def view_weight(self) -> torch.Tensor:
+        w = torch.ones(len(self.rows), dtype=self.y.dtype)
+        if self.frame_weight is not None:
+            w = w * self.frame_weight.to(w.dtype)[self.frame]
+        if self.point_weight is not None:
+            w = w * self.point_weight.to(w.dtype)[self.local]
+        return w
+
+    def albedo(self, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(albedo (P_rows,3) of the points in :attr:`points` order, predicted colour (N,3)) with each albedo its
+        weighted least-squares value given the parameters (see the module docstring)."""
+        w = self.view_weight() if w is None else w
+        n, lo, hi = len(self.points), self.config.albedo_min, self.config.albedo_max
+        if self.affine:
+            a, c = affine_images(self.stack, self.state)
+            a, c = a[:, :, 0, 0], c[:, :, 0, 0]
+            num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * (self.y - c))
+            den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * a)
+            j = (num / den.clamp_min(1e-12)).clamp(lo, hi)
+            return j, a * j[self.local] + c
+        zero = _render(self.stack, self.state, torch.zeros_like(self.y))
+        j = self.start
+        for _ in range(self.config.secant_steps):
+            a_obs = j[self.local]
+            t = (_render(self.stack, self.state, a_obs) - zero) / a_obs
+            num = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * (self.y - zero))
+            den = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * t)
+            j = (num / den.clamp_min(1e-12)).clamp(max(lo, 1e-6), hi)
+        return j, _render(self.stack, self.state, j[self.local])
+
+    def _board_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(weights (B,), residuals (B,3)) of the board rows."""
+        wb = torch.ones(len(self.board_y), dtype=self.board_y.dtype)
+        if self.frame_weight is not None:
+            wb = wb * self.frame_weight.to(wb.dtype)[self.board_frame]
+        if self.patch_weight is not None:
+            wb = wb * self.patch_weight.to(wb.dtype)[self.board_patch]
+        ab, cb = affine_images(self.stack, self.board_state)
+        return wb, self.board_y - (ab[:, :, 0, 0] * self.board_j + cb[:, :, 0, 0])
+
+    def loss(self) -> torch.Tensor:
+        """L(theta) of the module docstring (float64)."""
+        w = self.view_weight()
+        e = self.y - self.albedo(w)[1]
+        scale = self.config.loss_scale
+        total = ((w[:, None] * soft_l1(e, scale)).sum() / w.sum().clamp_min(1e-12)).double()
+        if self.has_board and self.config.board_weight > 0:
+            wb, eb = self._board_terms()
+            total = total + self.config.board_weight * ((wb[:, None] * soft_l1(eb, scale)).sum()
+                                                        / wb.sum().clamp_min(1e-12)).double()
+        return total
+
+    def residuals(self) -> torch.Tensor:
+        """The residual vector whose sum of squares is :meth:`loss` (for the trust-region least squares)."""
+        w = self.view_weight()
+        scale = self.config.loss_scale
+        parts = [(torch.sqrt(w / w.sum())[:, None] * robust_residual(self.y - self.albedo(w)[1], scale)).reshape(-1)]
+        if self.has_board and self.config.board_weight > 0:
+            wb, eb = self._board_terms()
+            parts.append((torch.sqrt(self.config.board_weight * wb / wb.sum())[:, None]
+                          * robust_residual(eb, scale)).reshape(-1))
+        return torch.cat(parts).double()
+
+    # ------------------------------------------------------------------ parameters
+    def flat(self) -> torch.Tensor:
+        return torch.cat([p.detach().reshape(-1) for p in self.theta])
+
+    def set_flat(self, flat: torch.Tensor) -> None:
+        with torch.no_grad():
+            i = 0
+            for p in self.theta:
+                p.copy_(flat[i:i + p.numel()].view_as(p))
+                i += p.numel()
+
+    def gradient(self) -> torch.Tensor:
+        for p in self.theta:
+            p.grad = None
+        self.loss().backward()
+        return torch.cat([p.grad.reshape(-1) for p in self.theta]).double()
+
+    def hessian(self, step: float = 1e-3) -> torch.Tensor:
+        """Central differences of the gradient in the raw parameters, symmetrised."""
+        x0 = self.flat()
+        hess = torch.zeros(len(x0), len(x0), dtype=torch.float64)
+        for i in range(len(x0)):
+            d = torch.zeros_like(x0)
+            d[i] = step
+            self.set_flat(x0 + d)
+            gp = self.gradient()
+            self.set_flat(x0 - d)
+            hess[i] = (gp - self.gradient()) / (2 * step)
+        self.set_flat(x0)
+        return 0.5 * (hess + hess.T)
+
+    def physical(self) -> dict[str, np.ndarray]:
+        """{raw parameter name: physical value} of the fitted parameters."""
+        out = {}
+        for name, raw in zip(self.names, self.theta, strict=True):
+            spec = self.stack.effects[int(name.split(".")[1])]._spec(name.rsplit(".", 1)[1])
+            out[name] = spec.to_value(raw.detach()).numpy().copy()
+        return out
+
+    # ------------------------------------------------------------------ minimisation
+    def minimise(self, iterations: int) -> float:
+        """At most ``iterations`` L-BFGS iterations (see ``FitConfig.step_rtol``); returns the loss."""
+        if iterations > 0 and self.theta:
+            lbfgs(self.theta, self.loss, iterations, self.config.step_rtol)
+        with torch.no_grad():
+            return float(self.loss())
+
+    def converge(self) -> tuple[int, bool]:
+        """Rounds of :meth:`minimise` (see ``FitConfig.max_iterations``); returns (iterations, converged)."""
+        config = self.config
+        loss = self.minimise(config.iterations)
+        done = step = config.iterations
+        while done + step <= config.max_iterations:
+            before, loss = loss, self.minimise(step)
+            done += step
+            if before - loss <= config.convergence_rtol * abs(before):
+                return done, True
+        return done, config.max_iterations <= config.iterations
+
+    def refine(self, evaluations: int) -> None:
+        """The trust-region least squares on :meth:`residuals` (:func:`least_squares_fit`)."""
+        least_squares_fit(self.theta, self.residuals, evaluations)
+
+
+def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> None:
+    """At most ``iterations`` L-BFGS iterations (strong-Wolfe line search, history 20), stopping when a step changes
+    the loss by less than ``rtol`` of its starting value."""
+    with torch.no_grad():
+        scale = abs(float(loss_fn())) + 1e-30
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-12, tolerance_change=rtol * scale)
+
+    def closure():
+        opt.zero_grad(set_to_none=True)
+        loss = loss_fn()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+
+
+def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int) -> None:
+    """Minimise the sum of squares of ``residual_fn()`` over the tensors ``theta`` (in place) by scipy's trust-region
+    reflective least squares, at most ``evaluations`` residual evaluations (a 2-point finite-difference Jacobian
+    costs one per parameter on top), Jacobian-scaled variables; the start is kept unless the fit lowers the cost."""
+    if evaluations <= 0 or not theta:
+        return
+    from scipy.optimize import least_squares
+
+    shapes = [t.shape for t in theta]
+    sizes = [t.numel() for t in theta]
+    x0 = torch.cat([t.detach().reshape(-1) for t in theta]).numpy().copy()
+
+    def assign(x: np.ndarray) -> None:
+        with torch.no_grad():
+            for t, part, shape in zip(theta, np.split(x, np.cumsum(sizes)[:-1]), shapes, strict=True):
+                t.copy_(torch.from_numpy(part.reshape(shape)))
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        assign(x)
+        with torch.no_grad():
+            return residual_fn().reshape(-1).numpy()
+
+    cost0 = float((fun(x0) ** 2).sum())
+    with np.errstate(all="ignore"):
+        result = least_squares(fun, x0, jac="2-point", method="trf", x_scale="jac", ftol=1e-12, xtol=1e-10,
+                               gtol=1e-12, max_nfev=evaluations)
+    assign(result.x if np.isfinite(result.x).all() and 2.0 * result.cost <= cost0 else x0)
+
+
+# ---------------------------------------------------------------------------------- bootstrap
+def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = None) -> list[dict[str, np.ndarray]]:
+    """``config.bootstrap`` replicates of the fit of ``problem`` (at its optimum; see the module docstring), each
+    {raw name: physical value}. ``replicas``: the problem the replicates are evaluated on (e.g. the same stack in
+    float32; default ``problem``). The parameters are restored afterwards."""
+    fast = replicas or problem
+    if not config.bootstrap or not problem.names:
+        return []
+    rng = np.random.default_rng([config.seed, 29])
+    frames = np.unique(problem.frame.numpy())
+    board_frames = np.unique(problem.board_frame.numpy()) if problem.has_board else np.zeros(0, np.int64)
+    groups = [board_frames, np.setdiff1d(frames, board_frames)]
+    n_patches = int(problem.board_patch.max()) + 1 if problem.has_board else 0
+    x0 = fast.flat()
+    if config.bootstrap_refit == Refit.newton:
+        evals, evecs = torch.linalg.eigh(fast.hessian())
+        inv = (evecs / evals.clamp_min(evals.abs().max() * 1e-6 + 1e-300)) @ evecs.T
+    samples = []
+    for _ in range(config.bootstrap):
+        counts, points, patches = replicate_weights(rng, groups, len(fast.points) if config.bootstrap_points else 0,
+                                                    n_patches if config.bootstrap_points else 0)
+        fast.frame_weight = torch.from_numpy(counts)
+        if config.bootstrap_points:
+            fast.point_weight = torch.from_numpy(points)
+            fast.patch_weight = torch.from_numpy(patches) if n_patches else None
+        fast.set_flat(x0)
+        if config.bootstrap_refit == Refit.newton:
+            step = -(inv @ fast.gradient())  # a Newton step from the full fit, halved until it helps
+            with torch.no_grad():
+                before = float(fast.loss())
+                for _ in range(6):
+                    fast.set_flat(x0 + step)
+                    if float(fast.loss()) < before:
+                        break
+                    step = step / 2
+                else:
+                    fast.set_flat(x0)
+            fast.minimise(config.bootstrap_iterations)
+        else:
+            fast.refine(config.bootstrap_iterations)
+        samples.append(fast.physical())
+    fast.frame_weight = fast.point_weight = fast.patch_weight = None
+    fast.set_flat(x0)
+    return samples
+
+
+# ------------------------------------------------------------------------- fit with held-out points
+@dataclass(frozen=True)
+class Split:
+    """Which views train the stack, fit held-out albedos, or test.
+
+    train_obs / holdout_fit_obs / holdout_test_obs: (n,) view indices; holdout_points: (H,) held-out points."""
+
+    train_obs: np.ndarray
+    holdout_fit_obs: np.ndarray
+    holdout_test_obs: np.ndarray
+    holdout_points: np.ndarray
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A fitted stack and how well it explains the measurements.
+
+    stack:            the fitted stack (a new object; the input stack is not changed).
+    params:           {effect: {param: {"value", "std", "units", "fitted", "boot_std", "ci95"}}}, physical values.
+    albedo:           (P,3) fitted linear albedo of every point (held-out ones from their fit views).
+    predicted:        (N,3) predicted linear colour of every view; residual: (N,3) observed - predicted.
+    role:             (N,) 0 training view, 1 held-out fit view, 2 held-out test view.
+    train_rmse:       RMSE over the training views; heldout_rmse: over the held-out test views (linear).
+    heldout_sq_sum:   (H,) per held-out point, sum of squared test residuals; heldout_count: (H,) their number.
+    seconds:          wall time of the fit.
+    """
+
+    stack: Stack
+    params: dict
+    albedo: np.ndarray
+    predicted: np.ndarray
+    residual: np.ndarray
+    role: np.ndarray
+    train_rmse: float
+    heldout_rmse: float
+    heldout_sq_sum: np.ndarray
+    heldout_count: np.ndarray
+    seconds: float
+
+    def summary(self) -> dict:
+        """JSON-ready: stack, parameters with uncertainties, errors, time."""
+        return {"stack": self.stack.names, "params": self.params, "train_rmse": self.train_rmse,
+                "heldout_rmse": self.heldout_rmse, "seconds": round(self.seconds, 3),
+                "uncertainty": "std: 1-sigma Laplace approximation conditional on the fitted albedos (a lower "
+                               "bound); ci95 (when bootstrapped): estimate +- 1.96 boot_std, bootstrap over "
+                               "frames and points with the albedos refitted"}
+
+
+def make_split(obs: Observations, config: FitConfig) -> Split:
+    """Hold out ``holdout_fraction`` of the points; split each held-out point's views in two halves at random (the
+    larger half fits the albedo)."""
+    rng = np.random.default_rng([config.seed, 11])
+    holdout = np.sort(rng.permutation(obs.n_points)[:int(round(config.holdout_fraction * obs.n_points))])
+    is_hold = np.zeros(obs.n_points, bool)
+    is_hold[holdout] = True
+    obs_hold = is_hold[obs.point]
+    fit_view = np.zeros(obs.n_obs, bool)
+    for p in holdout:
+        views = np.nonzero(obs.point == p)[0]
+        fit_view[rng.permutation(views)[: (len(views) + 1) // 2]] = True
+    return Split(train_obs=np.nonzero(~obs_hold)[0], holdout_fit_obs=np.nonzero(obs_hold & fit_view)[0],
+                 holdout_test_obs=np.nonzero(obs_hold & ~fit_view)[0], holdout_points=holdout)
+
+
+def predict(stack: Stack, obs: Observations, rows: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """(n,3) predicted linear colour of views ``rows`` given the (P,3) albedos."""
+    with torch.no_grad():
+        return _render(stack, observation_state(obs, rows), torch.from_numpy(albedo[obs.point[rows]])).numpy()
+
+
+def _albedos(problem: Problem, init: np.ndarray | None) -> torch.Tensor:
+    """Fit the albedos of ``problem``'s points (and its parameters, when it has any; module docstring): L-BFGS
+    rounds, refinement and polish. Returns the (P_rows,3) albedos in ``problem.points`` order."""
+    config = problem.config
+    if init is not None and np.isfinite(init[problem.points]).all():
+        problem.start = torch.from_numpy(init[problem.points]).clamp(config.albedo_min, config.albedo_max)
+    elif not problem.affine:
+        with torch.no_grad():
+            problem.start = problem.albedo()[0]
+    if problem.theta:
+        problem.converge()
+        problem.refine(config.refine_evaluations)
+    with torch.no_grad():
+        start = problem.albedo()[0]
+    if not config.polish_iterations:
+        return start
+    log_a = torch.nn.Parameter(torch.log(start.clamp_min(1e-12)))
+    lbfgs([log_a, *problem.theta],
+          lambda: soft_l1(_render(problem.stack, problem.state, torch.exp(log_a)[problem.local]) - problem.y,
+                          config.loss_scale).sum(1).mean(), config.polish_iterations, config.step_rtol)
+    return torch.exp(log_a.detach())
+
+
+def laplace_std(stack: Stack, state: FormationState, y: torch.Tensor, direct: torch.Tensor, names: list[str],
+                scale: float) -> dict[str, np.ndarray]:
+    """Standard deviations of the physical values of the raw parameters ``names``, conditional on the albedos
+    (``direct``): Cov = J H^-1 J^T, H the Hessian of sum rho(e) / (2 s^2) over the raw values (s^2 = sum rho /
+    (n - k)), J = d value / d raw. Views are treated as independent, so these are lower bounds."""
+    if not names:
+        return {}
+    by_name = dict(stack.named_parameters())
+    shapes = [by_name[n].shape for n in names]
+    sizes = [int(np.prod(s)) for s in shapes]
+    flat0 = torch.cat([by_name[n].detach().reshape(-1) for n in names])
+
+    def unflatten(flat):
+        return {n: t.view(s) for n, t, s in zip(names, torch.split(flat, sizes), shapes, strict=True)}
+
+    def total_loss(flat):
+        pred = functional_call(stack, unflatten(flat), (state.replace(direct=direct),)).image[:, :, 0, 0]
+        return soft_l1(pred - y, scale).sum()
+
+    with torch.no_grad():
+        s2 = float(total_loss(flat0)) / max(y.numel() - flat0.numel(), 1)
+    hess = torch.autograd.functional.hessian(total_loss, flat0) / (2.0 * s2)
+    evals, evecs = torch.linalg.eigh(0.5 * (hess + hess.T))
+    inv = (evecs / evals.clamp_min(evals.abs().max() * 1e-12 + 1e-300)) @ evecs.T
+    specs = {n: stack.effects[int(n.split(".")[1])]._spec(n.rsplit(".", 1)[1]) for n in names}
+
+    def to_values(flat):
+        return torch.cat([specs[n].to_value(t).reshape(-1) for n, t in unflatten(flat).items()])
+
+    jac = torch.autograd.functional.jacobian(to_values, flat0)
+    std = torch.sqrt(torch.diagonal(jac @ inv @ jac.T).clamp_min(0.0))
+    return {n: t.view(s).numpy() for n, t, s in zip(names, torch.split(std, sizes), shapes, strict=True)}
+
+
+def describe_params(stack: Stack, std: dict[str, np.ndarray], intervals: dict | None = None) -> dict:
+    """{effect: {param: {"value", "std", "units", "fitted", "boot_std", "ci95"}}}: std the Laplace std, boot_std
+    and ci95 = [low, high] from the bootstrap (None for parameters not fitted, or without a bootstrap)."""
+    out, intervals = {}, intervals or {}
+
+    def json_or_none(a):
+        return to_json_value(torch.from_numpy(np.asarray(a))) if a is not None else None
+
+    for i, effect in enumerate(stack.effects):
+        entry = {}
+        for p in effect.params:
+            key = f"effects.{i}.raw.{p.name}"
+            sd, low, high = intervals.get(key, (None, None, None))
+            entry[p.name] = {"value": to_json_value(effect.param(p.name)),
+                             "std": to_json_value(torch.from_numpy(std[key])) if key in std else None,
+                             "units": p.units, "fitted": key in std, "boot_std": json_or_none(sd),
+                             "ci95": None if low is None else [json_or_none(low), json_or_none(high)]}
+        out[effect.name] = entry
+    return out
+
+
+def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig = FitConfig(),
+              frozen: dict[str, tuple[str, ...]] | None = None, init_albedo: np.ndarray | None = None) -> FitResult:
+    """Fit a copy of ``stack`` and the albedos to the training views (board rows not used), then measure the
+    held-out error (see the module docstring). ``frozen``: {effect: parameter names} kept at their values (known
+    settings); ``init_albedo``: (P,3) starting albedos (e.g. from a previous fit)."""
+    began = time.perf_counter()
+    stack = copy_stack(stack).to(torch.float64)
+    names = fitted_names(stack, config.fixed_effects, frozen or {})
+    start_inside_bounds(stack, names)
+    train = Problem(stack, obs, config, names, split.train_obs, board=False)
+    albedo = np.full((obs.n_points, 3), np.nan)
+    albedo[train.points] = _albedos(train, init_albedo).numpy()
+    held = Problem(stack, obs, config, [], split.holdout_fit_obs, board=False)
+    albedo[held.points] = _albedos(held, None).numpy()
+
+    direct = torch.from_numpy(albedo[obs.point[split.train_obs]]).view(-1, 3, 1, 1)
+    std = laplace_std(stack, train.state, train.y, direct, names, config.loss_scale)
+    intervals = {}
+    if config.bootstrap:
+        train.start = torch.from_numpy(albedo[train.points]).clamp(config.albedo_min, config.albedo_max)
+        samples = bootstrap(train, config)
+        best = train.physical()
+        for name in names:
+            spec = stack.effects[int(name.split(".")[1])]._spec(name.rsplit(".", 1)[1])
+            intervals[name] = normal_interval(best[name], np.array([s[name] for s in samples]), spec.lower, spec.upper)
+    for p in stack.parameters():
+        p.requires_grad_(False)
+
+    predicted = predict(stack, obs, np.arange(obs.n_obs), albedo)
+    residual = obs.colour - predicted
+    role = np.zeros(obs.n_obs, np.int8)
+    role[split.holdout_fit_obs] = 1
+    role[split.holdout_test_obs] = 2
+    test = split.holdout_test_obs
+    index = np.searchsorted(split.holdout_points, obs.point[test])
+    sq_sum = np.bincount(index, (residual[test] ** 2).sum(1), minlength=len(split.holdout_points))
+    count = np.bincount(index, minlength=len(split.holdout_points)) * 3
+    return FitResult(
+        stack=stack, params=describe_params(stack, std, intervals), albedo=albedo, predicted=predicted,
+        residual=residual, role=role, train_rmse=float(np.sqrt(np.mean(residual[split.train_obs] ** 2))),
+        heldout_rmse=float(np.sqrt(sq_sum.sum() / max(count.sum(), 1))), heldout_sq_sum=sq_sum,
+        heldout_count=count, seconds=time.perf_counter() - began)
