@@ -35,6 +35,7 @@ from eval.colour import consistency, observation_colours
 from eval.tracks import Tracks
 from watergan.data import read_depth, read_image, read_nav_altitudes
 from watergan.imaging import gaussian_blur
+from watergan.io import quantise
 from watergan.nets.restorer import position_maps, restore
 from watergan.train_restorer import load_restorer
 
@@ -103,7 +104,7 @@ def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dic
             true_depth = read_depth(ws / "00_survey" / "truth" / "depth" / name)
             outputs.append(restore(model, image, torch.tensor([float(np.median(true_depth[true_depth > 0]))]))[0])
         for folder, rgb in zip(folders.values(), outputs, strict=True):
-            encoded = np.rint(rgb[0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+            encoded = quantise(rgb[0].permute(1, 2, 0).numpy(), 8)
             cv2.imwrite(str(folder / name), encoded[..., ::-1])
     return folders
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import linear_to_srgb, quantise, srgb_to_linear
 
 
 def _check(image: np.ndarray) -> np.ndarray:
@@ -50,18 +51,6 @@ def _range(range_m: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
     return range_m
 
 
-def _srgb_encode(linear: np.ndarray) -> np.ndarray:
-    from eval.synth.io import srgb_encode
-
-    return srgb_encode(linear)
-
-
-def _srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    from eval.synth.io import srgb_decode
-
-    return srgb_decode(encoded)
-
-
 def raw(image: np.ndarray) -> np.ndarray:
     """The uncorrected image: J = I."""
     return np.clip(_check(image), 0.0, 1.0)
@@ -72,23 +61,23 @@ def histogram_equalisation(image: np.ndarray, bins: int = 256) -> np.ndarray:
     decoded back to linear."""
     from skimage.exposure import equalize_hist
 
-    encoded = _srgb_encode(_check(image))
+    encoded = linear_to_srgb(_check(image))
     out = np.empty_like(encoded)
     for c in range(3):
         channel = encoded[..., c]
         out[..., c] = equalize_hist(channel, nbins=bins) if np.ptp(channel) > 0 else channel
-    return np.clip(_srgb_decode(out), 0.0, 1.0)
+    return np.clip(srgb_to_linear(out), 0.0, 1.0)
 
 
 def clahe(image: np.ndarray, clip_limit: float = 2.0, tiles: int = 8) -> np.ndarray:
     """CLAHE (OpenCV) on the L channel of CIE Lab of the 8-bit sRGB image; a, b kept."""
     import cv2
 
-    encoded = np.rint(_srgb_encode(_check(image)) * 255.0).astype(np.uint8)
+    encoded = quantise(linear_to_srgb(_check(image)), 8)
     lab = cv2.cvtColor(encoded, cv2.COLOR_RGB2LAB)
     lab[..., 0] = cv2.createCLAHE(clipLimit=clip_limit, tileGridSize=(tiles, tiles)).apply(lab[..., 0])
     rgb = cv2.cvtColor(lab, cv2.COLOR_LAB2RGB).astype(np.float64) / 255.0
-    return np.clip(_srgb_decode(rgb), 0.0, 1.0)
+    return np.clip(srgb_to_linear(rgb), 0.0, 1.0)
 
 
 def gray_world(image: np.ndarray) -> np.ndarray:

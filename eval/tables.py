@@ -231,10 +231,9 @@ class OracleGeometry:
 def _write_srgb8(path: Path, linear: np.ndarray) -> None:
     import cv2
 
-    from eval.synth.io import quantise, srgb_encode
-    from watergan.io import atomic_write_bytes
+    from watergan.io import atomic_write_bytes, linear_to_srgb, quantise
 
-    rgb = quantise(srgb_encode(linear), 8)
+    rgb = quantise(linear_to_srgb(linear), 8)
     ok, data = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(rgb[..., ::-1]))  # the frame's own format
     if not ok:
         raise OSError(f"could not encode {path}")

@@ -15,7 +15,6 @@ import pytest
 from eval.synth import PRESETS, load_truth, make_config, simulate_survey
 from eval.synth.camera import CameraConfig, intrinsics_for, project
 from eval.synth.imaging import linear_image, rig_camera_config
-from eval.synth.io import read_png, srgb_decode, srgb_encode
 from eval.synth.render import frame_state, make_raycaster, render_view
 from eval.synth.rgbd import RGBDConfig
 from eval.synth.scene import build_scene
@@ -24,6 +23,7 @@ from pipeline.survey import check_survey
 from watergan.errors import UserInputError
 from watergan.formation import Stack
 from watergan.formation.effects.artificial_light import FWHM_PER_SIGMA
+from watergan.io import linear_to_srgb, read_png, srgb_to_linear
 
 TINY_RGBD = dict(n_scenes=1, views_per_scene=3, width_px=32, height_px=24, scene_size_m=8.0, grid_spacing_m=0.25)
 
@@ -111,14 +111,14 @@ def test_reef_small_layout_truth_and_colonies(reef):
     ranges = np.concatenate([truth.range_m(k).ravel() for k in range(len(truth.frames))])
     assert 0.5 < np.percentile(ranges, 5) and np.median(ranges) < 2.5
     # the colonies' saturated colours are in the site's albedos: reds and purples among them
-    inair = np.concatenate([srgb_decode(read_png(reef / "truth/inair" / f) / 255.0).reshape(-1, 3)
+    inair = np.concatenate([srgb_to_linear(read_png(reef / "truth/inair" / f) / 255.0).reshape(-1, 3)
                             for f in truth.frames])
     chroma = inair / inair.sum(1, keepdims=True).clip(1e-6)
     red = (chroma[:, 0] > 0.75).mean()
     purple = ((chroma[:, 0] > 0.35) & (chroma[:, 2] > 0.4) & (chroma[:, 1] < 0.15)).mean()
     assert red > 0.01 and purple > 0.01, (red, purple)
     # ... and not in the generic in-air set WaterGAN gets
-    rgbd = np.concatenate([srgb_decode(read_png(p) / 255.0).reshape(-1, 3) for p in (reef / "rgbd/rgb").iterdir()])
+    rgbd = np.concatenate([srgb_to_linear(read_png(p) / 255.0).reshape(-1, 3) for p in (reef / "rgbd/rgb").iterdir()])
     rgbd_chroma = rgbd / rgbd.sum(1, keepdims=True).clip(1e-6)
     assert (rgbd_chroma[:, 0] > 0.75).mean() < 0.001
 
@@ -164,12 +164,12 @@ def test_auv_strobes_in_survey_json_are_what_the_renderer_used(auv):
             ("right", truth.world_from_cam_right[1], rig_camera_config(declared, (truth.baseline_m, 0.0, 0.0)))):
         view = render_view(caster, scene, truth.intrinsics, pose, cfg.render)
         linear = linear_image(Stack.from_config(stack), frame_state(view, 1, cfg.render.site_depth_m))
-        diff = read_png(auv / folder / truth.frames[1]).astype(float) - np.rint(srgb_encode(linear) * 255)
+        diff = read_png(auv / folder / truth.frames[1]).astype(float) - np.rint(linear_to_srgb(linear) * 255)
         assert abs(diff.mean()) < 0.3 and diff.std() < 3.0, (folder, diff.mean(), diff.std())
     # the right camera rendered with the left camera's light positions would not match
     view = render_view(caster, scene, truth.intrinsics, truth.world_from_cam_right[1], cfg.render)
     wrong = linear_image(Stack.from_config(declared), frame_state(view, 1, cfg.render.site_depth_m))
-    diff = read_png(auv / "right" / truth.frames[1]).astype(float) - np.rint(srgb_encode(wrong) * 255)
+    diff = read_png(auv / "right" / truth.frames[1]).astype(float) - np.rint(linear_to_srgb(wrong) * 255)
     assert np.abs(diff).mean() > 1.0
 
 
@@ -179,8 +179,8 @@ def test_auv_frames_show_the_strobe_pattern(auv):
     lights = np.array([lt["offset_m"] for lt in json.loads((auv / "survey.json").read_text())["lights"]])
     ratios, distances = [], []
     for k, name in enumerate(truth.frames):
-        raw = srgb_decode(read_png(auv / "images" / name) / 255.0).mean(-1)
-        inair = srgb_decode(read_png(auv / "truth/inair" / name) / 255.0).mean(-1)
+        raw = srgb_to_linear(read_png(auv / "images" / name) / 255.0).mean(-1)
+        inair = srgb_to_linear(read_png(auv / "truth/inair" / name) / 255.0).mean(-1)
         depth = truth.depth_m(k)
         intr = truth.intrinsics
         v, u = np.mgrid[0:intr.height, 0:intr.width]

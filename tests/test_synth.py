@@ -14,12 +14,12 @@ import pytest
 from eval.synth import HIDDEN_DEFAULTS, SimulationError, load_truth, make_config, simulate_survey
 from eval.synth.camera import intrinsics_from_fov, make_pose, pixel_rays_cam, project
 from eval.synth.imaging import full_stack_config, linear_image
-from eval.synth.io import read_png, srgb_encode
 from eval.synth.render import RenderConfig, frame_state, make_raycaster, render_view
 from eval.synth.rgbd import RGBDConfig
 from eval.synth.scene import SceneConfig, build_scene, make_board
 from eval.synth.trajectory import CAM_IN_BODY, TrajectoryConfig, body_rotation
 from watergan.formation import Stack
+from watergan.io import linear_to_srgb, read_png
 
 SMALL_RGBD = RGBDConfig(n_scenes=1, views_per_scene=2, width_px=32, height_px=24, scene_size_m=8.0,
                         grid_spacing_m=0.25)
@@ -105,7 +105,7 @@ def test_images_are_full_stack_of_inair_render_plus_noise(tiny):
     scene = build_scene(truth.config.scene, truth.config.seed)
     view = render_view(make_raycaster(scene), scene, truth.intrinsics, truth.world_from_cam[2], RenderConfig())
     linear = linear_image(Stack.from_config(truth.effects["full"]), frame_state(view, 2, 20.0))
-    expected = np.rint(srgb_encode(np.clip(linear, 0, 1)) * 255)
+    expected = np.rint(linear_to_srgb(np.clip(linear, 0, 1)) * 255)
     diff = read_png(tiny / "images" / truth.frames[2]).astype(float) - expected
     assert abs(diff.mean()) < 0.3          # noise is zero-mean
     assert 0.3 < diff.std() < 4.0          # ... and present

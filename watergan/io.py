@@ -218,10 +218,23 @@ def read_png(path: str | Path) -> np.ndarray:
     return image[..., ::-1].copy() if image.ndim == 3 else image
 
 
-def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
-    """Linear (H,W,3) 0..1 as an 8-bit sRGB PNG, atomically."""
-    write_png(path, (np.rint(linear_to_srgb(linear_rgb) * 255.0).astype(np.uint8)))
+def quantise(values: np.ndarray, bit_depth: int) -> np.ndarray:
+    """Values in 0..1 (clipped) rounded to the nearest unsigned integer of ``bit_depth`` (8 or 16) bits,
+    round(v (2^bits - 1))."""
+    if bit_depth not in (8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth}")
+    dtype = np.uint8 if bit_depth == 8 else np.uint16
+    return np.rint(np.clip(values, 0.0, 1.0) * (2**bit_depth - 1)).astype(dtype)
 
+
+def write_srgb_png(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 8) -> None:
+    """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16) bits as a PNG, atomically."""
+    write_png(path, quantise(linear_to_srgb(linear_rgb), bit_depth))
+
+
+def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
+    """Linear (H,W,3) 0..1 as an 8-bit sRGB PNG, atomically (:func:`write_srgb_png` at 8 bits)."""
+    write_srgb_png(path, linear_rgb, 8)
 
 
 # ---------------------------------------------------------------------------------------- depth

@@ -29,38 +29,35 @@ configuration, RNG state, the generator before settling for a resume; atomic), `
 learned stack), ``train_log.jsonl`` (one line per iteration: losses and every learned physical
 parameter), ``samples/step_NNNNNN.png`` (in-air, generated and real rows), ``training.png``
 (parameters over training, colour histograms) and ``result.json``. A run resumed from its checkpoint
-continues exactly as if uninterrupted.
+continues exactly as if uninterrupted. The colour-statistics term is :mod:`watergan.gan_statistics`'s, the
+pictures :mod:`watergan.gan_figures`'s, the checkpoint, log and budget :mod:`watergan.training`'s.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import io
-import json
-import math
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .data import (
-    TRAIN_HW,
-    DataError,
-    atomic_write_bytes,
-    encode_png,
-    linear_to_srgb,
-    load_rgbd,
-    load_underwater,
-)
+from .data import TRAIN_HW, DataError, atomic_write_bytes, load_rgbd, load_underwater
 from .device import Device, pick_device
 from .errors import UserInputError
 from .formation import FormationState
 from .formation.effects.backscatter_conv import BackscatterConv
-from .imaging import gaussian_blur
+from .gan_figures import SAMPLES, plot_training, write_gan_samples
+from .gan_statistics import (
+    colour_moments,
+    init_from_data,
+    moment_loss,
+    physical_parameters,
+    render_eval,
+    settle_statistics,
+    settle_step_seconds,
+)
+from .imaging import augment, gaussian_blur
 from .io import Encoding, to_jsonable
 from .nets.discriminator import Discriminator
 from .nets.generator import (
@@ -72,14 +69,21 @@ from .nets.generator import (
 )
 from .progress import TrainingBar
 from .site_water import SiteWater, SiteWaterStack, generator_config, hold_site_water, prior_loss, read_site_water
+from .training import (
+    CHECKPOINT,
+    TRAIN_LOG,
+    Clock,
+    TrainingLog,
+    TrainingResult,
+    load_torch,
+    read_resume_checkpoint,
+    save_torch,
+)
 
-CHECKPOINT = "checkpoint.pt"
 STACK_JSON = "stack.json"
-TRAIN_LOG = "train_log.jsonl"
 PLOT = "training.png"
-SAMPLES = "samples"
-RESULT_JSON = "result.json"
-SAMPLE_COUNT = 8
+SETTLE_TIMING_STEP = 10
+"""Iterations into a budgeted run at which the time of a settling step is measured."""
 
 
 # ----------------------------------------------------------------------------------------------- GAN
@@ -152,8 +156,8 @@ class GanConfig:
     site's brightness, contrast and cast."""
     moment_weight: float = 1000.0
     """Weight of a colour-statistics term added to the generator loss: the squared differences of
-    the per-channel mean and texture contrast (:func:`texture_contrast`) of a generated and a real
-    batch (linear), a form of feature matching (Salimans et al. 2016) on the raw colours; 0: the
+    the per-channel mean and texture contrast (:func:`~watergan.gan_statistics.texture_contrast`) of a
+    generated and a real batch (linear), a form of feature matching (Salimans et al. 2016) on the raw colours; 0: the
     paper's loss alone. Texture contrast, not the standard deviation: the transmission scales fine
     texture alone, while the spread of whole frames also holds how much the in-air scenes and the site
     vary from metre to metre, which no water changes (matching it raised eta_G 0.20 -> 0.33 on the
@@ -229,7 +233,7 @@ class GanConfig:
 
 
 @dataclass
-class GanResult:
+class GanResult(TrainingResult):
     """What ``train_gan`` produced (paths are inside ``out_dir``)."""
 
     out_dir: Path
@@ -261,11 +265,6 @@ class GanResult:
     log: str = TRAIN_LOG
     plot: str = PLOT
     samples: str = SAMPLES
-
-    def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["out_dir"] = str(self.out_dir)
-        return d
 
 
 def _check_config(config: GanConfig) -> None:
@@ -333,170 +332,6 @@ def generator_param_groups(generator: WaterGenerator, lr: float, physics_lr: flo
     return [g for g in groups if g["params"]]
 
 
-def physical_parameters(generator: WaterGenerator) -> list[torch.nn.Parameter]:
-    """The generator's physical parameters that train: every effect's bounded (``raw``) values and the
-    batch-norm scale and shift of ``backscatter_conv`` (the veil's spread and level), those held left out."""
-    params = [p for effect in generator.stack.effects for p in effect.raw.parameters() if p.requires_grad]
-    if BackscatterConv.name in generator.stack.names:
-        params += [p for p in generator.stack[BackscatterConv.name].norm.parameters() if p.requires_grad]
-    return params
-
-
-SETTLE_LR = 2e-3
-"""Starting Adam learning rate of :func:`settle_statistics` (cosine-decayed to 0)."""
-SETTLE_TIMING_STEP = 10
-"""Iterations into a budgeted run at which the time of a settling step is measured."""
-
-
-def settle_statistics(generator: WaterGenerator, air_state: FormationState, real: torch.Tensor, steps: int,
-                      weight: float, seed: int, site: SiteWaterStack | None = None) -> float:
-    """Full-batch steps on the generator's physical parameters (:func:`physical_parameters`) of
-
-        L = weight |m(G(J, d, z)) - m(x)|^2 [+ L_prior]
-
-    (L_prior: the site water's prior, :func:`watergan.site_water.prior_loss`, when ``site`` is given)
-    with every in-air view (one fixed noise vector z each) against every real frame x, m the
-    per-channel mean and texture contrast (:func:`colour_moments`), batch norm on its running
-    statistics as at generation, Adam at SETTLE_LR decayed to 0 (cosine); z is drawn from ``seed``.
-    The generator's mode and which parameters train are restored. Returns the final L."""
-    physics = physical_parameters(generator)
-    was_training = generator.training
-    trainable = {name: p.requires_grad for name, p in generator.named_parameters()}
-    generator.eval()
-    generator.requires_grad_(False)
-    for param in physics:
-        param.requires_grad_(True)
-    z = torch.rand(air_state.direct.shape[0], generator.z_dim, generator=torch.Generator().manual_seed(seed))
-    state = air_state.replace(z=z.mul(2).sub(1).to(air_state.direct.device))
-    target = colour_moments(real)
-    opt = torch.optim.Adam(physics, SETTLE_LR)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1))
-
-    def objective() -> torch.Tensor:
-        loss = moment_loss(generator.render(state), target, weight)
-        return loss + prior_loss(generator.stack, site.prior).to(loss) if site is not None else loss
-
-    loss = objective()
-    for _ in range(steps):
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        schedule.step()
-        loss = objective()
-    for name, param in generator.named_parameters():
-        param.requires_grad_(trainable[name])
-    generator.train(was_training)
-    return loss.item()
-
-
-def _settle_step_seconds(generator: WaterGenerator, air_state: FormationState, real: torch.Tensor) -> float:
-    """Seconds of one full-batch render, statistics and backward pass (a step of settle_statistics), the
-    faster of two; ``train_gan`` measures it a few iterations in, when start-up costs are paid (measured
-    before the first iteration it came out 4x too long)."""
-    z = torch.zeros(air_state.direct.shape[0], generator.z_dim, device=air_state.direct.device)
-    was_training = generator.training
-    generator.eval()  # batch norm's running statistics stay as they are
-    seconds = math.inf
-    for _ in range(2):
-        began = time.perf_counter()
-        loss = moment_loss(generator.render(air_state.replace(z=z)), colour_moments(real))
-        loss.backward()
-        seconds = min(seconds, time.perf_counter() - began)
-    generator.zero_grad(set_to_none=True)
-    generator.train(was_training)
-    return seconds
-
-
-def colour_moments(images: torch.Tensor) -> torch.Tensor:
-    """(2,3): the per-channel mean and texture contrast (:func:`texture_contrast`) of a (B,3,H,W) batch."""
-    return torch.stack([images.mean(dim=(0, 2, 3)), texture_contrast(images)])
-
-
-def moment_loss(images: torch.Tensor, target: torch.Tensor, weight: float = 1.0) -> torch.Tensor:
-    """The colour-statistics term w |m(images) - target|^2, m = :func:`colour_moments`, target (2,3)."""
-    return weight * (colour_moments(images) - target).square().sum()
-
-
-def augment(images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """Per image: a random left-right and up-down flip and a random shift of up to 1/8 of each side
-    (reflected border); see ``GanConfig.disc_augment``."""
-    b, _, h, w = images.shape
-    flips = torch.rand(b, 2, generator=generator).to(images.device) < 0.5
-    out = torch.where(flips[:, 0, None, None, None], images.flip(-1), images)
-    out = torch.where(flips[:, 1, None, None, None], out.flip(-2), out)
-    dy, dx = max(1, h // 8), max(1, w // 8)
-    padded = F.pad(out, (dx, dx, dy, dy), mode="reflect")
-    oy = torch.randint(0, 2 * dy + 1, (b,), generator=generator).tolist()
-    ox = torch.randint(0, 2 * dx + 1, (b,), generator=generator).tolist()
-    return torch.stack([padded[i, :, oy[i]:oy[i] + h, ox[i]:ox[i] + w] for i in range(b)])
-
-
-def texture_contrast(images: torch.Tensor, sigma_px: float = 2.0) -> torch.Tensor:
-    """(3,) per-channel standard deviation of the high-pass images x - blur(x) (Gaussian, ``sigma_px``):
-    the contrast of fine texture, which a smooth veil does not change and a transmission T scales by T."""
-    return (images - gaussian_blur(images, sigma_px)).std(dim=(0, 2, 3))
-
-
-def init_from_data(generator: WaterGenerator, air: torch.Tensor, depth_m: torch.Tensor, real: torch.Tensor,
-                   intrinsics: tuple[float, float, float, float] | None, count: int = 256) -> dict[str, list[float]]:
-    """Start the attenuation, the veil and the gain at the per-channel linear map that carries the in-air
-    set's colour statistics onto the survey's (see ``GanConfig.init_from_data``).
-
-    With D the generated image without water (eta 0, no veil, gain 1; vignetting kept), mu0_c its
-    per-channel mean and s0_c its texture contrast (:func:`texture_contrast`), mu_c, s_c the real
-    frames' and r the mean range of the RGB-D views: the transmission T_c = s_c / s0_c and the veil
-    V_c = mu_c - T_c mu0_c (so T D + V has the real mean and texture contrast). T_c = k exp(-eta_c r)
-    fixes how eta_c differ between channels, d_c = -ln(T_c) / r; their common level cannot be told
-    from frames at one range (a common shift is undone by k), so it stays at the stack's initial mean
-    eta: eta_c = mean(eta_init) + d_c - mean(d). Then k = exp(mean_c(ln T_c + eta_c r)) (per channel
-    with three gains) and the veil's batch-norm shift V_c / k (the backscatter sits before the gain).
-    Returns the values set."""
-    stack = generator.stack
-    n = min(count, air.shape[0])
-    r_mean, r_contrast = real.mean(dim=(0, 2, 3)).double(), texture_contrast(real.double())
-    norm = stack[BackscatterConv.name].norm if BackscatterConv.name in stack.names else None
-    saved = {}
-    if norm is not None:
-        saved["veil"] = norm.weight.detach().clone()
-        with torch.no_grad():
-            norm.weight.zero_()
-            norm.bias.zero_()
-    if "attenuation" in stack.names:
-        saved["eta"] = stack["attenuation"].param("eta_per_m").detach().clone()
-        stack["attenuation"].set_values(eta_per_m=[0.0, 0.0, 0.0])
-    if "gain" in stack.names:
-        stack["gain"].set_values(k=[1.0] * stack["gain"].param("k").numel())
-    z = torch.zeros(n, generator.z_dim)
-    plain = _render_eval(generator, air[:n], depth_m[:n], z, intrinsics).double()
-    d_mean, d_contrast = plain.mean(dim=(0, 2, 3)), texture_contrast(plain)
-    state = generator.state(air[:n], depth_m[:n], z, intrinsics)
-    range_m = float(state.range_m[state.valid].double().mean())  # WaterGenerator.state always sets valid
-    transmission = (r_contrast / d_contrast.clamp_min(1e-4)).clamp(1e-3, 50.0)
-    veil = (r_mean - transmission * d_mean).clamp_min(0.0)
-    values: dict[str, list[float]] = {}
-    log_t = transmission.log()
-    if "attenuation" in stack.names:
-        d = -log_t / max(range_m, 1e-3)
-        eta = (saved["eta"].double().mean() + d - d.mean()).clamp(0.0, 5.0)
-        stack["attenuation"].set_values(eta_per_m=eta.tolist())
-        values["attenuation.eta_per_m"] = eta.tolist()
-    else:
-        eta = torch.zeros(3, dtype=torch.float64)
-    k = torch.ones(1, dtype=torch.float64)
-    if "gain" in stack.names:
-        log_k = log_t + eta * range_m
-        k = (log_k.mean().reshape(1) if stack["gain"].param("k").numel() == 1 else log_k).exp().clamp(0.05, 50.0)
-        stack["gain"].set_values(k=k.tolist())
-        values["gain.k"] = k.tolist()
-    if norm is not None:
-        level = (veil / k).float()
-        with torch.no_grad():
-            norm.weight.copy_(saved["veil"])
-            norm.bias.copy_(level)
-        values["veil_level"] = level.tolist()
-    return values
-
-
 def _json_ready(values: dict[str, torch.Tensor]) -> dict[str, list | float]:
     return {k: (v.item() if v.ndim == 0 else v.tolist()) for k, v in values.items()}
 
@@ -513,8 +348,7 @@ def _save_checkpoint(run: GanRun, step: int, trained_generator: dict | None = No
     ``trained_generator``: the generator's state before :func:`settle_statistics`, which a resumed run
     trains on from (``generator`` is then the settled one, which ``generate`` uses); without it a resume
     trains on from ``generator``."""
-    buffer = io.BytesIO()
-    torch.save({
+    save_torch(run.out / CHECKPOINT, {
         "step": step,
         "generator": run.generator.state_dict(),
         **({"generator_trained": trained_generator} if trained_generator is not None else {}),
@@ -525,29 +359,12 @@ def _save_checkpoint(run: GanRun, step: int, trained_generator: dict | None = No
         "rng": run.rng.get_state(),
         "depth_scale_m": run.depth_scale_m,
         "config": _config_json(run.config),
-    }, buffer)
-    atomic_write_bytes(run.out / CHECKPOINT, buffer.getvalue())
+    })
 
 
 def load_checkpoint(path: str | Path) -> dict:
     """A checkpoint written by ``train_gan`` (tensors on the CPU)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserInputError(f"no checkpoint at {path}: train a WaterGAN first (watergan train-gan)")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # a torn or foreign file: say which
-        raise UserInputError(f"checkpoint {path} cannot be read ({type(exc).__name__}: {exc})") from exc
-
-
-def _read_resume_checkpoint(config: GanConfig, out: Path) -> dict | None:
-    """Checkpoint: the one to resume from, ``out/checkpoint.pt`` when ``config.resume`` and it exists;
-    else None (said on stderr when a resume was asked for)."""
-    path = out / CHECKPOINT
-    checkpoint = load_checkpoint(path) if config.resume and path.is_file() else None
-    if config.resume and checkpoint is None:
-        print(f"train-gan: no checkpoint in {out}, starting from iteration 0", file=sys.stderr)
-    return checkpoint
+    return load_torch(path, f"no checkpoint at {path}: train a WaterGAN first (watergan train-gan)")
 
 
 def _resume(checkpoint: dict | None, generator: WaterGenerator, discriminator: Discriminator,
@@ -565,102 +382,21 @@ def _resume(checkpoint: dict | None, generator: WaterGenerator, discriminator: D
     return int(checkpoint["step"])
 
 
-def _srgb8(linear: torch.Tensor) -> np.ndarray:
-    """(B,3,H,W) linear -> (B,H,W,3) uint8 sRGB."""
-    array = linear.detach().cpu().double().numpy().transpose(0, 2, 3, 1)
-    return np.rint(linear_to_srgb(array) * 255.0).astype(np.uint8)
-
-
-def _sample_grid(rows: list[torch.Tensor]) -> np.ndarray:
-    """Rows of (B,3,H,W) images tiled into one uint8 sRGB picture with 2-pixel gaps."""
-    tiles = [_srgb8(r) for r in rows]
-    n, h, w = max(t.shape[0] for t in tiles), tiles[0].shape[1], tiles[0].shape[2]
-    grid = np.full((len(tiles) * (h + 2), n * (w + 2), 3), 255, np.uint8)
-    for i, row in enumerate(tiles):
-        for j, image in enumerate(row):
-            grid[i * (h + 2):i * (h + 2) + h, j * (w + 2):j * (w + 2) + w] = image
-    return grid
-
-
-def _render_eval(generator: WaterGenerator, rgb, depth, z, intrinsics) -> torch.Tensor:
-    """Generator output in inference mode (batch norm from running statistics), state untouched."""
-    was_training = generator.training
-    generator.eval()
-    with torch.no_grad():
-        out = generator(rgb, depth, z, intrinsics)
-    generator.train(was_training)
-    return out
-
-
-def plot_training(log_path: Path, generated: torch.Tensor, real: torch.Tensor, out_path: Path) -> None:
-    """One figure: losses and every learned parameter over training, and per-channel histograms of
-    generated vs real images (sRGB-encoded values, as viewed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
-    names = list(rows[0]["params"]) if rows else []
-    panels = 2 + len(names)
-    cols = 3
-    fig, axes = plt.subplots(math.ceil(panels / cols), cols, figsize=(4.2 * cols, 3.0 * math.ceil(panels / cols)),
-                             squeeze=False)
-    axes = axes.ravel()
-    steps = [r["step"] for r in rows]
-    axes[0].plot(steps, [r["d_loss"] for r in rows], label="discriminator")
-    axes[0].plot(steps, [r["g_loss"] for r in rows], label="generator")
-    axes[0].set(title="losses", xlabel="iteration")
-    axes[0].legend()
-    for ax, name in zip(axes[1:], names, strict=False):
-        values = np.array([r["params"][name] for r in rows], dtype=float).reshape(len(rows), -1)
-        labels = ["R", "G", "B"] if values.shape[1] == 3 else [name.split(".")[-1]] * values.shape[1]
-        colours = ["tab:red", "tab:green", "tab:blue"] if values.shape[1] == 3 else [None] * values.shape[1]
-        for k in range(values.shape[1]):
-            ax.plot(steps, values[:, k], label=labels[k], color=colours[k])
-        ax.set(title=name, xlabel="iteration")
-        if values.shape[1] == 3:
-            ax.legend()
-    ax = axes[1 + len(names)]
-    bins = np.linspace(0, 1, 51)
-    for k, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
-        g = linear_to_srgb(generated[:, k].detach().cpu().double().numpy().ravel())
-        r = linear_to_srgb(real[:, k].detach().cpu().double().numpy().ravel())
-        ax.hist(r, bins, histtype="stepfilled", alpha=0.25, color=colour, density=True)
-        ax.hist(g, bins, histtype="step", color=colour, density=True)
-    ax.set(title="colour histograms: real (filled), generated (line)", xlabel="sRGB value")
-    for extra in axes[2 + len(names):]:
-        extra.axis("off")
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(out_path, buffer.getvalue())
-
-
-def _log_lines_up_to(path: Path, step: int) -> str:
-    """The log's lines for iterations 1..step (a resumed run drops what came after its checkpoint)."""
-    if not path.is_file():
-        return ""
-    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
-    return "".join(line + "\n" for line in keep)
-
-
 def train_gan(config: GanConfig) -> GanResult:
     """Train a WaterGAN on in-air RGB-D and underwater images (see the module docstring): build the run,
     iterate :func:`gan_step` up to a limit (checkpoints and samples on the way), settle the physical
     parameters, write the last checkpoint and the result files."""
     _check_config(config)
     run = build_gan(config)
-    log_path = _start_log(run)
-    began = time.perf_counter()
+    log = TrainingLog.start(run.out, ("step",), (run.start,) if run.resumed else None)
+    clock = Clock.minutes(config.budget_min)
     if run.opt_g is None:  # a held site water and no learned effect: the generator is the site water
         step, d_loss, g_loss, stopped_by = run.start, float("nan"), float("nan"), "nothing to train"
     else:
-        with log_path.open("a") as log:
-            step, d_loss, g_loss, stopped_by = _train_iterations(run, log, began)
+        with log:
+            step, d_loss, g_loss, stopped_by = _train_iterations(run, log, clock)
     trained, settle_loss = _settle(run)
-    seconds = time.perf_counter() - began
+    seconds = clock.elapsed()
     _save_checkpoint(run, step, trained)
     return write_gan_result(run, step=step, seconds=seconds, stopped_by=stopped_by, d_loss=d_loss, g_loss=g_loss,
                             settle_loss=settle_loss)
@@ -715,7 +451,7 @@ def build_gan(config: GanConfig) -> GanRun:
     device = pick_device(config.device)
     rgbd, water, skipped, intrinsics = _load_gan_data(config)
 
-    checkpoint = _read_resume_checkpoint(config, out)
+    checkpoint = read_resume_checkpoint(out, config.resume, "train-gan", "starting from iteration 0")
     torch.manual_seed(config.seed)
     site = read_site_water(config.site_water) if config.site_water is not None else None
     generator, depth_scale_m = _build_generator(config, checkpoint, rgbd, water, intrinsics, out / CHECKPOINT, site)
@@ -883,32 +619,29 @@ def _will_settle(config: GanConfig) -> bool:
     return _moment_weight(config) > 0 and config.settle_steps > 0
 
 
-def _train_iterations(run: GanRun, log, began: float) -> tuple[int, float, float, str]:
+def _train_iterations(run: GanRun, log: TrainingLog, clock: Clock) -> tuple[int, float, float, str]:
     """Iterate :func:`gan_step` from ``run.start`` up to the iteration or epoch limit or the time budget
     (less the time :func:`settle_statistics` will take, measured ``SETTLE_TIMING_STEP`` iterations in);
     a log line every iteration, a checkpoint every ``checkpoint_every``, samples every ``sample_every``.
     Returns the iteration reached, the last D and G losses and what stopped it."""
     config = run.config
     target, stopped_by = _stop_plan(config, run.air.shape[0], run.real.shape[0])
-    budget_s = None if config.budget_min is None else 60.0 * config.budget_min
     settle_reserve_s = 0.0  # time kept for settle_statistics inside the budget, measured once warm
     step, d_loss, g_loss = run.start, float("nan"), float("nan")
-    bar = TrainingBar("train-gan", target, run.start, budget_s, config.progress)
+    bar = TrainingBar("train-gan", target, run.start, clock.budget_s, config.progress)
     while target is None or step < target:
-        if budget_s is not None and time.perf_counter() - began + settle_reserve_s >= budget_s:
+        if clock.reached(clock.budget_s, settle_reserve_s):
             stopped_by = "budget"
             break
         loss_d, loss_g, d_real, d_fake = gan_step(run)
         step += 1
-        if _will_settle(config) and budget_s is not None and step == run.start + SETTLE_TIMING_STEP:
-            settle_reserve_s = config.settle_steps * _settle_step_seconds(run.generator, run.air_state, run.real)
+        if _will_settle(config) and clock.budget_s is not None and step == run.start + SETTLE_TIMING_STEP:
+            settle_reserve_s = config.settle_steps * settle_step_seconds(run.generator, run.air_state, run.real)
         d_loss, g_loss = loss_d.item(), loss_g.item()
-        log.write(json.dumps({"step": step, "d_loss": d_loss, "g_loss": g_loss,
-                              "d_real": torch.sigmoid(d_real).mean().item(),
-                              "d_fake": torch.sigmoid(d_fake).mean().item(),
-                              "seconds": round(time.perf_counter() - began, 3),
-                              "params": _json_ready(run.generator.physical_values())}) + "\n")
-        bar.update(step, time.perf_counter() - began, d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
+        log.write({"step": step, "d_loss": d_loss, "g_loss": g_loss,
+                   "d_real": torch.sigmoid(d_real).mean().item(), "d_fake": torch.sigmoid(d_fake).mean().item(),
+                   "seconds": clock.stamp(), "params": _json_ready(run.generator.physical_values())})
+        bar.update(step, clock.elapsed(), d=f"{d_loss:.3f}", g=f"{g_loss:.3f}")
         if step % config.checkpoint_every == 0:
             log.flush()
             _save_checkpoint(run, step)
@@ -930,25 +663,6 @@ def _settle(run: GanRun) -> tuple[dict | None, float | None]:
 
 
 # ---------------------------------------------------------------------------------------------- write
-def _start_log(run: GanRun) -> Path:
-    """Write: ``train_log.jsonl`` cut to the iterations before this run (emptied on a fresh start)."""
-    log_path = run.out / TRAIN_LOG
-    atomic_write_bytes(log_path, _log_lines_up_to(log_path, run.start).encode() if run.resumed else b"")
-    return log_path
-
-
-def write_gan_samples(run: GanRun, step: int) -> None:
-    """Write ``samples/step_NNNNNN.png``: rows of the first ``SAMPLE_COUNT`` in-air views, the generator's
-    output for them (inference mode; fixed noise vectors drawn from ``seed + 1``) and the first real frames."""
-    sample_z = torch.rand(SAMPLE_COUNT, run.generator.z_dim,
-                          generator=torch.Generator().manual_seed(run.config.seed + 1))
-    sample_z = sample_z.mul(2).sub(1).to(run.device)
-    sample_air, sample_depth = run.air[:SAMPLE_COUNT], run.depth[:SAMPLE_COUNT]
-    fake = _render_eval(run.generator, sample_air, sample_depth, sample_z[:sample_air.shape[0]], run.intrinsics)
-    atomic_write_bytes(run.out / SAMPLES / f"step_{step:06d}.png",
-                       encode_png(_sample_grid([sample_air, fake, run.real[:SAMPLE_COUNT]])))
-
-
 def write_gan_result(run: GanRun, *, step: int, seconds: float, stopped_by: str, d_loss: float, g_loss: float,
                      settle_loss: float | None) -> GanResult:
     """Write the result files: ``stack.json``, the last samples, ``training.png`` (with histograms of the
@@ -958,7 +672,7 @@ def write_gan_result(run: GanRun, *, step: int, seconds: float, stopped_by: str,
     write_gan_samples(run, step)
     stats_z = torch.rand(run.air.shape[0], generator.z_dim,
                          generator=torch.Generator().manual_seed(run.config.seed + 2))
-    generated = _render_eval(generator, run.air, run.depth, stats_z.mul(2).sub(1).to(run.device), run.intrinsics)
+    generated = render_eval(generator, run.air, run.depth, stats_z.mul(2).sub(1).to(run.device), run.intrinsics)
     plot_training(out / TRAIN_LOG, generated, real, out / PLOT)
     result = GanResult(
         out_dir=out, steps=step, seconds=seconds, iterations_per_s=(step - run.start) / max(seconds, 1e-9),
@@ -974,5 +688,5 @@ def write_gan_result(run: GanRun, *, step: int, seconds: float, stopped_by: str,
                                                   "mode": str(run.config.site_water_mode),
                                                   "left_out": run.site.left_out},
     )
-    atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
+    result.write(out)
     return result

@@ -28,12 +28,8 @@ atomic; ``resume`` continues from it), ``train_log.jsonl`` (one line per iterati
 
 from __future__ import annotations
 
-import dataclasses
-import io
 import json
 import math
-import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +40,7 @@ import torch.nn.functional as F
 from .data import DataError, atomic_write_bytes, depth_or_zero, read_depth, read_image
 from .device import Device, pick_device
 from .errors import UserInputError
+from .io import quantise
 from .nets.restorer import (
     HEADS,
     WIDTH_PRESETS,
@@ -58,13 +55,19 @@ from .nets.restorer import (
     water_fields,
 )
 from .progress import TrainingBar
+from .training import (
+    CHECKPOINT,
+    TRAIN_LOG,
+    Clock,
+    TrainingLog,
+    TrainingResult,
+    read_resume_checkpoint,
+    save_torch,
+)
 
-CHECKPOINT = "checkpoint.pt"
 MODEL = "restorer.pt"
-TRAIN_LOG = "train_log.jsonl"
 VALIDATION_JSON = "validation.json"
 VALIDATION_MD = "validation.md"
-RESULT_JSON = "result.json"
 
 
 @dataclass(frozen=True)
@@ -137,7 +140,7 @@ class RestorerConfig:
 
 
 @dataclass
-class RestorerResult:
+class RestorerResult(TrainingResult):
     """What ``train_restorer`` produced (file names inside ``out_dir``)."""
 
     out_dir: Path
@@ -157,11 +160,6 @@ class RestorerResult:
     validation_json: str = VALIDATION_JSON
     validation_md: str = VALIDATION_MD
     skipped: list[str] = field(default_factory=list)
-
-    def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["out_dir"] = str(self.out_dir)
-        return d
 
 
 @dataclass
@@ -216,7 +214,7 @@ def _check_config(c: RestorerConfig) -> None:
 
 def _stored(path: Path) -> torch.Tensor:
     """An image file as (3,H,W) uint8 stored values (16-bit files are rounded to 8 bits)."""
-    return torch.from_numpy(np.rint(read_image(path, "linear") * 255.0).astype(np.uint8).transpose(2, 0, 1).copy())
+    return torch.from_numpy(quantise(read_image(path, "linear"), 8).transpose(2, 0, 1).copy())
 
 
 def relative_depth(depth_m: np.ndarray) -> np.ndarray:
@@ -313,11 +311,8 @@ def masked_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def save_restorer(path: str | Path, model: Restorer, extra: dict | None = None) -> None:
     """The model's configuration and weights (CPU tensors), atomically (the folder is created)."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    torch.save({"model_config": model.to_config(), "model": state, **(extra or {})}, buffer)
-    atomic_write_bytes(Path(path), buffer.getvalue())
+    save_torch(path, {"model_config": model.to_config(), "model": state, **(extra or {})})
 
 
 def load_restorer(model_dir: str | Path) -> Restorer:
@@ -333,14 +328,6 @@ def load_restorer(model_dir: str | Path) -> Restorer:
         raise UserInputError(f"restorer {path} cannot be read ({type(exc).__name__}: {exc}); if an older "
                              f"watergan wrote it, train it again") from exc
     return model.eval()
-
-
-def _log_lines_up_to(path: Path, stage: int, step: int) -> str:
-    if not path.is_file():
-        return ""
-    keep = [line for line in path.read_text().splitlines()
-            if line.strip() and (json.loads(line)["stage"], json.loads(line)["step"]) <= (stage, step)]
-    return "".join(line + "\n" for line in keep)
 
 
 def validate(model: Restorer, data: PairedSet, idx: list[int], device: torch.device) -> dict:
@@ -387,16 +374,16 @@ def train_restorer(config: RestorerConfig) -> RestorerResult:
     validation tables and the result."""
     _check_config(config)
     run = build_restorer(config)
-    log_path = _start_log(run)
-    began = time.perf_counter()
+    log = TrainingLog.start(run.out, ("stage", "step"), (run.stage, run.start) if run.resumed else None)
+    clock = Clock.minutes(config.budget_min)
     steps, loss_value = [run.stage1_steps, 0], float("nan")
-    with log_path.open("a") as log:
+    with log:
         for current, target in ((1, config.stage1_iterations), (2, config.stage2_iterations)):
             if current < run.stage:
                 continue
-            steps[current - 1], last_loss = train_stage(run, current, target, log, began, steps[0])
+            steps[current - 1], last_loss = train_stage(run, current, target, log, clock, steps[0])
             loss_value = loss_value if last_loss is None else last_loss
-    seconds = time.perf_counter() - began
+    seconds = clock.elapsed()
     return write_restorer_result(run, steps, seconds, loss_value)
 
 
@@ -467,7 +454,7 @@ def build_restorer(config: RestorerConfig) -> RestorerRun:
     train_idx, val_idx = split_indices(len(data.stems), config.val_fraction, config.seed)
     crop = _crop_side(config, data)
 
-    checkpoint = _read_resume_checkpoint(config, out)
+    checkpoint = read_resume_checkpoint(out, config.resume, "train-restorer", "starting from the beginning")
     torch.manual_seed(config.seed)
     model = Restorer(WIDTH_PRESETS[config.widths], config.factor, config.skip, config.depth_hw, config.head,
                      config.altitude, config.range_input, data.water).to(device)
@@ -515,7 +502,7 @@ def _training_views(config: RestorerConfig, data: PairedSet, device: torch.devic
 
 
 # ----------------------------------------------------------------------------------------------- step
-def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
+def train_stage(run: RestorerRun, current: int, target: int, log: TrainingLog, clock: Clock,
                 stage1_steps: int) -> tuple[int, float | None]:
     """Train stage ``current`` (1 or 2) with its own Adam (:func:`_stage_optimiser`) up to ``target``
     iterations or the stage's end in the budget (stage 1: ``stage1_budget_share`` of it); a log line every
@@ -524,26 +511,24 @@ def train_stage(run: RestorerRun, current: int, target: int, log, began: float,
     config = run.config
     opt = _stage_optimiser(run, current)
     step = run.start if current == run.stage else 0
-    budget_s = None if config.budget_min is None else 60.0 * config.budget_min
+    budget_s = clock.budget_s
     stage_end_s = None if budget_s is None else (budget_s * config.stage1_budget_share if current == 1 else budget_s)
     run.model.train()
-    stage_start_s = time.perf_counter() - began
-    bar = TrainingBar(f"restorer stage {current}", target, step, stage_end_s, config.progress,
-                      time.perf_counter() - began)
+    stage_start_s = clock.elapsed()
+    bar = TrainingBar(f"restorer stage {current}", target, step, stage_end_s, config.progress, clock.elapsed())
     loss_value = None
     while step < target:
-        if stage_end_s is not None and time.perf_counter() - began >= stage_end_s:
+        if clock.reached(stage_end_s):
             break
         for group in opt.param_groups:  # from the step (and budget): a resume by iterations keeps the rates
-            group["lr"] = stage_lr(config, step, target, time.perf_counter() - began - stage_start_s,
+            group["lr"] = stage_lr(config, step, target, clock.elapsed() - stage_start_s,
                                    None if stage_end_s is None else stage_end_s - stage_start_s)
         loss, colour_loss, depth_loss = restorer_step(run, current, opt)
         step += 1
         loss_value = loss.item()
-        log.write(json.dumps({"stage": current, "step": step, "loss": loss_value,
-                              "colour_loss": colour_loss.item(), "depth_loss": depth_loss.item(),
-                              "seconds": round(time.perf_counter() - began, 3)}) + "\n")
-        bar.update(step, time.perf_counter() - began, loss=f"{loss_value:.4f}")
+        log.write({"stage": current, "step": step, "loss": loss_value, "colour_loss": colour_loss.item(),
+                   "depth_loss": depth_loss.item(), "seconds": clock.stamp()})
+        bar.update(step, clock.elapsed(), loss=f"{loss_value:.4f}")
         if step % config.checkpoint_every == 0:
             log.flush()
             _save_checkpoint(run, current, step, opt.state_dict(), step if current == 1 else stage1_steps)
@@ -634,17 +619,6 @@ def _stage2_loss(run: RestorerRun, idx: list[int]) -> tuple[torch.Tensor, torch.
 
 
 # ----------------------------------------------------------------------------------------- checkpoint
-def _read_resume_checkpoint(config: RestorerConfig, out: Path) -> dict | None:
-    """Checkpoint: the one to resume from, ``out/checkpoint.pt`` when ``config.resume`` and it exists;
-    else None (said on stderr when a resume was asked for)."""
-    ckpt_path = out / CHECKPOINT
-    if config.resume and ckpt_path.is_file():
-        return torch.load(ckpt_path, map_location="cpu", weights_only=True)
-    if config.resume:
-        print(f"train-restorer: no checkpoint in {out}, starting from the beginning", file=sys.stderr)
-    return None
-
-
 def _resume(checkpoint: dict | None, model: Restorer, rng: torch.Generator, val_idx: list[int],
             ckpt_path: Path) -> tuple[int, int, int, dict | None]:
     """Checkpoint: restore the model and the batch generator (the checkpoint must come from the same nets
@@ -664,21 +638,12 @@ def _save_checkpoint(run: RestorerRun, stage_now: int, step_now: int, opt_state:
                      stage1_steps: int) -> None:
     """Checkpoint: ``out/checkpoint.pt`` (atomic) with the stage and step, the stage-1 iterations done, the
     model's configuration and state, the optimiser's state, the batch generator's and the split."""
-    buffer = io.BytesIO()
-    torch.save({"stage": stage_now, "step": step_now, "stage1_steps": stage1_steps,
-                "model_config": run.model.to_config(), "model": run.model.state_dict(), "opt": opt_state,
-                "rng": run.rng.get_state(), "val_idx": run.val_idx}, buffer)
-    atomic_write_bytes(run.out / CHECKPOINT, buffer.getvalue())
+    save_torch(run.out / CHECKPOINT, {
+        "stage": stage_now, "step": step_now, "stage1_steps": stage1_steps, "model_config": run.model.to_config(),
+        "model": run.model.state_dict(), "opt": opt_state, "rng": run.rng.get_state(), "val_idx": run.val_idx})
 
 
 # ---------------------------------------------------------------------------------------------- write
-def _start_log(run: RestorerRun) -> Path:
-    """Write: ``train_log.jsonl`` cut to the iterations before this run (emptied on a fresh start)."""
-    log_path = run.out / TRAIN_LOG
-    atomic_write_bytes(log_path, _log_lines_up_to(log_path, run.stage, run.start).encode() if run.resumed else b"")
-    return log_path
-
-
 def write_restorer_result(run: RestorerRun, steps: list[int], seconds: float, loss_value: float) -> RestorerResult:
     """Write the result files: the held-out RMSE (:func:`validate`) as ``validation.json`` and
     ``validation.md``, the model (``restorer.pt``) and ``result.json``; returns the result."""
@@ -690,5 +655,5 @@ def write_restorer_result(run: RestorerRun, steps: list[int], seconds: float, lo
     atomic_write_bytes(out / VALIDATION_MD, validation_markdown(table, len(val_idx), run.config.skip).encode())
     save_restorer(out / MODEL, run.model, {"steps": steps})
     result = RestorerResult(out, (steps[0], steps[1]), seconds, loss_value, table, len(run.train_idx), len(val_idx))
-    atomic_write_bytes(out / RESULT_JSON, (json.dumps(result.to_json(), indent=2) + "\n").encode())
+    result.write(out)
     return result

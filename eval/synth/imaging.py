@@ -16,8 +16,7 @@ import numpy as np
 import torch
 
 from watergan.formation import Counts, FormationState, Stack, get
-
-from .io import quantise, srgb_encode
+from watergan.io import linear_to_srgb, quantise
 
 
 def full_stack_config(visible: list[dict] | tuple[dict, ...], hidden: list[dict] | tuple[dict, ...]) -> list[dict]:
@@ -97,4 +96,4 @@ def add_sensor_noise(linear: np.ndarray, shot_noise_e: float, read_noise: float,
 
 def encode(linear: np.ndarray, bit_depth: int) -> np.ndarray:
     """sRGB-encoded, quantised image (uint8 or uint16) of a linear image in 0..1."""
-    return quantise(srgb_encode(linear), bit_depth)
+    return quantise(linear_to_srgb(linear), bit_depth)

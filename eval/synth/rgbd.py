@@ -24,8 +24,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from watergan.io import write_depth_png, write_srgb_png
+
 from .camera import intrinsics_from_fov, make_pose
-from .io import write_depth_png, write_json, write_srgb_png
+from .io import write_json
 from .render import RenderConfig, make_raycaster, render_view
 from .scene import SceneConfig, build_scene
 from .trajectory import CAM_IN_BODY, body_rotation

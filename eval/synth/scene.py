@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from .io import srgb_decode, srgb_encode
+from watergan.io import linear_to_srgb, srgb_to_linear
 
 #: Photographs that scikit-image ships (offline), usable as albedo detail.
 TEXTURES = ("gravel", "grass", "brick", "coffee", "immunohistochemistry", "rocket", "moon")
@@ -175,7 +175,7 @@ def make_board(cfg: BoardConfig) -> Board:
         return np.concatenate([xy, np.full(xy.shape[:-1] + (1,), cfg.lift_m)], axis=-1)
 
     return Board(names=names, corners_world=to_world(np.array(corners)), linear_rgb=linear,
-                 srgb=srgb_encode(linear), outline_world=to_world(outline), config=cfg)
+                 srgb=linear_to_srgb(linear), outline_world=to_world(outline), config=cfg)
 
 
 @functools.cache
@@ -192,7 +192,7 @@ def load_texture(name: str, contrast: float = 1.0) -> np.ndarray:
     image = getattr(skimage.data, name)().astype(np.float64) / 255.0
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
-    linear = srgb_decode(image[..., :3])
+    linear = srgb_to_linear(image[..., :3])
     linear = cv2.GaussianBlur(linear, (0, 0), 0.6)  # soften JPEG blocking before magnification
     h, w = linear.shape[:2]
     weight = (np.sin(np.pi * (np.arange(h) + 0.5) / h)[:, None] ** 2
@@ -439,7 +439,7 @@ class Scene:
         mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.concatenate(vertices).astype(np.float64)),
                                          o3d.utility.Vector3iVector(np.concatenate(triangles).astype(np.int32)))
         mesh.vertex_normals = o3d.utility.Vector3dVector(np.concatenate(normals).astype(np.float64))
-        mesh.vertex_colors = o3d.utility.Vector3dVector(srgb_encode(np.concatenate(colours)))
+        mesh.vertex_colors = o3d.utility.Vector3dVector(linear_to_srgb(np.concatenate(colours)))
         return mesh
 
 

@@ -34,11 +34,12 @@ from tqdm import tqdm
 from watergan.errors import UserInputError
 from watergan.formation import Counts, Stack
 from watergan.formation.effects.artificial_light import beam_angle_deg
+from watergan.io import quantise, write_depth_png, write_png, write_srgb_png
 
 from .camera import intrinsics_for
 from .config import SimulationConfig, config_to_dict
 from .imaging import add_sensor_noise, build_stacks, encode, linear_image, rig_camera_config, single_torch_thread
-from .io import quantise, write_depth_png, write_json, write_png, write_srgb_png
+from .io import write_json
 from .render import View, frame_state, make_raycaster, render_view
 from .rgbd import write_rgbd_set
 from .scene import BOARD, build_scene

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from watergan.io import read_depth, read_json
+
 from .camera import Intrinsics
 from .config import SimulationConfig, config_from_dict
-from .io import read_depth, read_json
 
 
 @dataclass(frozen=True)
