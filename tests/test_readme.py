@@ -6,6 +6,9 @@ Which blocks run: every block fenced ```python in README.md and docs/*.md. A blo
 in a fresh interpreter. A Python block that is not meant to run is fenced ```python skip (highlighted the same by
 markdown viewers); shell commands are fenced ```sh and outputs ```text, neither of which runs.
 
+Links: every markdown link of the README, docs/ and benchmarks/RESULTS.md must name a file of the repository (and a
+heading of it for ``#anchor``) or a web address.
+
 The Status section states what the Results table shows: the claims it makes (each correction's board error as a
 multiple of the oracle's, whether its consistency is lower than raw's and every baseline's in each channel) are
 computed here from the table's numbers and must appear in it word for word, and every other number in it must be a
@@ -149,3 +152,20 @@ def test_status_claims_follow_the_numbers():
         table[f"consistency {c}"]["ours, monocular"] = 100.0
     claims, _ = status_claims(table)
     assert "consistency lower than raw's in no channel" in claims
+
+
+def test_links_stay_inside_the_repository():
+    """Every markdown link of the README, docs/ and RESULTS.md names a file of the repository (and a heading of it,
+    for ``#anchor``), or a public web address (papers); none points at a local path outside the checkout."""
+    for doc in [README, ROOT / "benchmarks" / "RESULTS.md", *DOCS]:
+        for target in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            if target.startswith(("https://", "http://")):
+                continue
+            path, _, anchor = target.partition("#")
+            resolved = (doc.parent / path).resolve() if path else doc
+            assert resolved.is_relative_to(ROOT) and resolved.exists(), \
+                f"{doc.name}: link {target} is not a file of the repository"
+            if anchor:
+                headings = {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+                            for h in re.findall(r"^#+ (.*)$", resolved.read_text(), flags=re.M)}
+                assert anchor in headings, f"{doc.name}: link {target} names no heading of {resolved.name}"
