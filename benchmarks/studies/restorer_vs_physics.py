@@ -1,6 +1,6 @@
 """A trained restorer against the physics correction on one workspace, and the floor its training pairs allow.
 
-    .venv/bin/python benchmarks/restorer_vs_physics.py --workspace WS [--model DIR] [--out DIR]
+    .venv/bin/python benchmarks/studies/restorer_vs_physics.py --workspace WS [--model DIR] [--out DIR]
 
 1. Corrects the survey's frames with the restorer in ``--model`` (default: the workspace's ``02_restorer``;
    an RGB-D restorer takes the water stage's range maps) into ``--out`` and prints frames per second, then

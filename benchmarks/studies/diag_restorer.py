@@ -1,6 +1,6 @@
 """Where a trained restorer's corrections go wrong, on a simulated survey's workspace (no files written there).
 
-    .venv/bin/python benchmarks/diag_restorer.py --workspace WS [--out DIR] [--blur-px 8]
+    .venv/bin/python benchmarks/studies/diag_restorer.py --workspace WS [--out DIR] [--blur-px 8]
 
 WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``02_restorer``,
 ``03_correct``, ``04_sfm``). Prints:

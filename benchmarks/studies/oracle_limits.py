@@ -1,7 +1,7 @@
 """What the evaluation's targets ask of a correction, on a simulated survey: the oracle inversion with one of
 its two inputs (the water, the range) replaced by what a real method has.
 
-    .venv/bin/python benchmarks/oracle_limits.py --workspace WS [--out DIR]
+    .venv/bin/python benchmarks/studies/oracle_limits.py --workspace WS [--out DIR]
 
 WS: a workspace of a simulated survey (``00_survey/truth``, ``04_sfm``, ``05_dense``; ``01_gan/model/stack.json``
 and ``06_water`` when they ran). Every survey frame is inverted exactly, pixel by pixel, as the oracle of

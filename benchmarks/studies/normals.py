@@ -1,7 +1,7 @@
 """The physics correction's surface normals against the simulator's, on a workspace whose water stage ran on a
 lit survey (e.g. the auv preset):
 
-    PYTHONPATH=. .venv/bin/python benchmarks/normals.py --workspace WS [--every 4]
+    PYTHONPATH=. .venv/bin/python benchmarks/studies/normals.py --workspace WS [--every 4]
 
 Two ways to take the normals the strobes' irradiance reads:
 - ``combined``: of the correction's range (:func:`pipeline.water.correction_range`: the dense range, the fused
@@ -42,7 +42,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--workspace", required=True, type=Path)
     parser.add_argument("--every", type=int, default=4, help="normals' error on every N-th frame")
-    parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "normals.json")
+    parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parents[1] / "results" / "normals.json")
     args = parser.parse_args()
     began = time.perf_counter()
     ws = args.workspace
