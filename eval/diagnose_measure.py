@@ -37,10 +37,9 @@ import numpy as np
 import torch
 
 from eval.synth.camera import Intrinsics, project, unproject
-from eval.synth.io import read_png, srgb_decode
 from watergan.errors import UserInputError
 from watergan.formation import state_from_rgbd
-from watergan.io import read_survey_json
+from watergan.io import read_png, read_survey_json, srgb_to_linear
 
 from .observations import Observations, pca_normals
 
@@ -352,7 +351,7 @@ def _linear_image(path: Path, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray,
     if image.ndim != 3 or image.shape[:2] != (intr.height, intr.width):
         raise UserInputError(f"image {path} is not a {intr.width}x{intr.height} RGB image")
     top = 255 if image.dtype == np.uint8 else 65535
-    return srgb_decode(image / float(top)).astype(np.float32), image, top
+    return srgb_to_linear(image / float(top)).astype(np.float32), image, top
 
 
 def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str) -> Observations:

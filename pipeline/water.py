@@ -184,10 +184,10 @@ def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
 
 
 def _write_corrected(out: Path, name: str, corrected: np.ndarray, valid: np.ndarray, bits: int) -> None:
-    from eval.synth.io import quantise, srgb_encode
+    from watergan.io import write_srgb_png
 
     rgb = np.where(valid[..., None], np.clip(np.nan_to_num(corrected), 0.0, 1.0), 0.0)
-    write_png(out / "images" / f"{Path(name).stem}.png", quantise(srgb_encode(rgb), bits))
+    write_srgb_png(out / "images" / f"{Path(name).stem}.png", rgb, bits)
     write_png(out / "mask" / f"{Path(name).stem}.png", np.where(valid, 255, 0).astype(np.uint8))
 
 

@@ -309,7 +309,7 @@ def test_two_hidden_effects_are_found_one_per_round(surveys):
     assert len(models) == 2 and models[1]["stack"] == second.stack
 
 
-#: The README's example of a user's effect (``--plugin my_effect.py``), found by the loop below.
+#: The documented example of a user's effect (docs/discovery.md's ``my_effect.py``) (``--plugin my_effect.py``), found by the loop below.
 PLUGIN = '''\
 # my_effect.py: brightness that changes linearly across the frame
 from watergan.formation import Effect, Param, register
@@ -375,19 +375,19 @@ def test_the_screen_skips_what_the_albedo_absorbs_and_says_how_to_force_it(clean
     assert names == ["ambient_depth"] and "needs_image" in skipped["forward_scatter"]
 
 
-def readme_plugin(marker: str) -> str:
-    """The README's Python block that contains ``marker``."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+def docs_plugin(marker: str) -> str:
+    """The Python block of docs/discovery.md that contains ``marker``."""
+    readme = (Path(__file__).resolve().parents[1] / "docs" / "discovery.md").read_text()
     return next(b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S) if marker in b)
 
 
 @pytest.mark.slow
 def test_per_frame_plugin_with_neutral_start_is_found(tmp_path):
-    """The README's auto-exposure plugin (one log-gain per frame, sized by the survey; initial values 0,
+    """The documented auto-exposure plugin (docs/discovery.md) (one log-gain per frame, sized by the survey; initial values 0,
     where it is the identity) hidden in a small survey by its simulation_params (a pattern of 7 repeated
     over the 16 frames) ranks first with the held-out error at least halved."""
     plugin = tmp_path / "frame_exposure.py"
-    plugin.write_text(readme_plugin('per="frame"'))
+    plugin.write_text(docs_plugin('per="frame"'))
     survey = tmp_path / "survey"
     simulate = textwrap.dedent("""
         import sys

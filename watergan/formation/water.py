@@ -1,4 +1,4 @@
-"""Published water optics the code uses (re-typed from ../shared/REFERENCE-water.md).
+"""Published water optics the code uses (re-typed from the references in docs/water.md).
 
 Effective RGB attenuation coefficients (1/m; R, G, B), range-averaged for a white target under D65
 seen by a Nikon D5100, for Jerlov water types; type I is given at 1 m range.
