@@ -58,6 +58,7 @@ from watergan.formation import Counts, MissingInputError, Stack, available, get
 from watergan.formation.rig import declared_rig, held_rig, rig_settings
 from watergan.io import atomic_write_json, atomic_write_text
 
+from .bootstrap import paired_rmse_change
 from .diagnose_measure import GeometrySource, MeasureConfig, check_survey_folder, measure_survey
 from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
 from .fit import (
@@ -393,20 +394,6 @@ def _absorbed_at(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
     return float(np.abs(log_ratio - mean[inv]).max()) < 1e-6
 
 
-def paired_bootstrap(base: FitResult, cand: FitResult, n: int, seed: int) -> tuple[float, tuple[float, float], float]:
-    """Relative change d = RMSE_cand / RMSE_base - 1 on the held-out points, its bootstrap 95% interval
-    and p = fraction of resamples (points drawn with replacement) with d >= 0."""
-    rng = np.random.default_rng([seed, 13])
-    h = len(base.heldout_count)
-    idx = rng.integers(0, h, (n, h))
-    count = base.heldout_count[idx].sum(1)
-    rb = np.sqrt(base.heldout_sq_sum[idx].sum(1) / count)
-    rc = np.sqrt(cand.heldout_sq_sum[idx].sum(1) / count)
-    d = rc / rb - 1.0
-    change = cand.heldout_rmse / base.heldout_rmse - 1.0
-    return float(change), (float(np.quantile(d, 0.025)), float(np.quantile(d, 0.975))), float(np.mean(d >= 0))
-
-
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
                     split, names: list[str], progress: bool | None = None) -> list[CandidateResult]:
     """Refit with each candidate added; sorted by held-out change (best first)."""
@@ -416,7 +403,8 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         grid_start(trial, name, base, meas, split, config)
         fit = fit_stack(trial, meas, split, replace(config.fit, bootstrap=0), frozen_settings(trial, meas),
                         init_albedo=base.albedo)
-        change, ci, p = paired_bootstrap(base, fit, config.bootstrap, config.fit.seed)
+        change, ci, p = paired_rmse_change(base.heldout_sq_sum, fit.heldout_sq_sum, base.heldout_count,
+                                           config.bootstrap, config.fit.seed)
         cand_analysis = analyse(meas, fit.predicted, fit.residual, config.residuals)
         cand_scores = scores(cand_analysis)
         drops = {a: base_scores[a] - cand_scores.get(a, 0.0) for a in base_scores}
