@@ -83,8 +83,8 @@ class RestorerConfig:
     skip: bool = True
     """Full-resolution skip layers in the colour net; False is the ``no_skip`` ablation."""
     head: Head = Head.affine
-    """What the colour core outputs: "affine" (per-channel gain and offset fields applied to the image,
-    :func:`watergan.nets.restorer.apply_affine`) or "direct" (the colours, as the paper)."""
+    """What the colour core outputs: "affine" (gain and offset fields applied to the image) or "direct" (colours).
+    "affine": per-channel fields, :func:`watergan.nets.restorer.apply_affine`; "direct": as the paper."""
     altitude: bool = True
     """The colour net takes each image's altitude in metres; False: the image alone, as the paper.
     Here the median of its depth map; when correcting, the navigation's ``nav_altitude_m``."""
