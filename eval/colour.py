@@ -355,8 +355,8 @@ class ColourEvalConfig:
     board_inset: float = 0.2
     """Fraction by which each board patch is shrunk towards its centre before averaging."""
     scheduler: str = field(default="", metadata={"hash": False})
-    """A Dask scheduler address (tcp://HOST:8786) to sample the colours on its workers (shared file system);
-    empty: here. The numbers are the same either way."""
+    """A Dask scheduler address (tcp://HOST:8786) to sample the colours on its workers; empty: here.
+    The workers need a shared file system. The numbers are the same either way."""
 
 
 @dataclass

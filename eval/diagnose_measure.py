@@ -53,23 +53,21 @@ class MeasureConfig:
     min_views: int = 3
     """Frames a point must be seen in to be kept."""
     patch_px: int = 5
-    """Side of the square patch whose mean is a point's observed colour, pixels (odd); with ``same_footprint``,
-    the patch the farthest view of each point averages (a Gaussian of the same standard deviation,
-    patch_px / sqrt(12) pixels), and the margin kept from the image border."""
+    """Side of the square patch whose mean is a point's observed colour, pixels (odd).
+    With ``same_footprint``, the patch the farthest view of each point averages (a Gaussian of the same standard
+    deviation, patch_px / sqrt(12) pixels); also the margin kept from the image border."""
     same_footprint: bool = True
-    """Read every view of a point over the same patch of surface: a view at camera depth d is blurred by a
-    Gaussian of sigma = patch_px / sqrt(12) x d_far / d pixels, d_far the depth of the point's farthest view
-    (sigma is interpolated between 8 blur levels 1.5x apart, so views nearer than d_far / 17 are blurred less
-    than that). False: the ``patch_px`` box mean in every view (a far view then averages more texture, which
-    biases the attenuation; see the module docstring)."""
+    """Read every view of a point over the same patch of surface; False: the ``patch_px`` box mean in every view.
+    A view at camera depth d is blurred by a Gaussian of sigma = patch_px / sqrt(12) x d_far / d pixels, d_far the
+    depth of the point's farthest view (sigma is interpolated between 8 blur levels 1.5x apart, so views nearer
+    than d_far / 17 are blurred less than that). A box mean in pixels averages more texture in a far view, which
+    biases the attenuation (see the module docstring)."""
     depth_tol_m: float = 0.02
-    """Largest difference between a point's camera z and the frame's depth there for it to count
-    as seen (occlusion test), metres."""
+    """Occlusion test: largest difference between a point's camera z and the frame's depth there, metres."""
     seed: int = 0
     """Seed of the point sampling."""
     max_reprojection_px: float = 2.0
-    """SfM geometry: an observation is kept when its feature lies within this distance of the
-    point's projection, pixels."""
+    """SfM geometry: largest distance of a kept observation's feature from the point's projection, pixels."""
     normal_neighbours: int = 12
     """SfM geometry: sparse points (the point included) whose plane gives a point's normal."""
 

@@ -29,7 +29,7 @@ board apart from the others, so every replicate keeps the board), each point's v
 board patch's too (the views of one point, or of one patch, share its errors). Each replicate is refitted from the
 full fit: ``newton`` (one Newton step with the full fit's Hessian, halved until it lowers the replicate's loss, then
 ``bootstrap_iterations`` L-BFGS iterations) or ``least_squares`` (``bootstrap_iterations`` evaluations of the
-trust-region least squares).
+trust-region least squares). The intervals' coverage on simulated surveys: benchmarks/RESULTS.md.
 
 Held-out error (:func:`fit_stack`, ``holdout_fraction``): those points take no part in the fit; with theta frozen
 each one's albedo is fitted from half of its views and the error measured on the other half.
@@ -79,8 +79,8 @@ class FitConfig:
     iterations: int = 100
     """L-BFGS iterations of a round over the parameters, the albedos projected out."""
     max_iterations: int = 0
-    """L-BFGS iterations of a fit at most: rounds run until one lowers the loss by less than ``convergence_rtol``
-    (0: one round)."""
+    """L-BFGS iterations of a fit at most (0: one round).
+    Rounds run until one lowers the loss by less than ``convergence_rtol``."""
     convergence_rtol: float = 1e-3
     """A fit has converged when a round lowers its loss by less than this fraction."""
     step_rtol: float = 1e-8

@@ -91,8 +91,8 @@ class DenseMeasureConfig:
     blur_px: float = 1.0
     """Smallest Gaussian blur (sigma, pixels) of the images colours are read from (0: no blur)."""
     footprint_m: float = 0.015
-    """Colours are read from the image blurred by this sigma on the surface (metres), i.e. fx x this / depth pixels
-    (clamped to the blur pyramid, blur_px x 1.5^0..5); 0: blur_px everywhere."""
+    """Sigma on the surface (metres) of the blur colours are read through; 0: blur_px everywhere.
+    That is fx x this / depth pixels, clamped to the blur pyramid (blur_px x 1.5^0..5)."""
     margin_px: int = 6
     """Projections closer than this to the image border are not used."""
     range_tolerance: float = 0.02

@@ -85,11 +85,11 @@ class EvaluateConfig:
     range_source: RangeChoice = RangeChoice.auto
     """Range for Jaffe-McGlamery and Sea-thru: 'dense', 'truth' or 'auto' (dense, else truth)."""
     jaffe_stack: str = ""
-    """A formation-stack JSON ([{name, params}]) with the Jaffe-McGlamery coefficients; empty: the
-    simulated survey's true (full) stack."""
+    """A formation-stack JSON ([{name, params}]) with the Jaffe-McGlamery coefficients.
+    Empty: the simulated survey's true (full) stack."""
     board_json: str = ""
-    """A board file with per-image pixel corners (eval.colour.load_board_json); empty: the simulated
-    survey's board."""
+    """A board file with per-image pixel corners (eval.colour.load_board_json).
+    Empty: the simulated survey's board."""
     patch_px: int = 5
     """Side of the square patch averaged at each SfM observation, pixels (odd)."""
     min_views: int = 3
@@ -99,8 +99,8 @@ class EvaluateConfig:
     example_frames: int = 3
     """Frames the report shows side by side (those with the most board patches first)."""
     scheduler: str = field(default="", metadata={"hash": False})
-    """A Dask scheduler address (tcp://HOST:8786) to run the baselines and the colour sampling on its workers
-    (shared file system); empty: here. The outputs are the same either way."""
+    """A Dask scheduler address (tcp://HOST:8786) to run the baselines and colour sampling on; empty: here.
+    The workers need a shared file system. The outputs are the same either way."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Show progress bars."""
 

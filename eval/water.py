@@ -86,11 +86,12 @@ class WaterConfig:
     effects: tuple[str, ...] = DEFAULT_EFFECTS
     """Effects of the stack (any registered name), placed in scene-to-sensor order by their rank."""
     light_rig: bool = True
-    """When the survey declares lights (survey.json's ``lights``), model them: the stack gets ``artificial_light``
-    (unless an effect with ``rig_params`` is already listed) with the declared rig (offset, tilt, beam) held."""
+    """Model the lights the survey declares (survey.json's ``lights``) with the declared rig held.
+    The stack gets ``artificial_light`` (unless an effect with ``rig_params`` is already listed) with the rig's
+    offset, tilt and beam held."""
     held_params: tuple[str, ...] = ("artificial_light.power",)
-    """Parameters ("effect.param") held at their starting values inside fitted effects (the lights' power is exactly
-    degenerate with the gain)."""
+    """Parameters ("effect.param") held at their starting values inside fitted effects.
+    The lights' power, by default: it is exactly degenerate with the gain."""
     tied_params: tuple[tuple[str, str], ...] = (("artificial_light.eta_per_m", "attenuation.eta_per_m"),)
     """(follower, leader) pairs that share one value when both effects are in the stack (one water, one eta)."""
     initial: tuple[dict, ...] = ()
@@ -100,18 +101,18 @@ class WaterConfig:
     fit: FitConfig = WATER_FIT
     """How the stack is fitted (``fit.fixed_effects``: held effects; ``gain`` is added without a board)."""
     spec_alternatives: tuple[dict, ...] | None = None
-    """Changes of the fit's configuration (e.g. ``{"board_weight": 1.0}``) under which the fit is repeated; each
-    parameter's largest change widens its interval (in quadrature with the bootstrap). None: board weight / 10 with
-    a board, else loss scale x 3."""
+    """Changes of the fit's configuration (e.g. ``{"board_weight": 1.0}``) under which the fit is repeated.
+    Each parameter's largest change widens its interval (in quadrature with the bootstrap). None: board weight / 10
+    with a board, else loss scale x 3."""
     range_scale_sd: float = 0.0
-    """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``): the
-    intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
+    """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``).
+    The intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
     board_json: str = ""
-    """A colour-board file (:func:`eval.colour.load_board_json`) for the pipeline's water stage; empty: the
-    simulated survey's board when there is one, else none (then the gain is held)."""
+    """A colour-board file (:func:`eval.colour.load_board_json`) for the pipeline's water stage.
+    Empty: the simulated survey's board when there is one, else none (then the gain is held)."""
     range_agreement: float = 0.01
-    """The pipeline's range maps: a pixel keeps its dense range where the fused mesh agrees within this fraction,
-    else takes the mesh's (the estimate itself reads the dense range)."""
+    """The pipeline's range maps: a pixel keeps its dense range where the fused mesh agrees within this fraction.
+    Else it takes the mesh's (the estimate itself reads the dense range)."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Progress bars."""
 

@@ -15,8 +15,7 @@ only on its own input and noise z (uniform in [-1, 1], one vector per image, see
 
 ``recolour_fraction`` of the in-air images are recoloured before rendering (:func:`recolour`): an
 in-air set chosen to resemble a sediment site holds few saturated colours, and a restorer trained on
-it alone learns to return sediment colours whatever it sees (on the demo survey it moved the colour
-board's blue and cyan patches further from the truth than the raw frames were).
+it alone learns to return sediment colours whatever it sees (measurements: benchmarks/RESULTS.md).
 
 Output folder::
 

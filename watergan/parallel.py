@@ -3,8 +3,8 @@
 ``map_tasks(fn, items, scheduler)`` is the one executor of the per-image stages (correction, dense
 depth, baselines, colour sampling):
 
-- ``scheduler`` empty or None: a plain loop in this process with a progress bar (what a single
-  machine always did, at the same speed);
+- ``scheduler`` empty or None: a plain loop in this process with a progress bar (``distributed`` is
+  not imported);
 - ``scheduler`` an address (``tcp://HOST:8786``, from ``dask scheduler``): the items go to the
   cluster's workers through ``distributed.Client.map``; results come back in the input order;
 - ``scheduler`` a ``distributed.Client`` (e.g. of a ``LocalCluster``): used as it is, not closed.

@@ -100,8 +100,8 @@ class GanConfig:
     effects: tuple[str, ...] = DEFAULT_EFFECTS
     """Registered effects in the generator's stack (placed by class rank)."""
     depth_scale_m: float | None = None
-    """Range normaliser of backscatter_conv, metres (the survey's maximum altitude); None: the
-    largest depth in the RGB-D data."""
+    """Range normaliser of backscatter_conv, metres (the survey's maximum altitude).
+    None: the largest depth in the RGB-D data."""
     image_hw: tuple[int, int] = TRAIN_HW
     """Training image size (height, width), pixels; the discriminator is built for it."""
     batch_size: int = 64
@@ -114,100 +114,86 @@ class GanConfig:
     """Adam beta1 of both nets."""
     physics_lr: float = 3e-3
     """Adam learning rate of every effect's bounded physical parameters (eta, vignetting, gain...).
-    At 2e-4 these few parameters move too slowly for a minutes-long CPU run; at 1e-2 Adam's
-    normalised steps turn any small persistent bias of the discriminator into a steady drift (eta
-    rose 3-8x on the demo survey in 150 iterations). The learned layers (backscatter_conv) keep
-    ``lr``, since a fast rate on them grows the z mask into texture. Set it to ``lr`` for the paper's
-    single rate."""
+    At 2e-4 these few parameters move too slowly for a minutes-long CPU run; at 1e-2 Adam's normalised steps turn
+    any small persistent bias of the discriminator into a steady drift. The learned layers (backscatter_conv) keep
+    ``lr``, since a fast rate on them grows the z mask into texture. Set it to ``lr`` for the paper's single rate."""
     veil_lr: float | None = 2e-3
-    """Adam learning rate of ``backscatter_conv``'s batch-norm shift (the level of the backscatter veil
-    per channel, linear radiance; 3 numbers); None: ``lr``, as the paper. At ``lr`` the veil moves by
-    at most ~0.02 in the few hundred iterations a CPU allows in minutes, while the demo survey's veil
-    is ~0.1."""
+    """Adam learning rate of ``backscatter_conv``'s batch-norm shift (the veil's level per channel); None: ``lr``.
+    ``lr`` is the paper's; at it the veil moves too little in the few hundred iterations a CPU allows in minutes
+    (measurements: benchmarks/RESULTS.md)."""
     veil_spread_lr: float | None = None
-    """Adam learning rate of ``backscatter_conv``'s batch-norm scale (the spread of the veil around its
-    level, 3 numbers); None: ``lr``. Backscatter is smooth, and a fast-growing spread lets the z mask
-    stand in for texture contrast (at 2e-3 the demo survey's green veil grew to a spread of 0.11 and
-    eta_G rose 70 %); the restorer cannot undo such a random pattern."""
+    """Adam learning rate of ``backscatter_conv``'s batch-norm scale (the veil's spread per channel); None: ``lr``.
+    Backscatter is smooth, and a fast-growing spread lets the z mask stand in for texture contrast, a random
+    pattern the restorer cannot undo."""
     site_water: Path | None = None
-    """The water stage's ``water.json``: the generator's physical effects are its stack at its estimate
-    (:mod:`watergan.site_water`), and ``effects`` adds what it lacks (``backscatter_conv``); None: the stack
-    of ``effects`` learned from the colour statistics, started by ``init_from_data``."""
+    """The water stage's ``water.json``, whose stack at its estimate is the generator's physical effects.
+    ``effects`` adds what it lacks (``backscatter_conv``; see :mod:`watergan.site_water`); None: the stack of
+    ``effects`` learned from the colour statistics, started by ``init_from_data``."""
     site_water_mode: SiteWater = SiteWater.held
-    """With ``site_water``: "held" (the estimate is fixed; the discriminator trains the learned scattering
-    alone) or "prior" (the physical parameters train under the colour-statistics term and a Gaussian prior
-    of the estimate's intervals); see :mod:`watergan.site_water`. "learned" (no site_water): the paper's
-    way, the water learned from the colour statistics (``watergan run`` then gives no site water)."""
+    """How the site water enters the generator: "held", "prior" or "learned" (see :mod:`watergan.site_water`).
+    With ``site_water``: "held" (the estimate is fixed; the discriminator trains the learned scattering alone) or
+    "prior" (the physical parameters train under the colour-statistics term and a Gaussian prior of the estimate's
+    intervals). "learned" (no site_water): the paper's way, the water learned from the colour statistics
+    (``watergan run`` then gives no site water)."""
     site_water_scattering: bool = False
-    """With ``site_water``: keep the learned G-II scattering (``backscatter_conv``, trained by the discriminator) in
-    the generator beside the site water's analytic backscatter. Off by default: on the demo survey (off-centre
-    vignetting hidden and added) the discriminator grew its per-image veil to a spread of 0.04 in red (the red
-    backscatter itself is 0.03), which the restorer cannot undo: its board CIEDE2000 was 7.7 against 1.55
-    without it, at the same training."""
+    """With ``site_water``: keep the learned G-II scattering (``backscatter_conv``) beside the analytic backscatter.
+    Off by default: the discriminator grows its per-image veil (trained by it) into a spread larger than the
+    backscatter itself, which the restorer cannot undo (measurements: benchmarks/RESULTS.md)."""
     gain_channels: int = 1
-    """Values of the generator's ``gain``: 1 (one exposure factor, as the paper's camera model) or 3
-    (a white balance per channel). A per-channel gain and a per-channel attenuation explain a frame's
-    colour cast equally well; only the weak change of colour with range tells them apart, so with 3
-    the learned eta is poorly determined."""
+    """Values of the generator's ``gain``: 1 (one exposure factor, the paper's camera model) or 3 (a white balance).
+    A per-channel gain and a per-channel attenuation explain a frame's colour cast equally well; only the weak
+    change of colour with range tells them apart, so with 3 the learned eta is poorly determined."""
     init_from_data: bool = True
-    """Start the attenuation's channel differences, the veil's level and the gain at the per-channel
-    linear map that carries the in-air set's mean and fine-texture contrast onto the real frames' (see
-    :func:`init_from_data`), instead of the effects' initial values, so training starts near the
-    site's brightness, contrast and cast."""
+    """Start the water at the linear map from the in-air set's colour statistics to the frames' (else initial values).
+    The attenuation's channel differences, the veil's level and the gain are set so that the in-air set's
+    per-channel mean and fine-texture contrast map onto the real frames' (:func:`init_from_data`), so training
+    starts near the site's brightness, contrast and cast."""
     moment_weight: float = 1000.0
-    """Weight of a colour-statistics term added to the generator loss: the squared differences of
-    the per-channel mean and texture contrast (:func:`~watergan.gan_statistics.texture_contrast`) of a
-    generated and a real batch (linear), a form of feature matching (Salimans et al. 2016) on the raw colours; 0: the
-    paper's loss alone. Texture contrast, not the standard deviation: the transmission scales fine
-    texture alone, while the spread of whole frames also holds how much the in-air scenes and the site
-    vary from metre to metre, which no water changes (matching it raised eta_G 0.20 -> 0.33 on the
-    demo survey)."""
+    """Weight of a colour-statistics term added to the generator loss; 0: the paper's loss alone.
+    The term: the squared differences of the per-channel mean and texture contrast
+    (:func:`~watergan.gan_statistics.texture_contrast`) of a generated and a real batch (linear), a form of feature
+    matching (Salimans et al. 2016) on the raw colours. Texture contrast, not the standard deviation: the
+    transmission scales fine texture alone, while the spread of whole frames also holds how much the in-air scenes
+    and the site vary from metre to metre, which no water changes."""
     adversarial_physics: bool = False
-    """Let the discriminator's loss move the physical parameters (every effect's bounded values and the
-    veil's level and spread), as the paper does. False: they follow the colour-statistics term alone,
-    while the discriminator trains the learned veil pattern (``backscatter_conv``'s layers). On the demo
-    survey the adversarial gradient pushed eta_G from the data-driven 0.20 /m to 0.25-0.65 /m (truth
-    0.14) within 250-850 iterations in every setting tried (augmentation, label smoothing, blur,
-    instance noise, physics lr 1e-3, moment weights 10-1000, a slowed or frozen veil spread), while
-    the statistics term holds the data-driven start."""
+    """Let the discriminator's loss move the physical parameters (bounded values, veil level and spread), as the paper.
+    False: they follow the colour-statistics term alone, which holds the data-driven start, while the
+    discriminator trains the learned veil pattern (``backscatter_conv``'s layers); the adversarial gradient pushed
+    eta away from that start in every setting tried (measurements: benchmarks/RESULTS.md)."""
     settle_steps: int = 100
-    """Steps of :func:`settle_statistics` after training (0: none): the colour-statistics term alone,
-    on every in-air view against every real frame at once. Minibatch training leaves the generated
-    means off the real ones by the noise of its batches: 0.003-0.012 (linear) below them on the demo
-    survey after 5 minutes, which the restorer would learn as water."""
+    """Full-batch steps of the colour-statistics term alone after training (:func:`settle_statistics`; 0: none).
+    Every in-air view against every real frame at once: minibatch training leaves the generated means off the
+    real ones by the noise of its batches, which the restorer would learn as water."""
     gen_steps_per_disc_step: int = 2
     """Generator updates per discriminator update (2 in the original code)."""
     instance_noise_std: float = 0.1
-    """Standard deviation of Gaussian noise added to every discriminator input (real and generated,
-    linear units). It hides fine texture that tells the in-air dataset from the survey apart, so the
-    discriminator judges colour and brightness, which the physical stack can match; 0 turns it off."""
+    """Standard deviation of Gaussian noise added to every discriminator input, linear units; 0: off.
+    Real and generated alike. It hides fine texture that tells the in-air dataset from the survey apart, so the
+    discriminator judges colour and brightness, which the physical stack can match."""
     disc_blur_px: float = 1.5
-    """Standard deviation, pixels, of a Gaussian blur applied to every discriminator input (real and
-    generated, before the instance noise): the discriminator then judges colour, brightness and
-    coarse structure rather than the fine texture in which the in-air scenes and the site differ and
-    which no physical stage can change; 0 turns it off."""
+    """Standard deviation, pixels, of a Gaussian blur applied to every discriminator input; 0: off.
+    Real and generated alike, before the instance noise: the discriminator then judges colour, brightness and
+    coarse structure rather than the fine texture in which the in-air scenes and the site differ and which no
+    physical stage can change."""
     disc_augment: bool = True
-    """Flip (left-right, up-down) and shift (up to ``image_hw / 8`` pixels, reflected border) every
-    discriminator input at random, real and generated alike (differentiable augmentation, Zhao et al.
-    2020). A survey gives few frames (the demo: 44); without it the discriminator memorises them within
-    a few hundred iterations (D(generated) < 0.01) and its gradients push the physical parameters off.
-    The augmentations change neither colour nor the radial vignetting, so the generator is not taught
-    to imitate them."""
+    """Randomly flip and shift every discriminator input, real and generated alike (differentiable augmentation).
+    Flips left-right and up-down, shifts up to ``image_hw / 8`` pixels with a reflected border (Zhao et al. 2020).
+    A survey gives few frames; without it the discriminator memorises them and its gradients push the physical
+    parameters off. The augmentations change neither colour nor the radial vignetting, so the generator is not
+    taught to imitate them."""
     real_label: float = 0.9
-    """Target of the discriminator on real images (one-sided label smoothing; generated images keep
-    0 and the generator's target stays 1). The in-air RGB-D scenes and the survey differ in content
-    that no physical stage can change, so an unsmoothed discriminator soon becomes certain (D loss
-    ~0.05) and its saturated gradients push the physical parameters far off (eta 2-4x the truth on
-    the demo survey); 0.9 keeps it from becoming overconfident. 1.0: no smoothing."""
+    """Target of the discriminator on real images (one-sided label smoothing); 1.0: no smoothing.
+    Generated images keep 0 and the generator's target stays 1. The in-air RGB-D scenes and the survey differ in
+    content that no physical stage can change, so an unsmoothed discriminator soon becomes certain and its
+    saturated gradients push the physical parameters far off; 0.9 keeps it from becoming overconfident."""
     disc_width: int = 16
-    """Channels of the discriminator's first convolution (the paper: 64). The discriminator is most of
-    an iteration's cost (batch 64, 4 passes per iteration): an idle 2-core CPU does ~0.27 s per
-    iteration at 16, ~0.47 s at 32, ~1.3 s at 64. 16 both fits several times more iterations into the
-    budget and keeps the discriminator from overpowering the few physical parameters (at 32 it reached
-    D loss ~0.05 within 50 iterations on the demo survey and eta drifted 2-4x off)."""
+    """Channels of the discriminator's first convolution (the paper: 64).
+    The discriminator is most of an iteration's cost (batch 64, 4 passes per iteration): 16 both fits several
+    times more iterations into the budget and keeps the discriminator from overpowering the few physical
+    parameters (measurements: benchmarks/RESULTS.md)."""
     iterations: int | None = None
-    """Stop after this many iterations (one discriminator update each), counted from the start of
-    training, so a resumed run stops at the same place."""
+    """Stop after this many iterations (one discriminator update each).
+    Counted from the start of training, so a resumed run stops at the same place."""
     epochs: int | None = None
     """Stop after this many epochs of max(1, min(N_rgbd, N_underwater) // batch_size) iterations."""
     budget_min: float | None = 5.0

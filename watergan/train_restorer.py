@@ -83,19 +83,20 @@ class RestorerConfig:
     skip: bool = True
     """Full-resolution skip layers in the colour net; False is the ``no_skip`` ablation."""
     head: Head = Head.affine
-    """What the colour core outputs: "affine" (per-channel gain and offset fields applied to the image,
-    :func:`watergan.nets.restorer.apply_affine`) or "direct" (the colours, as the paper)."""
+    """What the colour core outputs: "affine" (gain and offset fields applied to the image) or "direct" (colours).
+    "affine": per-channel fields, :func:`watergan.nets.restorer.apply_affine`; "direct": as the paper."""
     altitude: bool = True
-    """The colour net takes each image's altitude in metres (the median of its depth map here; the
-    navigation's ``nav_altitude_m`` when correcting); False: the image alone, as the paper."""
+    """The colour net takes each image's altitude in metres; False: the image alone, as the paper.
+    Here the median of its depth map; when correcting, the navigation's ``nav_altitude_m``."""
     range_input: bool = False
-    """RGB-D mode: the colour net takes each pixel's range in metres (the paired set's ``range/`` here; the
-    water stage's range maps, from the dense stage and the fused mesh, when correcting); False: the
-    monocular restorer (image, and the altitude with ``altitude``)."""
+    """RGB-D mode: the colour net takes each pixel's range in metres; False: the monocular restorer.
+    Here the paired set's ``range/``; when correcting, the water stage's range maps (from the dense stage and the
+    fused mesh). The monocular restorer takes the image, and the altitude with ``altitude``."""
     water: bool = True
-    """RGB-D mode: the colour net starts from the exact inverse of the water the pairs were rendered with (the
-    ``generate`` folder's ``manifest.json`` stack, at each pixel's range; see :mod:`watergan.nets.restorer`) and
-    learns what that water does not hold; False: it learns the whole inverse (ignored in monocular mode)."""
+    """RGB-D mode: the colour net starts from the exact inverse of the water the pairs were rendered with.
+    That water is the ``generate`` folder's ``manifest.json`` stack, at each pixel's range (see
+    :mod:`watergan.nets.restorer`); the net learns what it does not hold. False: it learns the whole inverse
+    (ignored in monocular mode)."""
     factor: int = 4
     """Average-pool factor from full resolution to the colour core (even)."""
     depth_hw: tuple[int, int] = (56, 56)
@@ -103,20 +104,20 @@ class RestorerConfig:
     core_hw: tuple[int, int] = (128, 128)
     """Stage-1 training size of the colour core (height, width), pixels; multiples of 8."""
     crop_px: int = 256
-    """Side of the stage-2 full-resolution training crops, pixels (a multiple of factor * 8; reduced
-    to fit the smallest image)."""
+    """Side of the stage-2 full-resolution training crops, pixels.
+    A multiple of factor * 8; reduced to fit the smallest image."""
     batch_size: int = 8
     """Images per batch."""
     lr: float = 1e-3
     """Adam learning rate."""
     lr_decay: bool = True
-    """Cosine decay of the learning rate over each stage, to 0 at its end (its iterations, or its share of the
-    budget when that ends it first); False: a constant ``lr`` after the warm-up."""
+    """Cosine decay of the learning rate over each stage, to 0 at its end; False: a constant ``lr`` after the warm-up.
+    The end: its iterations, or its share of the budget when that ends it first."""
     warmup_iterations: int = 20
     """Iterations at the start of each stage over which the learning rate rises linearly to ``lr`` (0: none).
     Each stage starts a fresh Adam, whose first steps move every weight by about ``lr`` whatever its gradient:
-    without the warm-up the colour loss, 1.5e-4 at the end of stage 1 on the demo's pairs, jumped to 0.09 at the
-    second step of stage 2 and took a hundred iterations (a third of the stage) to come back."""
+    without the warm-up the colour loss that stage 1 reached jumps at the start of stage 2 and takes many
+    iterations to come back."""
     stage1_iterations: int = 2000
     """Iterations of stage 1 (colour core at core_hw)."""
     stage2_iterations: int = 1000

@@ -71,8 +71,8 @@ def per_frame_tiled(entry: dict, frames: int | None) -> dict:
 @contextmanager
 def single_torch_thread() -> Iterator[None]:
     """Run torch on one thread inside the block (restored after). The stack's element-wise work on
-    one frame takes ~20 ms on one thread, while torch's thread pool can take 10x longer when the
-    ray caster and PNG writers (or other processes) hold the cores."""
+    one frame is short on one thread, while torch's thread pool can take far longer when the ray caster
+    and PNG writers (or other processes) hold the cores."""
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

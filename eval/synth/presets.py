@@ -60,16 +60,12 @@ def reef_config() -> SimulationConfig:
     (B_inf 0.01, 0.05, 0.5); downwelling light fading with the point's depth by Jerlov 1C's Kd
     (0.45, 0.13, 0.25) /m about the 5 m datum.
 
-    Why these numbers (issue 19: raw consistency >= 2e-3 in R and B on the SfM tracks; measured 2.2e-3 and
-    2.4e-3, benchmarks/RESULTS.md): SfM tracks link views with similar viewpoints, so a track spans less
-    range than the views that see its point (median 1.2 m against 2.1 m), and a track's variance grows with
-    that spread (R: 1.5e-4 under 0.5 m, 22 % of the tracks; 2.3e-3 at 1-1.5 m; 5.0e-3 at 2-3 m). The
-    faster, larger bobbing changes the range within a pass, where SfM links consecutive frames: 0.87 m ->
-    1.2 m per track (0.25 m / 7 frames before). Saturated albedos (chromaticity spread > 0.5, 40 % of the
-    tracks) vary 3.6x more than grey ones (< 0.15, 15 %), hence 85 % cover and a pink in place of a pale
-    coral. The red attenuation (0.4 -> 0.6 /m) and the bluer veil (B_inf 0.35 -> 0.5 in B, 0.1 -> 0.05 in
-    G) steepen the normalised colour's change with range. Measured in turn: the bobbing 1.3e-3 (R), with
-    this water 1.8e-3, with 80 % cover and the pink 2.1e-3, with 85 % 2.2e-3."""
+    Why these numbers (issue 19's target: raw consistency >= 2e-3 in R and B on the SfM tracks): SfM tracks
+    link views with similar viewpoints, so a track spans less range than the views that see its point, and a
+    track's variance grows with that spread. The fast, large bobbing changes the range within a pass, where SfM
+    links consecutive frames. Saturated albedos vary more across views than grey ones, hence the large cover and
+    a pink in place of a pale coral. The strong red attenuation and the blue veil steepen the normalised colour's
+    change with range. Measurements: benchmarks/RESULTS.md."""
     visible = (
         {"name": "attenuation", "params": {"eta_per_m": [0.6, 0.12, 0.1]}},
         {"name": "backscatter", "params": {"b_inf": [0.01, 0.05, 0.5], "beta_per_m": [0.35, 0.3, 0.3]}},

@@ -7,9 +7,8 @@ the site's sediment photographs and a tint and texture contrast within about 15 
 one (a real survey, or the reef and auv presets), generic sediment photographs and tints.
 WaterGAN can change colour and brightness, not content, so whatever differs between the set and the
 site is learned as water: a set with twice the site's texture contrast pushes the learned water towards
-a murkier one (a larger eta dims the texture, a stronger veil restores the mean), and a set a third
-greener than the site raises the learned green and blue eta by about 0.1 /m at 2.5 m (measured on the
-demo survey: eta_G +66 %, eta_B +110 % with the generic tints).
+a murkier one (a larger eta dims the texture, a stronger veil restores the mean), and a set greener than
+the site raises the learned green and blue eta (measurements: benchmarks/RESULTS.md).
 
 Written as ``rgb/NNNNNN.png`` (sRGB 8-bit in-air colour), ``depth/NNNNNN.png`` (camera z, 16-bit
 millimetres, 0 where a ray leaves the scene) and ``camera.json`` (intrinsics of these images).
@@ -64,13 +63,13 @@ class RGBDConfig:
     grid_spacing_m: float = 0.08
     """Heightfield vertex spacing of the scenes, metres."""
     supersample: int = 2
-    """Render at this many times the width and height and area-average down: a point-sampled texture
-    aliases into more contrast than the site's frames show once both are reduced to WaterGAN's size,
-    and the discriminator then tells generated images by their texture, which no physical stage can
-    change (with 1 on the demo survey, D(generated) fell below 0.01 and eta drifted 2-5x off)."""
+    """Render at this many times the width and height, then area-average down.
+    A point-sampled texture aliases into more contrast than the site's frames show once both are reduced to
+    WaterGAN's size, and the discriminator then tells generated images by their texture, which no physical stage
+    can change."""
     like_site: bool = True
-    """Draw the scenes to resemble the survey site (its photographs, tint and texture contrast), as an
-    in-air set chosen for the survey would be; False: the generic seafloor set (grey sediment photographs,
+    """Draw the scenes to resemble the survey site (its photographs, tint and texture contrast).
+    As an in-air set chosen for the survey would be; False: the generic seafloor set (grey sediment photographs,
     sediment tints) that a user without a site-matched RGB-D set has."""
 
 

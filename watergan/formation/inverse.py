@@ -165,10 +165,9 @@ class FieldTable:
     for images of one size and camera, interpolated trilinearly in (x, y, r) at each pixel (:meth:`sample`). For
     stacks whose fields depend on the pixel's position and range alone (not on surface normals: check
     :func:`needs_normals`). With K the grid's points and depths come from the pixels' rays, as in
-    :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs): on the demo's site
-    water (with off-centre vignetting) at 640x480, frames at 2.45-3.96 m, a grid of 49 x 65 positions every
-    0.049 m of range is within 3.8e-4 of the exact log gain and 1.1e-5 of the exact offset. A table is built once
-    and sampled for every frame it covers: building one evaluates the stack at 100k-300k grid points."""
+    :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs), so a coarse grid
+    interpolates them closely (its accuracy on the demo: benchmarks/RESULTS.md). A table is built once and sampled
+    for every frame it covers: building one evaluates the stack at 100k-300k grid points."""
 
     table: torch.Tensor
     """(1,6,R,rows,cols) float32: g then o per channel."""

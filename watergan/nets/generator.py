@@ -54,7 +54,7 @@ def select_state(state: FormationState, index: torch.Tensor, **changes) -> Forma
 
     The geometry of an RGB-D image (range, points, normals from the intrinsics) never changes during
     training, so ``train_gan`` builds the state of the whole dataset once and selects each batch from
-    it instead of recomputing it three times per iteration (about a third of an iteration's time)."""
+    it instead of recomputing it three times per iteration."""
     values = {}
     for f in dataclasses.fields(state):
         value = getattr(state, f.name)

@@ -37,16 +37,13 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   Global context: the core's input also holds the per-channel mean and standard deviation of the
   whole image at its resolution (:func:`image_context`, 6 constant maps). The correction depends on
   the absolute range, which relative depth does not hold and the core's receptive field cannot see
-  across a frame; without them a demo restorer corrected red 8.7 % (std over frames) differently
-  from frame to frame, correlated -0.97 with the frame's range. Training crops take the context of
-  their whole image.
+  across a frame; without them a restorer corrects each frame's red differently, in step with the
+  frame's range. Training crops take the context of their whole image.
 
   Altitude (``altitude=True``): the camera's height above the seafloor in metres, as the vehicle's
   altimeter reads it, enters the core as one more constant map. Relative depth and colour statistics
   leave the absolute range ambiguous (a dim red frame may be far or of dark sediment), and the
-  inverse's gain exp(eta r) depends on it: without it a demo restorer's red varied 6.1 % over frames,
-  correlated -0.91 with the frame's range; with it 3.8 %, correlated 0.27, and the colour-board error
-  fell from 0.091 to 0.059-0.064. Training frames take the median of their depth map.
+  inverse's gain exp(eta r) depends on it. Training frames take the median of their depth map.
 
   Range (``range_input=True``, the RGB-D mode): the colour net's input also holds each pixel's range in
   metres (the dense stage's, where the survey has it), one more map beside the estimated depth; the inverse's
@@ -63,14 +60,13 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   at full resolution before they are applied. The net then starts as the exact inverse of that water, the physics
   correction's, and the core, the geometry branch and the skip layers learn what the stack does not hold (the
   clipping and 8-bit rounding of the pairs, a learned scattering, what the discriminator added). Without it the
-  geometry branch had to learn those fields from zero: after the demo's 2.5-minute budget the restorer's board
-  error was 3x the physics correction's, with held-out RMSE 0.012-0.015 against the exact inverse's 0.0026.
+  geometry branch has to learn those fields from zero. Measurements of these inputs: benchmarks/RESULTS.md.
 
   Position: the colour net's input also holds each pixel's place in the whole image
   (:func:`position_maps`: u, v in [-1, 1] and the squared radius, 1 at a corner), since vignetting
   darkens the corners and a convolutional net cannot otherwise tell a corner from the centre (without
-  them the demo restorer left the raw frames' 0.75-1.22 centre-to-corner falloff in place). Training
-  crops take their part of the whole image's maps.
+  them the raw frames' centre-to-corner falloff stays in place). Training crops take their part of the
+  whole image's maps.
 
 Pixels are the stored (sRGB-encoded) values scaled to 0..1. :func:`restore` pads any size to a
 multiple of :func:`Restorer.multiple` (replicating the border), runs both nets and crops back.
@@ -241,8 +237,8 @@ def water_fields(water: list[dict], range_m: torch.Tensor,
     J = (I - C) / A in linear light, so g = -ln A and o = -C / A (:func:`apply_affine`) with A, C of
     :func:`watergan.formation.inverse.inverse_fields` (``exact``, and always for a water that reads surface
     normals, such as strobes), else interpolated from a grid of positions and ranges
-    (:class:`watergan.formation.inverse.FieldTable`: on the demo's water within 4e-4 of the exact log gain). For
-    many frames, :class:`WaterFields` keeps the grid between calls.
+    (:class:`watergan.formation.inverse.FieldTable`, with its accuracy). For many frames, :class:`WaterFields`
+    keeps the grid between calls.
 
     range_m: (B,1,H,W) metres, holes filled (:func:`fill_range_holes`).
     intrinsics: (fx, fy, cx, cy) pixels of these images; effects that read camera-frame points or normals (the
@@ -438,7 +434,7 @@ class Restorer(nn.Module):
     def for_inference(self) -> Restorer:
         """A copy in eval mode for correcting frames, with the same outputs (to float rounding): each batch norm
         folded into the convolution before it, and the weights of the full-resolution 3x3 output convolution laid
-        out channels-last, which oneDNN runs about 3x faster on a CPU at 640x480 (one thread: 8 ms against 25)."""
+        out channels-last, which oneDNN runs faster on a CPU (measurements: benchmarks/RESULTS.md)."""
         from torch.nn.utils.fusion import fuse_conv_bn_eval
 
         model = copy.deepcopy(self).eval()
