@@ -309,7 +309,8 @@ def test_two_hidden_effects_are_found_one_per_round(surveys):
     assert len(models) == 2 and models[1]["stack"] == second.stack
 
 
-#: The documented example of a user's effect (docs/discovery.md's ``my_effect.py``) (``--plugin my_effect.py``), found by the loop below.
+#: The documented example of a user's effect (docs/discovery.md's ``my_effect.py``, loaded with ``--plugin``),
+#: found by the loop below.
 PLUGIN = '''\
 # my_effect.py: brightness that changes linearly across the frame
 from watergan.formation import Effect, Param, register
@@ -383,8 +384,8 @@ def docs_plugin(marker: str) -> str:
 
 @pytest.mark.slow
 def test_per_frame_plugin_with_neutral_start_is_found(tmp_path):
-    """The documented auto-exposure plugin (docs/discovery.md) (one log-gain per frame, sized by the survey; initial values 0,
-    where it is the identity) hidden in a small survey by its simulation_params (a pattern of 7 repeated
+    """The documented auto-exposure plugin (docs/discovery.md: one log-gain per frame, sized by the survey; initial
+    values 0, where it is the identity) hidden in a small survey by its simulation_params (a pattern of 7 repeated
     over the 16 frames) ranks first with the held-out error at least halved."""
     plugin = tmp_path / "frame_exposure.py"
     plugin.write_text(docs_plugin('per="frame"'))
