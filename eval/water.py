@@ -205,6 +205,8 @@ class WaterConfig:
 
     effects: tuple[str, ...] = DEFAULT_WATER_EFFECTS
     """Effects of the stack (any registered name), placed in scene-to-sensor order by their rank."""
+    add: tuple[str, ...] = ()
+    """Effects added to ``effects`` (``watergan run --add``: e.g. what the diagnosis found)."""
     light_rig: bool = True
     """When the survey declares lights (survey.json's ``lights``), model them: the stack gets ``artificial_light``
     (unless an effect with ``rig_params`` is already listed) with the declared rig (offset, tilt, beam) held."""

@@ -1,7 +1,7 @@
 """The diagnose stage: the discovery loop (:mod:`eval.diagnose`) on a workspace or a survey folder.
 
 In a workspace where the water stage ran, the diagnosis starts from the water stage's estimate and ranks
-its candidates on the water stage's own measurement table (``06_water/observations.npz``, converted by
+its candidates on the water stage's own measurement table (``03_water/observations.npz``, converted by
 :func:`eval.diagnose_measure.measure_observations`): one model and one set of measurements for the
 correction and the diagnosis, so ``--add EFFECT`` refits the water with the effect on the views the
 ranking judged it on. Before, the diagnosis sampled and measured its own points on the SfM tracks (5 px

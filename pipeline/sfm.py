@@ -24,7 +24,7 @@ with the scale ``s`` from, in order of preference (``scale="auto"``; board only 
                median height.
     none:      COLMAP's arbitrary scale (s = 1 after the survey-frame rotation).
 
-Outputs (``04_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``tracks.npz``
+Outputs (``01_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``tracks.npz``
 (:class:`Tracks`: points, observations, poses, intrinsics) and ``database.db``.
 
 Pixel convention everywhere outside COLMAP: OpenCV, the centre of pixel (column i, row j) is at
@@ -533,7 +533,7 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
 
 
 def run_sfm(ws, cfg: SfmConfig) -> SfmResult:
-    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``04_sfm``."""
+    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``01_sfm``."""
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     result = run_sfm_folder(images_dir, ws.stage_dir("sfm"), cfg)
     result.model_dir, result.tracks = ws.relative(result.model_dir), ws.relative(result.tracks)

@@ -91,6 +91,12 @@ class SurveyConfig:
     seed: int = 0
     """Seed of the generic RGB-D set."""
 
+    def __post_init__(self) -> None:
+        # absolute folders: `./S` and `S` are the same survey (and the same configuration hash)
+        object.__setattr__(self, "survey_dir", str(Path(self.survey_dir).resolve()))
+        if self.rgbd_dir:
+            object.__setattr__(self, "rgbd_dir", str(Path(self.rgbd_dir).resolve()))
+
 
 @dataclass
 class SurveyResult:
