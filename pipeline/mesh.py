@@ -554,7 +554,7 @@ def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
     if cfg.images_dir:
         images_dir = Path(cfg.images_dir)
     else:
-        images_dir = ws.path(ws.require("correct", "the texture (or give --images-dir)").mesh_images)
+        images_dir = ws.path(ws.require("correct", "the texture without --images-dir").mesh_images)
     dense = ws.result("dense")
     points, mesh = (ws.path(dense.points_ply), ws.path(dense.mesh_ply)) if dense and dense.points_ply else (None, None)
     result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, points, mesh)
