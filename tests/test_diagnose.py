@@ -42,7 +42,6 @@ from pipeline.diagnose import measure_target, run_diagnose
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.formation import Stack, available
-from watergan.io import atomic_write_json
 
 #: Candidates: the effects registered when the tests are collected (a plugin that another test module
 #: registers later in the same process must not join the ranking), less ambient_depth: the screen skips
