@@ -18,14 +18,14 @@ from pathlib import Path
 from watergan.errors import UserInputError
 
 from .cli_stage import add_stage_command
-from .cliargs import add_config, config_from_args, list_option
+from .cliargs import add_config, check_effects, config_from_args, list_option
 
 
 def cmd_train_gan(args: argparse.Namespace) -> int:
     from watergan.train import GanConfig, train_gan
 
     config = config_from_args(GanConfig, args)
-    effects = tuple(dict.fromkeys(config.effects + tuple(args.add)))
+    effects = tuple(dict.fromkeys(config.effects + check_effects(args.add)))
     limits = [k for k in ("budget_min", "iterations", "epochs") if hasattr(args, k)]
     budget = None if limits and "budget_min" not in limits else config.budget_min  # iterations or epochs alone
     config = dataclasses.replace(config, effects=effects, budget_min=budget)

@@ -97,14 +97,20 @@ class Option:
     def check(self, value: Any) -> Any:
         """``value``, its effect names checked when the option holds effect names (:data:`EFFECT_FIELDS`)."""
         if self.path[-1] in EFFECT_FIELDS and isinstance(value, tuple | list):
-            from watergan.formation import get
-
-            for effect in value:
-                get(effect)
+            check_effects(value)
         return value
 
     def flag(self, prefix: str = "") -> str:
         return "--" + self.key(prefix).replace("_", "-")
+
+
+def check_effects(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """``names`` as a tuple, each a registered effect (else :class:`UnknownEffectError` naming the close ones)."""
+    from watergan.formation import get
+
+    for name in names:
+        get(name)
+    return tuple(names)
 
 
 def _unoptional(hint: Any) -> tuple[Any, bool]:
