@@ -64,6 +64,15 @@ class _Folders:
     share of the frames' pixels marked."""
 
 
+def check_board(cfg) -> None:
+    """The water's and the eval stage's input check: the board file the configuration names, when it names one
+    (:func:`eval.colour.load_board_json`)."""
+    from eval.colour import load_board_json
+
+    if cfg.board_json:
+        load_board_json(cfg.board_json)
+
+
 def _survey_dirs(ws: Workspace, cfg: EvaluateConfig) -> tuple[Path, Path]:
     survey = Path(cfg.survey_dir) if cfg.survey_dir else ws.stage_dir("survey")
     return survey, Path(cfg.images_dir) if cfg.images_dir else survey / "images"

@@ -32,7 +32,6 @@ from watergan.errors import UserInputError
 from watergan.io import atomic_write_json
 
 from .cliargs import Option, build, convert, field_paths, options
-from .survey import check_survey
 from .workspace import Workspace, config_hash
 
 if TYPE_CHECKING:
@@ -153,22 +152,14 @@ def stage_config(stage: str, opts: RunOptions) -> Any:
 
 
 def check_inputs(opts: RunOptions) -> None:
-    """Every file the run reads from the user, checked before any stage runs: the survey folder
-    (:func:`check_survey`, also when its stage finished earlier: the files may have changed since) and
-    the board files the options name. A bad one is a :class:`UserInputError` naming it."""
-    from eval.colour import load_board_json
+    """Every file the run reads from the user, checked before any stage runs (also for a stage that
+    finished earlier: the files may have changed since): each stage's ``check`` of its configuration
+    (the survey folder, the board files the options name). A bad one is a :class:`UserInputError` naming it."""
+    from .stages import STAGES, _load
 
-    from .sfm import read_board_corners
-
-    check_survey(Path(opts.survey_dir))
-    sfm = opts.stages.get("sfm", {})
-    if sfm.get(("board_json",)):
-        read_board_corners(Path(sfm[("board_json",)]), sfm.get(("board_width_m",), 0.0),
-                           sfm.get(("board_height_m",), 0.0))
-    for group in ("water", "eval"):
-        path = opts.stages.get(group, {}).get(("board_json",))
-        if path:
-            load_board_json(path)
+    for name, stage in STAGES.items():
+        if stage.check:
+            _load(stage.check)(stage_config(name, opts))
 
 
 def run_all(opts: RunOptions) -> dict:

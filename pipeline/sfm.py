@@ -277,6 +277,12 @@ def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
     return images, float(width_m), float(height_m)
 
 
+
+def check_board(cfg: SfmConfig) -> None:
+    """The sfm stage's input check: the board file it names, when it names one (:func:`read_board_corners`)."""
+    if cfg.board_json:
+        read_board_corners(Path(cfg.board_json), cfg.board_width_m, cfg.board_height_m)
+
 def board_scale(tracks: Tracks, quads: dict[str, np.ndarray], width_m: float, height_m: float
                 ) -> tuple[float, float]:
     """Scale from a board of known size: corners triangulated from >= 2 registered views (DLT),

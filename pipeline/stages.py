@@ -11,9 +11,11 @@ rerun upstream reruns it. A stage finds its inputs in those results (an empty pa
 Entries name their types and function as ``"module:attribute"`` and import them when first used:
 the heavy libraries (torch, pycolmap, open3d) load only with the stage that needs them.
 
-Adding a stage: its configuration and result dataclasses and its function (in its module), and one
-entry here (in run order, its folder numbered so). Its command (``watergan COMMAND --workspace WS``)
-and its options in ``watergan run`` (``--STAGE-FIELD``) come from the entry and the configuration.
+Adding a stage: its configuration and result dataclasses and its function (in its own module,
+``pipeline/NAME.py``), and one entry here (in run order, its folder numbered so); a printer of its
+result for its command where it has one (one ``add_stage_command`` call in a ``pipeline/cli_*.py``).
+Its command (``watergan COMMAND --workspace WS``) and its options in ``watergan run``
+(``--STAGE-FIELD``) come from the entry and the configuration.
 """
 
 from __future__ import annotations
@@ -59,6 +61,9 @@ class Stage:
     the upstream results, ``device``, ``resume``)."""
     run_defaults: tuple[tuple[str, Any], ...] = ()
     """(dotted field, value): where ``watergan run`` starts from another default than the configuration's."""
+    check: str | Callable | None = None
+    """``module:function`` of ``check(config)``: the user's files the stage reads, checked before ``watergan run``
+    runs any stage (a bad one is a ``UserInputError`` naming it); None: nothing to check."""
 
     def how_to_run(self) -> str:
         """What to type to run the stage in a workspace."""
@@ -83,16 +88,17 @@ class Stage:
 #: WaterGAN starts.
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("survey", "00_survey", "pipeline.survey:SurveyConfig", "pipeline.survey:SurveyResult",
-          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace", "survey"),
+          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace", "survey",
+          check="pipeline.survey:check_survey_config"),
     Stage("sfm", "01_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
           ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale", "sfm",
-          local=("images_dir",)),
+          local=("images_dir",), check="pipeline.sfm:check_board"),
     Stage("dense", "02_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
           "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh", "dense",
           local=("images_dir",)),
     Stage("water", "03_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
           ("sfm", "dense"), "the site's water from the survey's geometry, and each pixel's range", "water",
-          local=("range_scale_sd",)),
+          local=("range_scale_sd",), check="pipeline.evaluate:check_board"),
     Stage("gan", "04_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult", "pipeline.gan:run_gan_stage",
           ("survey", "water"), "train WaterGAN on the site water, then render the paired set for the restorer",
           "gan", found=("train.rgbd_dir", "train.underwater_dir", "train.out_dir", "train.site_water",
@@ -110,7 +116,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("eval", "07_eval", "eval.tables:EvaluateConfig", "eval.tables:EvaluateResult",
           "pipeline.evaluate:run_evaluate", ("sfm", "dense", "restorer", "correct"),
           "baselines and ours on the same points and board: the paper's tables", "evaluate",
-          local=("survey_dir", "images_dir", "ours_dir")),
+          local=("survey_dir", "images_dir", "ours_dir"), check="pipeline.evaluate:check_board"),
     Stage("mesh", "08_mesh", "pipeline.mesh:MeshConfig", "pipeline.mesh:MeshResult", "pipeline.mesh:run_mesh",
           ("sfm", "dense", "correct"), "textured mesh and photomosaic from the corrected frames", "texture",
           local=("images_dir",)),

@@ -98,6 +98,11 @@ class SurveyConfig:
             object.__setattr__(self, "rgbd_dir", str(Path(self.rgbd_dir).resolve()))
 
 
+def check_survey_config(cfg: SurveyConfig) -> None:
+    """The survey stage's input check (:func:`check_survey`)."""
+    check_survey(Path(cfg.survey_dir))
+
+
 @dataclass
 class SurveyResult:
     n_images: int

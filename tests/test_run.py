@@ -14,13 +14,12 @@ import pytest
 
 from pipeline.run import (
     RunOptions,
-    check_survey,
     load_options_file,
     run_all,
     run_options,
     stage_config,
 )
-from pipeline.survey import SurveyConfig, SurveyResult
+from pipeline.survey import SurveyConfig, SurveyResult, check_survey
 from watergan.errors import UserInputError
 
 FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--diagnose-measure-n-points", "200",
