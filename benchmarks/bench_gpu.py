@@ -3,8 +3,8 @@ dense stage's patch-match stereo (pycolmap built with CUDA).
 
     python3 benchmarks/bench_gpu.py --workspace WS [--pairs DIR] [--small SURVEY --small-sfm SFM_DIR]
 
-- ``--workspace``: a finished ``watergan run`` workspace (or a folder holding its ``02_restorer``, ``00_survey/images``
-  with ``camera.json`` and ``survey.json``, and ``06_water/range``): its frames corrected on CUDA and on the CPU
+- ``--workspace``: a finished ``watergan run`` workspace (or a folder holding its ``05_restorer``, ``00_survey/images``
+  with ``camera.json`` and ``survey.json``, and ``03_water/range``): its frames corrected on CUDA and on the CPU
   (best of 2 passes, file I/O and model load included), and the CUDA colours against the CPU's (levels of 8 bits);
   then in monocular mode on CUDA.
 - ``--pairs``: a ``generate`` folder: an RGB-D restorer trained on it on CUDA for 20 + 20 iterations (time, peak
@@ -38,8 +38,8 @@ def correct_check(ws: Path, out: Path) -> dict:
         best = float("inf")
         for _ in range(2):
             began = time.perf_counter()
-            result = correct_folder(ws / "02_restorer", ws / "00_survey" / "images", out / device, force=True,
-                                    progress=False, range_dir=ws / "06_water" / "range", device=device)
+            result = correct_folder(ws / "05_restorer", ws / "00_survey" / "images", out / device, force=True,
+                                    progress=False, range_dir=ws / "03_water" / "range", device=device)
             best = min(best, time.perf_counter() - began)
         record[device] = {"mode": result.mode, "frames": result.corrected, "best_s": best,
                           "frames_per_s": result.corrected / best, "torch_threads": torch.get_num_threads()}
@@ -50,7 +50,7 @@ def correct_check(ws: Path, out: Path) -> dict:
         d = np.abs(cpu - cuda).max(axis=2)
         worst, differing, pixels = max(worst, int(d.max())), differing + int((d > 0).sum()), pixels + d.size
     record["cuda_vs_cpu"] = {"max_levels": worst, "share_differing": differing / pixels}
-    mono = correct_folder(ws / "02_restorer", ws / "00_survey" / "images", out / "mono", force=True, progress=False,
+    mono = correct_folder(ws / "05_restorer", ws / "00_survey" / "images", out / "mono", force=True, progress=False,
                           device="cuda", mode="monocular")
     record["cuda_monocular"] = {"mode": mono.mode, "frames": mono.corrected, "seconds": mono.seconds}
     return record

@@ -54,15 +54,15 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
     from watergan.nets.restorer import WaterFields, fill_range_holes
     from watergan.train_restorer import load_restorer
 
-    ranges = ws / "06_water" / "range"
+    ranges = ws / "03_water" / "range"
     best = float("inf")
     for _ in range(max(1, min(repeats, 3))):
         began = time.perf_counter()
-        result = correct_folder(ws / "02_restorer", ws / "00_survey" / "images", out, force=True, progress=False,
+        result = correct_folder(ws / "05_restorer", ws / "00_survey" / "images", out, force=True, progress=False,
                                 range_dir=ranges if ranges.is_dir() else None)
         best = min(best, time.perf_counter() - began)
     lanes = cpu_lanes()
-    model = load_restorer(ws / "02_restorer").for_inference()
+    model = load_restorer(ws / "05_restorer").for_inference()
     paths = sorted((ws / "00_survey" / "images").glob("*.png"))[:4]
     x = torch.from_numpy(np.stack([read_image(p, "linear") for p in paths]).transpose(0, 3, 1, 2)).float()
     parts = {}

@@ -68,7 +68,7 @@ def main() -> int:
         wall_s = time.perf_counter() - began
         peak_mb = max(before, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024
         run = json.loads((ws / "run_summary.json").read_text())
-        correct = json.loads((ws / "03_correct" / "result.json").read_text())["result"]
+        correct = json.loads((ws / "06_correct" / "result.json").read_text())["result"]
         rows[scale] = {"frames": summary.frames, "width": summary.width, "height": summary.height,
                        "simulate_s": round(simulate_s, 1), "run_s": round(wall_s, 1),
                        "stage_s": {s["stage"]: s["seconds"] for s in run["stages"]},

@@ -79,17 +79,17 @@ def prepare(root: Path, name: str) -> Path:
 
 def load_inputs(ws_root: Path):
     """(frames, K, tracks, board, sfm Tracks) of a prepared workspace: raw linear frames, dense range (camera z
-    from ``05_dense/depth`` as ray length; 0 = none stays NaN), SfM poses; the board's pixel quads projected
+    from ``02_dense/depth`` as ray length; 0 = none stays NaN), SfM poses; the board's pixel quads projected
     with the true poses (what a user's board file with detected corners gives)."""
     from eval.colour import truth_board
+    from eval.observations import SparseTracks
     from eval.tracks import Tracks
-    from eval.water import SparseTracks
     from pipeline.water import water_frames
 
     survey = ws_root / "00_survey"
-    tracks = Tracks.load(ws_root / "04_sfm" / "tracks.npz")
+    tracks = Tracks.load(ws_root / "01_sfm" / "tracks.npz")
     K = np.asarray(tracks.K, float)
-    frames = water_frames(tracks, survey / "images", ws_root / "05_dense" / "depth")
+    frames = water_frames(tracks, survey / "images", ws_root / "02_dense" / "depth")
     sparse = SparseTracks(xyz=tracks.xyz, obs_point=tracks.obs_point, obs_frame=tracks.obs_image,
                           obs_xy=tracks.obs_xy)
     return frames, K, sparse, truth_board(survey), tracks
@@ -145,7 +145,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
     torch.set_num_threads(1)
     scene = None
     for k, f in enumerate(frames):
-        r, meshed, scene = correction_range(f, K, ws_root / "05_dense" / "fused_mesh.ply", agreement, scene)
+        r, meshed, scene = correction_range(f, K, ws_root / "02_dense" / "fused_mesh.ply", agreement, scene)
         from_mesh.append(float(np.mean(meshed)))
         filled.append(float(np.mean(~np.isfinite(r))))
         r_full = fill_nearest(r)
@@ -187,7 +187,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     t = time.perf_counter()
     frames, K, sparse, board, tracks = load_inputs(ws_root)
     load_seconds = time.perf_counter() - t
-    sfm = json.loads((ws_root / "04_sfm" / "result.json").read_text())["result"]
+    sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
     config = replace(config, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     add = SURVEYS[name].get("add", ())
     if add:

@@ -124,6 +124,11 @@ class EvaluateResult:
     verdict: list[str] = field(default_factory=list)
     example_frames: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    consistency_points: str = ""
+    """Workspace-relative path of consistency_points.npz (per method, each point's variance across views)."""
+    depth: str = ""
+    """Workspace-relative folder of the depth comparison (the restorer's depth against the dense stage's:
+    metrics.json, error maps); empty: not run."""
 
 
 # ---------------------------------------------------------------------------------------- inputs

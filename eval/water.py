@@ -85,6 +85,8 @@ class WaterConfig:
 
     effects: tuple[str, ...] = DEFAULT_EFFECTS
     """Effects of the stack (any registered name), placed in scene-to-sensor order by their rank."""
+    add: tuple[str, ...] = ()
+    """Effects added to ``effects`` (``watergan run --add``: e.g. what the diagnosis found)."""
     light_rig: bool = True
     """Model the lights the survey declares (survey.json's ``lights``) with the declared rig held.
     The stack gets ``artificial_light`` (unless an effect with ``rig_params`` is already listed) with the rig's

@@ -4,12 +4,12 @@
     watergan simulate --out DIR [--preset demo|reef|auv|tiny|small] [--hidden NAME[,NAME]] [--seed N] [--force]
     watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py)
     watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
-    watergan train-gan / generate         WaterGAN (see pipeline/cli_gan.py)
-    watergan train-restorer / correct     the restorer (see pipeline/cli_restorer.py)
-    watergan sfm / dense / water / consistency / depth-compare / texture / mosaic   3D and the site water
-                                          (see pipeline/cli_3d.py)
+    watergan survey / sfm / dense / water / gan / restorer / correct / evaluate / texture / mosaic / report
+             --workspace WS               one stage of the workspace (pipeline/cli_stage.py), as `run` runs it
+    watergan train-gan / generate         WaterGAN on folders (see pipeline/cli_gan.py)
+    watergan train-restorer / correct-folder   the restorer on folders (see pipeline/cli_restorer.py)
+    watergan consistency / depth-compare  measurements of any folders (see pipeline/cli_3d.py)
     watergan diagnose / ledger            the discovery loop (see pipeline/cli_diagnose.py)
-    watergan evaluate / report            baselines, tables and the HTML report (see pipeline/cli_report.py)
 
 Every command takes ``--plugin FILE.py`` (repeatable) to register a user's own effects first. The
 options of each command are generated from its configuration dataclass (:mod:`pipeline.cliargs`):
@@ -80,10 +80,7 @@ class SimulateOptions:
 
 def simulate(opts: SimulateOptions) -> int:
     from eval.synth import make_config, simulate_survey
-    from watergan.formation import get
 
-    for name in opts.hidden:
-        get(name)  # unknown names fail here, before any rendering
     config = make_config(opts.preset.value, hidden=list(opts.hidden), seed=opts.seed)
     if not opts.stereo:
         config = dataclasses.replace(config, trajectory=dataclasses.replace(config.trajectory, stereo=False))

@@ -6,21 +6,23 @@
                  [--scale auto|stereo|board|altitude|none] [--board-json FILE [--board-width-m W ...]]
     watergan dense --workspace WS [--method auto|sgbm|patch_match] [--pairs auto|rig|neighbours] [--no-fuse]
     watergan water --workspace WS [--effects A,B] [--board-json FILE] [--bootstrap N]
-    watergan consistency --workspace WS --folders NAME=DIR[,NAME=DIR] [--patch-px 5]
+    watergan consistency --workspace WS --out DIR --folders NAME=DIR[,NAME=DIR] [--patch-px 5]
                          [--truth-dir SURVEY | --board-json FILE]
-    watergan depth-compare --pred-dir DIR [--ref-dir DIR] (--workspace WS | --out DIR) [--with-shift] [--no-per-image]
+    watergan depth-compare --pred-dir DIR [--ref-dir DIR | --workspace WS] --out DIR [--with-shift] [--no-per-image]
     watergan texture --workspace WS [--images-dir DIR] [--source auto|dense|sparse] [--mesh-kind auto|2.5d|tsdf]
     watergan mosaic --workspace WS [--images-dir DIR] [--texel-m M]
 
 sfm, dense, texture and mosaic are workspace stages (:func:`pipeline.cli_stage.add_stage_command`:
 skipped when done with the same options and upstream results, unless --force; ``--survey DIR``
-links a survey first); consistency and depth-compare are measurements written to the eval stage's
-folder.
+links a survey first); consistency and depth-compare measure any folders on a workspace's tracks
+and dense depth and write into ``--out`` (the workspace's own consistency and depth comparison are
+the eval stage's, in its folder).
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from .cli_stage import add_stage_command
 from .cliargs import add_config, config_from_args
@@ -42,12 +44,12 @@ def print_dense(ws, r) -> None:
 def print_water(ws, r) -> None:
     print(r.summary)
     print(f"{'board' if r.board else 'no board (gain held)'}; range from the fused mesh for "
-          f"{100 * r.mesh_fraction:.1f} % of the pixels, none for {100 * r.unresolved_fraction:.1f} % (black, masked); "
+          f"{100 * r.mesh_fraction:.1f} % of the pixels, none for {100 * r.range_missing:.1f} %; "
           f"estimate {r.estimate_seconds:.1f} s, all {r.seconds:.1f} s")
     if r.at_bounds:
         print("at a bound (the stack does not fit there; see the residuals and the diagnosis): "
               + ", ".join(r.at_bounds))
-    print(f"water:  {ws.path(r.water_json)}\nframes: {ws.path(r.images)}")
+    print(f"water:  {ws.path(r.water_json)}\nrange:  {ws.path(r.range_dir)}")
 
 
 def cmd_consistency(args: argparse.Namespace) -> int:
@@ -56,7 +58,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     from pipeline.workspace import Workspace
 
     ws = Workspace(args.workspace)
-    r = run_colour_eval(ws, config_from_args(ColourEvalConfig, args))
+    r = run_colour_eval(ws, config_from_args(ColourEvalConfig, args), Path(args.out))
     c = r.consistency
     print(f"consistency on {c.n_points} points ({c.n_observations} observations, {c.patch_px}x{c.patch_px} "
           f"patches, >= {c.min_views} views, {'linear' if c.linear else 'encoded'} RGB): "
@@ -67,23 +69,17 @@ def cmd_consistency(args: argparse.Namespace) -> int:
                  if board else "")
         print(f"  {name:>12}: {score.mean_variance:.3e}  (R {score.variance[0]:.2e} G {score.variance[1]:.2e} "
               f"B {score.variance[2]:.2e}){extra}")
-    print(f"table: {ws.path(r.table)}")
+    print(f"table: {r.table}")
     return 0
 
 
 def cmd_depth_compare(args: argparse.Namespace) -> int:
-    from eval.depth import DepthCompareConfig, compare_depth_folders
+    from eval.depth import DepthCompareConfig
     from pipeline.evaluate import run_depth_compare
     from pipeline.workspace import Workspace
-    from watergan.errors import UserInputError
 
     cfg = config_from_args(DepthCompareConfig, args)
-    if args.workspace:
-        r = run_depth_compare(Workspace(args.workspace), cfg)
-    elif args.out and cfg.ref_dir:
-        r = compare_depth_folders(cfg.pred_dir, cfg.ref_dir, args.out, cfg)
-    else:
-        raise UserInputError("give --workspace WS, or --ref-dir DIR and --out DIR")
+    r = run_depth_compare(Workspace(args.workspace) if args.workspace else None, cfg, Path(args.out))
     o = r.overall
     print(f"depth ({r.alignment}): {len(r.per_image)} images, RMSE {o.rmse_m:.4f} m "
           f"({100 * o.rmse_over_range:.2f} % of range), AbsRel {o.abs_rel:.4f}, delta<1.25 {o.delta_125:.3f}, "
@@ -114,13 +110,14 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     add_stage_command(sub, parents, "water", print_water)
 
     p = sub.add_parser("consistency", parents=parents, help="colour consistency across views (+ board accuracy)")
-    p.add_argument("--workspace", required=True, help="workspace with a finished sfm stage")
+    p.add_argument("--workspace", required=True, help="workspace with a finished sfm stage (its tracks)")
+    p.add_argument("--out", required=True, help="output folder (colour.json)")
     add_config(p, ColourEvalConfig)
     p.set_defaults(func=cmd_consistency)
 
     p = sub.add_parser("depth-compare", parents=parents, help="monocular depth vs stereo/MVS depth")
-    p.add_argument("--workspace", help="workspace (results in its eval stage's folder, depth/)")
-    p.add_argument("--out", help="output folder when no workspace is given")
+    p.add_argument("--workspace", help="workspace whose dense depth maps are the reference (without --ref-dir)")
+    p.add_argument("--out", required=True, help="output folder (metrics.json, errors/)")
     add_config(p, DepthCompareConfig)
     p.set_defaults(func=cmd_depth_compare)
 

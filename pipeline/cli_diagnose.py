@@ -3,7 +3,7 @@
 
     watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|water|sfm|truth] [--effects A,B,...] [--add NAME[,NAME]]
                       [--candidates A,B,...] [--measure-n-points N] [--fit-iterations N] [--no-plots] [--force]
-    watergan ledger WORKSPACE
+    watergan ledger WORKSPACE_OR_SURVEY
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``; ``--plugin FILE.py`` (from the
 parents) registers a user's effects first, which then take part as candidates or via ``--add``.
@@ -19,11 +19,8 @@ from .cliargs import add_config, config_from_args
 def cmd_diagnose(args: argparse.Namespace) -> int:
     from eval.diagnose import DiagnoseConfig
     from pipeline.diagnose import run_diagnose
-    from watergan.formation import get
 
     config = config_from_args(DiagnoseConfig, args)
-    for name in (*config.effects, *config.add, *config.candidates):
-        get(name)  # unknown names fail before any data is read
     result = run_diagnose(args.target, config, force=args.force)
     print(f"model: {' -> '.join(result.stack)}")
     print(f"{result.n_points} points, {result.n_obs} observations (geometry: {result.geometry}); "
@@ -41,19 +38,20 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"   skipped {name}: {reason}")
     print(f"\n{result.verdict}")
     print(f"\noutputs: {result.out_dir} (measurements.npz, fit.json, residuals.json, residual_*.png, "
-          f"points_residual.ply, ranking.json, verdict.txt, ledger.png)")
+          f"points_residual.ply, ranking.json, verdict.txt, model_ledger.jsonl, ledger.png)")
     if result.best:
         print(f"next: watergan diagnose {args.target} --add {result.best}")
     return 0
 
 
 def cmd_ledger(args: argparse.Namespace) -> int:
-    from eval.diagnose import find_ledger, ledger_table, plot_ledger, read_ledger
+    from eval.ledger import ledger_table, plot_ledger, read_ledger
+    from pipeline.diagnose import ledger_path
 
-    path = find_ledger(args.workspace)
+    path = ledger_path(args.workspace)
     records = read_ledger(path)
     print(ledger_table(records))
-    plot = path.with_suffix(".png")
+    plot = path.parent / "ledger.png"  # the plot the diagnosis draws beside its ledger, redrawn
     plot_ledger(records, plot)
     print(f"\nplot: {plot}")
     return 0
@@ -73,5 +71,6 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("ledger", parents=parents, help="print the model ledger and plot the error per model version")
-    p.add_argument("workspace", help="workspace (or survey folder) that `watergan diagnose` wrote to")
+    p.add_argument("workspace", metavar="WORKSPACE_OR_SURVEY",
+                   help="workspace (or survey folder) that `watergan diagnose` wrote to")
     p.set_defaults(func=cmd_ledger)

@@ -4,6 +4,7 @@ and :class:`watergan.generate.GenerateConfig`, see ``--help``).
     watergan train-gan --rgbd-dir DIR --underwater-dir DIR --out-dir DIR [--effects A,B] [--add NAME]
                        [--budget-min N] [--iterations N] [--epochs N] [--seed N] [--resume] ...
     watergan generate --model-dir DIR --rgbd-dir DIR --out-dir DIR [--size-hw HxW] [--recolour-fraction F] ...
+    watergan gan --workspace WS [--budget-min N] [--effects A,B] [--add NAME] ...   the workspace's gan stage
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``.
 """
@@ -16,17 +17,15 @@ from pathlib import Path
 
 from watergan.errors import UserInputError
 
-from .cliargs import add_config, config_from_args, list_option
+from .cli_stage import add_stage_command
+from .cliargs import add_config, check_effects, config_from_args, list_option
 
 
 def cmd_train_gan(args: argparse.Namespace) -> int:
-    from watergan.formation import get
     from watergan.train import GanConfig, train_gan
 
     config = config_from_args(GanConfig, args)
-    effects = tuple(dict.fromkeys(config.effects + tuple(args.add)))
-    for name in effects:
-        get(name)  # unknown names fail before any data is read
+    effects = tuple(dict.fromkeys(config.effects + check_effects(args.add)))
     limits = [k for k in ("budget_min", "iterations", "epochs") if hasattr(args, k)]
     budget = None if limits and "budget_min" not in limits else config.budget_min  # iterations or epochs alone
     config = dataclasses.replace(config, effects=effects, budget_min=budget)
@@ -55,8 +54,15 @@ def cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def print_gan(ws, r) -> None:
+    train = r.train
+    print(f"WaterGAN: {train.get('steps')} iterations in {train.get('seconds', 0.0):.0f} s, stopped by "
+          f"{train.get('stopped_by')}; {r.generated_count} pairs rendered in {r.generate_seconds:.1f} s")
+    print(f"model: {ws.path(r.model)}\npairs: {ws.path(r.generated)}")
+
+
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
-    """Add ``train-gan`` and ``generate`` to the subparsers ``sub``."""
+    """Add ``train-gan``, ``generate`` and the gan stage's ``gan`` to the subparsers ``sub``."""
     from watergan.generate import GenerateConfig
     from watergan.train import GanConfig
 
@@ -69,3 +75,5 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
                        help="render full-resolution synthetic underwater images with a trained WaterGAN")
     add_config(p, GenerateConfig, exclude=("progress",))
     p.set_defaults(func=cmd_generate)
+
+    add_stage_command(sub, parents, "gan", print_gan)

@@ -2,12 +2,12 @@
 
     watergan evaluate --workspace WS [--survey-dir DIR] [--images-dir DIR] [--range-source auto|truth|dense]
                       [--methods raw,histeq,...] [--ours-dir DIR] [--jaffe-stack FILE] [--board-json FILE] [--force]
-    watergan report WORKSPACE
+    watergan report --workspace WS
 
 evaluate is the eval workspace stage (options: :class:`eval.tables.EvaluateConfig`; skipped when done
 with the same options unless --force): every baseline and the restorer on the same SfM points and
-board, the paper's tables and a plain verdict. report writes ``report.html`` (self-contained),
-``report.json`` and ``report.md`` into the workspace's report folder.
+board, the paper's tables and a plain verdict. report is the report stage: ``report.html``
+(self-contained), ``report.json`` and ``report.md`` in its folder.
 """
 
 from __future__ import annotations
@@ -27,16 +27,11 @@ def print_evaluate(ws, r) -> None:
     print(f"tables: {ws.path(r.tables_md)}")
 
 
-def cmd_report(args: argparse.Namespace) -> int:
-    from pipeline.report import write_report
-
-    print(write_report(args.workspace))
-    return 0
+def print_report(ws, r) -> None:
+    print(ws.path(r.report))
 
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``evaluate`` and ``report`` to an argparse subparsers object; each sets ``func``."""
     add_stage_command(sub, parents, "eval", print_evaluate)
-    p = sub.add_parser("report", parents=parents, help="write the workspace's HTML report (report/report.html)")
-    p.add_argument("workspace", help="workspace folder")
-    p.set_defaults(func=cmd_report)
+    add_stage_command(sub, parents, "report", print_report)

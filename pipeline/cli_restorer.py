@@ -1,9 +1,12 @@
-"""The restorer commands of the `watergan` console script (options:
-:class:`watergan.train_restorer.RestorerConfig` and :class:`pipeline.correct.CorrectConfig`).
+"""The restorer and correction commands of the `watergan` console script (options:
+:class:`watergan.train_restorer.RestorerConfig`, :class:`pipeline.correct.CorrectConfig` and the workspace
+stages' :class:`pipeline.gan.RestorerStage`, :class:`pipeline.correct.CorrectStage`).
 
     watergan train-restorer --data-dir DIR --out-dir DIR [--budget-min N] [--no-skip] [--head affine|direct]
                             [--no-altitude] [--seed N] [--resume] ...
-    watergan correct --model-dir DIR --images-dir DIR --out-dir DIR [--navigation FILE] [--force] [--batch-size N]
+    watergan correct-folder --model-dir DIR --images-dir DIR --out-dir DIR [--navigation FILE] [--force] ...
+    watergan restorer --workspace WS [--budget-min N] [--head affine|direct] ...   the workspace's restorer stage
+    watergan correct --workspace WS [--mode auto|rgb-d|monocular] ...              the workspace's correct stage
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``.
 """
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .cli_stage import add_stage_command
 from .cliargs import add_config, config_from_args
 
 
@@ -41,8 +45,26 @@ def cmd_correct(args: argparse.Namespace) -> int:
     return 0
 
 
+def print_restorer(ws, r) -> None:
+    print(f"restorer: {r.steps[0]} + {r.steps[1]} iterations in {r.seconds:.0f} s, loss {r.loss:.4f}; "
+          f"{r.train_count} training, {r.val_count} held-out frames")
+    print(f"model: {r.out_dir}")
+
+
+def print_correct(ws, r) -> None:
+    if r.physics:
+        print(f"physics: {ws.path(r.physics_images)} ({100 * r.unresolved_fraction:.1f} % of the pixels without "
+              f"range: black, masked), {r.physics_seconds:.1f} s")
+    if r.restorer:
+        print(f"restorer: {r.corrected} frames ({r.mode} mode), {len(r.failed)} failed, {r.seconds:.1f} s "
+              f"-> {ws.path(r.images)}")
+        for line in r.failed:
+            print(f"  {line}")
+    print(f"the mesh textures with: {ws.path(r.mesh_images)}")
+
+
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
-    """Add ``train-restorer`` and ``correct`` to the subparsers ``sub``."""
+    """Add ``train-restorer``, ``correct-folder`` and the stages' ``restorer`` and ``correct`` to ``sub``."""
     from pipeline.correct import CorrectConfig
     from watergan.train_restorer import RestorerConfig
 
@@ -51,6 +73,9 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     add_config(p, RestorerConfig, exclude=("progress",))
     p.set_defaults(func=cmd_train_restorer)
 
-    p = sub.add_parser("correct", parents=parents, help="correct an image sequence with a trained restorer")
+    p = sub.add_parser("correct-folder", parents=parents, help="correct a folder of images with a trained restorer")
     add_config(p, CorrectConfig)
     p.set_defaults(func=cmd_correct)
+
+    add_stage_command(sub, parents, "restorer", print_restorer)
+    add_stage_command(sub, parents, "correct", print_correct)

@@ -62,7 +62,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    from .run import RUN_DEFAULTS, RunOptions, stage_options
+    from .run import RunOptions, run_default_keys, stage_options
 
     p.add_argument("--config", metavar="FILE.toml", help="options file (keys: the options below with _ for -, "
                    "e.g. gan_budget_min = 5); the command line wins")
@@ -74,10 +74,19 @@ def _common(p: argparse.ArgumentParser) -> None:
         groups.setdefault(group, []).append(o)
     for group, opts in groups.items():
         section = p.add_argument_group(f"{group} options")
-        add_options(section, opts, prefix=group, defaults=RUN_DEFAULTS)
+        add_options(section, opts, prefix=group, defaults=run_default_keys())
+
+
+def print_survey(ws, r) -> None:
+    print(f"survey: {r.n_images} frames of {r.width}x{r.height}{', stereo' if r.stereo else ''}"
+          f"{', simulated' if r.simulated else ''}; in-air RGB-D set {r.rgbd_dir}")
 
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """Add ``run``, ``demo`` and the survey stage's ``survey`` to the subparsers ``sub``."""
+    from .cli_stage import add_stage_command
+
+    add_stage_command(sub, parents, "survey", print_survey)
     p = sub.add_parser("run", parents=parents, help="every stage on a survey folder (resumable)")
     p.add_argument("survey", help="survey folder: images/, optional right/, camera.json, optional rgbd/")
     p.add_argument("--workspace", required=True, help="run folder")

@@ -1,19 +1,18 @@
 """A workspace stage as a command: ``watergan COMMAND --workspace WS [--survey DIR] [--force] [OPTIONS]``.
 
-The options are the stage's configuration fields (:mod:`pipeline.cliargs`); the stage runs through
-:meth:`Workspace.run`, so its record is the one ``watergan run`` writes for the same options and
-upstream results (a standalone ``watergan sfm`` is skipped by a later ``watergan run``, and the
-other way round), as far as the command's defaults are run's (``texture`` textures the raw frames
-unless given ``--images-dir``; run gives it the corrected ones). ``--survey DIR`` runs the survey
-stage first (check and link the survey folder, as ``watergan run DIR`` does), for a workspace that
-has none yet.
+Every stage of the stage table with a ``command`` gets one, made here the same way: its options are
+the stage's configuration fields (:mod:`pipeline.cliargs`) but those the stage finds itself in the
+workspace (the table's ``found``); an empty path option means the upstream stage's result. The
+stage runs through :meth:`Workspace.run`, so its record is the one ``watergan run`` writes for the
+same options and upstream results (a standalone ``watergan sfm`` is skipped by a later ``watergan
+run``, and the other way round). ``--survey DIR`` runs the survey stage first (check and link the
+survey folder, as ``watergan run DIR`` does), for a workspace that has none yet.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 
@@ -23,9 +22,10 @@ def run_stage_command(args: argparse.Namespace) -> int:
     from .workspace import Workspace
 
     ws = Workspace(args.workspace)
-    if args.survey:
-        ws.run("survey", SurveyConfig(str(Path(args.survey).resolve())))  # as `watergan run` names it
-    config = config_from_args(ws.stage(args.stage).config_type, args)
+    if getattr(args, "survey", ""):
+        ws.run("survey", SurveyConfig(args.survey))
+    spec = ws.stage(args.stage)
+    config = config_from_args(spec.config_type, args, exclude=spec.found)
     result = ws.run(args.stage, config, force=args.force)
     args.printer(ws, result)
     return 0
@@ -40,10 +40,11 @@ def add_stage_command(sub, parents: list[argparse.ArgumentParser], stage: str, p
 
     spec = STAGES[stage]
     p = sub.add_parser(command or spec.command, parents=parents, help=help_text or spec.help)
-    p.add_argument("--workspace", required=True, help="workspace folder (its survey stage's images are the default "
-                                                      "input)")
-    p.add_argument("--survey", default="", metavar="DIR",
-                   help="survey folder to check and link into the workspace first (as `watergan run DIR` does)")
+    p.add_argument("--workspace", required=True, help="workspace folder (the stage reads the results of the stages "
+                                                      "before it there)")
+    if spec.reads:
+        p.add_argument("--survey", default="", metavar="DIR",
+                       help="survey folder to check and link into the workspace first (as `watergan run DIR` does)")
     p.add_argument("--force", action="store_true", help="redo the stage even when done with the same options")
-    add_config(p, spec.config_type, exclude=exclude)
+    add_config(p, spec.config_type, exclude=(*spec.found, *exclude))
     p.set_defaults(func=run_stage_command, stage=stage, printer=printer)

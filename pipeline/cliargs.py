@@ -7,8 +7,13 @@ Types: ``bool`` -> ``--name`` / ``--no-name``; ``int``, ``float``, ``str``, ``Pa
 takes ``none`` too); an ``enum.Enum`` (our choices are ``StrEnum``s) -> its values as choices;
 ``tuple[str, ...]`` -> a list, written one way everywhere: comma-separated and/or repeated
 (``--add a,b --add c``); ``tuple[int, int]`` -> ``HxW`` (``480x640``). A field holding a nested
-dataclass gives its fields with the field's name as a prefix (``--measure-n-points``). Options not
-given stay out of the parsed values, so the dataclass's own defaults apply.
+dataclass gives its fields with the field's name as a prefix (``--measure-n-points``), or without one
+when the field's metadata says ``{"flatten": True}``; their defaults are those of the field's default
+instance. Options not given stay out of the parsed values, so the dataclass's own defaults apply.
+
+Effect names are checked in one place, when an option's value is taken (:func:`given` for the
+command line, :func:`convert` for a file): a list option named in :data:`EFFECT_FIELDS` must name
+registered effects (``--plugin`` files are loaded before), else :class:`UnknownEffectError`.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 _REQUIRED = object()
+#: List options whose values are effect names, checked against the registry when given.
+EFFECT_FIELDS = ("effects", "add", "candidates", "hidden", "fixed_effects")
 
 
 def name_list(text: str) -> list[str]:
@@ -79,13 +86,31 @@ class Option:
     """The field's type."""
     default: Any
     help: str
+    name: tuple[str, ...] = ()
+    """The names its key joins: ``path`` less the flattened nested fields (empty: ``path``)."""
 
     def key(self, prefix: str = "") -> str:
-        """``prefix_path_joined``: the TOML key and argparse destination."""
-        return "_".join([prefix, *self.path] if prefix else self.path)
+        """``prefix_name_joined``: the TOML key and argparse destination."""
+        name = self.name or self.path
+        return "_".join([prefix, *name] if prefix else name)
+
+    def check(self, value: Any) -> Any:
+        """``value``, its effect names checked when the option holds effect names (:data:`EFFECT_FIELDS`)."""
+        if self.path[-1] in EFFECT_FIELDS and isinstance(value, tuple | list):
+            check_effects(value)
+        return value
 
     def flag(self, prefix: str = "") -> str:
         return "--" + self.key(prefix).replace("_", "-")
+
+
+def check_effects(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """``names`` as a tuple, each a registered effect (else :class:`UnknownEffectError` naming the close ones)."""
+    from watergan.formation import get
+
+    for name in names:
+        get(name)
+    return tuple(names)
 
 
 def _unoptional(hint: Any) -> tuple[Any, bool]:
@@ -103,9 +128,10 @@ def _supported(hint: Any) -> bool:
     return typing.get_origin(hint) is tuple and typing.get_args(hint) in ((str, ...), (int, int))
 
 
-def options(cls: type, exclude: tuple[str, ...] = ()) -> list[Option]:
+def options(cls: type, exclude: tuple[str, ...] = (), instance: Any = None) -> list[Option]:
     """The options of a configuration dataclass (``exclude``: dotted field paths left out, e.g.
-    fields a caller sets itself). Fields of unsupported types (dicts, arrays) are not options."""
+    fields a caller sets itself; ``instance``: whose values are the defaults, else the fields' own).
+    Fields of unsupported types (dicts, arrays) are not options."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     out = []
@@ -113,13 +139,28 @@ def options(cls: type, exclude: tuple[str, ...] = ()) -> list[Option]:
         if f.name in exclude:
             continue
         hint = hints[f.name]
-        default = f.default if f.default is not dataclasses.MISSING else \
+        default = getattr(instance, f.name) if instance is not None else \
+            f.default if f.default is not dataclasses.MISSING else \
             f.default_factory() if f.default_factory is not dataclasses.MISSING else _REQUIRED
         if dataclasses.is_dataclass(hint) and dataclasses.is_dataclass(default):
             inner = tuple(e.split(".", 1)[1] for e in exclude if e.startswith(f.name + "."))
-            out += [dataclasses.replace(o, path=(f.name, *o.path)) for o in options(hint, inner)]
+            flat = f.metadata.get("flatten", False)
+            out += [dataclasses.replace(o, path=(f.name, *o.path), name=(o.name or o.path) if flat else
+                                        (f.name, *(o.name or o.path))) for o in options(hint, inner, default)]
         elif _supported(hint):
             out.append(Option((f.name,), hint, default, docs.get(f.name, "")))
+    return out
+
+
+def field_paths(cls: type, names: tuple[str, ...]) -> list[tuple[str, ...]]:
+    """The paths of every field of ``cls`` named one of ``names``, nested dataclasses included."""
+    hints = typing.get_type_hints(cls)
+    out: list[tuple[str, ...]] = []
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            out += [(f.name, *p) for p in field_paths(hints[f.name], names)]
+        elif f.name in names:
+            out.append((f.name,))
     return out
 
 
@@ -192,7 +233,7 @@ def convert(o: Option, value: Any, where: str) -> Any:
         items = name_list(value) if isinstance(value, str) else value
         if not isinstance(items, list | tuple) or not all(isinstance(v, str) for v in items):
             raise bad("a list of names")
-        return tuple(items)
+        return o.check(tuple(items))
     if typing.get_origin(hint) is tuple:
         try:
             pair = size_hw(value) if isinstance(value, str) else tuple(int(v) for v in value)
@@ -216,12 +257,12 @@ def convert(o: Option, value: Any, where: str) -> Any:
 
 
 def given(args: argparse.Namespace, opts: list[Option], prefix: str = "") -> dict[tuple[str, ...], Any]:
-    """The options given on the command line, by field path (lists as tuples)."""
+    """The options given on the command line, by field path (lists as tuples; effect names checked)."""
     out = {}
     for o in opts:
         if hasattr(args, o.key(prefix)):
             value = getattr(args, o.key(prefix))
-            out[o.path] = tuple(value) if isinstance(value, list) else value
+            out[o.path] = o.check(tuple(value) if isinstance(value, list) else value)
     return out
 
 

@@ -395,52 +395,126 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
 
 @dataclass(frozen=True)
 class CorrectStage:
-    """The workspace's correct stage: every survey frame through the restorer the restorer stage trained."""
+    """The workspace's correct stage: every survey frame through the water's physics inverse (``physics/``) and
+    through the restorer the restorer stage trained (``restorer/``)."""
 
     images_dir: str = ""
-    """Frames to correct; empty: the survey's images."""
+    """Frames to correct (SfM's names); empty: the survey's images."""
     batch_size: int = 4
-    """Images per batch."""
+    """Images per batch of the restorer."""
     mode: CorrectMode = CorrectMode.auto
     """How an RGB-D restorer gets each pixel's range: auto (the water stage's range maps when it wrote them, else
     monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, as for frames without range)."""
     scheduler: str = field(default="", metadata={"hash": False})
-    """Dask scheduler address (tcp://HOST:8786) for the per-image work; empty: this machine."""
+    """Dask scheduler address (tcp://HOST:8786) for the restorer's per-image work; empty: this machine."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Progress bars."""
 
 
 @dataclass
 class CorrectStageResult:
-    corrected: int
-    failed: list[str]
-    seconds: float
+    physics: str
+    """Workspace-relative folder of the physics correction (images/, mask/); empty: the water stage has not run."""
+    physics_images: str
+    """Its corrected frames: sRGB, the input's bit depth; black where a pixel has no range."""
+    physics_mask: str
+    """Its masks: 255 where the frame was corrected, 0 where it has no range."""
+    unresolved_fraction: float
+    """Share of the pixels the physics correction left black (no range)."""
+    physics_seconds: float
+    """Wall time of the physics correction (files included)."""
+    restorer: str
+    """Workspace-relative folder of the restorer's correction (images/, depth/, summary.json); empty: the restorer
+    stage has not run."""
     images: str
-    """Workspace-relative folder of the corrected frames."""
+    """The restorer's corrected frames."""
     depth: str
-    """Workspace-relative folder of the relative depth maps."""
+    """The restorer's relative depth maps."""
+    corrected: int
+    """Frames the restorer corrected."""
+    failed: list[str]
+    """Frames it could not read."""
+    seconds: float
+    """Wall time of the restorer's correction (files and model loading included)."""
     fps: float
-    """Frames per second, file I/O and model loading included."""
-    mode: str = "monocular"
-    """"rgb-d" (each pixel's range from the water stage) or "monocular" (the image and, when the restorer takes
-    them, the altitude and a flat seafloor's range at it)."""
+    """The restorer's frames per second, file I/O and model loading included."""
+    mode: str
+    """"rgb-d" (each pixel's range from the water stage), "monocular" (the image and, when the restorer takes
+    them, the altitude and a flat seafloor's range at it), or "" (no restorer)."""
+    mesh_images: str
+    """The corrected frames the mesh stage textures with: the physics correction's when every pixel of it had a
+    range, else the restorer's."""
+
+
+def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True) -> tuple[float, float]:
+    """Every frame the sfm stage lists through the inverse of the water stage's estimate with the water stage's
+    range maps and, when the stack reads surface normals, :func:`pipeline.water.correction_normals`; writes
+    ``out/images/<stem>.png`` (sRGB, the input's bit depth, black without range) and ``out/mask/<stem>.png`` (255:
+    corrected). Returns (share of the pixels without range, seconds)."""
+    from eval.synth.imaging import single_torch_thread
+    from eval.tracks import Tracks
+    from watergan.formation.inverse import correct_physics
+    from watergan.io import write_png, write_srgb_png
+
+    from .water import correction_normals, water_frames
+
+    began = time.perf_counter()
+    water = ws.require("water", "the physics correction")
+    dense = ws.require("dense", "the physics correction")
+    tracks = Tracks.load(ws.path(ws.require("sfm", "the physics correction").tracks))
+    K = np.asarray(tracks.K, float)
+    stack = Stack.from_config(water.stack)
+    with_normals = needs_normals(stack)
+    frames = water_frames(tracks, images, ws.path(dense.depth_dir))
+    unresolved = []
+    with single_torch_thread():
+        for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
+            stem = Path(f.name).stem
+            path = ws.path(water.range_dir) / f"{stem}.png"
+            if not path.is_file():
+                raise DataError(f"the water stage wrote no range map for {f.name} ({path}): rerun it "
+                                f"(`watergan water --workspace WS --force`)")
+            r = read_depth(path)
+            normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None
+            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
+            unresolved.append(float(np.mean(~valid)))
+            rgb = np.where(valid[..., None], np.clip(np.nan_to_num(corrected), 0.0, 1.0), 0.0)
+            write_srgb_png(out / "images" / f"{stem}.png", rgb, bit_depth(images / f.name))
+            write_png(out / "mask" / f"{stem}.png", np.where(valid, 255, 0).astype(np.uint8))
+    return float(np.mean(unresolved)), time.perf_counter() - began
 
 
 def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
-    """Correct the survey's frames with the restorer stage's model into the stage's folder; a restorer in RGB-D
-    mode takes each pixel's range from the water stage's range maps (``cfg.mode``)."""
-    restorer = ws.require("restorer", "correct")
-    images = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
-    out = ws.stage_dir("correct")
-    water = ws.result("water")  # its range maps; read only by a restorer in RGB-D mode
-    ranges = ws.path(water.range_dir) if water is not None and water.range_dir else None
-    result = correct_folder(restorer.out_dir, images, out, force=True, batch_size=cfg.batch_size,
-                            progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges,
-                            mode=str(cfg.mode))
-    return CorrectStageResult(corrected=result.corrected, failed=result.failed, seconds=result.seconds,
-                              images=ws.relative(out / "images"), depth=ws.relative(out / "depth"),
-                              fps=result.corrected / max(result.seconds, 1e-9),
-                              mode=result.mode)
+    """Correct the survey's frames into the stage's folder: ``physics/`` with the water stage's estimate and range
+    maps (:func:`correct_physics_folder`) when the water stage ran, ``restorer/`` with the restorer stage's model
+    when it ran (a restorer in RGB-D mode takes the water stage's range maps, ``cfg.mode``); at least one of them.
+    Names the set the mesh textures with (``mesh_images``)."""
+    water, restorer = ws.result("water"), ws.result("restorer")
+    if water is None and restorer is None:
+        raise DataError(f"the correction needs the water stage or the restorer stage in {ws.root}: run "
+                        f"{ws.stage('water').how_to_run()} or {ws.stage('restorer').how_to_run()} first")
+    images = Path(cfg.images_dir) if cfg.images_dir else ws.folder("survey") / "images"
+    folder = ws.stage_dir("correct")
+    physics = restored = ""
+    unresolved, physics_s = 1.0, 0.0
+    if water is not None:
+        unresolved, physics_s = correct_physics_folder(ws, images, folder / "physics", cfg.progress)
+        physics = ws.relative(folder / "physics")
+    result = CorrectResult(folder / "restorer", 0, 0, mode="")
+    if restorer is not None:
+        ranges = ws.path(water.range_dir) if water is not None else None
+        result = correct_folder(restorer.out_dir, images, folder / "restorer", force=True, batch_size=cfg.batch_size,
+                                progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges,
+                                mode=str(cfg.mode))
+        restored = ws.relative(folder / "restorer")
+    mesh = f"{physics}/images" if physics and (unresolved == 0.0 or not restored) else f"{restored}/images"
+    return CorrectStageResult(
+        physics=physics, physics_images=f"{physics}/images" if physics else "",
+        physics_mask=f"{physics}/mask" if physics else "", unresolved_fraction=unresolved if physics else 0.0,
+        physics_seconds=physics_s, restorer=restored, images=f"{restored}/images" if restored else "",
+        depth=f"{restored}/depth" if restored else "", corrected=result.corrected, failed=result.failed,
+        seconds=result.seconds, fps=result.corrected / max(result.seconds, 1e-9), mode=result.mode,
+        mesh_images=mesh)
 
 
 @dataclass(frozen=True)
@@ -457,7 +531,7 @@ class CorrectConfig:
     """Survey file with nav_altitude_m per frame, for a restorer that takes altitude (default: survey.json
     beside the images folder)."""
     range_dir: Path | None = None
-    """Folder of each image's range map (<stem>.png, 16-bit millimetres; a workspace's 06_water/range), for a
+    """Folder of each image's range map (<stem>.png, 16-bit millimetres; a workspace's 03_water/range), for a
     restorer trained in RGB-D mode."""
     mode: CorrectMode = CorrectMode.auto
     """How a restorer trained in RGB-D mode gets each pixel's range: auto (rgb-d with --range-dir, else monocular),

@@ -34,16 +34,16 @@ interpolation.
 
 Method: ``method="auto"`` uses pycolmap's patch-match MVS when pycolmap was built with CUDA
 (``pycolmap.has_cuda``), else this SGBM path; 'patch_match' without CUDA is an error. Patch-match
-runs on an undistorted COLMAP workspace (``05_dense/mvs``: ``pycolmap.undistort_images`` of the
+runs on an undistorted COLMAP workspace (``02_dense/mvs``: ``pycolmap.undistort_images`` of the
 SfM model in the survey frame, then ``pycolmap.patch_match_stereo`` with geometric consistency); its
 geometric depth maps (camera z in survey units; the PINHOLE camera undistorts to itself, so the
 pixels are the original ones) are read back and written and fused like SGBM's.
 
-Outputs (``05_dense/``): ``depth/<stem>.png`` 16-bit millimetres (0 = invalid) in the survey frame's
+Outputs (``02_dense/``): ``depth/<stem>.png`` 16-bit millimetres (0 = invalid) in the survey frame's
 units, ``fused_points.ply`` and ``fused_mesh.ply`` (TSDF fusion with the tensor VoxelBlockGrid).
 
 Scale: with ``DenseConfig.scheduler`` (a Dask scheduler address) the SGBM depth of each image runs on the
-cluster's workers (:func:`pair_depth`, one task per image; the images and ``05_dense`` on a file system
+cluster's workers (:func:`pair_depth`, one task per image; the images and ``02_dense`` on a file system
 the workers share) and the depth maps come back here for the fusion; the files are the same as a local
 run's. Patch-match and the fusion run here.
 """

@@ -1,19 +1,21 @@
 """The diagnose stage: the discovery loop (:mod:`eval.diagnose`) on a workspace or a survey folder.
 
 In a workspace where the water stage ran, the diagnosis starts from the water stage's estimate and ranks
-its candidates on the water stage's own measurement table (its ``observations.npz``, with the survey's
+its candidates on the water stage's own measurement table (``03_water/observations.npz``, with the survey's
 annotations added by :func:`eval.diagnose_measure.with_survey`): one model and one set of measurements for the
 correction and the diagnosis, so ``--add EFFECT`` refits the water with the effect on the views the
-ranking judged it on. Without a water stage it measures its own points on the SfM tracks (``--geometry sfm``
-asks for it; the simulator's truth when there are no tracks either).
-It writes into the stage's folder and keeps the model ledger (``model_ledger.jsonl``)
-at the workspace's root, with the colour of the image folders ``watergan consistency`` measured. On a bare
-survey folder it measures the survey itself and writes into ``SURVEY/diagnose/`` (ledger there too).
+ranking judged it on. Without a water stage it samples and measures its own points on the SfM tracks
+(``--geometry sfm`` asks for it; the simulator's truth when there are no tracks either). It writes into
+the stage's folder, the model ledger (``model_ledger.jsonl``, one record per fit, kept across reruns)
+included, named in its result; each model record carries what the eval stage measured of the corrected
+frames (:func:`corrected_summary`). On a bare survey folder it measures the survey itself and writes into
+``SURVEY/diagnose/`` (ledger there too).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 from eval.diagnose import DiagnoseConfig, DiagnoseResult, describe_measurements, diagnose
@@ -24,9 +26,10 @@ from eval.diagnose_measure import (
     measure_survey,
     with_survey,
 )
+from eval.ledger import LEDGER_NAME
 from eval.observations import Observations
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_json, read_json
+from watergan.io import atomic_write_json
 
 from .workspace import Workspace
 
@@ -39,19 +42,29 @@ def is_workspace(target: str | Path) -> bool:
     return (survey / "camera.json").is_file() and (survey / "images").is_dir()
 
 
-#: The eval stage's methods the ledger records for each model version: the corrected frames users texture with.
-LEDGER_METHODS = {"raw": "raw", "physics": "physics (range)", "ours": "ours"}
+@dataclass(frozen=True)
+class DiagnoseStageResult(DiagnoseResult):
+    """The diagnosis (:class:`eval.diagnose.DiagnoseResult`) in a workspace, and its ledger."""
+
+    ledger: str = ""
+    """Workspace-relative path of the model ledger (``model_ledger.jsonl`` in the stage's folder)."""
+
+
+#: The eval stage's methods the ledger records for each model version: the corrected frames users texture with,
+#: and the in-air truth of a simulated survey (the floor they approach).
+LEDGER_METHODS = {"raw": "raw", "physics": "physics (range)", "ours": "ours", "inair": "inair"}
 
 
 def corrected_summary(ws: Workspace) -> dict:
-    """From the eval stage's result, for the raw frames, the physics correction and the restorer ("ours (rgb-d)"
-    or "ours (monocular)", by the correct stage's mode): the colour consistency (mean over R, G, B of the
-    normalised-colour variance across views) and the board's mean CIEDE2000. Empty without an eval result."""
+    """From the eval stage's result, for the raw frames, the physics correction, the restorer ("ours (rgb-d)" or
+    "ours (monocular)", by the correct stage's mode) and the in-air truth: the colour consistency (mean over R, G,
+    B of the normalised-colour variance across views) and the board's mean CIEDE2000. Empty without an eval
+    result."""
     result = ws.result("eval")
     if result is None:
         return {}
     correct = ws.result("correct")
-    names = {**LEDGER_METHODS, "ours": f"ours ({correct.mode if correct is not None else 'unknown'})"}
+    names = {**LEDGER_METHODS, "ours": f"ours ({correct.mode if correct is not None and correct.mode else 'unknown'})"}
     out: dict[str, dict] = {"consistency": {}, "board_ciede2000": {}}
     for method, name in names.items():
         if method in result.consistency_variance:
@@ -59,28 +72,6 @@ def corrected_summary(ws: Workspace) -> dict:
         if method in result.mean_board_ciede2000:
             out["board_ciede2000"][name] = float(result.mean_board_ciede2000[method])
     return {k: v for k, v in out.items() if v}
-
-
-def colour_summary(ws: Workspace) -> dict:
-    """Per image folder, the colour consistency (mean normalised-colour variance across views) and, when a
-    board was measured, its mean CIEDE2000: the eval stage's corrected frames (:func:`corrected_summary`) and
-    the folders ``watergan consistency`` measured (the eval stage's ``colour.json``)."""
-    out = corrected_summary(ws)
-    path = ws.folder("eval") / "colour.json"
-    if not path.is_file():
-        return out
-    try:
-        data = read_json(path)
-        scores = (data.get("consistency") or {}).get("scores") or {}
-        board = data.get("board") or {}
-        measured = {"consistency": {name: float(s["mean_variance"]) for name, s in scores.items()},
-                    "board_ciede2000": {name: float(b["mean_ciede2000"]) for name, b in board.items()}}
-    except (ValueError, KeyError, TypeError, AttributeError):
-        return out  # another layout: the ledger goes without these folders
-    for key, values in measured.items():
-        if values:
-            out.setdefault(key, {}).update(values)
-    return out
 
 
 def _sfm_tracks(ws: Workspace) -> tuple[Path | None, str]:
@@ -114,7 +105,7 @@ def water_measurements(ws: Workspace, geometry: str = "auto", config: MeasureCon
     return meas, describe_measurements(meas, ws.relative(path)) + note
 
 
-def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseResult:
+def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseStageResult:
     """Workspace stage (see the module docstring). The model starts from the site water the water stage
     estimated (its stack and values) when it ran and ``cfg.effects`` names none, and is fitted and ranked on the
     water stage's measurement table (:func:`water_measurements`) unless ``cfg.geometry`` asks for another."""
@@ -122,8 +113,21 @@ def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseResult:
     water = ws.result("water")
     measured = water_measurements(ws, cfg.geometry, cfg.measure)
     meas, described = measured if measured is not None else (None, "")
-    return diagnose(ws.stage_dir("survey"), ws.stage_dir("diagnose"), ws.root, cfg, tracks, scale, colour_summary(ws),
-                    model=water.stack if water is not None else None, measurements=meas, described=described)
+    out = ws.stage_dir("diagnose")
+    result = diagnose(ws.folder("survey"), out, out, cfg, tracks, scale, corrected_summary(ws),
+                      model=water.stack if water is not None else None, measurements=meas, described=described)
+    fields = {f.name: getattr(result, f.name) for f in dataclasses.fields(result)}
+    return DiagnoseStageResult(**fields, ledger=ws.relative(out / LEDGER_NAME))
+
+
+def ledger_path(target: str | Path) -> Path:
+    """The model ledger of a workspace (its diagnose stage's, named in its result) or of a survey folder."""
+    from eval.ledger import find_ledger
+
+    if is_workspace(target):
+        result = Workspace(target).require("diagnose", "the ledger")
+        return Workspace(target).path(result.ledger)
+    return find_ledger(target)
 
 
 def run_diagnose(target: str | Path, config: DiagnoseConfig | None = None, progress: bool | None = None,

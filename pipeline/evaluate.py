@@ -1,8 +1,10 @@
-"""The measuring stages of a workspace: the evaluation (every method on the same points and board,
-the paper's tables: ``watergan evaluate``), and the stand-alone colour-consistency and depth
-comparisons (``watergan consistency``, ``watergan depth-compare``). The measuring itself is
-:mod:`eval.tables`, :mod:`eval.colour` and :mod:`eval.depth`; this module finds the inputs through the
-earlier stages' results and writes into the eval stage's folder.
+"""The evaluation stage (every method on the same points and board, the paper's tables: ``watergan
+evaluate``), and the stand-alone colour-consistency and depth comparisons of any folders
+(``watergan consistency``, ``watergan depth-compare``: they read a workspace's tracks and dense depth
+and write where they are told, never into a stage's folder). The measuring itself is
+:mod:`eval.tables`, :mod:`eval.colour` and :mod:`eval.depth`; this module finds the inputs through
+the earlier stages' results (the corrections in the correct stage's) and writes into the eval
+stage's folder, every file named in its result (the depth comparison in ``depth/``).
 """
 
 from __future__ import annotations
@@ -62,6 +64,15 @@ class _Folders:
     share of the frames' pixels marked."""
 
 
+def check_board(cfg) -> None:
+    """The water's and the eval stage's input check: the board file the configuration names, when it names one
+    (:func:`eval.colour.load_board_json`)."""
+    from eval.colour import load_board_json
+
+    if cfg.board_json:
+        load_board_json(cfg.board_json)
+
+
 def _survey_dirs(ws: Workspace, cfg: EvaluateConfig) -> tuple[Path, Path]:
     survey = Path(cfg.survey_dir) if cfg.survey_dir else ws.stage_dir("survey")
     return survey, Path(cfg.images_dir) if cfg.images_dir else survey / "images"
@@ -73,13 +84,13 @@ def _dense_depth_dir(ws: Workspace) -> Path | None:
 
 
 def _correct_dirs(ws: Workspace, cfg: EvaluateConfig) -> tuple[Path | None, Path | None]:
-    """(the correct stage's folder, the corrected frames): ``ours_dir`` when given, else the correct stage's."""
+    """(the restorer's correction folder, its corrected frames): ``ours_dir`` when given, else the correct stage's."""
     if cfg.ours_dir:
         return Path(cfg.ours_dir).parent, Path(cfg.ours_dir)
     correct = ws.result("correct")
-    if correct is None:
+    if correct is None or not correct.restorer:
         return None, None
-    return ws.path(correct.images).parent, ws.path(correct.images)
+    return ws.path(correct.restorer), ws.path(correct.images)
 
 
 def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Path, tracks: Tracks,
@@ -94,19 +105,21 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     masks: dict[str, tuple[Path, float]] = {}
     correct_dir, ours_dir = _correct_dirs(ws, cfg)
     if ours_dir is None or not ours_dir.is_dir():
-        skipped[OURS] = f"no corrected images in {ours_dir or 'the correct stage'} (run `watergan correct`)"
+        skipped[OURS] = (f"no corrected images in {ours_dir or 'the correct stage'} (run the restorer and "
+                         f"`watergan correct --workspace WS`)")
     elif missing_files(ours_dir, names):
         skipped[OURS] = (f"{ours_dir} lacks {len(missing_files(ours_dir, names))} of the SfM images "
                          f"(e.g. {missing_files(ours_dir, names)[0]})")
     else:
         folders[OURS] = ours_dir
         per_frame[OURS] = ours_seconds(correct_dir)
-    water = ws.result("water")
-    if water is not None and not missing_files(ws.path(water.images), names):
-        folders[PHYSICS] = ws.path(water.images)
-        per_frame[PHYSICS] = (water.seconds - water.estimate_seconds) / max(len(names), 1)
-        if water.mask and not missing_files(ws.path(water.mask), [f"{Path(n).stem}.png" for n in names]):
-            masks[PHYSICS] = (ws.path(water.mask), marked_share(ws.path(water.mask), names))
+    correct = ws.result("correct")
+    if correct is not None and correct.physics and not missing_files(ws.path(correct.physics_images), names):
+        folders[PHYSICS] = ws.path(correct.physics_images)
+        per_frame[PHYSICS] = correct.physics_seconds / max(len(names), 1)
+        mask = ws.path(correct.physics_mask)
+        if not missing_files(mask, [f"{Path(n).stem}.png" for n in names]):
+            masks[PHYSICS] = (mask, marked_share(mask, names))
     methods = [m for m in [*methods, OURS, PHYSICS] if m != "oracle" and m in folders] + \
         (["oracle"] if "oracle" in folders else [])
     reference: tuple[str, ...] = ()
@@ -117,17 +130,19 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     return _Folders(folders, methods, reference, skipped, per_frame, masks), ranges
 
 
-def _depth_compare(ws: Workspace, correct_dir: Path | None) -> str:
-    """Run the monocular-vs-stereo comparison (again: the restorer may have changed) when both depths exist;
-    '' or why it failed."""
+def _depth_compare(ws: Workspace, correct_dir: Path | None) -> tuple[str, str]:
+    """Run the restorer's depth against the dense stage's (again: the restorer may have changed) when both exist,
+    into the stage's ``depth/``: (its workspace-relative folder or "", why it failed or "")."""
     dense = _dense_depth_dir(ws)
     if correct_dir is None or not (correct_dir / "depth").is_dir() or dense is None or not dense.is_dir():
-        return ""
+        return "", ""
+    out = ws.stage_dir("eval") / "depth"
     try:
-        run_depth_compare(ws, DepthCompareConfig(pred_dir=str(correct_dir / "depth")))
+        compare_depth_folders(correct_dir / "depth", dense, out,
+                              DepthCompareConfig(pred_dir=str(correct_dir / "depth")))
     except UserInputError as exc:
-        return f"depth comparison failed: {exc}"
-    return ""
+        return "", f"depth comparison failed: {exc}"
+    return ws.relative(out), ""
 
 
 def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: str, fid: dict,
@@ -153,8 +168,8 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
     tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
         {"label": "seconds per frame", "values": [f.per_frame_s.get(m) for m in methods], "better": "lower"}], "row",
         note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "
-             "`watergan correct`'s wall time per corrected frame, model loading and files included; physics is the "
-             "water stage's correction per frame (mesh ray casting and files included, the estimate excluded)."))
+             "the restorer's wall time per corrected frame, model loading and files included; physics is the "
+             "correct stage's physics inverse per frame (files included, the estimate and the range maps excluded)."))
     return tables
 
 
@@ -224,7 +239,7 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
     board, board_results, board_note = measure_board(cfg, survey, f.folders)
     fid = {m: fidelity(f.folders[m], f.folders[INAIR], names, f.masks[m][0] if m in f.masks else None)
            for m in f.methods} if f.reference else {}
-    depth_note = _depth_compare(ws, _correct_dirs(ws, cfg)[0])
+    depth_dir, depth_note = _depth_compare(ws, _correct_dirs(ws, cfg)[0])
     if depth_note:
         f.skipped["depth comparison"] = depth_note
 
@@ -250,7 +265,8 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
         mean_board_distance={m: r.mean_distance for m, r in board_results.items()},
         mean_board_ciede2000={m: r.mean_ciede2000 for m, r in board_results.items()},
         consistency_variance={m: s.variance for m, s in cons.scores.items()}, verdict=verdict,
-        example_frames=examples, seconds=time.perf_counter() - began)
+        example_frames=examples, seconds=time.perf_counter() - began,
+        consistency_points=ws.relative(out / "consistency_points.npz"), depth=depth_dir)
 
 
 #: How the correct stage's restorer corrected the frames (its result's ``mode``).
@@ -260,9 +276,8 @@ OURS_MODES = {"rgb-d": "RGB-D mode (each pixel's range from the water stage)",
               "unknown": "frames given with ours_dir (mode not recorded)"}
 
 
-def run_colour_eval(ws: Workspace, cfg: ColourEvalConfig) -> ColourEvalResult:
-    """``watergan consistency``: tracks from the sfm stage's result; writes ``colour.json`` in the eval
-    stage's folder (read by the diagnosis, :func:`eval.diagnose.colour_summary`)."""
+def run_colour_eval(ws: Workspace, cfg: ColourEvalConfig, out: Path) -> ColourEvalResult:
+    """``watergan consistency``: tracks from the workspace's sfm stage; writes ``out/colour.json``."""
     from eval.colour import board_accuracy, consistency, load_board_json, parse_folders, truth_board
 
     tracks = Tracks.load(ws.path(ws.require("sfm", "the colour consistency").tracks))
@@ -274,21 +289,15 @@ def run_colour_eval(ws: Workspace, cfg: ColourEvalConfig) -> ColourEvalResult:
     if board is not None:
         result.board = {name: board_accuracy(path, board, cfg.board_inset, linear=cfg.linear)
                         for name, path in folders.items()}
-    out = ws.stage_dir("eval") / "colour.json"
-    atomic_write_json(out, result)
-    result.table = ws.relative(out)
+    atomic_write_json(Path(out) / "colour.json", result)
+    result.table = str(Path(out) / "colour.json")
     return result
 
 
-def run_depth_compare(ws: Workspace, cfg: DepthCompareConfig) -> DepthCompareResult:
-    """``watergan depth-compare`` in a workspace: the reference defaults to the dense stage's depth maps;
-    outputs in the eval stage's folder, ``depth/``."""
-    dense = _dense_depth_dir(ws)
-    ref_dir = Path(cfg.ref_dir) if cfg.ref_dir else dense
+def run_depth_compare(ws: Workspace | None, cfg: DepthCompareConfig, out: Path) -> DepthCompareResult:
+    """``watergan depth-compare``: ``cfg.pred_dir`` against ``cfg.ref_dir`` (empty: the workspace's dense depth
+    maps), outputs in ``out``."""
+    ref_dir = Path(cfg.ref_dir) if cfg.ref_dir else _dense_depth_dir(ws) if ws is not None else None
     if ref_dir is None:
-        raise UserInputError("no reference depth: run the dense stage first or give the reference folder")
-    out_dir = ws.stage_dir("eval") / "depth"
-    result = compare_depth_folders(cfg.pred_dir, ref_dir, out_dir, cfg)
-    result.error_maps = [ws.relative(p) for p in result.error_maps]
-    result.table = ws.relative(result.table)
-    return result
+        raise UserInputError("no reference depth: give --ref-dir, or a --workspace whose dense stage ran")
+    return compare_depth_folders(cfg.pred_dir, ref_dir, out, cfg)

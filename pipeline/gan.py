@@ -1,22 +1,50 @@
-"""The learning stages: WaterGAN (training, then the paired set) and the restorer trained on it."""
+"""The learning stages: WaterGAN (training, then the paired set) and the restorer trained on it.
+
+Both find their inputs in the workspace: WaterGAN the survey's frames and in-air RGB-D set (survey
+stage) and the site water (water stage's ``water.json``); the restorer the paired set (gan stage),
+whether the survey's navigation gives each frame's altitude (survey stage) and whether the water
+stage wrote each frame's range maps (RGB-D mode). Their configurations nest the trainers' own
+(:class:`watergan.train.GanConfig`, :class:`watergan.generate.GenerateConfig`,
+:class:`watergan.train_restorer.RestorerConfig`), whose folders the stage fills in.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+
+from watergan.generate import GenerateConfig
+from watergan.train import GanConfig
+from watergan.train_restorer import RestorerConfig, RestorerResult
 
 from .workspace import Workspace
+
+#: Minutes of WaterGAN training in a workspace when neither a budget nor a count of iterations or epochs is given.
+GAN_BUDGET_MIN = 4.0
+
+
+def _train_gan() -> GanConfig:
+    return GanConfig(rgbd_dir=Path(), underwater_dir=Path(), out_dir=Path())
+
+
+def _generate() -> GenerateConfig:
+    return GenerateConfig(model_dir=Path(), rgbd_dir=Path(), out_dir=Path())
 
 
 @dataclass(frozen=True)
 class GanStage:
-    """WaterGAN's training and the rendering of the paired set: both settings enter the stage's hash."""
+    """WaterGAN's training and the rendering of the paired set: both settings enter the stage's hash. The folders
+    of both are the stage's to fill (the survey's, the gan stage's folder)."""
 
-    train: Any
-    """A :class:`watergan.train.GanConfig`."""
-    generate: Any
-    """A :class:`watergan.generate.GenerateConfig` (its model folder is the training's output)."""
+    train: GanConfig = field(default_factory=_train_gan, metadata={"flatten": True})
+    """WaterGAN's training (its options without a prefix: ``--effects``, ``--iterations``)."""
+    generate: GenerateConfig = field(default_factory=_generate)
+    """The rendering of the paired set (options ``--generate-...``)."""
+    budget_min: float | None = None
+    """Minutes of training; none: 4, or no time limit when iterations or epochs are given."""
+    add: tuple[str, ...] = ()
+    """Effects added to the generator's (placed by their rank), e.g. what the diagnosis found."""
 
 
 @dataclass
@@ -31,20 +59,71 @@ class GanStageResult:
     generate_seconds: float
 
 
+def gan_configs(ws: Workspace, cfg: GanStage) -> tuple[GanConfig, GenerateConfig]:
+    """The training's and the rendering's configurations in the workspace: the survey's frames and in-air RGB-D
+    set, the water stage's estimate as the site water (unless ``site_water_mode`` is learned), ``add`` joined to the
+    effects, the budget (:attr:`GanStage.budget_min`), the model and pairs in the stage's folder."""
+    from watergan.site_water import SiteWater
+
+    survey = ws.require("survey", "WaterGAN")
+    folder = ws.stage_dir("gan")
+    train = cfg.train
+    limits = train.iterations is not None or train.epochs is not None
+    budget = cfg.budget_min if cfg.budget_min is not None else None if limits else GAN_BUDGET_MIN
+    train = dataclasses.replace(train, rgbd_dir=Path(survey.rgbd_dir), underwater_dir=ws.folder("survey") / "images",
+                                out_dir=folder / "model", effects=tuple(dict.fromkeys(train.effects + cfg.add)),
+                                budget_min=budget)
+    if train.site_water_mode != SiteWater.learned:  # the water stage's estimate, held or under its prior
+        train = dataclasses.replace(train, site_water=ws.path(ws.require("water", "WaterGAN").water_json))
+    generate = dataclasses.replace(cfg.generate, model_dir=folder / "model", rgbd_dir=Path(survey.rgbd_dir),
+                                   out_dir=folder / "generated")
+    return train, generate
+
+
 def run_gan_stage(ws: Workspace, cfg: GanStage) -> GanStageResult:
-    """Train WaterGAN, then render the paired set (in-air, depth, underwater) for the restorer."""
+    """Train WaterGAN (:func:`gan_configs`), then render the paired set (in-air, depth, underwater) for the
+    restorer."""
     from watergan.generate import generate
     from watergan.train import train_gan
 
-    result = train_gan(cfg.train)
-    gen = generate(cfg.generate)
-    return GanStageResult(train=result.to_json(), model=ws.relative(Path(cfg.train.out_dir)),
-                          generated=ws.relative(Path(cfg.generate.out_dir)), generated_count=gen.count,
+    train, pairs = gan_configs(ws, cfg)
+    result = train_gan(train)
+    gen = generate(pairs)
+    return GanStageResult(train=result.to_json(), model=ws.relative(train.out_dir),
+                          generated=ws.relative(pairs.out_dir), generated_count=gen.count,
                           generate_seconds=gen.seconds)
 
 
-def run_restorer_stage(ws: Workspace, cfg):
-    """Train the restorer on the paired set (a :class:`watergan.train_restorer.RestorerConfig`)."""
+def _train_restorer() -> RestorerConfig:
+    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=2.5)
+
+
+@dataclass(frozen=True)
+class RestorerStage:
+    """The restorer's training on the gan stage's pairs, into the stage's folder."""
+
+    train: RestorerConfig = field(default_factory=_train_restorer, metadata={"flatten": True})
+    """The restorer's training (its options without a prefix; a budget of 2.5 minutes)."""
+    altitude: bool | None = None
+    """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
+    range_input: bool | None = None
+    """RGB-D mode (each pixel's range); auto: when the water stage wrote each frame's range maps."""
+
+
+def restorer_config(ws: Workspace, cfg: RestorerStage) -> RestorerConfig:
+    """The restorer's training configuration in the workspace: the gan stage's pairs, the stage's folder, and
+    ``altitude`` and ``range_input`` resolved (:class:`RestorerStage`)."""
+    pairs = ws.require("gan", "the restorer")
+    survey = ws.result("survey")
+    water = ws.result("water")
+    altitude = cfg.altitude if cfg.altitude is not None else survey is not None and survey.navigation
+    range_input = cfg.range_input if cfg.range_input is not None else water is not None and bool(water.range_dir)
+    return dataclasses.replace(cfg.train, data_dir=ws.path(pairs.generated), out_dir=ws.stage_dir("restorer"),
+                               altitude=altitude, range_input=range_input)
+
+
+def run_restorer_stage(ws: Workspace, cfg: RestorerStage) -> RestorerResult:
+    """Train the restorer on the paired set (:func:`restorer_config`)."""
     from watergan.train_restorer import train_restorer
 
-    return train_restorer(cfg)
+    return train_restorer(restorer_config(ws, cfg))

@@ -24,7 +24,7 @@ blending smoothly across the seams where two views are equally central. Occlusio
 
 Non-2.5D scenes (``mesh_kind="tsdf"``; 'auto' picks it when fewer than ``height_field_fraction`` of
 the points have a normal with |n_z| > 0.5, i.e. the points are not a height field, and the dense
-stage left a fused mesh): the TSDF mesh of ``05_dense/fused_mesh.ply`` (decimated to at most
+stage left a fused mesh): the TSDF mesh of ``02_dense/fused_mesh.ply`` (decimated to at most
 ``max_faces``) is unwrapped with xatlas (texels of ``texel_m``, at most ``max_texture_px`` a side).
 Each atlas texel is found by casting a ray onto the UV triangles (open3d), which gives its triangle and
 barycentric coordinates, hence its 3D point and face normal. The point is projected into every view;
@@ -72,9 +72,10 @@ class MeshConfig:
     """Meshing, texturing and mosaic options."""
 
     images_dir: str = ""
-    """Images that colour the texture (raw or corrected; SfM's names); empty: ``00_survey/images``."""
+    """Images that colour the texture (raw or corrected; SfM's names); empty: the set the correct stage's result
+    names (``mesh_images``)."""
     source: PointSource = PointSource.auto
-    """Points to mesh: 'dense' (05_dense/fused_points.ply), 'sparse' (SfM points) or 'auto' (dense when present)."""
+    """Points to mesh: 'dense' (02_dense/fused_points.ply), 'sparse' (SfM points) or 'auto' (dense when present)."""
     cell_m: float = 0.0
     """Height-field grid cell, survey units (metres when scaled); 0: automatic (about 150 cells across)."""
     max_edge_cells: float = 4.0
@@ -545,12 +546,15 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
 
 
 def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
-    """Workspace stage: tracks from the sfm stage, fused points and mesh from the dense stage when it ran;
-    outputs in the stage's folder."""
+    """Workspace stage: tracks from the sfm stage, fused points and mesh from the dense stage when it ran, the
+    frames the correct stage names for the mesh (unless ``images_dir``); outputs in the stage's folder."""
     from eval.tracks import Tracks
 
     tracks = Tracks.load(ws.path(ws.require("sfm", "mesh").tracks))
-    images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
+    if cfg.images_dir:
+        images_dir = Path(cfg.images_dir)
+    else:
+        images_dir = ws.path(ws.require("correct", "the texture without --images-dir").mesh_images)
     dense = ws.result("dense")
     points, mesh = (ws.path(dense.points_ply), ws.path(dense.mesh_ply)) if dense and dense.points_ply else (None, None)
     result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, points, mesh)

@@ -1,6 +1,6 @@
 """The run's report: one self-contained HTML page people read, and the same facts as JSON.
 
-``write_report(ws)`` writes ``WORKSPACE/report/report.html``, ``report.json`` and ``report.md`` (the
+``write_report(ws)`` writes ``WORKSPACE/10_report/report.html``, ``report.json`` and ``report.md`` (the
 text: verdict and tables). The page needs no network: every image is inlined as a base64 data URI
 (large images downscaled), there is no script; links point to local files in the workspace (the GLB
 mesh, the full-size mosaic). Sections:
@@ -128,13 +128,9 @@ def _stage_result(ws: Workspace, stage: str):
     return result
 
 
-def _eval_dir(ws: Workspace) -> Path:
-    """The eval stage's folder (``watergan consistency`` and ``depth-compare`` write there too, without a record)."""
-    return ws.folder("eval")
-
-
 def _tables(ws: Workspace) -> dict:
-    data = _load_json(_eval_dir(ws) / "tables.json")
+    """The eval stage's tables.json (the file its result names)."""
+    data = _load_json(ws.path(_stage_result(ws, "eval").tables_json))
     if data is None:
         raise NotRun("not run: no tables.json (run `watergan evaluate --workspace WS`)")
     return data
@@ -226,8 +222,9 @@ def section_board_chart(ws, out: Path) -> tuple[str, dict]:
 
 
 def section_consistency(ws, out: Path) -> tuple[str, dict]:
-    path = _eval_dir(ws) / "consistency_points.npz"
-    if not path.is_file():
+    points = _stage_result(ws, "eval").consistency_points
+    path = ws.path(points) if points else None
+    if path is None or not path.is_file():
         raise NotRun("not run: no consistency_points.npz (run `watergan evaluate --workspace WS`)")
     data = _tables(ws)
     with np.load(path) as npz:
@@ -259,7 +256,10 @@ def section_consistency(ws, out: Path) -> tuple[str, dict]:
 def section_depth(ws, out: Path) -> tuple[str, dict]:
     from eval.tables import depth_table, table_html
 
-    folder = _eval_dir(ws) / "depth"
+    r = _stage_result(ws, "eval")
+    if not r.depth:
+        raise NotRun("not measured: no restorer depth or no dense depth (the eval stage's depth comparison)")
+    folder = ws.path(r.depth)
     table = depth_table(folder)
     if table["status"] != "ok":
         raise NotRun(table["status"])
@@ -370,23 +370,20 @@ def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
             f"diagnosis.</p>" if r.at_bounds else "")
     body = (f"<p>{_esc(r.summary)}</p>{warn}<table><tr><th>parameter</th><th>estimate</th><th>95 % interval</th>"
             f"<th>units</th></tr>{rows}</table><p class='note'>{'A colour board pinned the gain. ' if r.board else ''}"
-            f"Physics-corrected frames: range from the dense stage, from the fused mesh for "
-            f"{100 * r.mesh_fraction:.1f} % of the pixels; {100 * r.unresolved_fraction:.1f} % had none (black, "
-            f"masked).</p>{figure}")
+            f"Each pixel's range: from the dense stage, from the fused mesh for {100 * r.mesh_fraction:.1f} % of the "
+            f"pixels; {100 * r.range_missing:.1f} % had none (the physics correction leaves them black).</p>{figure}")
     return body, {"summary": r.summary}
 
 
 def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
-    from eval.diagnose import LEDGER_NAME
-
-    diagnosed = ws.result("diagnose")
-    folder = Path(diagnosed.out_dir) if diagnosed is not None else ws.folder("diagnose")
-    ledger = ws.root / LEDGER_NAME
+    diagnosed = _stage_result(ws, "diagnose")
+    folder = Path(diagnosed.out_dir)
+    ledger = ws.path(diagnosed.ledger)
     if not ledger.is_file() and not (folder / "ledger.png").is_file():
         raise NotRun("not run: no model ledger (run `watergan diagnose WS`)")
     parts, info = [], {}
     if ledger.is_file():
-        from eval.diagnose import ledger_table, plot_ledger, read_ledger
+        from eval.ledger import ledger_table, plot_ledger, read_ledger
 
         records = read_ledger(ledger)
         plot = out / "ledger.png"
@@ -400,7 +397,7 @@ def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
     if verdict.is_file():
         parts.insert(0, f"<p class='verdict'><b>Diagnosis:</b> {_esc(verdict.read_text().strip())}</p>")
         info["verdict"] = verdict.read_text().strip()
-    if diagnosed is not None and diagnosed.measurements:
+    if diagnosed.measurements:
         parts.insert(1 if verdict.is_file() else 0, f"<p class='note'>Measurements: {_esc(diagnosed.measurements)}</p>")
         info["measurements"] = diagnosed.measurements
     return "".join(parts), info

@@ -4,15 +4,18 @@ resumable.
     survey -> sfm -> dense -> water -> gan (train, generate) -> restorer -> correct -> eval -> mesh -> diagnose
            -> report
 
-Each stage runs through :meth:`Workspace.run`: it is skipped when its ``result.json`` records the
-hash of the same configuration on the same upstream results, so retraining the restorer reruns the
-correction and everything after it, while an unchanged run finishes in seconds. ``force`` reruns
-named stages (and, through their new hashes, the stages that read them).
+A loop over the table: each stage's configuration is built the same way (:func:`stage_config`) and
+run through :meth:`Workspace.run`; the stage finds its inputs in the workspace itself. A stage is
+skipped when its ``result.json`` records the hash of the same configuration on the same upstream
+results, so retraining the restorer reruns the correction and everything after it, while an
+unchanged run finishes in seconds. ``force`` reruns named stages (and, through their new hashes,
+the stages that read them).
 
-Options: the common ones of :class:`RunOptions`, and every option of each stage's configuration
-that the plan does not set itself, named ``STAGE_FIELD`` (``gan_budget_min``,
-``restorer_head``, ``diagnose_measure_n_points``; on the command line ``--gan-budget-min``...),
-see :func:`stage_options`. The same keys work in a TOML file (``--config run.toml``).
+Options: the common ones of :class:`RunOptions` (each sets the field of that name in every stage's
+configuration, nested ones included, but the stage's ``local`` ones), and every other option of each
+stage's configuration, named ``STAGE_FIELD`` (``gan_budget_min``, ``restorer_head``,
+``diagnose_measure_n_points``; on the command line ``--gan-budget-min``...), see :func:`stage_options`.
+The same keys work in a TOML file (``--config run.toml``).
 """
 
 from __future__ import annotations
@@ -20,17 +23,19 @@ from __future__ import annotations
 import dataclasses
 import time
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json
 
-from .cliargs import Option, build, convert, options, with_values
-from .survey import SurveyConfig, check_survey
+from .cliargs import Option, build, convert, field_paths, options
 from .workspace import Workspace, config_hash
+
+if TYPE_CHECKING:
+    from .stages import Stage
 
 
 @dataclass(frozen=True)
@@ -46,7 +51,8 @@ class RunOptions:
     """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: ``<survey>/rgbd``, else a generic
     seafloor set rendered by the simulator into the workspace."""
     add: tuple[str, ...] = ()
-    """Effects added to WaterGAN's generator and to the diagnosed model (e.g. what `diagnose` found)."""
+    """Effects added to the water's stack, to WaterGAN's generator and to the diagnosed model (e.g. what
+    `diagnose` found)."""
     scheduler: str = ""
     """Dask scheduler address (tcp://HOST:8786) for the per-image stages; empty: this machine."""
     seed: int = 0
@@ -56,62 +62,51 @@ class RunOptions:
     progress: bool = True
     """Progress bars."""
     stages: Mapping[str, Mapping[tuple[str, ...], Any]] = field(default_factory=dict)
-    """Per stage option group, the options given (field path -> value): see :func:`stage_options`."""
+    """Per stage, the options given (field path -> value): see :func:`stage_options`."""
 
 
-# --------------------------------------------------------------------------- the stages' options
-#: The gan stage's configuration holds two: its training (option group ``gan``) and the rendering of
-#: its pairs (``generate``); (configuration class, fields the plan sets itself).
-_GAN_GROUPS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "gan": ("watergan.train:GanConfig", ("rgbd_dir", "underwater_dir", "out_dir", "site_water", "seed", "resume",
-                                         "device", "progress")),
-    "generate": ("watergan.generate:GenerateConfig", ("model_dir", "rgbd_dir", "out_dir", "seed", "device",
-                                                      "progress")),
-}
-#: RunOptions fields that every stage configuration having a field of the same name takes.
-_COMMON = ("seed", "progress", "scheduler")
+#: RunOptions fields that set the field of the same name in every stage configuration having one.
+COMMON = ("survey_dir", "rgbd_dir", "add", "scheduler", "seed", "progress")
 
 
-def _groups() -> dict[str, tuple[Any, tuple[str, ...]]]:
-    """Per option group of ``watergan run`` (a stage; the gan stage gives two): (configuration class or
-    its ``module:Class``, the fields the plan sets itself)."""
-    from .stages import STAGES
-
-    out: dict[str, tuple[Any, tuple[str, ...]]] = {}
-    for name, stage in STAGES.items():
-        if name == "gan":
-            out.update(_GAN_GROUPS)
-        elif name not in ("survey", "report"):  # the survey's options are RunOptions'; the report has none
-            out[name] = (stage.config, stage.run_sets)
-    return out
-
-
-#: Where ``watergan run`` starts from other defaults than the stage's own (by option key).
-RUN_DEFAULTS: dict[str, Any] = {"gan_budget_min": 4.0, "restorer_budget_min": 2.5,
-                                "diagnose_measure_n_points": 1500}
-
-
-def _config_class(group: str) -> type:
-    from .stages import _load
-
-    return _load(_groups()[group][0])
+def _common_paths(stage: Stage) -> dict[tuple[str, ...], str]:
+    """The stage configuration's fields that RunOptions' common fields set (path -> RunOptions field)."""
+    skip = {*stage.found, *stage.local}
+    return {p: p[-1] for p in field_paths(stage.config_type, COMMON) if ".".join(p) not in skip}
 
 
 def stage_options() -> list[tuple[str, Option]]:
-    """Every stage option of ``watergan run``: (group, option); the key is ``group_field``."""
-    return [(group, o) for group, (config, plan_sets) in _groups().items()
-            for o in options(_config_class(group), plan_sets)]
+    """Every stage option of ``watergan run``: (stage, option); the key is ``stage_field``. The fields the
+    stage finds itself, its ``local`` ones and those the common options set are not options of the run."""
+    from .stages import STAGES
+
+    out = []
+    for name, stage in STAGES.items():
+        exclude = (*stage.found, *stage.local, *(".".join(p) for p in _common_paths(stage)))
+        out += [(name, o) for o in options(stage.config_type, exclude)]
+    return out
 
 
-def run_defaults(group: str) -> dict[tuple[str, ...], Any]:
-    """The defaults :data:`RUN_DEFAULTS` gives to one option group, by field path."""
-    return {o.path: RUN_DEFAULTS[o.key(g)] for g, o in stage_options() if g == group and o.key(g) in RUN_DEFAULTS}
+def run_defaults(stage: str) -> dict[tuple[str, ...], Any]:
+    """The defaults ``watergan run`` gives to one stage's fields (the stage table's ``run_defaults``), by path."""
+    from .stages import STAGES
+
+    return {tuple(path.split(".")): value for path, value in STAGES[stage].run_defaults}
+
+
+def run_default_keys() -> dict[str, Any]:
+    """The run's own defaults by option key (for the help)."""
+    keys = {(g, o.path): o.key(g) for g, o in stage_options()}
+    from .stages import STAGES
+
+    return {keys[(name, path)]: value for name in STAGES for path, value in run_defaults(name).items()
+            if (name, path) in keys}
 
 
 def run_options(values: Mapping[str, Any], where: str = "options") -> RunOptions:
     """RunOptions from flat keys (a TOML file's, or the command line's): common fields by name, the
-    stages' options by their ``group_field`` key; every value converted and checked as the command line
-    does (:func:`pipeline.cliargs.convert`; ``where`` names the source in errors)."""
+    stages' options by their ``stage_field`` key; every value converted and checked as the command line
+    does (:func:`pipeline.cliargs.convert`, effect names included; ``where`` names the source in errors)."""
     common = {o.key(): o for o in options(RunOptions, ("stages",))}
     by_key = {o.key(g): (g, o) for g, o in stage_options()}
     stages: dict[str, dict] = {}
@@ -122,7 +117,7 @@ def run_options(values: Mapping[str, Any], where: str = "options") -> RunOptions
             fields[key] = convert(common[key], value, where)
         elif key in by_key:
             group, o = by_key[key]
-            stages.setdefault(group, {})[o.path] = convert(dataclasses.replace(o, path=(key,)), value, where)
+            stages.setdefault(group, {})[o.path] = convert(dataclasses.replace(o, name=(key,)), value, where)
         else:
             unknown.append(key)
     if unknown:
@@ -146,95 +141,25 @@ def load_options_file(path: str | Path) -> dict:
     return values
 
 
-def _configured(group: str, opts: RunOptions, **fixed: Any) -> Any:
-    """The group's configuration: the plan's ``fixed`` fields (and RunOptions' common ``seed``,
-    ``progress``, ``scheduler`` where the configuration has them), the run's defaults, the options given."""
-    cls = _config_class(group)
-    names = {f.name for f in dataclasses.fields(cls)}
-    fixed = {**{k: getattr(opts, k) for k in _COMMON if k in names}, **fixed}
-    values = {**run_defaults(group), **opts.stages.get(group, {})}
-    return build(cls, {p: v for p, v in values.items() if p[0] not in fixed}, **fixed)
-
-
-# ------------------------------------------------------------------------------------ the plan
-def stage_plan(ws: Workspace, opts: RunOptions, survey) -> dict[str, Callable[[], Any]]:
-    """Per stage after the survey (the stage table's order), a factory of its configuration; factories
-    run when the stage is reached, so they can read the results of the stages before."""
-    from watergan.site_water import SiteWater
-
-    from .gan import GanStage
+def stage_config(stage: str, opts: RunOptions) -> Any:
+    """The stage's configuration in this run: the common options where it has their fields, the run's
+    defaults (``run_defaults``), the options given; the rest its own defaults."""
     from .stages import STAGES
 
-    gan_dir = ws.stage_dir("gan")
-    rgbd = Path(survey.rgbd_dir)
-
-    def gan() -> GanStage:
-        base = _configured("gan", opts, rgbd_dir=rgbd, underwater_dir=ws.stage_dir("survey") / "images",
-                           out_dir=gan_dir / "model")
-        if base.site_water_mode != SiteWater.learned:  # the water stage's estimate, held or under its prior
-            base = dataclasses.replace(base, site_water=ws.path(ws.require("water", "WaterGAN").water_json))
-        effects = tuple(dict.fromkeys(base.effects + opts.add))
-        gan_given = opts.stages.get("gan", {})
-        if ({("iterations",), ("epochs",)} & set(gan_given)) and ("budget_min",) not in gan_given:
-            base = dataclasses.replace(base, budget_min=None)  # as train-gan: iterations or epochs alone stop it
-        return GanStage(dataclasses.replace(base, effects=effects),
-                        _configured("generate", opts, model_dir=gan_dir / "model", rgbd_dir=rgbd,
-                                    out_dir=gan_dir / "generated"))
-
-    def restorer():
-        gan_result = ws.require("gan", "the restorer")
-        cfg = _configured("restorer", opts, data_dir=ws.path(gan_result.generated), out_dir=ws.stage_dir("restorer"))
-        given = opts.stages.get("restorer", {})
-        if ("altitude",) not in given:  # the altimeter's altitude when the survey has it
-            cfg = dataclasses.replace(cfg, altitude=survey.navigation)
-        if ("range_input",) not in given:  # RGB-D when the water stage left each frame's range maps
-            water = ws.result("water")
-            cfg = dataclasses.replace(cfg, range_input=water is not None and bool(water.range_dir))
-        return cfg
-
-    def diagnose():
-        cfg = _configured("diagnose", opts, add=opts.add)
-        return with_values(cfg, {("measure", "seed"): opts.seed, ("fit", "seed"): opts.seed})
-
-    def water():
-        base = with_values(_configured("water", opts), {("measure", "seed"): opts.seed, ("fit", "seed"): opts.seed})
-        return dataclasses.replace(base, effects=tuple(dict.fromkeys(base.effects + opts.add)))
-
-    def mesh():
-        """Textured with the physics-corrected frames when every pixel of them had a range, else the restorer's."""
-        physics = ws.result("water")
-        if physics is not None and physics.unresolved_fraction == 0.0:
-            return _configured("mesh", opts, images_dir=str(ws.path(physics.images)))
-        return _configured("mesh", opts, images_dir=str(ws.path(ws.require("correct", "the mesh").images)))
-
-    special = {"gan": gan, "restorer": restorer, "water": water, "mesh": mesh, "diagnose": diagnose,
-               "report": lambda: ws.stage("report").config_type()}
-    return {name: special.get(name, lambda name=name: _configured(name, opts)) for name in STAGES if name != "survey"}
-
-
-def survey_config(opts: RunOptions) -> SurveyConfig:
-    """The survey stage's configuration, folders as absolute paths (``./S`` and ``S`` are the same survey)."""
-    return SurveyConfig(str(Path(opts.survey_dir).resolve()),
-                        str(Path(opts.rgbd_dir).resolve()) if opts.rgbd_dir else "", opts.seed)
+    spec = STAGES[stage]
+    common = {path: getattr(opts, name) for path, name in _common_paths(spec).items()}
+    return build(spec.config_type, {**run_defaults(stage), **opts.stages.get(stage, {}), **common})
 
 
 def check_inputs(opts: RunOptions) -> None:
-    """Every file the run reads from the user, checked before any stage runs: the survey folder
-    (:func:`check_survey`, also when its stage finished earlier: the files may have changed since) and
-    the board files the options name. A bad one is a :class:`UserInputError` naming it."""
-    from eval.colour import load_board_json
+    """Every file the run reads from the user, checked before any stage runs (also for a stage that
+    finished earlier: the files may have changed since): each stage's ``check`` of its configuration
+    (the survey folder, the board files the options name). A bad one is a :class:`UserInputError` naming it."""
+    from .stages import STAGES, _load
 
-    from .sfm import read_board_corners
-
-    check_survey(Path(opts.survey_dir))
-    sfm = opts.stages.get("sfm", {})
-    if sfm.get(("board_json",)):
-        read_board_corners(Path(sfm[("board_json",)]), sfm.get(("board_width_m",), 0.0),
-                           sfm.get(("board_height_m",), 0.0))
-    for group in ("water", "eval"):
-        path = opts.stages.get(group, {}).get(("board_json",))
-        if path:
-            load_board_json(path)
+    for name, stage in STAGES.items():
+        if stage.check:
+            _load(stage.check)(stage_config(name, opts))
 
 
 def run_all(opts: RunOptions) -> dict:
@@ -244,34 +169,21 @@ def run_all(opts: RunOptions) -> dict:
     unknown = sorted(set(opts.force) - set(STAGES) - {"all"})
     if unknown:
         raise UserInputError(f"--force: unknown stage(s) {', '.join(unknown)}; stages: {', '.join(STAGES)}, all")
-    from watergan.formation import get
-
-    gan_effects = opts.stages.get("gan", {}).get(("effects",), ())
-    for name in (*gan_effects, *opts.add, *opts.stages.get("diagnose", {}).get(("effects",), ())):
-        get(name)  # an unknown effect fails now, not after minutes of training
     check_inputs(opts)
     ws = Workspace(opts.workspace)
     forced = set(STAGES) if "all" in opts.force else set(opts.force)
     began = time.perf_counter()
     timings: list[dict] = []
-
-    def step(stage: str, config: Any) -> Any:
+    for k, stage in enumerate(STAGES):
+        config = stage_config(stage, opts)
         done = stage not in forced and ws.is_done(stage, config)
-        status = "finished earlier, skipped" if done else "running"
-        print(f"[{list(STAGES).index(stage) + 1}/{len(STAGES)}] {stage}: {status}", flush=True)
+        print(f"[{k + 1}/{len(STAGES)}] {stage}: {'finished earlier, skipped' if done else 'running'}", flush=True)
         started = time.perf_counter()
-        result = ws.run(stage, config, force=stage in forced)
+        ws.run(stage, config, force=stage in forced)
         seconds = time.perf_counter() - started
         timings.append({"stage": stage, "skipped": done, "seconds": round(seconds, 2)})
         if not done:
             print(f"      {stage} done in {seconds:.1f} s", flush=True)
-        return result
-
-    survey = step("survey", survey_config(opts))
-    plan = stage_plan(ws, opts, survey)
-    for stage in STAGES:
-        if stage != "survey":
-            step(stage, plan[stage]())
     report = ws.path(ws.result("report").report)
     summary = {"workspace": str(ws.root), "report": str(report), "seconds": round(time.perf_counter() - began, 2),
                "stages": timings, "options": _summary_options(opts), "options_hash": config_hash(opts)}

@@ -24,7 +24,7 @@ with the scale ``s`` from, in order of preference (``scale="auto"``; board only 
                median height.
     none:      COLMAP's arbitrary scale (s = 1 after the survey-frame rotation).
 
-Outputs (``04_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``tracks.npz``
+Outputs (``01_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``tracks.npz``
 (:class:`Tracks`: points, observations, poses, intrinsics) and ``database.db``.
 
 Pixel convention everywhere outside COLMAP: OpenCV, the centre of pixel (column i, row j) is at
@@ -276,6 +276,12 @@ def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
         raise UserInputError(f"board file {path}: every image must list the same number of quads")
     return images, float(width_m), float(height_m)
 
+
+
+def check_board(cfg: SfmConfig) -> None:
+    """The sfm stage's input check: the board file it names, when it names one (:func:`read_board_corners`)."""
+    if cfg.board_json:
+        read_board_corners(Path(cfg.board_json), cfg.board_width_m, cfg.board_height_m)
 
 def board_scale(tracks: Tracks, quads: dict[str, np.ndarray], width_m: float, height_m: float
                 ) -> tuple[float, float]:
@@ -533,7 +539,7 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
 
 
 def run_sfm(ws, cfg: SfmConfig) -> SfmResult:
-    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``04_sfm``."""
+    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``01_sfm``."""
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     result = run_sfm_folder(images_dir, ws.stage_dir("sfm"), cfg)
     result.model_dir, result.tracks = ws.relative(result.model_dir), ws.relative(result.tracks)

@@ -4,14 +4,18 @@ A stage is a plain function ``run(ws: Workspace, config) -> result`` with a froz
 dataclass (its fields are the stage's CLI options) and a result dataclass (saved as JSON in the
 stage's ``result.json``, read back typed by :meth:`Workspace.result`). ``reads`` lists the stages
 whose results it uses: their result hashes enter its own (see :mod:`pipeline.workspace`), so a
-rerun upstream reruns it.
+rerun upstream reruns it. A stage finds its inputs in those results (an empty path option means
+"the upstream stage's result"), so ``watergan run`` is a loop over this table
+(:mod:`pipeline.run`) and every stage has a workspace command (:mod:`pipeline.cli_stage`).
 
 Entries name their types and function as ``"module:attribute"`` and import them when first used:
 the heavy libraries (torch, pycolmap, open3d) load only with the stage that needs them.
 
-Adding a stage: one entry here (in run order), its config and result dataclasses, its function,
-and a command line for it (:func:`pipeline.cli_stage.add_stage_command`, one call); its options in
-``watergan run`` and in its own command come from the config.
+Adding a stage: its configuration and result dataclasses and its function (in its own module,
+``pipeline/NAME.py``), and one entry here (in run order, its folder numbered so); a printer of its
+result for its command where it has one (one ``add_stage_command`` call in a ``pipeline/cli_*.py``).
+Its command (``watergan COMMAND --workspace WS``) and its options in ``watergan run``
+(``--STAGE-FIELD``) come from the entry and the configuration.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ class Stage:
     name: str
     """Name on the command line (``watergan run --force NAME``) and in the table."""
     folder: str
-    """The stage's folder in the workspace."""
+    """The stage's folder in the workspace (numbered in run order)."""
     config: str | type
     """``module:Class`` of the configuration dataclass."""
     result: str | type
@@ -46,12 +50,20 @@ class Stage:
     """Stages whose results it reads (their hashes enter its own)."""
     help: str
     """One line: what the stage does."""
-    run_sets: tuple[str, ...] = ()
-    """Configuration fields that are not options of ``watergan run``: those it sets itself (inputs from
-    earlier results; its common ``seed``, ``progress``, ``scheduler``) and those it leaves at their defaults
-    (``device``, ``resume``, other input folders). Dotted for nested fields."""
     command: str = ""
-    """The stand-alone command that runs it in a workspace (empty: only ``watergan run``)."""
+    """The command that runs it in a workspace (``watergan COMMAND --workspace WS``); empty: none of the
+    generated kind (the stage has its own command)."""
+    found: tuple[str, ...] = ()
+    """Configuration fields (dotted for nested ones) the stage function fills from the workspace itself:
+    options of neither its command nor ``watergan run``."""
+    local: tuple[str, ...] = ()
+    """Options of its command that ``watergan run`` leaves at their defaults (input folders that replace
+    the upstream results, ``device``, ``resume``)."""
+    run_defaults: tuple[tuple[str, Any], ...] = ()
+    """(dotted field, value): where ``watergan run`` starts from another default than the configuration's."""
+    check: str | Callable | None = None
+    """``module:function`` of ``check(config)``: the user's files the stage reads, checked before ``watergan run``
+    runs any stage (a bad one is a ``UserInputError`` naming it); None: nothing to check."""
 
     def how_to_run(self) -> str:
         """What to type to run the stage in a workspace."""
@@ -71,47 +83,48 @@ class Stage:
         return _load(self.run)
 
 
-#: Every stage, in the order ``watergan run`` runs them. The geometry and the water come first: a survey that
-#: SfM cannot register stops before minutes of training, and the water is known before WaterGAN starts. (The
-#: folders keep the numbers they had before, so earlier workspaces stay valid.)
+#: Every stage, in the order ``watergan run`` runs them (the folders numbered so). The geometry and the water
+#: come first: a survey that SfM cannot register stops before minutes of training, and the water is known before
+#: WaterGAN starts.
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("survey", "00_survey", "pipeline.survey:SurveyConfig", "pipeline.survey:SurveyResult",
-          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace",
-          ("survey_dir", "rgbd_dir", "seed")),
-    Stage("sfm", "04_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
-          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale",
-          ("images_dir", "seed", "progress"),
-          "sfm"),
-    Stage("dense", "05_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
-          "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh",
-          ("images_dir", "scheduler", "progress"), "dense"),
-    Stage("water", "06_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
-          ("sfm", "dense"), "the site's water from the survey's geometry, and the physics correction with each "
-          "pixel's range", ("range_scale_sd", "measure.seed", "fit.seed", "progress"), "water"),
-    Stage("gan", "01_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult",
-          "pipeline.gan:run_gan_stage", ("survey", "water"),
-          "train WaterGAN on the site water, then render the paired set for the restorer"),
-    Stage("restorer", "02_restorer", "watergan.train_restorer:RestorerConfig",
-          "watergan.train_restorer:RestorerResult", "pipeline.gan:run_restorer_stage", ("gan",),
-          "train the restorer (depth and colour nets) on WaterGAN's pairs",
-          ("data_dir", "out_dir", "seed", "resume", "device", "progress")),
-    Stage("correct", "03_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",
-          "pipeline.correct:run_correct_stage", ("restorer", "water"),
-          "correct every survey frame with the restorer (RGB-D: with the water stage's range maps)",
-          ("images_dir", "scheduler", "progress")),
+          "pipeline.survey:run_survey", (), "check the survey folder and link it into the workspace", "survey",
+          check="pipeline.survey:check_survey_config"),
+    Stage("sfm", "01_sfm", "pipeline.sfm:SfmConfig", "pipeline.sfm:SfmResult", "pipeline.sfm:run_sfm",
+          ("survey",), "structure from motion (pycolmap) on the raw frames, metric scale", "sfm",
+          local=("images_dir",), check="pipeline.sfm:check_board"),
+    Stage("dense", "02_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
+          "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh", "dense",
+          local=("images_dir",)),
+    Stage("water", "03_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
+          ("sfm", "dense"), "the site's water from the survey's geometry, and each pixel's range", "water",
+          local=("range_scale_sd",), check="pipeline.evaluate:check_board"),
+    Stage("gan", "04_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult", "pipeline.gan:run_gan_stage",
+          ("survey", "water"), "train WaterGAN on the site water, then render the paired set for the restorer",
+          "gan", found=("train.rgbd_dir", "train.underwater_dir", "train.out_dir", "train.site_water",
+                        "train.budget_min", "generate.model_dir", "generate.rgbd_dir", "generate.out_dir"),
+          local=("train.resume", "train.device", "generate.device")),
+    Stage("restorer", "05_restorer", "pipeline.gan:RestorerStage", "watergan.train_restorer:RestorerResult",
+          "pipeline.gan:run_restorer_stage", ("survey", "water", "gan"),
+          "train the restorer (depth and colour nets) on WaterGAN's pairs", "restorer",
+          found=("train.data_dir", "train.out_dir", "train.altitude", "train.range_input"),
+          local=("train.resume", "train.device")),
+    Stage("correct", "06_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",
+          "pipeline.correct:run_correct_stage", ("sfm", "dense", "water", "restorer"),
+          "correct every survey frame: the water's physics inverse with each pixel's range, and the restorer",
+          "correct", local=("images_dir",)),
     Stage("eval", "07_eval", "eval.tables:EvaluateConfig", "eval.tables:EvaluateResult",
-          "pipeline.evaluate:run_evaluate", ("sfm", "correct", "dense", "water", "restorer"),
-          "baselines and ours on the same points and board: the paper's tables",
-          ("survey_dir", "images_dir", "ours_dir", "scheduler", "progress"), "evaluate"),
+          "pipeline.evaluate:run_evaluate", ("sfm", "dense", "restorer", "correct"),
+          "baselines and ours on the same points and board: the paper's tables", "evaluate",
+          local=("survey_dir", "images_dir", "ours_dir"), check="pipeline.evaluate:check_board"),
     Stage("mesh", "08_mesh", "pipeline.mesh:MeshConfig", "pipeline.mesh:MeshResult", "pipeline.mesh:run_mesh",
-          ("sfm", "correct", "dense", "water"), "textured mesh and photomosaic from the corrected frames",
-          ("images_dir", "progress"), "texture"),
-    Stage("diagnose", "09_diagnose", "eval.diagnose:DiagnoseConfig", "eval.diagnose:DiagnoseResult",
-          "pipeline.diagnose:run_diagnose_stage", ("sfm", "water", "eval"),
-          "the discovery loop: fit, residuals, missing effect",
-          ("add", "progress", "measure.seed", "fit.seed")),
-    Stage("report", "report", "pipeline.report:ReportConfig", "pipeline.report:ReportResult",
+          ("sfm", "dense", "correct"), "textured mesh and photomosaic from the corrected frames", "texture",
+          local=("images_dir",)),
+    Stage("diagnose", "09_diagnose", "eval.diagnose:DiagnoseConfig", "pipeline.diagnose:DiagnoseStageResult",
+          "pipeline.diagnose:run_diagnose_stage", ("sfm", "water", "correct", "eval"),
+          "the discovery loop: fit, residuals, missing effect", run_defaults=(("measure.n_points", 1500),)),
+    Stage("report", "10_report", "pipeline.report:ReportConfig", "pipeline.report:ReportResult",
           "pipeline.report:run_report",
-          ("gan", "restorer", "correct", "sfm", "dense", "water", "eval", "mesh", "diagnose"),
-          "one self-contained HTML page"),
+          ("survey", "sfm", "dense", "water", "gan", "restorer", "correct", "eval", "mesh", "diagnose"),
+          "one self-contained HTML page", "report"),
 )}

@@ -91,6 +91,17 @@ class SurveyConfig:
     seed: int = 0
     """Seed of the generic RGB-D set."""
 
+    def __post_init__(self) -> None:
+        # absolute folders: `./S` and `S` are the same survey (and the same configuration hash)
+        object.__setattr__(self, "survey_dir", str(Path(self.survey_dir).resolve()))
+        if self.rgbd_dir:
+            object.__setattr__(self, "rgbd_dir", str(Path(self.rgbd_dir).resolve()))
+
+
+def check_survey_config(cfg: SurveyConfig) -> None:
+    """The survey stage's input check (:func:`check_survey`)."""
+    check_survey(Path(cfg.survey_dir))
+
 
 @dataclass
 class SurveyResult:

@@ -1,36 +1,33 @@
-"""The water stage: the site's water from the survey's own geometry, and the physics correction.
+"""The water stage: the site's water from the survey's own geometry, and each pixel's range.
 
 It reads the raw frames (survey), their poses (sfm), their dense range (dense: camera z, turned into
-ray length) and the colour board when there is one (the simulator's, or ``board_json``), estimates the
-formation stack with :func:`eval.water.estimate_water` (which constraint pins which parameter, and
-what stays degenerate: its module docstring), and inverts it at every pixel with that pixel's range
-(:func:`watergan.formation.inverse.correct_physics`). Writes into the stage's folder:
+ray length) and the colour board when there is one (the simulator's, or ``board_json``), and estimates
+the formation stack with :func:`eval.water.estimate_water` (which constraint pins which parameter, and
+what stays degenerate: its module docstring). Writes into the stage's folder:
 
     water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings
     observations.npz        the measurement table the estimate was fitted to (:class:`eval.observations.Observations`,
                             each view's surface normal included): the diagnose stage ranks its candidates on it
     summary.txt             one line: eta and B_inf with their intervals
     residuals.png           the fit's residuals against range and image position
-    images/<name>.png       the physics-corrected frames, sRGB, the input's bit depth (8 or 16)
-    mask/<stem>.png         255 where the frame was corrected, 0 where it has no range (written black)
-    range/<stem>.png        the range each pixel was corrected with, 16-bit millimetres (0: none); the RGB-D
-                            restorer corrects with it too
+    range/<stem>.png        each pixel's range (:func:`correction_range`), 16-bit millimetres (0: none)
+
+The range maps are this stage's (the dense stage writes camera z, not these): the correct stage inverts
+the estimate with them (the physics correction) and the RGB-D restorer takes them.
 
 Range per pixel (:func:`correction_range`): the dense stage's depth map where it agrees with the dense
 stage's fused mesh rendered into the view (open3d ray casting from the SfM pose) within ``range_agreement``;
 the mesh's range where the depth map has none or disagrees (the mesh fuses every view, so a depth map's
-outliers at relief edges do not survive it: on the monocular demo they raised the corrected frames' red
-inconsistency from 4.3e-5 to 5.7e-5 against the oracle's 3.8e-5); a pixel with neither is not guessed: it
-is written black and marked 0 in the mask (its share is ``unresolved_fraction``).
+outliers at relief edges do not survive it); a pixel with neither has none (0 in the map).
 
 A light rig: when the survey's ``survey.json`` declares ``lights`` (an AUV's strobes: offset_m, tilt_deg,
 beam_deg per light), the stack models them with ``artificial_light``, the rig held as declared, its power held
 (degenerate with the gain), its light-path attenuation tied to the water's eta (:func:`eval.water.build_stack`;
-``--no-light-rig`` leaves them out). Without it the strobes' fall-off with distance is read as attenuation
-(on the auv preset eta 1.17/0.81/0.76 per m against 0.28/0.14/0.13). The light needs each observation's point
-and surface normal in the camera frame: the points come from the dense range, the normals from the dense range
-smoothed (:func:`watergan.formation.inverse.normals_from_range`), for the estimate (at each sample's source pixel)
-as for the correction (:func:`correction_normals`: the mesh's range only where the dense range has none).
+``--no-light-rig`` leaves them out); without it the strobes' fall-off with distance is read as attenuation.
+The light needs each observation's point and surface normal in the camera frame: the points come from the dense
+range, the normals from the dense range smoothed by ``normal_smooth_px``
+(:func:`watergan.formation.inverse.normals_from_range`), for the estimate (at each sample's source pixel) as for
+the correction (:func:`correction_normals`: the range map only where the dense range has none).
 """
 
 from __future__ import annotations
@@ -49,10 +46,8 @@ from watergan.errors import UserInputError
 from watergan.io import (
     atomic_write_json,
     atomic_write_text,
-    bit_depth,
     read_depth,
     write_depth_png,
-    write_png,
     z_to_range,
 )
 
@@ -67,14 +62,14 @@ class WaterResult:
     """One line: eta and B_inf with their 95 % intervals."""
     stack: list[dict]
     """The estimated formation stack ({name, params} entries)."""
-    images: str
-    """Workspace-relative folder of the physics-corrected frames."""
-    mask: str
-    """Workspace-relative folder of the masks (255: corrected, 0: no range)."""
+    range_dir: str
+    """Workspace-relative folder of each frame's range map (<stem>.png, 16-bit millimetres, 0: none)."""
     mesh_fraction: float
     """Share of the pixels whose range came from the fused mesh."""
-    unresolved_fraction: float
-    """Share of the pixels with no range at all (written black, masked)."""
+    range_missing: float
+    """Share of the pixels with no range at all."""
+    normal_smooth_px: float
+    """The smoothing of the dense range's normals the estimate took (the correction takes the same)."""
     board: bool
     """Whether a colour board took part (it pins the gain)."""
     at_bounds: list[str]
@@ -83,18 +78,16 @@ class WaterResult:
     converged: bool
     """Whether the fit converged within ``max_iterations`` (if not, its estimate is where it stopped)."""
     seconds: float
-    """Wall time of the stage (estimate and correction)."""
+    """Wall time of the stage (estimate and range maps)."""
     estimate_seconds: float
     """Wall time of the estimate alone."""
-    range_dir: str = ""
-    """Workspace-relative folder of the range maps the frames were corrected with (16-bit millimetre PNGs)."""
-    observations: str = ""
+    observations: str
     """Workspace-relative path of the measurement table the estimate was fitted to (observations.npz,
     :class:`eval.observations.Observations`; frame indices into the sfm stage's image list): the diagnose stage ranks
-    its candidates on it. Empty in workspaces written before it was saved."""
-    n_observations: int = 0
+    its candidates on it."""
+    n_observations: int
     """Views in that table (board rows not counted)."""
-    n_points: int = 0
+    n_points: int
     """Surface points in that table."""
 
 
@@ -183,14 +176,6 @@ def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
     plt.close(fig)
 
 
-def _write_corrected(out: Path, name: str, corrected: np.ndarray, valid: np.ndarray, bits: int) -> None:
-    from watergan.io import write_srgb_png
-
-    rgb = np.where(valid[..., None], np.clip(np.nan_to_num(corrected), 0.0, 1.0), 0.0)
-    write_srgb_png(out / "images" / f"{Path(name).stem}.png", rgb, bits)
-    write_png(out / "mask" / f"{Path(name).stem}.png", np.where(valid, 255, 0).astype(np.uint8))
-
-
 def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, agreement: float, scene=None):
     """(range (H,W) metres, NaN = none; the mask of pixels that took the mesh's range; the ray-casting scene):
     the frame's dense range where the fused mesh misses or agrees within ``agreement`` (relative), else the
@@ -225,30 +210,19 @@ def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, sm
     return normals
 
 
-def correct_frames(ws: Workspace, frames: list[WaterFrame], K: np.ndarray, stack, images: Path,
-                   mesh_ply: Path | None, agreement: float, progress: bool,
-                   normal_smooth_px: float = 24.0) -> tuple[float, float]:
-    """Every frame through the inverse of ``stack`` with its range (:func:`correction_range`) and, when the stack
-    reads surface normals, :func:`correction_normals`; returns (share of pixels ranged from the mesh, share with no
-    range)."""
+def write_range_maps(out: Path, frames: list[WaterFrame], K: np.ndarray, mesh_ply: Path | None, agreement: float,
+                     progress: bool) -> tuple[float, float]:
+    """Each frame's :func:`correction_range` as ``out/<stem>.png`` (16-bit millimetres); returns (share of the
+    pixels ranged from the mesh, share with no range)."""
     from tqdm import tqdm
 
-    from eval.synth.imaging import single_torch_thread
-    from watergan.formation.inverse import correct_physics, needs_normals
-
-    out = ws.stage_dir("water")
-    from_mesh, unresolved, scene = [], [], None
-    with_normals = needs_normals(stack)
-    with single_torch_thread():
-        for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
-            r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
-            from_mesh.append(float(np.mean(meshed)))
-            normals = correction_normals(f, r, K, normal_smooth_px) if with_normals else None
-            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
-            unresolved.append(float(np.mean(~valid)))
-            write_depth_png(out / "range" / f"{Path(f.name).stem}.png", r)
-            _write_corrected(out, f.name, corrected, valid, bit_depth(images / f.name))
-    return float(np.mean(from_mesh)), float(np.mean(unresolved))
+    from_mesh, missing, scene = [], [], None
+    for f in tqdm(frames, desc="range maps", unit="frame", disable=not progress):
+        r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
+        from_mesh.append(float(np.mean(meshed)))
+        missing.append(float(np.mean(~(np.isfinite(r) & (r > 0)))))
+        write_depth_png(out / f"{Path(f.name).stem}.png", r)
+    return float(np.mean(from_mesh)), float(np.mean(missing))
 
 
 #: Fitted parameters whose lower bound is a physical value rather than a limit of the model: a survey in darkness
@@ -288,7 +262,8 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     K = np.asarray(tracks.K, float)
     frames = water_frames(tracks, survey / "images", ws.path(dense.depth_dir))
     board = _board(ws, cfg, survey)
-    cfg = replace(cfg, range_scale_sd=max(cfg.range_scale_sd, float(sfm.scale_spread)))
+    cfg = replace(cfg, range_scale_sd=max(cfg.range_scale_sd, float(sfm.scale_spread)),
+                  effects=tuple(dict.fromkeys(cfg.effects + cfg.add)))
     if sfm.scale_method == "none":
         print("water: the SfM model has no metric scale: attenuation and backscatter coefficients are per SfM "
               "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
@@ -301,8 +276,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     atomic_write_text(out / "summary.txt", estimate.summary() + "\n")
     _plot_residuals(estimate, out / "residuals.png")
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
-    mesh_share, unresolved = correct_frames(ws, frames, K, estimate.stack, survey / "images", mesh_ply,
-                                            cfg.range_agreement, cfg.progress, cfg.measure.normal_smooth_px)
+    mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress)
     print(estimate.summary(), flush=True)
     if not estimate.converged:
         print(f"water: the fit had not converged after {estimate.iterations} iterations (raise "
@@ -314,11 +288,10 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
               f"is missing or has another form); see {ws.relative(out / 'residuals.png')} and run the diagnosis",
               file=sys.stderr)
     return WaterResult(water_json=ws.relative(out / "water.json"), summary=estimate.summary(),
-                       stack=estimate.stack.to_config(), images=ws.relative(out / "images"),
-                       mask=ws.relative(out / "mask"), mesh_fraction=mesh_share, unresolved_fraction=unresolved,
+                       stack=estimate.stack.to_config(), range_dir=ws.relative(out / "range"),
+                       mesh_fraction=mesh_share, range_missing=missing, normal_smooth_px=cfg.measure.normal_smooth_px,
                        board=board is not None, at_bounds=bounds, converged=estimate.converged,
-                       seconds=time.perf_counter() - began,
-                       estimate_seconds=estimate_s, range_dir=ws.relative(out / "range"),
+                       seconds=time.perf_counter() - began, estimate_seconds=estimate_s,
                        observations=ws.relative(out / "observations.npz"),
                        n_observations=int(len(estimate.observations.colour)),
                        n_points=int(estimate.observations.n_points))

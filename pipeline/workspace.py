@@ -2,10 +2,16 @@
 
 ```
 WORKSPACE/
-  <stage folder>/        one per stage of the stage table (pipeline/stages.py): 00_survey/ 01_gan/ ...
+  <stage folder>/        one per stage of the stage table (pipeline/stages.py), numbered in run order:
+                         00_survey/ 01_sfm/ 02_dense/ ... 10_report/
   <stage>/config.json    the stage's configuration (a frozen dataclass, as JSON), its upstream and hash
   <stage>/result.json    the stage's result: workspace-relative paths and summary numbers
 ```
+
+Every file a stage writes is in its folder and named in its result. A workspace holding a stage
+folder with a ``result.json`` that the table does not name (``04_sfm/``, ``06_water/``: an older
+version numbered its folders otherwise) is refused with an error saying to run into a new workspace,
+never read under the new names.
 
 A stage's hash covers its configuration and the hashes of the result records of the stages it
 reads (``reads`` in the stage table), so a standalone stage command (``watergan sfm``) and
@@ -52,6 +58,13 @@ class Workspace:
         if stages is None:
             from .stages import STAGES as stages
         self.stages = stages
+        known = {s.folder for s in stages.values()}
+        older = sorted(p.name for p in self.root.iterdir() if p.name not in known and (p / "result.json").is_file())
+        if older:
+            raise UserInputError(f"workspace {self.root} was made by an older version of watergan (its stage folders "
+                                 f"{', '.join(older)} are not this version's: "
+                                 f"{', '.join(s.folder for s in stages.values())}); rerun into a new workspace "
+                                 f"(`watergan run SURVEY --workspace NEW`)")
 
     def stage(self, name: str) -> Stage:
         if name not in self.stages:

@@ -43,12 +43,12 @@ def test_board_metric_is_near_zero_for_inair_truth(sfm):
     assert raw.mean_distance > 10 * inair.mean_distance and raw.mean_ciede2000 > 5
 
 
-def test_workspace_colour_eval_writes_json(sfm):
+def test_workspace_colour_eval_writes_json(sfm, tmp_path):
     survey, ws, _ = sfm
     cfg = ColourEvalConfig(folders=(f"raw={survey / 'images'}", f"inair={survey / 'truth' / 'inair'}"),
                            truth_dir=str(survey))
-    result = run_colour_eval(ws, cfg)
-    assert ws.path(result.table).is_file()
+    result = run_colour_eval(ws, cfg, tmp_path)
+    assert result.table == str(tmp_path / "colour.json") and (tmp_path / "colour.json").is_file()
     assert set(result.board) == {"raw", "inair"}
 
 

@@ -26,15 +26,13 @@ from eval.diagnose import (
     DiagnoseConfig,
     candidate_names,
     default_stack,
-    find_ledger,
-    ledger_table,
-    read_ledger,
     small_survey_config,
     survey_counts,
     why_implausible,
 )
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
 from eval.fit import FitConfig, fit_stack, make_split
+from eval.ledger import find_ledger, ledger_table, read_ledger
 from eval.synth import load_truth, simulate_survey
 from eval.synth.config import default_visible_stack
 from eval.synth.presets import NOT_SIMULATED
@@ -42,7 +40,6 @@ from pipeline.diagnose import measure_target, run_diagnose
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.formation import Stack, available
-from watergan.io import atomic_write_json
 
 #: Candidates: the effects registered when the tests are collected (a plugin that another test module
 #: registers later in the same process must not join the ranking), less ambient_depth: the screen skips
@@ -486,56 +483,57 @@ def test_why_implausible_names_a_bound_or_the_envelope():
     assert why_implausible("artificial_light", held) == ""  # a declared rig is not a fit
 
 
-def _colour_json(ws: Path) -> None:
-    """07_eval/colour.json as eval.colour.run_colour_eval writes it."""
-    from eval.colour import BoardResult, ColourEvalResult, ConsistencyResult, ConsistencyScore
+def _eval_record(ws: Path) -> None:
+    """The eval stage's record as it saves it: the raw frames' and the restorer's colour (the restorer without a
+    correct stage: its mode unknown)."""
+    from eval.tables import EvaluateConfig, EvaluateResult
 
-    consistency = ConsistencyResult(scores={"raw": ConsistencyScore([3e-4, 2e-4, 1e-4], 2e-4),
-                                            "corrected": ConsistencyScore([6e-5, 5e-5, 4e-5], 5e-5)},
-                                    n_points=500, n_observations=2500, patch_px=5, min_views=3, linear=True)
-    board = {"corrected": BoardResult(patches=[], mean_distance=0.02, mean_ciede2000=4.25, n_images=3, inset=0.2)}
-    atomic_write_json(Workspace(ws).stage_dir("eval") / "colour.json", ColourEvalResult(consistency, board))
+    Workspace(ws).save("eval", EvaluateConfig(), EvaluateResult(
+        tables_json="", tables_md="", baselines_dir="", methods=["raw", "ours"], skipped={}, range_source="none",
+        mean_board_ciede2000={"ours": 4.25},
+        consistency_variance={"raw": [3e-4, 2e-4, 1e-4], "ours": [6e-5, 5e-5, 4e-5]}))
 
 
 def test_add_appends_a_model_version_and_cli_prints_ledger(surveys, tmp_path):
     ws = tmp_path / "ws"
     ws.mkdir()
     (ws / "00_survey").symlink_to(surveys("vignetting_offcentre"))
-    _colour_json(ws)
+    _eval_record(ws)
     config = replace(FAST, add=("vignetting_offcentre",), candidates=("sensor_response",))
     result = run_diagnose(ws, config, progress=False)
     assert result.stack[-2:] == ["vignetting_offcentre", "gain"] and result.out_dir == str(ws / "09_diagnose")
     assert (ws / "09_diagnose" / "result.json").is_file()
-    records = read_ledger(ws / "model_ledger.jsonl")
+    assert result.ledger == "09_diagnose/model_ledger.jsonl"  # in the stage's folder, named in its result
+    records = read_ledger(ws / result.ledger)
     assert [r["kind"] for r in records] == ["model", "candidate"]
-    assert records[0]["consistency"] == {"raw": 2e-4, "corrected": 5e-5}
-    assert records[0]["board_ciede2000"] == {"corrected": 4.25} and "consistency" not in records[1]
+    assert records[0]["consistency"] == {"raw": 2e-4, "ours (unknown)": 5e-5}
+    assert records[0]["board_ciede2000"] == {"ours (unknown)": 4.25} and "consistency" not in records[1]
     table = ledger_table(records)
     assert "vignetting_offcentre" in table and "4.25" in table and "5.000e-05" in table
     out = subprocess.run([sys.executable, "-m", "pipeline.cli", "ledger", str(ws)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
-    assert "heldout_rmse" in out.stdout and "corrected" in out.stdout and (ws / "model_ledger.png").is_file()
+    assert "heldout_rmse" in out.stdout and "ours (unknown)" in out.stdout
+    assert (ws / "09_diagnose" / "ledger.png").is_file() and not (ws / "model_ledger.png").exists()
 
 
 @pytest.mark.slow
 def test_end_to_end_on_sfm_geometry(tmp_path):
-    """Simulate -> SfM (pycolmap, altitude scale) -> colour consistency -> diagnose on the tracks:
+    """Simulate -> SfM (pycolmap, altitude scale) -> evaluation of the raw frames -> diagnose on the tracks:
     the hidden effect is found from the reconstruction alone, and the ledger carries the colour."""
-    from eval.colour import ColourEvalConfig
-    from pipeline.evaluate import run_colour_eval
+    from eval.tables import EvaluateConfig
     from pipeline.sfm import SfmConfig
 
     ws = Workspace(tmp_path / "ws")
     survey = small_survey(ws.stage_dir("survey"), ["vignetting_offcentre"], width_px=320)
     sfm = ws.run("sfm", SfmConfig())
     assert sfm.n_registered == 16 and sfm.scale_method == "altitude"
-    run_colour_eval(ws, ColourEvalConfig(folders=(f"raw={survey / 'images'}", f"inair={survey / 'truth' / 'inair'}"),
-                                         truth_dir=str(survey)))
+    assert survey.is_dir()
+    ws.run("eval", EvaluateConfig(methods=("raw",), progress=False))  # raw and the in-air truth, on the board too
     result = run_diagnose(ws.root, replace(FAST, measure=MeasureConfig(n_points=3000)), progress=False)
     assert result.geometry == "sfm (scale: altitude)" and result.n_points > 200
     assert result.best == "vignetting_offcentre", result.verdict
     assert result.ranking[0]["change"] <= -0.5
-    record = read_ledger(ws.root / "model_ledger.jsonl")[0]
+    record = read_ledger(ws.path(result.ledger))[0]
     assert record["geometry"] == "sfm (scale: altitude)"
     assert record["consistency"]["inair"] < record["consistency"]["raw"] and set(record["board_ciede2000"]) == {
         "raw", "inair"}
@@ -595,7 +593,7 @@ def test_the_diagnosis_of_a_workspace_takes_the_water_stages_observations(water_
 
     ws, water = water_ws
     obs = Observations.load(ws.path(water.observations))
-    assert water.observations == "06_water/observations.npz" and len(obs.colour) == water.n_observations
+    assert water.observations == "03_water/observations.npz" and len(obs.colour) == water.n_observations
     m = measure_target(ws.root, MeasureConfig(n_points=10 ** 6))  # auto: the water stage's table, all of it
     assert m.source == "water stage (scale: stereo)" and (m.n_obs, m.n_points) == (len(obs.colour), obs.n_points)
     for name in ("colour", "range_m", "depth_m", "pixel_uv", "points_cam", "normals_cam", "point", "frame"):
@@ -618,7 +616,7 @@ def test_the_workspace_diagnosis_finds_the_hidden_effect_on_the_water_stages_obs
     ws, water = water_ws
     result = run_diagnose(ws.root, replace(FAST, measure=MeasureConfig(n_points=10 ** 6)), progress=False)
     assert result.geometry == "water stage (scale: stereo)" and result.n_obs == water.n_observations
-    assert result.measurements == (f"water stage (scale: stereo) (06_water/observations.npz): {water.n_observations} "
+    assert result.measurements == (f"water stage (scale: stereo) (03_water/observations.npz): {water.n_observations} "
                                    f"observations of {water.n_points} points; its {water_board_rows(ws)} board rows "
                                    f"not used (known albedo: the diagnosis fits one per point)")
     assert json.loads((ws.folder("diagnose") / "ranking.json").read_text())["measurements"] == result.measurements
@@ -649,4 +647,4 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     after = run_diagnose(ws.root, replace(every, add=("vignetting_offcentre",)), progress=False)
     assert "vignetting_offcentre" in after.stack and after.n_obs == before.n_obs == water.n_observations
     assert after.heldout_rmse < 0.6 * before.heldout_rmse and after.best is None, after.verdict
-    assert [r["kind"] for r in read_ledger(ws.root / "model_ledger.jsonl")].count("model") == 2
+    assert [r["kind"] for r in read_ledger(ws.path(after.ledger))].count("model") == 2

@@ -18,7 +18,7 @@ def sfm():
 @pytest.fixture(scope="module")
 def meshed(sfm):
     survey, ws, _ = sfm
-    return survey, ws, ws.run("mesh", MeshConfig(source="sparse"))
+    return survey, ws, ws.run("mesh", MeshConfig(images_dir=str(survey / "images"), source="sparse"))
 
 
 def test_textured_glb_loads_back(meshed):
@@ -73,7 +73,7 @@ def test_height_mesh_of_a_tilted_plane():
     assert z[0] == pytest.approx(0.6, abs=0.01) and np.isnan(z[1])
 
 
-def test_cli_commands_on_the_workspace(meshed, capsys):
+def test_cli_commands_on_the_workspace(meshed, capsys, tmp_path):
     import argparse
 
     from pipeline.cli_3d import add_commands
@@ -82,13 +82,32 @@ def test_cli_commands_on_the_workspace(meshed, capsys):
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command", required=True), [])
     for argv in (["sfm", "--workspace", str(ws.root)],
-                 ["mosaic", "--workspace", str(ws.root), "--source", "sparse"],
-                 ["consistency", "--workspace", str(ws.root), "--folders", f"raw={survey / 'images'}",
-                  "--folders", f"inair={survey / 'truth' / 'inair'}", "--truth-dir", str(survey)]):
+                 ["mosaic", "--workspace", str(ws.root), "--source", "sparse", "--images-dir", str(survey / "images")],
+                 ["consistency", "--workspace", str(ws.root), "--out", str(tmp_path / "colour"), "--folders",
+                  f"raw={survey / 'images'}", "--folders", f"inair={survey / 'truth' / 'inair'}", "--truth-dir",
+                  str(survey)]):
         args = parser.parse_args(argv)
         assert args.func(args) == 0
     out = capsys.readouterr().out
     assert "registered 10 of 10" in out and "mosaic:" in out and "CIEDE2000" in out
+    assert (tmp_path / "colour" / "colour.json").is_file()  # where it was told, not in a stage's folder
+    with pytest.raises(SystemExit):  # consistency writes only where it is told (--out)
+        parser.parse_args(["consistency", "--workspace", str(ws.root), "--folders", "raw=x"])
+
+
+def test_the_texture_takes_the_frames_the_correct_stage_names(sfm, tmp_path):
+    """Without --images-dir the mesh stage reads only the correct stage's result (its ``mesh_images``)."""
+    from pipeline.workspace import Workspace
+    from watergan.errors import UserInputError
+
+    survey, shared, _ = sfm
+    import shutil
+
+    ws = Workspace(tmp_path / "ws")
+    (ws.root / "00_survey").symlink_to(survey)
+    shutil.copytree(shared.folder("sfm"), ws.folder("sfm"))
+    with pytest.raises(UserInputError, match="needs the correct stage"):
+        ws.run("mesh", MeshConfig(source="sparse"))
 
 
 def test_texel_grid_and_exported_uvs_follow_the_texel_centres(tmp_path):

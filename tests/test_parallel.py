@@ -119,7 +119,7 @@ def test_baselines_and_colour_sampling_on_the_cluster_match_local(cluster):
     for label, scheduler in (("local", ""), ("remote", address)):
         ws = Workspace(Path(tempfile.mkdtemp(prefix=f"watergan-par-{label}-", dir=SCRATCH)) / "ws")
         shutil.copytree(survey, ws.root / "00_survey")
-        shutil.copytree(shared.root / "04_sfm", ws.root / "04_sfm")
+        shutil.copytree(shared.folder("sfm"), ws.folder("sfm"))
         cfg = EvaluateConfig(methods=("raw", "gray_world", "jaffe", "seathru", "oracle"), range_source="truth",
                              scheduler=scheduler)
         result = run_evaluate(ws, cfg)

@@ -44,7 +44,7 @@ def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
     survey, shared, _ = survey_and_sfm()
     ws = Workspace(Path(tempfile.mkdtemp(prefix=prefix, dir=SCRATCH)) / "ws")
     shutil.copytree(survey, ws.root / "00_survey")
-    shutil.copytree(shared.root / "04_sfm", ws.root / "04_sfm")
+    shutil.copytree(shared.folder("sfm"), ws.folder("sfm"))
     return ws.root / "00_survey", ws
 
 
@@ -53,37 +53,49 @@ def evaluated():
     """A workspace with every input the evaluation and the report use, evaluated."""
     from test_water import water_config
 
-    from pipeline.correct import CorrectStage, CorrectStageResult
+    from eval.diagnose import DiagnoseConfig
+    from pipeline.correct import CorrectStage, CorrectStageResult, correct_physics_folder
     from pipeline.dense import DenseConfig, DenseResult
+    from pipeline.diagnose import DiagnoseStageResult
+    from pipeline.gan import RestorerStage
     from pipeline.mesh import MeshConfig
     from watergan.io import read_depth, write_depth_png
-    from watergan.train_restorer import RestorerConfig, RestorerResult
+    from watergan.train_restorer import RestorerResult
 
     survey, ws = _copy_workspace("watergan-eval-")
-    shutil.copytree(survey / "images", ws.root / "03_correct" / "images")  # "ours" stands in as the raw frames
-    (ws.root / "03_correct" / "summary.json").write_text(json.dumps({"corrected": 10, "seconds": 2.5}))
-    (ws.root / "02_restorer").mkdir()
-    (ws.root / "02_restorer" / "validation.json").write_text(json.dumps(VALIDATION))
-    (ws.root / "05_dense" / "depth").mkdir(parents=True)
-    (ws.root / "03_correct" / "depth").mkdir()
+    ours = ws.root / "06_correct" / "restorer"
+    shutil.copytree(survey / "images", ours / "images")  # "ours" stands in as the raw frames
+    (ours / "summary.json").write_text(json.dumps({"corrected": 10, "seconds": 2.5}))
+    (ws.root / "05_restorer").mkdir()
+    (ws.root / "05_restorer" / "validation.json").write_text(json.dumps(VALIDATION))
+    (ws.root / "02_dense" / "depth").mkdir(parents=True)
+    (ours / "depth").mkdir()
     for path in sorted((survey / "truth" / "depth").glob("*.png")):
-        shutil.copy(path, ws.root / "05_dense" / "depth" / path.name)
-        write_depth_png(ws.root / "03_correct" / "depth" / path.name, 0.5 * read_depth(path))
+        shutil.copy(path, ws.root / "02_dense" / "depth" / path.name)
+        write_depth_png(ours / "depth" / path.name, 0.5 * read_depth(path))
     # the stand-ins' records, as their stages would save them
-    ws.save("restorer", RestorerConfig(data_dir=Path("generated"), out_dir=ws.root / "02_restorer"),
-            RestorerResult(out_dir=ws.root / "02_restorer", steps=(0, 0), seconds=0.0, loss=0.0, validation={},
-                           train_count=0, val_count=2))
-    ws.save("correct", CorrectStage(), CorrectStageResult(corrected=10, failed=[], seconds=2.5,
-                                                          images="03_correct/images", depth="03_correct/depth",
-                                                          fps=4.0))
-    ws.save("dense", DenseConfig(), DenseResult(depth_dir="05_dense/depth", pairs={}, coverage={},
+    ws.save("restorer", RestorerStage(), RestorerResult(out_dir=ws.root / "05_restorer", steps=(0, 0), seconds=0.0,
+                                                        loss=0.0, validation={}, train_count=0, val_count=2))
+    ws.save("dense", DenseConfig(), DenseResult(depth_dir="02_dense/depth", pairs={}, coverage={},
                                                 mean_coverage=1.0))
+    ws.run("water", water_config(bootstrap=4, progress=False))
+    # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
+    unresolved, physics_s = correct_physics_folder(ws, survey / "images", ws.root / "06_correct" / "physics", False)
+    ws.save("correct", CorrectStage(), CorrectStageResult(
+        physics="06_correct/physics", physics_images="06_correct/physics/images",
+        physics_mask="06_correct/physics/mask", unresolved_fraction=unresolved, physics_seconds=physics_s,
+        restorer="06_correct/restorer", images="06_correct/restorer/images", depth="06_correct/restorer/depth",
+        corrected=10, failed=[], seconds=2.5, fps=4.0, mode="rgb-d", mesh_images="06_correct/restorer/images"))
     ws.run("mesh", MeshConfig(source="sparse"))
-    (ws.root / "model_ledger.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (
+    ledger = ws.stage_dir("diagnose") / "model_ledger.jsonl"
+    ledger.write_text("".join(json.dumps(r) + "\n" for r in (
         {"time": "2026-01-01 00:00:00", "kind": "model", "heldout_rmse": 0.02, "stack": ["attenuation", "gain"]},
         {"time": "2026-01-01 00:01:00", "kind": "candidate", "heldout_rmse": 0.012,
          "stack": ["attenuation", "gain", "vignetting_offcentre"]})))
-    ws.run("water", water_config(bootstrap=4, progress=False))  # the physics correction: one more method
+    ws.save("diagnose", DiagnoseConfig(), DiagnoseStageResult(
+        out_dir=str(ledger.parent), stack=["attenuation", "gain"], heldout_rmse=0.02, n_points=0, n_obs=0,
+        verdict="", best=None, ranking=[], skipped={}, unexplained_axes=[], scores={}, geometry="water", seconds=0.0,
+        ledger="09_diagnose/model_ledger.jsonl"))
     record = ws.run("eval", EvaluateConfig(range_source="dense"))
     tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
     return survey, ws, record, tables
@@ -242,17 +254,17 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
 
     _, ws, _, _ = evaluated
     path = write_report(ws)
-    assert path == ws.root / "report" / "report.html"
+    assert path == ws.root / "10_report" / "report.html"
     page = path.read_text()
     assert "<script" not in page and not re.search(r"""(src|href)=['"]?(https?:)?//""", page)
-    report = json.loads((ws.root / "report" / "report.json").read_text())
+    report = json.loads((ws.root / "10_report" / "report.json").read_text())
     status = {s["id"]: s["status"] for s in report["sections"]}
     assert set(status.values()) == {"ok"}, report["sections"]
     assert report["verdict"] and any("ours loses to oracle" in line for line in report["verdict"])
     frames = next(s for s in report["sections"] if s["id"] == "frames")
     assert len(frames["frames"]) == 3 and frames["columns"][-1] == "inair"
     assert "href='../08_mesh/mesh.glb'" in page and "<b>" in page
-    assert "ours loses to oracle" in (ws.root / "report" / "report.md").read_text()
+    assert "ours loses to oracle" in (ws.root / "10_report" / "report.md").read_text()
     if not CHROMIUM.is_file():
         pytest.skip(NO_CHROMIUM)
     probe, console = _open_in_chromium(path, tmp_path)
@@ -265,17 +277,17 @@ def test_report_of_an_empty_workspace_says_not_run(tmp_path):
 
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command", required=True), [])
-    args = parser.parse_args(["report", str(tmp_path / "ws")])
+    args = parser.parse_args(["report", "--workspace", str(tmp_path / "ws")])
     Workspace(tmp_path / "ws")
     assert args.func(args) == 0
-    report = json.loads((tmp_path / "ws" / "report" / "report.json").read_text())
+    report = json.loads((tmp_path / "ws" / "10_report" / "report.json").read_text())
     status = {s["id"]: s["status"] for s in report["sections"]}
     assert status.pop("config") == "ok" and set(status.values()) == {"not run"}
-    page = (tmp_path / "ws" / "report" / "report.html").read_text()
+    page = (tmp_path / "ws" / "10_report" / "report.html").read_text()
     assert page.count("not run") >= 9
     if not CHROMIUM.is_file():
         pytest.skip(NO_CHROMIUM)
-    probe, console = _open_in_chromium(tmp_path / "ws" / "report" / "report.html", tmp_path)
+    probe, console = _open_in_chromium(tmp_path / "ws" / "10_report" / "report.html", tmp_path)
     assert probe["bad"] == [] and probe["errors"] == [] and console == []
 
 

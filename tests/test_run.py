@@ -14,14 +14,12 @@ import pytest
 
 from pipeline.run import (
     RunOptions,
-    check_survey,
     load_options_file,
     run_all,
     run_options,
-    stage_plan,
-    survey_config,
+    stage_config,
 )
-from pipeline.survey import SurveyConfig, SurveyResult
+from pipeline.survey import SurveyConfig, SurveyResult, check_survey
 from watergan.errors import UserInputError
 
 FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--diagnose-measure-n-points", "200",
@@ -37,7 +35,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     out = tmp_path / "ws"
     first = watergan("demo", "--preset", "small", "--out", str(out), *FAST)
     assert first.returncode == 0, first.stderr[-3000:]
-    report = out / "report" / "report.html"
+    report = out / "10_report" / "report.html"
     assert f"report: {report}" in first.stdout
     html = report.read_text()
     assert "<img" in html and "http://" not in html.replace("http://www.w3.org", "")
@@ -45,14 +43,24 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     assert [s["stage"] for s in summary["stages"]] == ["survey", "sfm", "dense", "water", "gan", "restorer", "correct",
                                                        "eval", "mesh", "diagnose", "report"]
     assert not any(s["skipped"] for s in summary["stages"])
-    assert len(list((out / "03_correct" / "images").glob("*.png"))) == 10
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == [
+        "00_survey", "01_sfm", "02_dense", "03_water", "04_gan", "05_restorer", "06_correct", "07_eval", "08_mesh",
+        "09_diagnose", "10_report"]  # numbered in run order, nothing loose but the run's summary
+    assert sorted(p.name for p in out.iterdir() if p.is_file()) == ["run_summary.json"]
+    assert len(list((out / "06_correct" / "restorer" / "images").glob("*.png"))) == 10
+    assert len(list((out / "06_correct" / "physics" / "images").glob("*.png"))) == 10
+    correct = json.loads((out / "06_correct" / "result.json").read_text())["result"]
+    assert correct["mesh_images"] in ("06_correct/physics/images", "06_correct/restorer/images")
     assert (out / "08_mesh" / "mesh.glb").stat().st_size > 0
     tables = json.loads((out / "07_eval" / "tables.json").read_text())
     assert "ours" in json.dumps(tables) and tables["ours_mode"] == "rgb-d"  # the survey has range: RGB-D restorer
-    gan = json.loads((out / "01_gan" / "result.json").read_text())["result"]["train"]
-    assert gan["site_water"]["mode"] == "held" and gan["site_water"]["water_json"].endswith("06_water/water.json")
-    assert len(list((out / "06_water" / "range").glob("*.png"))) == 10
-    ledger = [json.loads(line) for line in (out / "model_ledger.jsonl").read_text().splitlines()]
+    assert "physics" in tables["methods"]
+    gan = json.loads((out / "04_gan" / "result.json").read_text())["result"]["train"]
+    assert gan["site_water"]["mode"] == "held" and gan["site_water"]["water_json"].endswith("03_water/water.json")
+    assert len(list((out / "03_water" / "range").glob("*.png"))) == 10
+    diagnosis = json.loads((out / "09_diagnose" / "result.json").read_text())["result"]
+    assert diagnosis["ledger"] == "09_diagnose/model_ledger.jsonl"
+    ledger = [json.loads(line) for line in (out / diagnosis["ledger"]).read_text().splitlines()]
     model = [r for r in ledger if r["kind"] == "model"][-1]
     for key in ("board_ciede2000", "consistency"):  # the ledger records what the corrected frames achieve
         assert {"raw", "physics (range)", "ours (rgb-d)"} <= set(model[key]), model.get(key)
@@ -64,19 +72,26 @@ def test_demo_end_to_end_resume_and_force(tmp_path):
     assert all(s["skipped"] for s in json.loads((out / "run_summary.json").read_text())["stages"])
     assert second.stdout.count("finished earlier, skipped") == 11
 
-    restorer_mtime = (out / "02_restorer" / "result.json").stat().st_mtime_ns
-    sfm_mtime = (out / "04_sfm" / "result.json").stat().st_mtime_ns
+    restorer_mtime = (out / "05_restorer" / "result.json").stat().st_mtime_ns
+    sfm_mtime = (out / "01_sfm" / "result.json").stat().st_mtime_ns
     forced = watergan("demo", "--preset", "small", "--out", str(out), "--force", "correct", *FAST)
     assert forced.returncode == 0, forced.stderr[-3000:]
     ran = {s["stage"] for s in json.loads((out / "run_summary.json").read_text())["stages"] if not s["skipped"]}
     assert ran == {"correct", "eval", "mesh", "diagnose", "report"}  # correct and the stages that read it
-    assert (out / "02_restorer" / "result.json").stat().st_mtime_ns == restorer_mtime
-    assert (out / "04_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
+    assert (out / "05_restorer" / "result.json").stat().st_mtime_ns == restorer_mtime
+    assert (out / "01_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
 
     # a standalone stage command recognises what `watergan run` wrote: printed, not rerun
     alone = watergan("sfm", "--workspace", str(out))
     assert alone.returncode == 0 and "registered 10 of 10" in alone.stdout, alone.stderr[-3000:]
-    assert (out / "04_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
+    assert (out / "01_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
+    correct_mtime = (out / "06_correct" / "result.json").stat().st_mtime_ns
+    for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1"], ["correct"]):
+        alone = watergan(*command, "--workspace", str(out), "--no-progress")  # as run did them: skipped
+        assert alone.returncode == 0, alone.stderr[-3000:]
+    assert (out / "06_correct" / "result.json").stat().st_mtime_ns == correct_mtime
+    again = watergan("report", "--workspace", str(out), "--force")
+    assert again.returncode == 0 and again.stdout.strip() == str(report), again.stderr[-3000:]
 
 
 def _survey(root, n=4, size=(48, 64)):
@@ -148,7 +163,7 @@ def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
     before = sorted(p.name for p in survey.rglob("*"))
     with pytest.raises(UserInputError, match=message):
         run_all(RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False))
-    assert not (tmp_path / "ws" / "01_gan").exists()  # nothing trained
+    assert not (tmp_path / "ws" / "04_gan").exists()  # nothing trained
     assert sorted(p.name for p in survey.rglob("*")) == before  # the user's folder is untouched
 
 
@@ -165,11 +180,11 @@ def test_a_survey_file_spoilt_after_the_survey_stage_is_refused_on_the_next_run(
     survey = tmp_path / "survey"
     _survey(survey)
     opts = RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False)
-    Workspace(opts.workspace).run("survey", survey_config(opts))
+    Workspace(opts.workspace).run("survey", stage_config("survey", opts))
     (survey / "survey.json").write_text('{"frames": ["f0.png", "f1.png"], "nav_altitude_m": [2.0, ')
     with pytest.raises(UserInputError, match="survey.json is not valid JSON"):
         run_all(opts)
-    assert not (tmp_path / "ws" / "01_gan").exists()
+    assert not (tmp_path / "ws" / "04_gan").exists()
 
 
 @pytest.mark.parametrize("what", ["survey", "camera", "sfm_board", "eval_board", "toml"])
@@ -187,7 +202,7 @@ def test_cli_bad_input_file_is_one_line_naming_it_and_exit_2(tmp_path, what):
     out = watergan("run", str(survey), "--workspace", str(tmp_path / "ws"), "--no-progress", *options)
     assert out.returncode == 2, out.stderr[-2000:]
     assert len(out.stderr.strip().splitlines()) == 1 and str(bad) in out.stderr, out.stderr
-    assert "Traceback" not in out.stderr and not (tmp_path / "ws" / "01_gan").exists()
+    assert "Traceback" not in out.stderr and not (tmp_path / "ws" / "04_gan").exists()
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file() and "ws" not in p.parts} == before
 
 
@@ -202,11 +217,16 @@ def test_options_file_and_unknown_keys(tmp_path):
 
 
 def test_unknown_effect_and_stage_fail_first(tmp_path):
+    """An unknown effect name fails when the option is read (file or command line), before anything runs."""
     _survey(tmp_path / "s")
+    from pipeline.cli import main
     from watergan.formation import UnknownEffectError
 
-    with pytest.raises(UnknownEffectError):
-        run_all(RunOptions(survey_dir=str(tmp_path / "s"), workspace=str(tmp_path / "ws"), add=("vignetting_x",)))
+    for key in ("add", "gan_effects", "water_effects", "diagnose_candidates", "diagnose_fit_fixed_effects"):
+        with pytest.raises(UnknownEffectError, match="vignetting_x"):
+            run_options({"survey_dir": str(tmp_path / "s"), "workspace": str(tmp_path / "ws"), key: "vignetting_x"})
+    assert main(["run", str(tmp_path / "s"), "--workspace", str(tmp_path / "ws"), "--add", "vignetting_x"]) == 2
+    assert main(["diagnose", str(tmp_path / "s"), "--effects", "attenuation,vignetting_x"]) == 2
     with pytest.raises(UserInputError, match="unknown stage"):
         run_all(RunOptions(survey_dir=str(tmp_path / "s"), workspace=str(tmp_path / "ws"), force=("gann",)))
     assert not (tmp_path / "ws").exists()
@@ -253,15 +273,15 @@ def test_a_standalone_sfm_is_what_run_would_do(tmp_path):
     simulate_survey(survey, make_config("small"), force=True)
     out = watergan("sfm", "--workspace", str(ws), "--survey", str(survey))
     assert out.returncode == 0 and "registered" in out.stdout, out.stderr[-3000:]
-    sfm_record = (ws / "04_sfm" / "result.json").read_text()
+    sfm_record = (ws / "01_sfm" / "result.json").read_text()
 
     workspace = Workspace(ws)
     opts = run_options({"survey_dir": str(survey), "workspace": str(ws), "progress": False})
-    survey_result = workspace.run("survey", survey_config(opts))  # as run_all does
-    assert workspace.is_done("sfm", stage_plan(workspace, opts, survey_result)["sfm"]())
-    assert (ws / "04_sfm" / "result.json").read_text() == sfm_record
+    workspace.run("survey", stage_config("survey", opts))  # as run_all does
+    assert workspace.is_done("sfm", stage_config("sfm", opts))
+    assert (ws / "01_sfm" / "result.json").read_text() == sfm_record
     other = run_options({"survey_dir": str(survey), "workspace": str(ws), "sfm_matching": "exhaustive"})
-    assert not workspace.is_done("sfm", stage_plan(workspace, other, survey_result)["sfm"]())
+    assert not workspace.is_done("sfm", stage_config("sfm", other))
 
 
 def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
@@ -276,22 +296,30 @@ def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
                                       "--diagnose-effects", "attenuation,backscatter", "--add", "gain"])
     opts = _options(args, "S", str(tmp_path / "ws"))
     assert opts.add == ("gain",)  # the command line wins over the file
-    assert opts.stages["restorer"] == {("head",): "direct", ("widths",): "paper", ("skip",): False}
+    assert opts.stages["restorer"] == {("train", "head"): "direct", ("train", "widths"): "paper",
+                                       ("train", "skip"): False}
     assert opts.stages["gan"] == {("budget_min",): 2.0}
+    # the stages take what the common options set from their configuration, the rest from the workspace
+    from pipeline.gan import gan_configs, restorer_config
+
     ws = Workspace(tmp_path / "ws")
-    survey = SurveyResult(n_images=3, width=8, height=6, stereo=False, simulated=False, rgbd_dir=str(tmp_path),
-                          survey_dir="S", navigation=True)
-    plan = stage_plan(ws, opts, survey)
-    assert plan["diagnose"]().effects == ("attenuation", "backscatter") and plan["diagnose"]().add == ("gain",)
+    ws.save("survey", SurveyConfig("S"), SurveyResult(n_images=3, width=8, height=6, stereo=False, simulated=False,
+                                                      rgbd_dir=str(tmp_path), survey_dir="S", navigation=True))
+    diagnose = stage_config("diagnose", opts)
+    assert diagnose.effects == ("attenuation", "backscatter") and diagnose.add == ("gain",)
+    assert stage_config("water", opts).add == ("gain",) and stage_config("gan", opts).add == ("gain",)
     with pytest.raises(UserInputError, match="WaterGAN needs the water stage"):
-        plan["gan"]()  # WaterGAN starts from the site water
+        gan_configs(ws, stage_config("gan", opts))  # WaterGAN starts from the site water
     learned = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-budget-min", "2", "--add",
                                                   "gain", "--gan-site-water-mode", "learned"]), "S", "W")
-    gan = stage_plan(ws, learned, survey)["gan"]().train
+    gan, pairs = gan_configs(ws, stage_config("gan", learned))
     assert gan.budget_min == 2.0 and gan.effects[-1] == "gain" and gan.site_water is None
+    assert gan.rgbd_dir == pairs.rgbd_dir == tmp_path and gan.out_dir == pairs.model_dir == ws.folder("gan") / "model"
     by_count = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-iterations", "5",
                                                    "--gan-site-water-mode", "learned"]), "S", "W")
-    assert stage_plan(ws, by_count, survey)["gan"]().train.budget_min is None  # as train-gan: the count alone stops it
+    assert gan_configs(ws, stage_config("gan", by_count))[0].budget_min is None  # the count alone stops it
+    with pytest.raises(UserInputError, match="the restorer needs the gan stage"):
+        restorer_config(ws, stage_config("restorer", opts))
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "S", "--workspace", "W", "--restorer-head", "magic"])
     with pytest.raises(UserInputError, match="unknown option.*restorer_hed"):
@@ -300,13 +328,34 @@ def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
 
 def test_options_from_a_file_are_checked_as_the_command_line_checks_them(tmp_path):
     opts = run_options({"survey_dir": "S", "workspace": "W", "sfm_matching": "exhaustive", "gan_budget_min": 4,
-                        "restorer_depth_hw": "56x56", "dense_fuse": False, "add": "a,b"})
-    assert opts.stages["sfm"][("matching",)] == "exhaustive" and opts.add == ("a", "b")
+                        "restorer_depth_hw": "56x56", "dense_fuse": False, "add": "gain,vignetting"})
+    assert opts.stages["sfm"][("matching",)] == "exhaustive" and opts.add == ("gain", "vignetting")
     assert opts.stages["gan"][("budget_min",)] == 4.0 and isinstance(opts.stages["gan"][("budget_min",)], float)
-    assert opts.stages["restorer"][("depth_hw",)] == (56, 56)
+    assert opts.stages["restorer"][("train", "depth_hw")] == (56, 56)
     for key, value, expected in (("sfm_matching", "bogus", "one of auto"), ("dense_fuse", "no", "true or false"),
                                  ("restorer_depth_hw", "big", "HEIGHTxWIDTH"), ("seed", 1.5, "an integer")):
         bad = tmp_path / f"{key}.toml"
         bad.write_text(f"{key} = {value!r}\n".replace("'", '"'))
         with pytest.raises(UserInputError, match=f"{bad}.*{key}.*{expected}"):
             load_options_file(bad)
+
+
+def test_the_restorer_finds_its_pairs_altitude_and_range_mode_in_the_workspace(tmp_path):
+    """What `watergan run` used to pass the restorer, the stage reads itself: the gan stage's pairs, the survey's
+    navigation (altitude) and the water stage's range maps (RGB-D mode); options given win."""
+    from pipeline.gan import GanStage, GanStageResult, RestorerStage, restorer_config
+    from pipeline.workspace import Workspace
+
+    ws = Workspace(tmp_path / "ws")
+    survey = SurveyResult(n_images=3, width=8, height=6, stereo=False, simulated=False, rgbd_dir=str(tmp_path),
+                          survey_dir="S", navigation=False)
+    ws.save("survey", SurveyConfig("S"), survey)
+    ws.save("gan", GanStage(), GanStageResult(train={}, model="04_gan/model", generated="04_gan/generated",
+                                              generated_count=2, generate_seconds=0.0))
+    cfg = restorer_config(ws, RestorerStage())
+    assert cfg.data_dir == ws.root / "04_gan" / "generated" and cfg.out_dir == ws.root / "05_restorer"
+    assert not cfg.altitude and not cfg.range_input  # no navigation, no water stage
+    ws.save("survey", SurveyConfig("S"), dataclasses.replace(survey, navigation=True))
+    assert restorer_config(ws, RestorerStage()).altitude
+    assert not restorer_config(ws, RestorerStage(altitude=False)).altitude
+    assert restorer_config(ws, RestorerStage(range_input=True)).range_input

@@ -219,10 +219,15 @@ def water_workspace():
     return survey, ws, ws.run("water", water_config(bootstrap=8, progress=False))
 
 
-def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspace):
+def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspace, capsys):
+    """The water stage estimates the water and writes each pixel's range; `watergan correct --workspace WS` (the
+    correct stage, here without a restorer) inverts the estimate with them into its physics/ folder."""
+    import argparse
     import json
 
     import cv2
+
+    from pipeline.cli_restorer import add_commands
 
     survey, ws, result = water_workspace
     water = json.loads(ws.path(result.water_json).read_text())
@@ -234,7 +239,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
         # 10 frames of 320x240: measured 3-12 % off for eta and 8-19 % for B_inf (the demo: <= 2 %); WaterGAN's
         # eta was 43 % off in green on the demo
         np.testing.assert_allclose(p["value"], truth[key], rtol=0.25, err_msg=key)
-    assert result.board and result.summary.startswith("water: eta_per_m") and result.unresolved_fraction < 0.2
+    assert result.board and result.summary.startswith("water: eta_per_m") and result.range_missing < 0.2
     assert result.at_bounds == []  # nothing hidden: the stack fits
     from eval.observations import Observations  # the table the estimate was fitted to, for the diagnosis
 
@@ -242,18 +247,32 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     assert len(obs.colour) == result.n_observations == water["n_observations"] and obs.n_points == water["n_points"]
     assert obs.points_world.shape == obs.normals_world.shape == (obs.n_points, 3) and obs.normals_cam is not None
     names = sorted(p.name for p in (survey / "images").iterdir())
-    assert sorted(p.name for p in ws.path(result.images).iterdir()) == names
-    frame = cv2.imread(str(ws.path(result.images) / names[0]), cv2.IMREAD_UNCHANGED)
-    mask = cv2.imread(str(ws.path(result.mask) / names[0]), cv2.IMREAD_UNCHANGED)
+    assert sorted(p.name for p in ws.path(result.range_dir).iterdir()) == names  # the range maps: the water's
+    assert (ws.path(result.water_json).parent / "residuals.png").stat().st_size > 0
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command", required=True), [])
+    args = parser.parse_args(["correct", "--workspace", str(ws.root), "--no-progress"])
+    assert args.func(args) == 0
+    correct = ws.result("correct")
+    assert f"physics: {ws.path(correct.physics_images)}" in capsys.readouterr().out
+    assert correct.physics == "06_correct/physics" and correct.restorer == "" and correct.mode == ""
+    assert correct.mesh_images == correct.physics_images  # no restorer: the physics correction
+    assert result.range_missing <= correct.unresolved_fraction < 0.2  # no range, no correction
+    assert sorted(p.name for p in ws.path(correct.physics_images).iterdir()) == names
+    frame = cv2.imread(str(ws.path(correct.physics_images) / names[0]), cv2.IMREAD_UNCHANGED)
+    mask = cv2.imread(str(ws.path(correct.physics_mask) / names[0]), cv2.IMREAD_UNCHANGED)
     assert frame.dtype == np.uint8 and frame.shape[:2] == mask.shape  # the input's bit depth
     assert set(np.unique(mask)) <= {0, 255} and (frame[mask == 0] == 0).all()  # no range: black and masked
-    assert (ws.path(result.water_json).parent / "residuals.png").stat().st_size > 0
 
 
 def test_the_evaluation_measures_the_physics_correction(water_workspace):
     from eval.tables import EvaluateConfig
 
     _, ws, _ = water_workspace
+    from pipeline.correct import CorrectStage
+
+    ws.run("correct", CorrectStage(progress=False))  # done by the test above (the same configuration) when it ran
     result = ws.run("eval", EvaluateConfig(methods=("raw", "oracle"), range_source="truth", progress=False))
     assert "physics" in result.methods
     assert result.mean_board_distance["physics"] < 0.5 * result.mean_board_distance["raw"]
@@ -277,7 +296,7 @@ def test_the_water_stage_needs_the_dense_range(tmp_path):
     from watergan.errors import UserInputError
 
     ws = Workspace(tmp_path / "ws")
-    ws.save("sfm", SfmConfig(), SfmResult(model_dir="", tracks="04_sfm/tracks.npz", n_images=3, n_registered=3,
+    ws.save("sfm", SfmConfig(), SfmResult(model_dir="", tracks="01_sfm/tracks.npz", n_images=3, n_registered=3,
                                           n_points=0, mean_track_length=0.0, mean_reprojection_error_px=0.0,
                                           matching="", scale_method="stereo", scale_factor=1.0, scale_spread=0.0,
                                           seconds=0.0))

@@ -99,3 +99,36 @@ def test_results_hold_numpy_values_as_plain_json():
 
     assert to_jsonable({"a": np.float32(1.5), "b": np.arange(3), "c": (np.int64(2),)}) == {"a": 1.5, "b": [0, 1, 2],
                                                                                            "c": [2]}
+
+
+def test_folders_are_numbered_in_run_order_and_every_stage_has_a_workspace_command():
+    from pipeline.cli import build_parser
+
+    assert [s.folder for s in STAGES.values()] == [f"{k:02d}_{name}" for k, name in enumerate(STAGES)]
+    parser = build_parser()
+    for name, stage in STAGES.items():
+        if name == "diagnose":  # its own command: a workspace or a bare survey folder (`watergan diagnose TARGET`)
+            assert parser.parse_args(["diagnose", "W"]).func is not None
+            continue
+        required = ["--survey-dir", "S"] if name == "survey" else []
+        args = parser.parse_args([stage.command, "--workspace", "W", *required])
+        assert args.stage == name, name
+
+
+def test_a_workspace_an_older_version_made_is_refused_with_what_to_do(tmp_path):
+    """Folders named otherwise by an older version (04_sfm, 06_water, 01_gan) are never read under the new names."""
+    import subprocess
+    import sys
+
+    old = tmp_path / "old"
+    for folder in ("00_survey", "01_gan", "04_sfm", "06_water"):
+        (old / folder).mkdir(parents=True)
+        (old / folder / "result.json").write_text("{}")
+    with pytest.raises(UserInputError, match=r"made by an older version of watergan .*01_gan, 04_sfm, 06_water.*"
+                                             r"rerun into a new workspace"):
+        Workspace(old)
+    out = subprocess.run([sys.executable, "-m", "pipeline.cli", "water", "--workspace", str(old)],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "older version" in out.stderr and "Traceback" not in out.stderr
+    (old / "notes").mkdir()  # a folder of the user's without a stage record is not a stage
+    assert Workspace(tmp_path / "new").root.is_dir()

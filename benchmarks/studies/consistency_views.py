@@ -11,7 +11,7 @@ tracks this prints:
   occluded); the same 5x5 patch means of the linear raw images, c / (R + G + B), variance across views
   (points with >= 3 views) averaged over points, and the per-point range spread.
 
-Run: PYTHONPATH=. .venv/bin/python benchmarks/studies/consistency_views.py --survey S --tracks W/04_sfm/tracks.npz
+Run: PYTHONPATH=. .venv/bin/python benchmarks/studies/consistency_views.py --survey S --tracks W/01_sfm/tracks.npz
 """
 
 from __future__ import annotations

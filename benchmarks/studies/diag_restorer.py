@@ -2,8 +2,8 @@
 
     .venv/bin/python benchmarks/studies/diag_restorer.py --workspace WS [--out DIR] [--blur-px 8]
 
-WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``02_restorer``,
-``03_correct``, ``04_sfm``). Prints:
+WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``05_restorer``,
+``06_correct/restorer``, ``01_sfm``). Prints:
 
 - per frame, the linear mean of each channel of the corrected frame over that of the in-air truth:
   its mean and standard deviation over frames, and its correlation with the frame's median true range
@@ -45,7 +45,7 @@ def _linear_frames(folder: Path, names: list[str]) -> np.ndarray:
 
 
 def frame_ratios(ws: Path, names: list[str]) -> None:
-    corrected = _linear_frames(ws / "03_correct" / "images", names)
+    corrected = _linear_frames(ws / "06_correct" / "restorer" / "images", names)
     truth = _linear_frames(ws / "00_survey" / "truth" / "inair", names)
     ranges = np.array([np.median(r[r > 0]) for r in (cv2.imread(str(ws / "00_survey" / "truth" / "range" / n),
                                                                 cv2.IMREAD_UNCHANGED) for n in names)])
@@ -76,7 +76,7 @@ def frame_ratios(ws: Path, names: list[str]) -> None:
 
 @torch.no_grad()
 def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dict[str, Path]:
-    model = load_restorer(ws / "02_restorer")
+    model = load_restorer(ws / "05_restorer")
     net = model.colour_net
     if net.head != "affine":
         raise SystemExit("the variants need a restorer with the affine head")
@@ -147,10 +147,10 @@ def main() -> None:
     args = parser.parse_args()
     ws = args.workspace
     torch.set_num_threads(2)
-    names = sorted(p.name for p in (ws / "03_correct" / "images").glob("*.png"))
+    names = sorted(p.name for p in (ws / "06_correct" / "restorer" / "images").glob("*.png"))
     frame_ratios(ws, names)
     folders = {"raw": ws / "00_survey" / "images", **write_variants(ws, names, args.out, args.blur_px)}
-    tracks = Tracks.load(ws / "04_sfm" / "tracks.npz")
+    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
     colours = {name: observation_colours(tracks, folder) for name, folder in folders.items()}  # sampled once for both
     result = consistency(tracks, folders, colours=colours)
     print(f"consistency on {result.n_points} points (mean variance of c/(R+G+B) across views; R G B)")

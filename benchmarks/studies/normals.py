@@ -47,15 +47,15 @@ def main() -> None:
     began = time.perf_counter()
     ws = args.workspace
     survey = ws / "00_survey"
-    stack = Stack.from_config(json.loads((ws / "06_water" / "result.json").read_text())["result"]["stack"])
-    config = json.loads((ws / "06_water" / "config.json").read_text())["config"]
+    stack = Stack.from_config(json.loads((ws / "03_water" / "result.json").read_text())["result"]["stack"])
+    config = json.loads((ws / "03_water" / "config.json").read_text())["config"]
     smooth_px, agreement = float(config["normal_smooth_px"]), float(config["range_agreement"])
-    tracks = Tracks.load(ws / "04_sfm" / "tracks.npz")
+    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
     K = np.asarray(tracks.K, float)
-    frames = water_frames(tracks, survey / "images", ws / "05_dense" / "depth")
+    frames = water_frames(tracks, survey / "images", ws / "02_dense" / "depth")
     board = truth_board(survey)
     geometry = OracleGeometry(survey)
-    mesh = ws / "05_dense" / "fused_mesh.ply"
+    mesh = ws / "02_dense" / "fused_mesh.ply"
     errors: dict[str, list[np.ndarray]] = {}
     scene = None
     with tempfile.TemporaryDirectory() as tmp:

@@ -3,8 +3,8 @@ its two inputs (the water, the range) replaced by what a real method has.
 
     .venv/bin/python benchmarks/studies/oracle_limits.py --workspace WS [--out DIR]
 
-WS: a workspace of a simulated survey (``00_survey/truth``, ``04_sfm``, ``05_dense``; ``01_gan/model/stack.json``
-and ``06_water`` when they ran). Every survey frame is inverted exactly, pixel by pixel, as the oracle of
+WS: a workspace of a simulated survey (``00_survey/truth``, ``01_sfm``, ``02_dense``; ``04_gan/model/stack.json``
+and ``03_water`` when they ran). Every survey frame is inverted exactly, pixel by pixel, as the oracle of
 :mod:`eval.baselines` does, with:
 
 - the true stack and the true range (the oracle itself);
@@ -14,7 +14,7 @@ and ``06_water`` when they ran). Every survey frame is inverted exactly, pixel b
 - the true range and the true stack with WaterGAN's learned attenuation (eta), then also its gain and
   vignetting (the water a restorer trained on WaterGAN's pairs learns; the GAN's backscatter is a
   learned convolution with no counterpart in the true stack, so the true one is kept);
-- the water stage's estimated stack (``06_water``) and the dense range: what the physics correction
+- the water stage's estimated stack (``03_water``) and the dense range: what the physics correction
   does, with the oracle's true geometry for everything but the range (rows left out when the workspace
   lacks the gan or the water stage).
 
@@ -57,13 +57,13 @@ def main() -> None:
     args = parser.parse_args()
     ws = args.workspace
     survey = (ws / "00_survey").resolve()
-    gan_stack = ws / "01_gan" / "model" / "stack.json"
+    gan_stack = ws / "04_gan" / "model" / "stack.json"
     learned = {e["name"]: e["params"] for e in json.loads(gan_stack.read_text())} if gan_stack.is_file() else {}
-    water = ws / "06_water" / "result.json"
+    water = ws / "03_water" / "result.json"
     estimated = json.loads(water.read_text())["result"]["stack"] if water.is_file() else None
     geometry = OracleGeometry(survey)
     board = truth_board(survey)
-    tracks = Tracks.load(ws / "04_sfm" / "tracks.npz")
+    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
     names = sorted({str(tracks.image_names[k]) for k in tracks.obs_image} | set(board.quads))
     nav = read_nav_altitudes(survey / "survey.json", names)
     intr = geometry.intr
@@ -71,7 +71,7 @@ def main() -> None:
     true_config = geometry.truth.effects["full"]
 
     def dense_range(name: str, shape: tuple[int, int]) -> np.ndarray:
-        z = read_depth(ws / "05_dense" / "depth" / f"{Path(name).stem}.png")
+        z = read_depth(ws / "02_dense" / "depth" / f"{Path(name).stem}.png")
         return fill_nearest(z_to_range(np.where(z > 0, z, np.nan), K)).reshape(shape)
 
     def plane_range(name: str, shape: tuple[int, int]) -> np.ndarray:

@@ -2,13 +2,13 @@
 
     .venv/bin/python benchmarks/studies/restorer_vs_physics.py --workspace WS [--model DIR] [--out DIR]
 
-1. Corrects the survey's frames with the restorer in ``--model`` (default: the workspace's ``02_restorer``;
+1. Corrects the survey's frames with the restorer in ``--model`` (default: the workspace's ``05_restorer``;
    an RGB-D restorer takes the water stage's range maps) into ``--out`` and prints frames per second, then
    the board CIEDE2000 and the consistency per channel (:func:`eval.colour.board_accuracy`,
    :func:`eval.colour.consistency`, as the eval stage measures them) of raw, the restorer and the physics
-   correction (``06_water/images``). Needs a simulated survey (the board's truth).
+   correction (``06_correct/physics/images``). Needs a simulated survey (the board's truth).
 2. Inverts the site water exactly (:func:`watergan.formation.inverse.correct_physics` with the gan stage's
-   ``stack.json``) on the first 20 of the gan stage's training pairs (``01_gan/generated``: underwater, range,
+   ``stack.json``) on the first 20 of the gan stage's training pairs (``04_gan/generated``: underwater, range,
    in-air) and prints
    the RMSE (stored sRGB) against the in-air images: what a restorer trained on those 8-bit pairs could reach.
 """
@@ -31,25 +31,26 @@ from watergan.io import linear_to_srgb, read_depth, read_image
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--workspace", required=True)
-    parser.add_argument("--model", default=None, help="restorer folder (default: WS/02_restorer)")
+    parser.add_argument("--model", default=None, help="restorer folder (default: WS/05_restorer)")
     parser.add_argument("--out", default="/tmp/restorer_vs_physics")
     args = parser.parse_args()
     ws, out = Path(args.workspace), Path(args.out)
-    model = Path(args.model) if args.model else ws / "02_restorer"
+    model = Path(args.model) if args.model else ws / "05_restorer"
 
     r = correct_folder(model, ws / "00_survey" / "images", out, force=True, progress=False,
-                       range_dir=ws / "06_water" / "range")
+                       range_dir=ws / "03_water" / "range")
     print(f"corrected {r.corrected} frames in {r.seconds:.1f} s = {r.corrected / r.seconds:.1f} frames/s "
           f"({r.mode} mode)")
     board = truth_board(ws / "00_survey")
-    folders = {"raw": ws / "00_survey" / "images", "restorer": out / "images", "physics": ws / "06_water" / "images"}
-    cons = consistency(Tracks.load(ws / "04_sfm" / "tracks.npz"), folders)
+    folders = {"raw": ws / "00_survey" / "images", "restorer": out / "images",
+               "physics": ws / "06_correct" / "physics" / "images"}
+    cons = consistency(Tracks.load(ws / "01_sfm" / "tracks.npz"), folders)
     for name, path in folders.items():
         print(f"{name:9} board CIEDE2000 {board_accuracy(path, board).mean_ciede2000:6.3f}  consistency "
               + " ".join(f"{v:.2e}" for v in cons.scores[name].variance))
 
-    pairs = ws / "01_gan" / "generated"
-    stack = json.loads((ws / "01_gan" / "model" / "stack.json").read_text())
+    pairs = ws / "04_gan" / "generated"
+    stack = json.loads((ws / "04_gan" / "model" / "stack.json").read_text())
     errors = []
     for item in json.loads((pairs / "manifest.json").read_text())["items"][:20]:
         inverted, valid = correct_physics(read_image(pairs / item["underwater"]), read_depth(pairs / item["range"]),
