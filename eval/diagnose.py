@@ -546,8 +546,7 @@ def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig =
     candidates, write everything to ``out`` and append the fits to the ledger in ``ledger_dir`` (with ``colour``,
     the image folders' consistency and board error when they were measured). ``model``: the stack to start from
     (the water stage's estimate; see :func:`default_stack`). Torch runs on one thread: the tensors are small
-    (observations x 3), and a thread pool competing with other processes for the cores made a fit 30 times
-    slower (150 s instead of 5 s on the demo survey)."""
+    (observations x 3), and a thread pool competing with other processes for the cores slows a fit many times."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():
