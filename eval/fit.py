@@ -54,6 +54,7 @@ from watergan.formation.inverse import affine_images
 from watergan.formation.params import to_json_value
 
 from .bootstrap import normal_interval, replicate_weights
+from .nuisance import Fields, monomials
 from .observations import Observations
 
 #: The stack fitted by default (water and diagnosis): the simulator's visible physics, with WaterGAN's learned
@@ -101,6 +102,9 @@ class FitConfig:
     """Fraction of the points held out of the fit to measure the error (:func:`fit_stack`)."""
     fixed_effects: tuple[str, ...] = ("gain",)
     """Effects whose parameters are not fitted (gain: degenerate with the albedos' scale)."""
+    field_degree: int = 0
+    """Degree of the smooth nuisance fields over the image fitted beside the stack (:mod:`eval.nuisance`; the
+    water's fit only); 0: none."""
     bootstrap: int = 20
     """Bootstrap replicates (0: none)."""
     bootstrap_refit: Refit = Refit.least_squares
@@ -214,10 +218,12 @@ class Problem:
 
     ``names``: the raw parameters fitted (:func:`fitted_names`); ``rows``: the views used (default all);
     ``board``: use the table's board rows. ``frame_weight`` (per frame index), ``point_weight`` (per point of the
-    rows, in :attr:`points` order) and ``patch_weight`` (per board patch) weigh the views (None: 1)."""
+    rows, in :attr:`points` order) and ``patch_weight`` (per board patch) weigh the views (None: 1). ``fields``:
+    nuisance fields fitted beside the stack (:class:`eval.nuisance.Fields`; their tensors join :attr:`theta`)."""
 
     def __init__(self, stack: Stack, obs: Observations, config: FitConfig, names: list[str],
-                 rows: np.ndarray | None = None, board: bool = True, float32: bool = False) -> None:
+                 rows: np.ndarray | None = None, board: bool = True, float32: bool = False,
+                 fields: Fields | None = None) -> None:
         self.stack, self.obs, self.config, self.names = stack, obs, config, names
         self.rows = np.arange(obs.n_obs) if rows is None else np.asarray(rows)
         dt = np.float32 if float32 else np.float64
@@ -242,6 +248,12 @@ class Problem:
             p.requires_grad_(False)
         for p in self.theta:
             p.requires_grad_(True)
+        self.fields = fields
+        if fields is not None:
+            self.theta += fields.tensors
+            self.basis = torch.from_numpy(monomials(obs.pixel_uv[self.rows], fields.degree).astype(dt))
+            if self.has_board:
+                self.board_basis = torch.from_numpy(monomials(obs.board_pixel_uv, fields.degree).astype(dt))
         self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
         self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
 
@@ -262,19 +274,26 @@ class Problem:
         if self.affine:
             a, c = affine_images(self.stack, self.state)
             a, c = a[:, :, 0, 0], c[:, :, 0, 0]
+            if self.fields is not None:
+                a, c = self.fields.apply(a, c, self.basis)
             num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * (self.y - c))
             den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * a)
             j = (num / den.clamp_min(1e-12)).clamp(lo, hi)
             return j, a * j[self.local] + c
-        zero = _render(self.stack, self.state, torch.zeros_like(self.y))
+        zero = self._render(torch.zeros_like(self.y))
         j = self.start
         for _ in range(self.config.secant_steps):
             a_obs = j[self.local]
-            t = (_render(self.stack, self.state, a_obs) - zero) / a_obs
+            t = (self._render(a_obs) - zero) / a_obs
             num = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * (self.y - zero))
             den = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * t)
             j = (num / den.clamp_min(1e-12)).clamp(max(lo, 1e-6), hi)
-        return j, _render(self.stack, self.state, j[self.local])
+        return j, self._render(j[self.local])
+
+    def _render(self, albedo: torch.Tensor) -> torch.Tensor:
+        """(N,3) the views rendered with these albedos (and the fields)."""
+        out = _render(self.stack, self.state, albedo)
+        return out if self.fields is None else self.fields.apply(out, out, self.basis)[1]
 
     def _board_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(weights (B,), residuals (B,3)) of the board rows."""
@@ -284,7 +303,10 @@ class Problem:
         if self.patch_weight is not None:
             wb = wb * self.patch_weight.to(wb.dtype)[self.board_patch]
         ab, cb = affine_images(self.stack, self.board_state)
-        return wb, self.board_y - (ab[:, :, 0, 0] * self.board_j + cb[:, :, 0, 0])
+        ab, cb = ab[:, :, 0, 0], cb[:, :, 0, 0]
+        if self.fields is not None:
+            ab, cb = self.fields.apply(ab, cb, self.board_basis)
+        return wb, self.board_y - (ab * self.board_j + cb)
 
     def loss(self) -> torch.Tensor:
         """L(theta) of the module docstring (float64)."""
@@ -343,7 +365,7 @@ class Problem:
     def physical(self) -> dict[str, np.ndarray]:
         """{raw parameter name: physical value} of the fitted parameters."""
         out = {}
-        for name, raw in zip(self.names, self.theta, strict=True):
+        for name, raw in zip(self.names, self.theta[:len(self.names)], strict=True):
             spec = self.stack.effects[int(name.split(".")[1])]._spec(name.rsplit(".", 1)[1])
             out[name] = spec.to_value(raw.detach()).numpy().copy()
         return out

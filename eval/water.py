@@ -76,6 +76,7 @@ from watergan.formation.inverse import needs_normals
 from watergan.formation.rig import held_rig, rig_settings
 
 from .fit import DEFAULT_EFFECTS, WATER_FIT, FitConfig, Problem, bootstrap, fitted_names, start_inside_bounds
+from .nuisance import Fields
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 
@@ -244,6 +245,8 @@ class WaterEstimate:
     residuals: dict | None = None
     """Per view: residual (N,3) (observed - fitted, linear), range_m (N,), radius (N,) (distance from the
     image centre, 1 at the corners); not in :meth:`to_json`."""
+    fields: dict | None = None
+    """The nuisance fields fitted beside the stack (:meth:`eval.nuisance.Fields.summary`); None: none fitted."""
     observations: Observations | None = None
     """The measurement table the estimate was fitted to (:func:`estimate_water` sets it; not in :meth:`to_json`:
     the water stage saves it beside water.json for the diagnosis)."""
@@ -253,6 +256,7 @@ class WaterEstimate:
                 "tradeoffs": self.tradeoffs, "n_points": self.n_points, "n_observations": self.n_observations,
                 "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
                 "iterations": self.iterations, "converged": self.converged,
+                **({"fields": self.fields} if self.fields is not None else {}),
                 "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
                             "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
                             "largest change of the estimate under the alternative weightings "
@@ -295,14 +299,15 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             name, param = key.split(".", 1)
             by_effect[name] = (*by_effect.get(name, ()), param)
         names = fitted_names(stack, tuple(fixed), by_effect)
-        problem = Problem(stack, obs, config.fit, names)
+        fields = Fields(config.fit.field_degree) if config.fit.field_degree > 0 else None
+        problem = Problem(stack, obs, config.fit, names, fields=fields)
         start_inside_bounds(stack, names)
         iterations, converged = problem.converge()
         problem.refine(config.fit.refine_evaluations)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
 
-        fast = Problem(stack, obs, config.fit, names, float32=True) if config.fit.float32 else problem
+        fast = Problem(stack, obs, config.fit, names, float32=True, fields=fields) if config.fit.float32 else problem
         samples = bootstrap(problem, config.fit, fast)
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives
@@ -334,7 +339,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              rmse=rmse, seconds={"fit": round(t_fit, 2), "bootstrap": round(t_boot, 2),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
-                             converged=converged)
+                             converged=converged, fields=fields.summary() if fields is not None else None)
     finally:
         torch.set_num_threads(threads)
 

@@ -482,3 +482,26 @@ def test_correct_physics_undoes_the_strobes(lit_survey):
     tilted = np.broadcast_to(np.array([0.3, 0.0, -0.954]), (H, W, 3))  # a wrong normal map changes the colour
     wrong, _ = correct_physics(image, r, stack, K, normals_cam=tilted)
     assert np.median(np.abs(wrong / j - 1)) > 0.02
+
+
+@pytest.mark.slow
+def test_nuisance_fields_keep_the_water_when_a_falloff_is_missing(survey):
+    """A colour-dependent off-centre falloff the stack lacks bends eta (by more than 10 % in a channel) unless smooth
+    fields over the image carry it (eval.nuisance, degree 2): then eta is within 2 % in every channel. On the survey
+    with nothing missing the fields leave eta within 2 % too and stay near flat."""
+    truth = np.array([0.45, 0.14, 0.2])
+    hidden = TRUE + [{"name": "vignetting_offcentre", "params": {"centre_uv": [0.7, 0.4], "a_margin": 0.5, "b": 0.0,
+                                                                 "c": 0.1, "strength": [1.0, 0.85, 0.7]}}]
+    frames, board = make_survey(hidden)
+    config = water_config(samples_per_frame=150, bootstrap=0, margin_px=4)
+    bent = estimate_water(frames, K, board=board, config=config)
+    carried = estimate_water(frames, K, board=board, config=water_config(config, field_degree=2))
+    assert np.abs(_value(bent, "attenuation.eta_per_m") / truth - 1).max() > 0.1
+    np.testing.assert_allclose(_value(carried, "attenuation.eta_per_m"), truth, rtol=0.02)
+    assert min(carried.fields["F_min"]) < 0.7  # the falloff went into the multiplicative field
+
+    frames, board = survey
+    fielded = estimate_water(frames, K, board=board, config=water_config(config, field_degree=2))
+    np.testing.assert_allclose(_value(fielded, "attenuation.eta_per_m"), truth, rtol=0.02)
+    assert np.abs(np.array(fielded.fields["G_min"] + fielded.fields["G_max"])).max() < 0.005
+    assert 0.9 < min(fielded.fields["F_min"]) and max(fielded.fields["F_max"]) < 1.02
