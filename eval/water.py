@@ -51,10 +51,10 @@ A declared light rig (``lights``: survey.json's strobes, per light offset_m, til
 A = k_c E_c(X) exp(-eta_c r) / V(x). There the rig (offset, tilt, beam) is declared and held; the light path's eta
 is tied to ``attenuation.eta_per_m`` (one water); the power P_l is exactly degenerate with the gain and held (the
 gain and B_inf's level are then in units of it); ambient is the brightness that does not fall with the distance
-from the lights. Normals come from each frame's range map smoothed by ``normal_smooth_px``.
+from the lights. Normals come from each frame's range map smoothed by ``measure.normal_smooth_px``.
 
 Known limits: in a flat direction (red B_inf against beta, the two vignettings) a fit stops where a round of L-BFGS
-stops gaining, so what lies further along it is only as pinned as ``convergence_rtol`` says; the vignetting
+stops gaining, so what lies further along it is only as pinned as ``fit.convergence_rtol`` says; the vignetting
 polynomial's b and c trade with each other (the falloff as a function is pinned, not its coefficients).
 Measured accuracy and coverage: benchmarks/RESULTS.md ("Site water").
 
@@ -241,7 +241,7 @@ class WaterEstimate:
     iterations: int = 0
     """L-BFGS iterations of the main fit."""
     converged: bool = True
-    """Whether the main fit converged (see ``WaterConfig.convergence_rtol``) within ``max_iterations``."""
+    """Whether the main fit converged (see ``FitConfig.convergence_rtol``) within ``fit.max_iterations``."""
     residuals: dict | None = None
     """Per view: residual (N,3) (observed - fitted, linear), range_m (N,), radius (N,) (distance from the
     image centre, 1 at the corners); not in :meth:`to_json`."""
