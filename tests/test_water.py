@@ -493,7 +493,7 @@ def test_nuisance_fields_keep_the_water_when_a_falloff_is_missing(survey):
     hidden = TRUE + [{"name": "vignetting_offcentre", "params": {"centre_uv": [0.7, 0.4], "a_margin": 0.5, "b": 0.0,
                                                                  "c": 0.1, "strength": [1.0, 0.85, 0.7]}}]
     frames, board = make_survey(hidden)
-    config = water_config(samples_per_frame=150, bootstrap=0, margin_px=4)
+    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100)
     bent = estimate_water(frames, K, board=board, config=config)
     carried = estimate_water(frames, K, board=board, config=water_config(config, field_degree=2))
     assert np.abs(_value(bent, "attenuation.eta_per_m") / truth - 1).max() > 0.1
