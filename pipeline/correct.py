@@ -465,7 +465,8 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True) -
     K = np.asarray(tracks.K, float)
     stack = Stack.from_config(water.stack)
     with_normals = needs_normals(stack)
-    frames = water_frames(tracks, images, ws.path(dense.depth_dir))
+    # the dense range only feeds the normals (the correction's range is the water stage's map)
+    frames = water_frames(tracks, images, ws.path(dense.depth_dir) if with_normals else None)
     unresolved = []
     with single_torch_thread():
         for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
