@@ -322,6 +322,9 @@ def candidate_names(stack: Stack, meas: Observations, only: tuple[str, ...] = ()
         if name in stack.names:
             skipped[name] = "already in the model"
             continue
+        if cls.nuisance:
+            skipped[name] = "a nuisance field that stands in for what the stack lacks, not a physical candidate"
+            continue
         if cls.needs_image:
             skipped[name] = "acts on whole images (needs_image), not on per-point observations"
             continue

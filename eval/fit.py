@@ -9,9 +9,10 @@ the view's geometry (a batch of 1x1 images, every tensor (N,C,1,1)). Board rows 
 
 Loss: soft-L1 on the residual e, rho(e) = 2 f^2 (sqrt(1 + (e/f)^2) - 1), f = ``loss_scale``, summed over channels
 and averaged over views with weights w_o (a bootstrap replicate's; 1 in the fit); plus ``board_weight`` times the
-same mean over the board rows:
+same mean over the board rows; plus the effects' penalties (``Effect.penalty``: the smoothness of ``image_field``):
 
-    L(theta) = sum_o w_o sum_c rho(e_oc) / sum_o w_o  +  board_weight sum_b w_b sum_c rho(e_bc) / sum_b w_b.
+    L(theta) = sum_o w_o sum_c rho(e_oc) / sum_o w_o  +  board_weight sum_b w_b sum_c rho(e_bc) / sum_b w_b
+               + sum_effects |penalty|^2.
 
 Albedo projection (variable projection): each point's albedo is its weighted least-squares value given theta, in
 closed form when the stack is affine in J (J_p = sum_v w A (y - C) / sum_v w A^2, A = F(1) - F(0), C = F(0)), else
@@ -54,7 +55,6 @@ from watergan.formation.inverse import affine_images
 from watergan.formation.params import to_json_value
 
 from .bootstrap import normal_interval, replicate_weights
-from .nuisance import Fields, monomials
 from .observations import Observations
 
 #: The stack fitted by default (water and diagnosis): the simulator's visible physics, with WaterGAN's learned
@@ -102,9 +102,6 @@ class FitConfig:
     """Fraction of the points held out of the fit to measure the error (:func:`fit_stack`)."""
     fixed_effects: tuple[str, ...] = ("gain",)
     """Effects whose parameters are not fitted (gain: degenerate with the albedos' scale)."""
-    field_degree: int = 0
-    """Degree of the smooth nuisance fields over the image fitted beside the stack (:mod:`eval.nuisance`; the
-    water's fit only); 0: none."""
     bootstrap: int = 20
     """Bootstrap replicates (0: none)."""
     bootstrap_refit: Refit = Refit.least_squares
@@ -218,12 +215,10 @@ class Problem:
 
     ``names``: the raw parameters fitted (:func:`fitted_names`); ``rows``: the views used (default all);
     ``board``: use the table's board rows. ``frame_weight`` (per frame index), ``point_weight`` (per point of the
-    rows, in :attr:`points` order) and ``patch_weight`` (per board patch) weigh the views (None: 1). ``fields``:
-    nuisance fields fitted beside the stack (:class:`eval.nuisance.Fields`; their tensors join :attr:`theta`)."""
+    rows, in :attr:`points` order) and ``patch_weight`` (per board patch) weigh the views (None: 1)."""
 
     def __init__(self, stack: Stack, obs: Observations, config: FitConfig, names: list[str],
-                 rows: np.ndarray | None = None, board: bool = True, float32: bool = False,
-                 fields: Fields | None = None) -> None:
+                 rows: np.ndarray | None = None, board: bool = True, float32: bool = False) -> None:
         self.stack, self.obs, self.config, self.names = stack, obs, config, names
         self.rows = np.arange(obs.n_obs) if rows is None else np.asarray(rows)
         dt = np.float32 if float32 else np.float64
@@ -248,12 +243,6 @@ class Problem:
             p.requires_grad_(False)
         for p in self.theta:
             p.requires_grad_(True)
-        self.fields = fields
-        if fields is not None:
-            self.theta += fields.tensors
-            self.basis = torch.from_numpy(monomials(obs.pixel_uv[self.rows], fields.degree).astype(dt))
-            if self.has_board:
-                self.board_basis = torch.from_numpy(monomials(obs.board_pixel_uv, fields.degree).astype(dt))
         self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
         self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
 
@@ -274,26 +263,24 @@ class Problem:
         if self.affine:
             a, c = affine_images(self.stack, self.state)
             a, c = a[:, :, 0, 0], c[:, :, 0, 0]
-            if self.fields is not None:
-                a, c = self.fields.apply(a, c, self.basis)
             num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * (self.y - c))
             den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * a)
             j = (num / den.clamp_min(1e-12)).clamp(lo, hi)
             return j, a * j[self.local] + c
-        zero = self._render(torch.zeros_like(self.y))
+        zero = _render(self.stack, self.state, torch.zeros_like(self.y))
         j = self.start
         for _ in range(self.config.secant_steps):
             a_obs = j[self.local]
-            t = (self._render(a_obs) - zero) / a_obs
+            t = (_render(self.stack, self.state, a_obs) - zero) / a_obs
             num = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * (self.y - zero))
             den = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * t)
             j = (num / den.clamp_min(1e-12)).clamp(max(lo, 1e-6), hi)
-        return j, self._render(j[self.local])
+        return j, _render(self.stack, self.state, j[self.local])
 
-    def _render(self, albedo: torch.Tensor) -> torch.Tensor:
-        """(N,3) the views rendered with these albedos (and the fields)."""
-        out = _render(self.stack, self.state, albedo)
-        return out if self.fields is None else self.fields.apply(out, out, self.basis)[1]
+    def penalty(self) -> torch.Tensor:
+        """The effects' penalty residuals (``Effect.penalty``), float64 (empty when none has one)."""
+        parts = [p for p in (effect.penalty() for effect in self.stack.effects) if p is not None]
+        return torch.cat([p.reshape(-1).double() for p in parts]) if parts else torch.zeros(0, dtype=torch.float64)
 
     def _board_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(weights (B,), residuals (B,3)) of the board rows."""
@@ -304,8 +291,6 @@ class Problem:
             wb = wb * self.patch_weight.to(wb.dtype)[self.board_patch]
         ab, cb = affine_images(self.stack, self.board_state)
         ab, cb = ab[:, :, 0, 0], cb[:, :, 0, 0]
-        if self.fields is not None:
-            ab, cb = self.fields.apply(ab, cb, self.board_basis)
         return wb, self.board_y - (ab * self.board_j + cb)
 
     def loss(self) -> torch.Tensor:
@@ -318,7 +303,7 @@ class Problem:
             wb, eb = self._board_terms()
             total = total + self.config.board_weight * ((wb[:, None] * soft_l1(eb, scale)).sum()
                                                         / wb.sum().clamp_min(1e-12)).double()
-        return total
+        return total + (self.penalty() ** 2).sum()
 
     def residuals(self) -> torch.Tensor:
         """The residual vector whose sum of squares is :meth:`loss` (for the trust-region least squares)."""
@@ -329,7 +314,7 @@ class Problem:
             wb, eb = self._board_terms()
             parts.append((torch.sqrt(self.config.board_weight * wb / wb.sum())[:, None]
                           * robust_residual(eb, scale)).reshape(-1))
-        return torch.cat(parts).double()
+        return torch.cat([*(p.double() for p in parts), self.penalty()])
 
     # ------------------------------------------------------------------ parameters
     def flat(self) -> torch.Tensor:

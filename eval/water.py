@@ -72,11 +72,11 @@ import numpy as np
 import torch
 
 from watergan.formation import Counts, Stack, get
+from watergan.formation.effects.image_field import field_basis, n_terms
 from watergan.formation.inverse import needs_normals
 from watergan.formation.rig import held_rig, rig_settings
 
 from .fit import DEFAULT_EFFECTS, WATER_FIT, FitConfig, Problem, bootstrap, fitted_names, start_inside_bounds
-from .nuisance import Fields
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 
@@ -103,6 +103,12 @@ class WaterConfig:
     """How the measurement table is taken from the frames."""
     fit: FitConfig = WATER_FIT
     """How the stack is fitted (``fit.fixed_effects``: held effects; ``gain`` is added without a board)."""
+    field_degree: int = 2
+    """Degree of the smooth fields over the image (``image_field``) fitted beside the stack, so that what the stack
+    lacks on image position bends them and not the water; 0: none. The corrections invert them with the stack."""
+    field_max_range_r2: float = 0.5
+    """When image position explains more than this fraction of the views' range variance (one altitude over a flat
+    floor), the fields are kept uncorrelated with range (:func:`decorrelate_fields`)."""
     spec_alternatives: tuple[dict, ...] | None = None
     """Changes of the fit's configuration (e.g. ``{"board_weight": 1.0}``) under which the fit is repeated.
     Each parameter's largest change widens its interval (in quadrature with the bootstrap). None: board weight / 10
@@ -124,6 +130,8 @@ class WaterConfig:
 
 #: The effect that models a declared light rig when the configured stack has none.
 RIG_EFFECT = "artificial_light"
+#: The nuisance fields over the image (``WaterConfig.field_degree``).
+FIELD_EFFECT = "image_field"
 
 
 def rig_lights(config: WaterConfig, lights: list[dict] | None) -> list[dict]:
@@ -141,6 +149,11 @@ def build_stack(config: WaterConfig, n_frames: int | None = None, lights: list[d
     lights = rig_lights(config, lights)
     given = {e["name"]: dict(e.get("params", {})) for e in config.initial}
     names = list(dict.fromkeys(list(config.effects) + list(given)))
+    if config.field_degree > 0:
+        names += [FIELD_EFFECT] if FIELD_EFFECT not in names else []
+        zeros = np.zeros((3, n_terms(config.field_degree))).tolist()
+        given[FIELD_EFFECT] = {"multiplicative": zeros, "additive": zeros, "orthogonal_to": zeros[0],
+                               **given.get(FIELD_EFFECT, {})}
     if lights and not any(get(n).rig_params for n in names):
         names.append(RIG_EFFECT)
     entries = [{"name": n, "params": {**given.get(n, {}), **rig_settings(get(n), lights)}} for n in names]
@@ -246,7 +259,7 @@ class WaterEstimate:
     """Per view: residual (N,3) (observed - fitted, linear), range_m (N,), radius (N,) (distance from the
     image centre, 1 at the corners); not in :meth:`to_json`."""
     fields: dict | None = None
-    """The nuisance fields fitted beside the stack (:meth:`eval.nuisance.Fields.summary`); None: none fitted."""
+    """The fields over the image fitted beside the stack (:func:`field_summary`); None: none fitted."""
     observations: Observations | None = None
     """The measurement table the estimate was fitted to (:func:`estimate_water` sets it; not in :meth:`to_json`:
     the water stage saves it beside water.json for the diagnosis)."""
@@ -275,6 +288,40 @@ class WaterEstimate:
 
 
 
+def decorrelate_fields(stack: Stack, obs: Observations, max_r2: float) -> float:
+    """The fraction R^2 of the views' range variance that the fields' basis (and a constant) explains; when it
+    exceeds ``max_r2``, set the stack's ``image_field.orthogonal_to`` (in place, unless given) to the unit covariance
+    of each monomial with range over the views, so that the fields cannot take what is linear in range (see
+    :mod:`watergan.formation.effects.image_field`). Below it the frames' altitudes and the relief separate range
+    from image position, and the fields stay free."""
+    if FIELD_EFFECT not in stack.names:
+        return 0.0
+    effect = stack[FIELD_EFFECT]
+    basis = field_basis(torch.from_numpy(obs.pixel_uv).reshape(-1, 2, 1, 1), effect.degree)[:, :, 0, 0].numpy()
+    centred, r = basis - basis.mean(0), obs.range_m - obs.range_m.mean()
+    fitted = centred @ np.linalg.lstsq(centred, r, rcond=None)[0]
+    r2 = float(1.0 - np.var(r - fitted) / max(np.var(r), 1e-12))
+    if r2 > max_r2 and effect.param("orthogonal_to").abs().max() == 0:
+        q = centred.T @ r / len(r)
+        effect.set_values(orthogonal_to=q / max(np.linalg.norm(q), 1e-12))
+    return r2
+
+
+def field_summary(stack: Stack, range_r2: float, grid: int = 33) -> dict | None:
+    """JSON-ready: the stack's ``image_field`` (degree; each channel's least and largest F and G over a grid of the
+    image; ``range_r2`` of :func:`decorrelate_fields` and whether the fields were kept off range); None when the
+    stack has none."""
+    if FIELD_EFFECT not in stack.names:
+        return None
+    field_effect = stack[FIELD_EFFECT]
+    u, v = np.meshgrid(np.linspace(0, 1, grid), np.linspace(0, 1, grid))
+    f, g = (t.numpy() for t in field_effect.at(torch.from_numpy(np.stack([u.ravel(), v.ravel()], 1))))
+    return {"degree": field_effect.degree, "range_r2": round(range_r2, 3),
+            "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0), "F_min": np.round(f.min(0), 4).tolist(),
+            "F_max": np.round(f.max(0), 4).tolist(), "G_min": np.round(g.min(0), 5).tolist(),
+            "G_max": np.round(g.max(0), 5).tolist()}
+
+
 def _key(stack: Stack, raw_name: str) -> str:
     """"effect.param" of a raw parameter name "effects.I.raw.PARAM"."""
     return f"{stack.effects[int(raw_name.split('.')[1])].name}.{raw_name.rsplit('.', 1)[1]}"
@@ -299,15 +346,15 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             name, param = key.split(".", 1)
             by_effect[name] = (*by_effect.get(name, ()), param)
         names = fitted_names(stack, tuple(fixed), by_effect)
-        fields = Fields(config.fit.field_degree) if config.fit.field_degree > 0 else None
-        problem = Problem(stack, obs, config.fit, names, fields=fields)
+        range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
+        problem = Problem(stack, obs, config.fit, names)
         start_inside_bounds(stack, names)
         iterations, converged = problem.converge()
         problem.refine(config.fit.refine_evaluations)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
 
-        fast = Problem(stack, obs, config.fit, names, float32=True, fields=fields) if config.fit.float32 else problem
+        fast = Problem(stack, obs, config.fit, names, float32=True) if config.fit.float32 else problem
         samples = bootstrap(problem, config.fit, fast)
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives
@@ -339,7 +386,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              rmse=rmse, seconds={"fit": round(t_fit, 2), "bootstrap": round(t_boot, 2),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
-                             converged=converged, fields=fields.summary() if fields is not None else None)
+                             converged=converged, fields=field_summary(stack, range_r2))
     finally:
         torch.set_num_threads(threads)
 

@@ -45,7 +45,7 @@ from watergan.formation import Stack, available
 #: registers later in the same process must not join the ranking), less ambient_depth: the screen skips
 #: it (the albedo absorbs it, test_the_screen_skips_what_the_albedo_absorbs_and_says_how_to_force_it), but
 #: a named candidate is fitted anyway.
-BUILTIN = tuple(available())
+BUILTIN = tuple(n for n, cls in available().items() if not cls.nuisance)
 FAST = DiagnoseConfig(candidates=tuple(n for n in BUILTIN if n != "ambient_depth"),
                       measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60, bootstrap=0), bootstrap=500,
                       plots=False)

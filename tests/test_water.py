@@ -16,7 +16,7 @@ from eval.fit import FitConfig
 from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
 from eval.water import WaterConfig, estimate_water
 from watergan.formation import FormationState, Stack, pixel_grid
-from watergan.formation.inverse import correct_physics
+from watergan.formation.inverse import correct_physics, inverse_fields
 
 W, H, F = 96, 72, 60.0
 K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
@@ -122,6 +122,14 @@ def survey():
     return make_survey()
 
 
+def falloff_error(fitted: Stack, truth: Stack) -> np.ndarray:
+    """(3,H,W) |A_fitted / A_truth - 1| of the direct signal's gain A at 2 m over the image, each normalised at the
+    image centre (the gain's level is the board's business)."""
+    flat_m = np.full((H, W), 2.0)
+    ratio = inverse_fields(flat_m, fitted, K)[0][0].numpy() / inverse_fields(flat_m, truth, K)[0][0].numpy()
+    return np.abs(ratio / ratio[:, H // 2, W // 2][:, None, None] - 1)
+
+
 def _value(estimate, key):
     return np.asarray(estimate.params[key]["value"], float)
 
@@ -130,16 +138,13 @@ def test_estimate_recovers_the_rendered_water(survey):
     frames, board = survey
     config = water_config(samples_per_frame=250, bootstrap=8, margin_px=4, footprint_m=FOOTPRINT_M)
     est = estimate_water(frames, K, board=board, config=config)
-    assert est.stack.names == list(DEFAULT_WATER_EFFECTS)
+    assert est.stack.names == ["attenuation", "backscatter", "vignetting", "image_field", "gain"]
     assert est.n_board > 20 and est.n_frames == 12
     np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), [0.45, 0.14, 0.2], rtol=0.05)
     np.testing.assert_allclose(_value(est, "backscatter.b_inf"), [0.03, 0.16, 0.19], rtol=0.15)
     np.testing.assert_allclose(_value(est, "gain.k"), [1.5] * 3, rtol=0.03)
-    # the vignetting as a function (its coefficients trade among themselves)
-    v = est.stack["vignetting"]
-    a, b, c = (float(t) for t in v.coefficients())
-    r = np.linspace(0, 1, 5)
-    np.testing.assert_allclose(1 + a * r**2 + b * r**4 + c * r**6, 1 + 0.35 * r**2 + 0.05 * r**6, atol=0.02)
+    # the falloff over the image (the vignetting's coefficients trade among themselves and with the fields)
+    assert falloff_error(est.stack, Stack.from_config(TRUE)).max() < 0.02
     eta = est.params["attenuation.eta_per_m"]
     assert all(lo <= v <= hi for lo, v, hi in zip(eta["low"], eta["value"], eta["high"], strict=True))
     assert all(h > lo for lo, h in zip(eta["low"], eta["high"], strict=True))
@@ -485,23 +490,26 @@ def test_correct_physics_undoes_the_strobes(lit_survey):
 
 
 @pytest.mark.slow
-def test_nuisance_fields_keep_the_water_when_a_falloff_is_missing(survey):
-    """A colour-dependent off-centre falloff the stack lacks bends eta (by more than 10 % in a channel) unless smooth
-    fields over the image carry it (eval.nuisance, degree 2): then eta is within 2 % in every channel. On the survey
-    with nothing missing the fields leave eta within 2 % too and stay near flat."""
+def test_image_fields_keep_the_water_when_a_falloff_is_missing(survey):
+    """A colour-dependent off-centre falloff the stack lacks bends eta (by more than 10 % in a channel) unless the
+    smooth fields over the image carry it (``image_field``, degree 2, the default): then eta is within 2 % in every
+    channel. On the survey with nothing missing the fields leave eta within 2 % too and stay near flat."""
     truth = np.array([0.45, 0.14, 0.2])
     hidden = TRUE + [{"name": "vignetting_offcentre", "params": {"centre_uv": [0.7, 0.4], "a_margin": 0.5, "b": 0.0,
                                                                  "c": 0.1, "strength": [1.0, 0.85, 0.7]}}]
     frames, board = make_survey(hidden)
     config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100)
-    bent = estimate_water(frames, K, board=board, config=config)
-    carried = estimate_water(frames, K, board=board, config=water_config(config, field_degree=2))
+    bent = estimate_water(frames, K, board=board, config=water_config(config, field_degree=0))
+    carried = estimate_water(frames, K, board=board, config=config)
     assert np.abs(_value(bent, "attenuation.eta_per_m") / truth - 1).max() > 0.1
     np.testing.assert_allclose(_value(carried, "attenuation.eta_per_m"), truth, rtol=0.02)
-    assert min(carried.fields["F_min"]) < 0.7  # the falloff went into the multiplicative field
+    # the falloff went into the fields: within 1 % on average (without the fields 12 %); degree 2 cannot follow the
+    # falloff's r^6 term into the corners (9 % there)
+    error = falloff_error(carried.stack, Stack.from_config(hidden))
+    assert error.mean() < 0.01 and error.max() < 0.15
 
     frames, board = survey
-    fielded = estimate_water(frames, K, board=board, config=water_config(config, field_degree=2))
+    fielded = estimate_water(frames, K, board=board, config=config)
     np.testing.assert_allclose(_value(fielded, "attenuation.eta_per_m"), truth, rtol=0.02)
     assert np.abs(np.array(fielded.fields["G_min"] + fielded.fields["G_max"])).max() < 0.005
     assert 0.9 < min(fielded.fields["F_min"]) and max(fielded.fields["F_max"]) < 1.02

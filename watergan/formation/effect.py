@@ -45,6 +45,9 @@ class Effect(nn.Module):
                  found by the diagnosis on the demo survey, within what real surveys show.
     rig_params:  parameters that a declared rig fixes (survey.json's lights): known settings, set
                  from the declaration and held, not fitted, by the diagnosis.
+    nuisance:    True for an effect that stands in for what the stack lacks rather than for one physical
+                 effect (``image_field``): the diagnosis never offers it as a candidate and the simulator
+                 never hides it.
     """
 
     AXES: ClassVar[tuple[str, ...]] = (
@@ -62,6 +65,7 @@ class Effect(nn.Module):
     start_grid: ClassVar[dict[str, tuple[float, ...]]] = {}
     simulation_params: ClassVar[dict[str, object]] = {}
     rig_params: ClassVar[tuple[str, ...]] = ()
+    nuisance: ClassVar[bool] = False
 
     def __init__(self, counts: Counts | None = None, **values) -> None:
         """Physical ``values`` by parameter name (the rest start from their ``init``); ``counts``: the survey's
@@ -118,6 +122,10 @@ class Effect(nn.Module):
     def make_neutral(self) -> None:
         """Set the effect to the identity (its ``neutral`` values; learned layers override this)."""
         self.set_values(**self.neutral)
+
+    def penalty(self) -> torch.Tensor | None:
+        """Residuals whose sum of squares a fit adds to its loss (a prior on the parameters); None: no penalty."""
+        return None
 
     def to_config(self) -> dict:
         """``{"name": ..., "params": {...}}`` with JSON-ready physical values."""
