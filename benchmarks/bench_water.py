@@ -47,12 +47,34 @@ SURVEYS = {
     "auv0": {"preset": "auv", "seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",)},
     "auv0_add": {"preset": "auv", "seed": 0, "stereo": True, "hidden": ("vignetting_offcentre",),
                  "add": ("vignetting_offcentre",), "workspace": "auv0"},
+    # issue 28's robustness surveys: the demo with one effect of a form the stack does not share hidden
+    # (benchmarks/plugins/robust_forms.py), estimated with the default stack and its fields over the image
+    "offc1_before_add": {"seed": 1, "stereo": True, "hidden": ("vignetting_offcentre",)},
+    "offc0_mono": {"seed": 0, "stereo": False, "hidden": ("vignetting_offcentre",)},
+    "clip0": {"seed": 0, "stereo": True, "hidden": ("falloff_clipped",)},
+    "clip1": {"seed": 1, "stereo": True, "hidden": ("falloff_clipped",)},
+    "veil0": {"seed": 0, "stereo": True, "hidden": ("port_veil",)},
+    "veil1": {"seed": 1, "stereo": True, "hidden": ("port_veil",)},
+    "expo0": {"seed": 0, "stereo": True, "hidden": ("survey_exposure",)},
+    "drift0": {"seed": 0, "stereo": True, "hidden": ("water_drift",)},
 }
+#: The plugin holding the robustness surveys' hidden effects (loaded when a survey hides one of them).
+ROBUST_PLUGIN = Path(__file__).parent / "plugins" / "robust_forms.py"
+
+
+def load_robust_forms() -> None:
+    """Register the robustness surveys' effects (``ROBUST_PLUGIN``) unless they are."""
+    from watergan.formation import available, load_plugin
+
+    if "falloff_clipped" not in available():
+        load_plugin(ROBUST_PLUGIN)
 
 
 def prepare(root: Path, name: str) -> Path:
     """Simulate the survey ``name`` into ``root/name/00_survey`` and run SfM and dense (each skipped when done)."""
     from eval.synth import make_config, simulate_survey
+
+    load_robust_forms()
     from pipeline.dense import DenseConfig
     from pipeline.sfm import SfmConfig
     from pipeline.workspace import Workspace

@@ -203,13 +203,13 @@ def small_survey_config(hidden: list | tuple = (), seed: int = 1, width_px: int 
 def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | None = None,
                   counts: Counts | None = None) -> Stack:
     """The model to diagnose: the named effects (initial values; ``counts`` sizes their per-frame and
-    per-light parameters), or ``model`` (a stack configuration: the site water the water stage estimated),
-    or the survey's visible stack with its parameters when simulated, or attenuation, backscatter,
+    per-light parameters), or ``model`` (a stack configuration: the site water the water stage estimated, less
+    its nuisance fields, whose content is what the diagnosis looks for), or the survey's visible stack with its parameters when simulated, or attenuation, backscatter,
     vignetting and gain."""
     if effects:
         return Stack.ordered(list(effects), counts)
     if model:
-        return Stack.from_config(list(model), counts)
+        return Stack.from_config([e for e in model if not get(e["name"]).nuisance], counts)
     truth_effects = survey / "truth" / "effects.json"
     if truth_effects.is_file():
         return Stack.from_config(json.loads(truth_effects.read_text())["visible"], counts)

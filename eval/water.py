@@ -34,13 +34,20 @@ What pins what (and what does not):
 - gain k_c: exactly degenerate with the albedos' scale per channel (k J = (k s)(J / s)), and B_inf carries the
   same factor. With a board, its known J pins k (and B_inf's absolute level); without one ``gain`` keeps its
   configured value (1) and is reported as fixed.
+- the fields over the image (``image_field``, degree ``field_degree``; :func:`decorrelate_fields`): what the stack
+  lacks on image position, multiplicative F and additive G per channel, pinned by the same point at different image
+  positions; where image position explains most of the range (one altitude over a flat floor) they are kept
+  uncorrelated with range, which is then the water's.
 
 Uncertainty: the fitter's bootstrap (:func:`eval.fit.bootstrap`: frames, points and board patches resampled, each
 replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
 that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
 less) and each parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 +
-change^2 [+ (1.96 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. Pairs of parameter
-components whose bootstrap correlation exceeds 0.95 are reported as trade-offs.
+change^2 [+ (1.96 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
+(:func:`on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not pin it. Pairs of
+parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs. Where B_inf and beta
+trade (a short range span), what the survey pins is the veil over its ranges: ``veil`` gives B_inf (1 - exp(-beta
+r)) at the views' median range with its interval (:func:`veil_at_median_range`).
 
 A declared light rig (``lights``: survey.json's strobes, per light offset_m, tilt_deg, beam_deg): the stack gets
 ``artificial_light`` (:func:`build_stack`), so each view's in-air colour is lit by
@@ -229,7 +236,7 @@ class WaterEstimate:
 
     stack:        the fitted stack (use :meth:`Stack.to_config` to save it).
     params:       {"effect.param": {"value", "low", "high", "std", "p2_5", "p97_5", "units", "fitted",
-                  "pinned_by"}}; fixed parameters have value only.
+                  "pinned_by", "on_bound"}}; fixed parameters have value only.
     fixed:        effects held at their values (e.g. gain without a board) and why.
     held:         {"effect.param": why} parameters held (a declared light rig, the lights' power) or tied to
                   another (the light path's eta to the attenuation's) inside fitted effects.
@@ -260,6 +267,8 @@ class WaterEstimate:
     image centre, 1 at the corners); not in :meth:`to_json`."""
     fields: dict | None = None
     """The fields over the image fitted beside the stack (:func:`field_summary`); None: none fitted."""
+    veil: dict | None = None
+    """The backscatter at the views' median range with its interval (:func:`veil_at_median_range`)."""
     observations: Observations | None = None
     """The measurement table the estimate was fitted to (:func:`estimate_water` sets it; not in :meth:`to_json`:
     the water stage saves it beside water.json for the diagnosis)."""
@@ -270,6 +279,7 @@ class WaterEstimate:
                 "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
                 "iterations": self.iterations, "converged": self.converged,
                 **({"fields": self.fields} if self.fields is not None else {}),
+                **({"veil": self.veil} if self.veil is not None else {}),
                 "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
                             "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
                             "largest change of the estimate under the alternative weightings "
@@ -307,16 +317,57 @@ def decorrelate_fields(stack: Stack, obs: Observations, max_r2: float) -> float:
     return r2
 
 
-def field_summary(stack: Stack, range_r2: float, grid: int = 33) -> dict | None:
+def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float) -> dict | None:
+    """The veil B(r) = B_inf (1 - exp(-beta r)) at the views' median range ``range_m`` per channel, with a 95 %
+    interval from the bootstrap replicates ``samples`` ({"effect.param": value}) of B_inf and beta jointly (what a
+    survey pins when its range span leaves B_inf and beta trading: the veil over its ranges); None without the
+    ``backscatter`` effect. Without replicates the interval is None."""
+    if "backscatter" not in stack.names:
+        return None
+    effect = stack["backscatter"]
+
+    def veil(b_inf, beta):
+        return np.asarray(b_inf) * (1.0 - np.exp(-np.asarray(beta) * range_m))
+
+    value = veil(effect.param("b_inf").detach().numpy(), effect.param("beta_per_m").detach().numpy())
+    entry = {"range_m": round(range_m, 3), "value": np.round(value, 6).tolist(), "low": None, "high": None}
+    keys = ("backscatter.b_inf", "backscatter.beta_per_m")
+    if len(samples) > 1 and all(k in samples[0] for k in keys):
+        values = np.stack([veil(s[keys[0]], s[keys[1]]) for s in samples])
+        half = 1.96 * values.std(0, ddof=1)
+        entry.update(low=np.round(np.clip(value - half, 0, None), 6).tolist(), high=np.round(value + half, 6).tolist())
+    return entry
+
+
+#: Fields whose multiplicative and additive parts both stay under this (per cent of the signal) read as flat.
+FIELD_FLAT_PCT = 5.0
+
+
+def field_form(multiplicative_pct: list[float], additive_pct: list[float]) -> str:
+    """"flat", "multiplicative", "additive" or "both": which part of the fields exceeds ``FIELD_FLAT_PCT`` in some
+    channel (both: each does, and neither is under half the other)."""
+    m, a = max(multiplicative_pct), max(additive_pct)
+    if max(m, a) < FIELD_FLAT_PCT:
+        return "flat"
+    if min(m, a) >= max(FIELD_FLAT_PCT, 0.5 * max(m, a)):
+        return "both"
+    return "multiplicative" if m > a else "additive"
+
+
+def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: int = 33) -> dict | None:
     """JSON-ready: the stack's ``image_field`` (degree; each channel's least and largest F and G over a grid of the
-    image; ``range_r2`` of :func:`decorrelate_fields` and whether the fields were kept off range); None when the
-    stack has none."""
+    image; their size in per cent: max |F - 1| and max |G| over the views' ``mean_signal`` (3,); the form,
+    :func:`field_form`; ``range_r2`` of :func:`decorrelate_fields` and whether the fields were kept off range);
+    None when the stack has none."""
     if FIELD_EFFECT not in stack.names:
         return None
     field_effect = stack[FIELD_EFFECT]
     u, v = np.meshgrid(np.linspace(0, 1, grid), np.linspace(0, 1, grid))
     f, g = (t.numpy() for t in field_effect.at(torch.from_numpy(np.stack([u.ravel(), v.ravel()], 1))))
-    return {"degree": field_effect.degree, "range_r2": round(range_r2, 3),
+    multiplicative = (100 * np.abs(f - 1).max(0)).round(2).tolist()
+    additive = (100 * np.abs(g).max(0) / np.maximum(mean_signal, 1e-6)).round(2).tolist()
+    return {"degree": field_effect.degree, "multiplicative_pct": multiplicative, "additive_pct": additive,
+            "form": field_form(multiplicative, additive), "range_r2": round(range_r2, 3),
             "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0), "F_min": np.round(f.min(0), 4).tolist(),
             "F_max": np.round(f.max(0), 4).tolist(), "G_min": np.round(g.min(0), 5).tolist(),
             "G_max": np.round(g.max(0), 5).tolist()}
@@ -376,8 +427,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         for p in stack.parameters():
             p.requires_grad_(False)
         named = {_key(stack, k): v for k, v in best.items()}
-        params, tradeoffs = _describe(stack, named, [{_key(stack, k): v for k, v in s.items()} for s in samples],
-                                      fixed, {_key(stack, k): v for k, v in spec.items()}, config.range_scale_sd)
+        named_samples = [{_key(stack, k): v for k, v in s.items()} for s in samples]
+        params, tradeoffs = _describe(stack, named, named_samples, fixed, {_key(stack, k): v for k, v in spec.items()},
+                                      config.range_scale_sd)
         return WaterEstimate(stack=stack, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
                              n_points=obs.n_points,
                              n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),
@@ -386,13 +438,33 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              rmse=rmse, seconds={"fit": round(t_fit, 2), "bootstrap": round(t_boot, 2),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
-                             converged=converged, fields=field_summary(stack, range_r2))
+                             converged=converged, fields=field_summary(stack, range_r2, obs.colour.mean(0)),
+                             veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m))))
     finally:
         torch.set_num_threads(threads)
 
 
+#: Fitted parameters whose lower bound is a physical value rather than a limit of the model: a survey in darkness
+#: has no light but the declared lights (``artificial_light.ambient`` = 0 is the auv preset's truth).
+PHYSICAL_LOWER_BOUNDS = ("artificial_light.ambient",)
+#: A component within this fraction of its parameter's span (absolute for an unbounded side) sits on the bound.
+BOUND_TOLERANCE = 1e-3
+
+
+def on_bound(key: str, p, value: np.ndarray) -> np.ndarray:
+    """(n,) bool per component of ``value`` (parameter ``p`` named ``key``): on a bound of its range (a lower bound
+    in ``PHYSICAL_LOWER_BOUNDS`` does not count). The fit wanted to go further: the stack does not fit there."""
+    value = np.atleast_1d(np.asarray(value, float)).ravel()
+    span = (p.upper - p.lower) if np.isfinite(p.upper) else 1.0
+    low = (np.abs(value - p.lower) <= BOUND_TOLERANCE * span) & (key not in PHYSICAL_LOWER_BOUNDS)
+    return low | (np.abs(p.upper - value) <= BOUND_TOLERANCE * span)
+
+
 def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: dict,
               range_scale_sd: float) -> tuple[dict, list]:
+    """The parameters' entries (see :class:`WaterEstimate`) and the trade-offs. A component on a bound
+    (:func:`on_bound`) gets its parameter's whole range as interval: the data pushed it out of the model, so they do
+    not pin it (its bootstrap, all on the bound, would say 0 wide)."""
     params = {}
     for effect in stack.effects:
         for p in effect.params:
@@ -406,9 +478,12 @@ def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: 
                 shift = spec.get(key, np.zeros_like(value))
                 scale = range_scale_sd * np.abs(value) if p.units == "1/m" else np.zeros_like(value)
                 half = np.sqrt((1.96 * std) ** 2 + shift ** 2 + (1.96 * scale) ** 2)
+                bound = on_bound(key, p, value).reshape(np.shape(value))
+                low = np.where(bound, p.lower, np.clip(value - half, p.lower, p.upper))
+                high = np.where(bound, p.upper, np.clip(value + half, p.lower, p.upper))
                 entry.update(std=np.round(std, 6).tolist(), specification=np.round(shift, 6).tolist(),
-                             low=np.round(np.clip(value - half, p.lower, p.upper), 6).tolist(),
-                             high=np.round(np.clip(value + half, p.lower, p.upper), 6).tolist(),
+                             low=np.round(low, 6).tolist(), high=np.round(high, 6).tolist(),
+                             on_bound=bound.tolist(),
                              p2_5=np.round(np.percentile(stack_s, 2.5, 0), 6).tolist(),
                              p97_5=np.round(np.percentile(stack_s, 97.5, 0), 6).tolist())
             params[key] = entry

@@ -145,6 +145,53 @@ def _link(ws, out: Path, path: str | Path, text: str) -> str:
 # ---------------------------------------------------------------------------------------- sections
 
 
+def found_lines(ws: Workspace) -> tuple[list[str], str]:
+    """(what the run found, one line each: the water and how far to trust it, what the fields over the image
+    carry, the diagnosis's verdict, how the corrections compare; the command to run next, or "")."""
+    lines, command = [], ""
+    water = ws.result("water")
+    if water is not None:
+        data = _load_json(ws.path(water.water_json)) or {}
+        trust = ("its intervals are 95 %" if not water.at_bounds else
+                 f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
+        lines.append(f"Water: {water.summary}; {trust}.")
+        fields = data.get("fields")
+        if fields:
+            size = (f"multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
+                    f"{max(fields['additive_pct']):.1f} % of the signal")
+            lines.append("Fields over the image: flat, nothing the stack lacks on image position (" + size + ")."
+                         if fields["form"] == "flat" else
+                         f"Fields over the image: the stack lacks a {fields['form']} structure on image position "
+                         f"({size}); the water and the corrections carry it in the fields (see the water section).")
+            if fields["form"] != "flat":
+                command = f"watergan diagnose {ws.root}"
+    diagnosed = ws.result("diagnose")
+    if diagnosed is not None:
+        verdict = Path(diagnosed.out_dir) / "verdict.txt"
+        if verdict.is_file():
+            lines.append("Diagnosis: " + verdict.read_text().strip().splitlines()[0])
+        if diagnosed.best:
+            command = f"watergan run --workspace {ws.root} --add {diagnosed.best}"
+    try:
+        verdict_lines = _tables(ws).get("verdict", [])
+    except NotRun:
+        verdict_lines = []
+    if verdict_lines:
+        lose = [line for line in verdict_lines if " loses to " in line]
+        lines.append(f"Comparisons: {len(verdict_lines) - len(lose)} of {len(verdict_lines)} hold"
+                     + (f"; {len(lose)} lose (listed under Verdict)." if lose else "."))
+    return lines, command
+
+
+def section_found(ws, out: Path) -> tuple[str, dict]:
+    lines, command = found_lines(ws)
+    if not lines:
+        raise NotRun("not run: no water, diagnosis or evaluation yet")
+    items = "".join(f"<li>{_esc(line)}</li>" for line in lines)
+    body = f"<ul>{items}</ul>" + (f"<p><b>Next:</b> <code>{_esc(command)}</code></p>" if command else "")
+    return body, {"found": lines, "next": command}
+
+
 def section_verdict(ws, out: Path) -> tuple[str, dict]:
     data = _tables(ws)
     lines = data.get("verdict", [])
@@ -363,8 +410,10 @@ def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
     rows = "".join(f"<tr><th>{_esc(key)}</th><td>{_esc(p.get('value'))}</td>"
                    f"<td>{_esc([p.get('low'), p.get('high')] if p.get('low') is not None else 'held')}</td>"
                    f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.get("params", {}).items())
-    plot = ws.path(r.water_json).parent / "residuals.png"
-    figure = _img(data_uri(read_display(plot), "png", None), "water fit residuals", "wide") if plot.is_file() else ""
+    figure = "".join(_img(data_uri(read_display(plot), "png", None), alt, "wide")
+                     for plot, alt in ((ws.path(r.water_json).parent / "residuals.png", "water fit residuals"),
+                                       (ws.path(r.water_json).parent / "fields.png", "fields over the image"))
+                     if plot.is_file())
     warn = (f"<p class='error'>At a bound of their range: {_esc(', '.join(r.at_bounds))}. The stack does not fit "
             f"this survey there (an effect is missing or has another form): read the residuals and the "
             f"diagnosis.</p>" if r.at_bounds else "")
@@ -428,6 +477,7 @@ def section_config(ws, out: Path) -> tuple[str, dict]:
 
 
 SECTIONS = (
+    ("found", "What this run found", section_found),
     ("verdict", "Verdict", section_verdict),
     ("frames", "The same frames, every method", section_frames),
     ("tables", "Tables", section_tables),

@@ -41,7 +41,7 @@ import numpy as np
 
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
-from eval.water import WaterConfig, WaterEstimate
+from eval.water import FIELD_EFFECT, WaterConfig, WaterEstimate, on_bound
 from watergan.errors import UserInputError
 from watergan.io import (
     atomic_write_json,
@@ -176,6 +176,41 @@ def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
     plt.close(fig)
 
 
+def _plot_fields(estimate: WaterEstimate, path: Path, grid: int = 49) -> bool:
+    """The fields over the image (``image_field``) per channel: F (top, 1 = nothing) and G (bottom, 0 = nothing);
+    False (nothing written) when the stack has none."""
+    if FIELD_EFFECT not in estimate.stack.names:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    h = int(round(grid * 0.75))
+    u, v = np.meshgrid(np.linspace(0, 1, grid), np.linspace(0, 1, h))
+    f, g = (t.numpy().reshape(h, grid, 3) for t in estimate.stack[FIELD_EFFECT].at(
+        torch.from_numpy(np.stack([u.ravel(), v.ravel()], 1))))
+    fig, axes = plt.subplots(2, 3, figsize=(10, 5))
+    f_span = max(float(np.abs(f - 1).max()), 0.02)
+    g_span = max(float(np.abs(g).max()), 0.002)
+    for c, name in enumerate(("red", "green", "blue")):
+        top = axes[0, c].imshow(f[..., c], cmap="RdBu_r", vmin=1 - f_span, vmax=1 + f_span)
+        bottom = axes[1, c].imshow(g[..., c], cmap="PuOr_r", vmin=-g_span, vmax=g_span)
+        axes[0, c].set_title(f"{name}: F {f[..., c].min():.3f} to {f[..., c].max():.3f}", fontsize=8)
+        axes[1, c].set_title(f"{name}: G {g[..., c].min():+.4f} to {g[..., c].max():+.4f}", fontsize=8)
+        for ax in axes[:, c]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.colorbar(top, ax=axes[0].tolist(), fraction=0.02, label="multiplicative F")
+    fig.colorbar(bottom, ax=axes[1].tolist(), fraction=0.02, label="additive G (linear)")
+    fig.suptitle("what the stack lacks on image position: the fields fitted beside the water (flat: nothing)",
+                 fontsize=9)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return True
+
+
 def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, agreement: float, scene=None):
     """(range (H,W) metres, NaN = none; the mask of pixels that took the mesh's range; the ray-casting scene):
     the frame's dense range where the fused mesh misses or agrees within ``agreement`` (relative), else the
@@ -225,25 +260,15 @@ def write_range_maps(out: Path, frames: list[WaterFrame], K: np.ndarray, mesh_pl
     return float(np.mean(from_mesh)), float(np.mean(missing))
 
 
-#: Fitted parameters whose lower bound is a physical value rather than a limit of the model: a survey in darkness
-#: has no light but the declared lights (``artificial_light.ambient`` = 0 is the auv preset's truth).
-PHYSICAL_LOWER_BOUNDS = ("artificial_light.ambient",)
-
-
-def at_bounds(estimate: WaterEstimate, tolerance: float = 1e-3) -> list[str]:
-    """The fitted parameter components within ``tolerance`` (relative to the range, or absolute for an
-    unbounded side) of a bound (a lower bound in ``PHYSICAL_LOWER_BOUNDS`` does not count)."""
+def at_bounds(estimate: WaterEstimate) -> list[str]:
+    """The fitted parameter components on a bound of their range (:func:`eval.water.on_bound`)."""
     out = []
     for effect in estimate.stack.effects:
         for p in effect.params:
             key = f"{effect.name}.{p.name}"
-            if not estimate.params.get(key, {}).get("fitted"):
-                continue
-            value = np.atleast_1d(effect.param(p.name).detach().numpy()).ravel()
-            span = (p.upper - p.lower) if np.isfinite(p.upper) else 1.0
-            low = np.abs(value - p.lower) <= tolerance * span
-            near = (low & (key not in PHYSICAL_LOWER_BOUNDS)) | (np.abs(p.upper - value) <= tolerance * span)
-            out += [f"{key}[{i}]" if value.size > 1 else key for i in np.flatnonzero(near)]
+            if estimate.params.get(key, {}).get("fitted"):
+                near = on_bound(key, p, effect.param(p.name).detach().numpy())
+                out += [f"{key}[{i}]" if near.size > 1 else key for i in np.flatnonzero(near)]
     return out
 
 
@@ -275,6 +300,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     estimate.observations.save(out / "observations.npz")
     atomic_write_text(out / "summary.txt", estimate.summary() + "\n")
     _plot_residuals(estimate, out / "residuals.png")
+    _plot_fields(estimate, out / "fields.png")
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
     mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress)
     print(estimate.summary(), flush=True)

@@ -285,13 +285,16 @@ def test_the_evaluation_measures_the_physics_correction(water_workspace):
 
 def test_a_parameter_at_a_bound_is_reported(survey):
     """A stack without attenuation on frames whose colour falls with range: the backscatter's beta runs to the
-    top of its range (5 /m, measured), and at_bounds names it; the full stack has nothing at a bound."""
+    top of its range (5 /m, measured), and at_bounds names it; its interval is the parameter's whole range, never the
+    zero-width one that its bootstrap (every replicate on the bound) gives; the full stack has nothing at a bound."""
     from pipeline.water import at_bounds
 
     frames, board = survey
     wrong = estimate_water(frames, K, board=board, config=water_config(effects=("backscatter", "vignetting", "gain"),
-                                                                      bootstrap=0))
+                                                                      bootstrap=3))
     assert "backscatter.beta_per_m[1]" in at_bounds(wrong)
+    beta = wrong.params["backscatter.beta_per_m"]
+    assert beta["on_bound"][1] and (beta["low"][1], beta["high"][1]) == (0.0, 5.0)
     assert at_bounds(estimate_water(frames, K, board=board, config=water_config(bootstrap=0))) == []
 
 

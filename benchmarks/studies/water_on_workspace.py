@@ -2,13 +2,13 @@
 two versions of the code (or two settings) can be compared on the same geometry.
 
     PYTHONPATH=. .venv/bin/python benchmarks/studies/water_on_workspace.py WS [--sfm 01_sfm] [--dense 02_dense]
-        [--field-degree N] [--out water.json]
+        [--field-degree N] [--out water.json] [--table table.npz]
 
 Reads ``WS/00_survey`` (images, the simulator's board truth, survey.json's lights), the SfM stage's tracks.npz and
 result.json (its scale spread) and the dense stage's depth maps; estimates the water with the default
-:class:`eval.water.WaterConfig` (``--field-degree``: nuisance fields of that degree, :mod:`eval.nuisance`) and the
-truth's board, measuring normals as the water stage does; prints the one-line summary and writes ``water.json``'s
-content to ``--out``. Older workspaces (folders 04_sfm, 05_dense) are read with ``--sfm`` / ``--dense``.
+:class:`eval.water.WaterConfig` (``--field-degree``: the fields over the image, ``image_field``, of that degree; 0
+none) and the truth's board, measuring normals as the water stage does; prints the one-line summary and writes
+``water.json``'s content to ``--out`` (and the measurement table to ``--table``). Older workspaces (folders 04_sfm, 05_dense) are read with ``--sfm`` / ``--dense``.
 """
 
 from __future__ import annotations
@@ -31,8 +31,10 @@ def main() -> None:
     parser.add_argument("workspace", type=Path)
     parser.add_argument("--sfm", default="01_sfm", help="the SfM stage's folder")
     parser.add_argument("--dense", default="02_dense", help="the dense stage's folder")
-    parser.add_argument("--field-degree", type=int, default=0, help="nuisance fields' degree (0: none)")
+    parser.add_argument("--field-degree", type=int, default=WaterConfig().field_degree,
+                        help="the fields' degree (0: none)")
     parser.add_argument("--out", type=Path, default=Path("water.json"), help="where to write the estimate")
+    parser.add_argument("--table", type=Path, help="where to write the measurement table (npz)")
     args = parser.parse_args()
     ws = args.workspace
     record = json.loads((ws / args.sfm / "result.json").read_text())
@@ -40,12 +42,13 @@ def main() -> None:
     survey = ws / "00_survey"
     tracks = Tracks.load(ws / args.sfm / "tracks.npz")
     frames = water_frames(tracks, survey / "images", ws / args.dense / "depth")
-    config = replace(WaterConfig(), range_scale_sd=float(sfm["scale_spread"]))
-    config = replace(config, fit=replace(config.fit, field_degree=args.field_degree))
+    config = replace(WaterConfig(), range_scale_sd=float(sfm["scale_spread"]), field_degree=args.field_degree)
     estimate = estimate_water(frames, np.asarray(tracks.K, float), board=truth_board(survey), config=config,
                               lights=survey_lights(survey), normals=True)
     print(estimate.summary())
     args.out.write_text(json.dumps(estimate.to_json(), default=str) + "\n")
+    if args.table:
+        estimate.observations.save(args.table)
 
 
 if __name__ == "__main__":
