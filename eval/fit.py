@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
@@ -112,6 +112,9 @@ class FitConfig:
     """Resample the points and the board's patches too (each one's views weigh Poisson(1) times)."""
     float32: bool = False
     """Bootstrap replicates evaluate the model in float32 (parameters and loss stay float64)."""
+    coarse_fraction: float = 0.0
+    """Fraction of the points a first fit runs on, to convergence, before the fit on all of them (0: none).
+    Each of its evaluations costs that fraction of one on all views, and it starts the full fit near its optimum."""
     seed: int = 0
     """Seed of the held-out split and of the bootstrap."""
     threads: int = field(default=1, metadata={"hash": False})
@@ -120,9 +123,9 @@ class FitConfig:
 
 #: The water estimate's fit: the dense table's views and the board, albedos >= 0 (dark points pin the backscatter),
 #: rounds to convergence, Newton-step replicates in float32.
-WATER_FIT = FitConfig(loss_scale=0.01, iterations=150, max_iterations=600, step_rtol=1e-9, polish_iterations=0,
+WATER_FIT = FitConfig(loss_scale=0.01, iterations=100, max_iterations=600, step_rtol=1e-9, polish_iterations=0,
                       albedo_min=0.0, albedo_max=math.inf, holdout_fraction=0.0, fixed_effects=(), bootstrap=30,
-                      bootstrap_refit=Refit.newton, bootstrap_iterations=5, float32=True)
+                      bootstrap_refit=Refit.newton, bootstrap_iterations=5, float32=True, coarse_fraction=0.25)
 
 
 def soft_l1(e: torch.Tensor, scale: float) -> torch.Tensor:
@@ -363,6 +366,18 @@ class Problem:
         with torch.no_grad():
             return float(self.loss())
 
+    def coarse_start(self) -> int:
+        """A first fit (:meth:`converge`) on ``config.coarse_fraction`` of the points, drawn with the fit's seed, in
+        float32, whose parameters (shared with this problem) start the full fit; returns its iterations (0: none)."""
+        fraction = self.config.coarse_fraction
+        if not 0 < fraction < 1 or not self.theta:
+            return 0
+        rng = np.random.default_rng([self.config.seed, 31])
+        keep = rng.permutation(self.points)[:max(1, int(round(fraction * len(self.points))))]
+        coarse = Problem(self.stack, self.obs, replace(self.config, coarse_fraction=0.0), self.names,
+                         self.rows[np.isin(self.obs.point[self.rows], keep)], self.has_board, float32=True)
+        return coarse.converge()[0]  # its parameters are this problem's: the stack's tensors
+
     def converge(self) -> tuple[int, bool]:
         """Rounds of :meth:`minimise` (see ``FitConfig.max_iterations``); returns (iterations, converged)."""
         config = self.config
@@ -427,10 +442,36 @@ def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int) 
 
 
 # ---------------------------------------------------------------------------------- bootstrap
-def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = None) -> list[dict[str, np.ndarray]]:
+def inverse_hessian(problem: Problem) -> torch.Tensor:
+    """H^-1 of ``problem``'s loss at its parameters (eigenvalues clamped at 1e-6 of the largest)."""
+    evals, evecs = torch.linalg.eigh(problem.hessian())
+    return (evecs / evals.clamp_min(evals.abs().max() * 1e-6 + 1e-300)) @ evecs.T
+
+
+def newton_refit(problem: Problem, x0: torch.Tensor, inv: torch.Tensor, iterations: int) -> None:
+    """Refit ``problem`` (its weights or configuration changed) from the full fit's ``x0``: one Newton step with the
+    full fit's inverse Hessian ``inv``, halved until it lowers the loss (kept at ``x0`` after six halvings), then
+    ``iterations`` L-BFGS iterations."""
+    problem.set_flat(x0)
+    step = -(inv @ problem.gradient())
+    with torch.no_grad():
+        before = float(problem.loss())
+        for _ in range(6):
+            problem.set_flat(x0 + step)
+            if float(problem.loss()) < before:
+                break
+            step = step / 2
+        else:
+            problem.set_flat(x0)
+    problem.minimise(iterations)
+
+
+def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = None,
+              inv: torch.Tensor | None = None) -> list[dict[str, np.ndarray]]:
     """``config.bootstrap`` replicates of the fit of ``problem`` (at its optimum; see the module docstring), each
     {raw name: physical value}. ``replicas``: the problem the replicates are evaluated on (e.g. the same stack in
-    float32; default ``problem``). The parameters are restored afterwards."""
+    float32; default ``problem``); ``inv``: its inverse Hessian when already computed (``newton``). The parameters
+    are restored afterwards."""
     fast = replicas or problem
     if not config.bootstrap or not problem.names:
         return []
@@ -440,9 +481,8 @@ def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = No
     groups = [board_frames, np.setdiff1d(frames, board_frames)]
     n_patches = int(problem.board_patch.max()) + 1 if problem.has_board else 0
     x0 = fast.flat()
-    if config.bootstrap_refit == Refit.newton:
-        evals, evecs = torch.linalg.eigh(fast.hessian())
-        inv = (evecs / evals.clamp_min(evals.abs().max() * 1e-6 + 1e-300)) @ evecs.T
+    if config.bootstrap_refit == Refit.newton and inv is None:
+        inv = inverse_hessian(fast)
     samples = []
     for _ in range(config.bootstrap):
         counts, points, patches = replicate_weights(rng, groups, len(fast.points) if config.bootstrap_points else 0,
@@ -451,20 +491,10 @@ def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = No
         if config.bootstrap_points:
             fast.point_weight = torch.from_numpy(points)
             fast.patch_weight = torch.from_numpy(patches) if n_patches else None
-        fast.set_flat(x0)
         if config.bootstrap_refit == Refit.newton:
-            step = -(inv @ fast.gradient())  # a Newton step from the full fit, halved until it helps
-            with torch.no_grad():
-                before = float(fast.loss())
-                for _ in range(6):
-                    fast.set_flat(x0 + step)
-                    if float(fast.loss()) < before:
-                        break
-                    step = step / 2
-                else:
-                    fast.set_flat(x0)
-            fast.minimise(config.bootstrap_iterations)
+            newton_refit(fast, x0, inv, config.bootstrap_iterations)
         else:
+            fast.set_flat(x0)
             fast.refine(config.bootstrap_iterations)
         samples.append(fast.physical())
     fast.frame_weight = fast.point_weight = fast.patch_weight = None

@@ -42,7 +42,7 @@ What pins what (and what does not):
 Uncertainty: the fitter's bootstrap (:func:`eval.fit.bootstrap`: frames, points and board patches resampled, each
 replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
 that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
-less) and each parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 +
+less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 +
 change^2 [+ (1.96 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
 (:func:`on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not pin it. Pairs of
 parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs. Where B_inf and beta
@@ -63,6 +63,7 @@ from the lights. Normals come from each frame's range map smoothed by ``measure.
 Known limits: in a flat direction (red B_inf against beta, the two vignettings) a fit stops where a round of L-BFGS
 stops gaining, so what lies further along it is only as pinned as ``fit.convergence_rtol`` says; the vignetting
 polynomial's b and c trade with each other (the falloff as a function is pinned, not its coefficients).
+The fit starts on ``fit.coarse_fraction`` of the points (:meth:`eval.fit.Problem.coarse_start`), then runs on all.
 Measured accuracy and coverage: benchmarks/RESULTS.md ("Site water").
 
 Bad input: fewer than ``min_frames`` frames with a pose and range, range on too small a part of the frames, or too
@@ -83,7 +84,17 @@ from watergan.formation.effects.image_field import field_basis, n_terms
 from watergan.formation.inverse import needs_normals
 from watergan.formation.rig import held_rig, rig_settings
 
-from .fit import DEFAULT_EFFECTS, WATER_FIT, FitConfig, Problem, bootstrap, fitted_names, start_inside_bounds
+from .fit import (
+    DEFAULT_EFFECTS,
+    WATER_FIT,
+    FitConfig,
+    Problem,
+    bootstrap,
+    fitted_names,
+    inverse_hessian,
+    newton_refit,
+    start_inside_bounds,
+)
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 
@@ -137,6 +148,8 @@ class WaterConfig:
 
 #: The effect that models a declared light rig when the configured stack has none.
 RIG_EFFECT = "artificial_light"
+#: L-BFGS iterations of each specification alternative's refit after its Newton step from the full fit.
+SPEC_ITERATIONS = 30
 #: The nuisance fields over the image (``WaterConfig.field_degree``).
 FIELD_EFFECT = "image_field"
 
@@ -400,23 +413,25 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
         problem = Problem(stack, obs, config.fit, names)
         start_inside_bounds(stack, names)
-        iterations, converged = problem.converge()
+        iterations = problem.coarse_start()
+        done, converged = problem.converge()
+        iterations += done
         problem.refine(config.fit.refine_evaluations)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
 
         fast = Problem(stack, obs, config.fit, names, float32=True) if config.fit.float32 else problem
-        samples = bootstrap(problem, config.fit, fast)
+        inv = inverse_hessian(fast) if names else None
+        samples = bootstrap(problem, config.fit, fast, inv)
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives
         if alternatives is None:
             alternatives = ({"board_weight": config.fit.board_weight / 10},) if problem.has_board else \
                 ({"loss_scale": config.fit.loss_scale * 3},)
         spec = {}
-        for change in alternatives:
+        for change in alternatives:  # each refitted from the full fit as a bootstrap replicate is, in float64
             problem.config = replace(config.fit, **change)
-            problem.set_flat(x_best)
-            problem.converge()
+            newton_refit(problem, x_best, inv, SPEC_ITERATIONS)
             for key, value in problem.physical().items():
                 spec[key] = np.maximum(spec.get(key, 0.0), np.abs(value - best[key]))
         problem.config = config.fit

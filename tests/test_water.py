@@ -291,7 +291,7 @@ def test_a_parameter_at_a_bound_is_reported(survey):
 
     frames, board = survey
     wrong = estimate_water(frames, K, board=board, config=water_config(effects=("backscatter", "vignetting", "gain"),
-                                                                      bootstrap=3))
+                                                                      bootstrap=3, field_degree=0))
     assert "backscatter.beta_per_m[1]" in at_bounds(wrong)
     beta = wrong.params["backscatter.beta_per_m"]
     assert beta["on_bound"][1] and (beta["low"][1], beta["high"][1]) == (0.0, 5.0)
@@ -381,11 +381,12 @@ def test_a_fit_stopped_before_convergence_says_so(survey):
     reported as not converged (in the estimate and its summary line), one given room converges."""
     frames, board = survey
     short = estimate_water(frames, K, board=board, config=water_config(iterations=2, max_iterations=3, bootstrap=0,
-                                                                      margin_px=4, footprint_m=FOOTPRINT_M))
+                                                                      margin_px=4, footprint_m=FOOTPRINT_M,
+                                                                      coarse_fraction=0.0))
     assert not short.converged and short.iterations == 2 and "not converged in 2 iterations" in short.summary()
     full = estimate_water(frames, K, board=board, config=water_config(bootstrap=0, margin_px=4,
                                                                      footprint_m=FOOTPRINT_M))
-    assert full.converged and 150 < full.iterations <= 600 and "not converged" not in full.summary()
+    assert full.converged and 200 <= full.iterations <= 1200 and "not converged" not in full.summary()
     assert full.to_json()["converged"] is True
 
 
@@ -466,8 +467,9 @@ def test_a_declared_strobe_rig_is_modelled_and_the_water_recovered(lit_survey):
     np.testing.assert_allclose(light.param("eta_per_m").numpy(), est.stack["attenuation"].param("eta_per_m").numpy())
     assert not est.params["artificial_light.offset_m"]["fitted"] and "artificial_light.power" in est.held
     assert est.params["artificial_light.ambient"]["fitted"]
-    # measured 0.3 % off (its intervals, +-0.4-2 % on this noise-free geometry, miss by that much)
-    np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), LIT_ETA, rtol=0.02)
+    # measured 0.3 % off without the fields over the image, 1.4-2.1 % with them (the beams' pattern over the image
+    # trades a little with the fields)
+    np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), LIT_ETA, rtol=0.03)
     eta = est.params["attenuation.eta_per_m"]
     assert all(lo < v < hi for lo, v, hi in zip(eta["low"], eta["value"], eta["high"], strict=True))
     # the rig's power is held at the truth's (the effect's initial value, 4): the gain is then the truth's too
