@@ -394,10 +394,51 @@ def _absorbed_at(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
     return float(np.abs(log_ratio - mean[inv]).max()) < 1e-6
 
 
+def effect_form(effect, state) -> str:
+    """How a fitted ``effect`` acts at the views of ``state``: "multiplicative" (it scales the direct signal by a
+    factor that varies over the views), "additive" (it adds light where none was), "both" or "neither"."""
+    probe = state.replace(direct=torch.ones_like(state.direct), backscatter=torch.zeros_like(state.direct))
+    with torch.no_grad():
+        out = effect.to(torch.float64)(probe)
+    scales = torch.log(out.direct.clamp_min(1e-12))
+    multiplicative = float((scales - scales.mean((0, 2, 3), keepdim=True)).abs().max()) > 1e-3
+    additive = float(out.backscatter.abs().max()) > 1e-4
+    return {(True, True): "both", (True, False): "multiplicative", (False, True): "additive"}.get(
+        (multiplicative, additive), "neither")
+
+
+def form_conflict(name: str, form: str, fields: dict | None) -> str:
+    """Why candidate ``name`` of this ``form`` (:func:`effect_form`) does not fit the water's fields over the image
+    (``fields``: water.json's, :func:`eval.water.field_summary`), "" when it does or there is nothing to compare:
+    an image-position candidate must have the fields' form (multiplicative or additive) to explain them."""
+    if not fields or get(name).axis != "image_position" or fields.get("form") not in ("multiplicative", "additive"):
+        return ""
+    if form in (fields["form"], "both"):
+        return ""
+    return (f"its form is {form} while the water's fields over the image carry {fields['form']} structure "
+            f"(multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
+            f"{max(fields['additive_pct']):.1f} % of the signal)")
+
+
+def fields_line(fields: dict | None) -> str:
+    """The verdict's line on the water's fields over the image ("" without them)."""
+    if not fields:
+        return ""
+    size = (f"multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
+            f"{max(fields['additive_pct']):.1f} % of the signal")
+    if fields["form"] == "flat":
+        return f"fields: the water's fields over the image are flat ({size}): nothing missing on image position"
+    return (f"fields: the water's fields over the image carry {fields['form']} structure ({size}): an effect of that "
+            f"form on image position is missing (03_water/fields.png)")
+
+
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
-                    split, names: list[str], progress: bool | None = None) -> list[CandidateResult]:
-    """Refit with each candidate added; sorted by held-out change (best first)."""
+                    split, names: list[str], progress: bool | None = None,
+                    fields: dict | None = None) -> list[CandidateResult]:
+    """Refit with each candidate added; sorted by held-out change (best first). ``fields``: the water's fields over
+    the image; an image-position candidate of another form (:func:`form_conflict`) is not accepted."""
     results = []
+    probe = observation_state(meas, np.arange(min(meas.n_obs, 2000)))
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
         trial = insert_by_rank(stack, make_effect(name, meas))
         grid_start(trial, name, base, meas, split, config)
@@ -409,13 +450,14 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         cand_scores = scores(cand_analysis)
         drops = {a: base_scores[a] - cand_scores.get(a, 0.0) for a in base_scores}
         flattened = max(drops, key=drops.get)
+        implausible = why_implausible(name, fit.params[name]) or form_conflict(
+            name, effect_form(fit.stack[name], probe), fields)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
-            significant=p < config.alpha and change <= -config.min_improvement and not why_implausible(
-                name, fit.params[name]), flattened=flattened,
-            flattened_drop=round(drops[flattened], 3), params=fit.params[name], scores=cand_scores,
-            structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
-            implausible=why_implausible(name, fit.params[name])))
+            significant=p < config.alpha and change <= -config.min_improvement and not implausible,
+            flattened=flattened, flattened_drop=round(drops[flattened], 3), params=fit.params[name],
+            scores=cand_scores, structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
+            implausible=implausible))
     return sorted(results, key=lambda r: r.change)
 
 
@@ -478,9 +520,10 @@ SHORT_VALUES = 6
 
 
 def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
-                 final_structure: dict | None = None, misfit: str = "") -> str:
+                 final_structure: dict | None = None, misfit: str = "", fields: dict | None = None) -> str:
     """One line naming the missing effect (or none); a line per candidate that would explain enough but
-    is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure."""
+    is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure; a line on the water's
+    ``fields`` over the image (:func:`fields_line`)."""
     best = next((r for r in ranking if r.significant), None)
     if best is not None:
         line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
@@ -503,6 +546,8 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
                            for a in unexplained)
         line += (f"\nunexplained structure along: {listed} — no registered candidate explains it; an effect "
                  f"whose signature lies on this axis is missing (write one and pass --plugin FILE.py)")
+    if fields_line(fields):
+        line += "\n" + fields_line(fields)
     return line
 
 
@@ -542,18 +587,20 @@ def _ledger_record(fit: FitResult, kind: str, meas: Observations, colour: dict) 
 def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig = DiagnoseConfig(),
              tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None,
              model: list[dict] | None = None, measurements: Observations | None = None,
-             described: str = "") -> DiagnoseResult:
+             described: str = "", fields: dict | None = None) -> DiagnoseResult:
     """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), or take
     ``measurements`` as given (the workspace stage passes the water stage's table, :func:`eval.diagnose_measure.
     with_survey`; ``described`` says where it came from), fit the model, analyse residuals, rank
     candidates, write everything to ``out`` and append the fits to the ledger in ``ledger_dir`` (with ``colour``,
     the image folders' consistency and board error when they were measured). ``model``: the stack to start from
-    (the water stage's estimate; see :func:`default_stack`). Torch runs on one thread: the tensors are small
+    (the water stage's estimate; see :func:`default_stack`); ``fields``: its fields over the image (water.json's;
+    the verdict reads them and an image-position candidate of another form is not accepted). Torch runs on one thread: the tensors are small
     (observations x 3), and a thread pool competing with other processes for the cores slows a fit many times."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():
-        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model, measurements, described)
+        return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model, measurements, described,
+                         fields)
 
 
 def describe_measurements(meas: Observations, where: str = "") -> str:
@@ -564,7 +611,7 @@ def describe_measurements(meas: Observations, where: str = "") -> str:
 
 def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig, tracks: Path | None, scale: str,
               colour: dict, model: list[dict] | None, measurements: Observations | None = None,
-              described: str = "") -> DiagnoseResult:
+              described: str = "", fields: dict | None = None) -> DiagnoseResult:
     start = time.perf_counter()
     progress = config.progress
     survey = check_survey_folder(survey)
@@ -601,7 +648,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     append_ledger(ledger_dir, _ledger_record(base, "model", meas, colour))
 
     names, skipped = candidate_names(stack, meas, config.candidates)
-    ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress)
+    ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress, fields)
     misfit = added_form_misfit(config.add, base_scores, relative_amplitudes(analysis, base), config)
     if misfit:
         ranking = [stand_in(r, config.add[-1]) for r in ranking]
@@ -615,7 +662,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     final_scores = best.scores if best is not None else base_scores
     final_structure = best.structure if best is not None else relative_amplitudes(analysis, base)
     unexplained = unexplained_axes(final_scores, final_structure, config)
-    verdict = verdict_text(ranking, unexplained, final_scores, final_structure, misfit)
+    verdict = verdict_text(ranking, unexplained, final_scores, final_structure, misfit, fields)
     if meas.source.endswith("(scale: none)"):
         verdict += ("\nnote: the reconstruction has no metric scale (sfm scale 'none'): ranges are in SfM units, so "
                     "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "

@@ -15,6 +15,7 @@ frames (:func:`corrected_summary`). On a bare survey folder it measures the surv
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,8 +115,10 @@ def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseStageResul
     measured = water_measurements(ws, cfg.geometry, cfg.measure)
     meas, described = measured if measured is not None else (None, "")
     out = ws.stage_dir("diagnose")
+    water_json = json.loads(ws.path(water.water_json).read_text()) if water is not None else {}
     result = diagnose(ws.folder("survey"), out, out, cfg, tracks, scale, corrected_summary(ws),
-                      model=water.stack if water is not None else None, measurements=meas, described=described)
+                      model=water.stack if water is not None else None, measurements=meas, described=described,
+                      fields=water_json.get("fields"))
     fields = {f.name: getattr(result, f.name) for f in dataclasses.fields(result)}
     return DiagnoseStageResult(**fields, ledger=ws.relative(out / LEDGER_NAME))
 

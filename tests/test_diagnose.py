@@ -26,6 +26,8 @@ from eval.diagnose import (
     DiagnoseConfig,
     candidate_names,
     default_stack,
+    effect_form,
+    form_conflict,
     small_survey_config,
     survey_counts,
     why_implausible,
@@ -648,3 +650,23 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     assert "vignetting_offcentre" in after.stack and after.n_obs == before.n_obs == water.n_observations
     assert after.heldout_rmse < 0.6 * before.heldout_rmse and after.best is None, after.verdict
     assert [r["kind"] for r in read_ledger(ws.path(after.ledger))].count("model") == 2
+
+
+def test_a_candidate_of_another_form_than_the_fields_is_not_accepted():
+    """The water's fields over the image say which form is missing: an off-centre falloff is multiplicative, so it
+    cannot explain additive fields (a veil fixed in the image), and is accepted against multiplicative ones."""
+    from watergan.formation import FormationState, get, pixel_grid
+
+    state = FormationState(direct=torch.ones(1, 3, 8, 8, dtype=torch.float64),
+                           range_m=torch.full((1, 1, 8, 8), 2.0, dtype=torch.float64),
+                           pixel_uv=pixel_grid(8, 8, 1, torch.float64), image_wh=(8, 8))
+    falloff = get("vignetting_offcentre")(**get("vignetting_offcentre").simulation_params)
+    assert effect_form(falloff, state) == "multiplicative"
+    assert effect_form(get("backscatter")(), state) == "additive"
+    assert effect_form(get("image_field")(additive=[[0.01] * 5] * 3), state) == "additive"
+    additive = {"form": "additive", "multiplicative_pct": [0.4, 0.3, 0.2], "additive_pct": [3.0, 4.5, 6.1]}
+    reason = form_conflict("vignetting_offcentre", "multiplicative", additive)
+    assert "multiplicative while the water's fields over the image carry additive" in reason and "6.1 %" in reason
+    assert form_conflict("vignetting_offcentre", "multiplicative", {**additive, "form": "multiplicative"}) == ""
+    assert form_conflict("vignetting_offcentre", "multiplicative", None) == ""
+    assert form_conflict("backscatter", "additive", {**additive, "form": "multiplicative"}) == ""  # not image axis
