@@ -52,6 +52,7 @@ import torch
 from tqdm import tqdm
 
 from watergan.formation import Counts, MissingInputError, Stack, available, get
+from watergan.formation.inverse import affine_images
 from watergan.formation.rig import declared_rig, held_rig, rig_settings
 from watergan.io import atomic_write_json, atomic_write_text
 
@@ -394,15 +395,18 @@ def _absorbed_at(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
     return float(np.abs(log_ratio - mean[inv]).max()) < 1e-6
 
 
-def effect_form(effect, state) -> str:
-    """How a fitted ``effect`` acts at the views of ``state``: "multiplicative" (it scales the direct signal by a
-    factor that varies over the views), "additive" (it adds light where none was), "both" or "neither"."""
-    probe = state.replace(direct=torch.ones_like(state.direct), backscatter=torch.zeros_like(state.direct))
+def effect_form(stack: Stack, name: str, state) -> str:
+    """How effect ``name`` of a fitted ``stack`` acts at the views of ``state``, against the same stack without it
+    (A, C of y = A J + C, :func:`watergan.formation.inverse.affine_images`): "multiplicative" (A / A_without
+    varies over the views), "additive" (C changes, and not by the factor A / A_without: light added, not scaled),
+    "both" or "neither"."""
+    without = Stack([e for e in stack.effects if e.name != name])
     with torch.no_grad():
-        out = effect.to(torch.float64)(probe)
-    scales = torch.log(out.direct.clamp_min(1e-12))
-    multiplicative = float((scales - scales.mean((0, 2, 3), keepdim=True)).abs().max()) > 1e-3
-    additive = float(out.backscatter.abs().max()) > 1e-4
+        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, without))
+    ratio = a1 / a0.clamp_min(1e-12)
+    log_ratio = torch.log(ratio.clamp_min(1e-12))
+    multiplicative = float((log_ratio - log_ratio.mean((0, 2, 3), keepdim=True)).abs().max()) > 1e-3
+    additive = min(float((c1 - c0).abs().max()), float((c1 - c0 * ratio).abs().max())) > 1e-4
     return {(True, True): "both", (True, False): "multiplicative", (False, True): "additive"}.get(
         (multiplicative, additive), "neither")
 
@@ -450,8 +454,9 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         cand_scores = scores(cand_analysis)
         drops = {a: base_scores[a] - cand_scores.get(a, 0.0) for a in base_scores}
         flattened = max(drops, key=drops.get)
-        implausible = why_implausible(name, fit.params[name]) or form_conflict(
-            name, effect_form(fit.stack[name], probe), fields)
+        implausible = why_implausible(name, fit.params[name])
+        if not implausible and fields and get(name).axis == "image_position":
+            implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
             significant=p < config.alpha and change <= -config.min_improvement and not implausible,

@@ -659,11 +659,15 @@ def test_a_candidate_of_another_form_than_the_fields_is_not_accepted():
 
     state = FormationState(direct=torch.ones(1, 3, 8, 8, dtype=torch.float64),
                            range_m=torch.full((1, 1, 8, 8), 2.0, dtype=torch.float64),
+                           depth_m=torch.full((1, 1, 8, 8), 2.0, dtype=torch.float64),
                            pixel_uv=pixel_grid(8, 8, 1, torch.float64), image_wh=(8, 8))
-    falloff = get("vignetting_offcentre")(**get("vignetting_offcentre").simulation_params)
-    assert effect_form(falloff, state) == "multiplicative"
-    assert effect_form(get("backscatter")(), state) == "additive"
-    assert effect_form(get("image_field")(additive=[[0.01] * 5] * 3), state) == "additive"
+    base = [{"name": "attenuation"}, {"name": "backscatter"}, {"name": "vignetting"}, {"name": "gain"}]
+    falloff = {"name": "vignetting_offcentre", "params": get("vignetting_offcentre").simulation_params}
+    veil = {"name": "image_field", "params": {"additive": [[0.01] * 5] * 3}}
+    assert effect_form(Stack.ordered([*base, falloff]), "vignetting_offcentre", state) == "multiplicative"
+    assert effect_form(Stack.ordered([*base, veil]), "image_field", state) == "additive"
+    assert effect_form(Stack.ordered(base), "backscatter", state) == "additive"
+    assert effect_form(Stack.ordered(base), "attenuation", state) == "neither"  # the same at every view here
     additive = {"form": "additive", "multiplicative_pct": [0.4, 0.3, 0.2], "additive_pct": [3.0, 4.5, 6.1]}
     reason = form_conflict("vignetting_offcentre", "multiplicative", additive)
     assert "multiplicative while the water's fields over the image carry additive" in reason and "6.1 %" in reason
