@@ -154,7 +154,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         data = _load_json(ws.path(water.water_json)) or {}
         trust = ("its intervals are 95 %" if not water.at_bounds else
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
-        lines.append(f"Water: {water.summary}; {trust}.")
+        lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}.")
         fields = data.get("fields")
         if fields:
             size = (f"multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "

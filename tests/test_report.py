@@ -262,7 +262,7 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
     assert set(status.values()) == {"ok"}, report["sections"]
     assert report["verdict"] and any("ours loses to oracle" in line for line in report["verdict"])
     found = next(s for s in report["sections"] if s["id"] == "found")  # the first screen: what the run found
-    assert report["sections"][0] is found and found["found"][0].startswith("Water: water: eta_per_m")
+    assert report["sections"][0] is found and found["found"][0].startswith("Water: eta_per_m")
     assert any(line.startswith("Fields over the image: ") for line in found["found"])
     assert any(line.startswith("Comparisons: ") for line in found["found"]) and "fields over the image" in page
     frames = next(s for s in report["sections"] if s["id"] == "frames")
