@@ -56,6 +56,8 @@ SURVEYS = {
     "veil0": {"seed": 0, "stereo": True, "hidden": ("port_veil",)},
     "veil1": {"seed": 1, "stereo": True, "hidden": ("port_veil",)},
     "expo0": {"seed": 0, "stereo": True, "hidden": ("survey_exposure",)},
+    "expo0_add": {"seed": 0, "stereo": True, "hidden": ("survey_exposure",), "add": ("survey_exposure",),
+                  "workspace": "expo0"},
     "drift0": {"seed": 0, "stereo": True, "hidden": ("water_drift",)},
 }
 #: The plugin holding the robustness surveys' hidden effects (loaded when a survey hides one of them).
@@ -272,6 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--surveys", default="demo0,demo1,mono0", help=f"comma-separated, of {', '.join(SURVEYS)}")
     parser.add_argument("--bootstrap", type=int, default=None, help="bootstrap replicates (default: WaterConfig's)")
     parser.add_argument("--tracks", action="store_true", help="also give the SfM tracks to the estimator")
+    parser.add_argument("--field-degree", type=int, default=None,
+                        help="degree of the fields over the image (default: WaterConfig's; 0: none)")
     parser.add_argument("--no-light-rig", action="store_true", help="leave the declared lights out of the stack "
                         "(the estimate before the water stage modelled them)")
     parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "water.json")
@@ -283,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
         WaterConfig(fit=replace(WaterConfig().fit, bootstrap=args.bootstrap))
     if args.no_light_rig:
         config = replace(config, light_rig=False)
+    if args.field_degree is not None:
+        config = replace(config, field_degree=args.field_degree)
     results = {}
     for name in args.surveys.split(","):
         results[name] = run_survey(args.out, name, config, args.tracks)

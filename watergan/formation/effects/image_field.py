@@ -39,8 +39,9 @@ from ..registry import register
 
 #: y scale of the basis: the image's height over its width for a 4:3 frame.
 ASPECT = 0.75
-#: Additive coefficients are penalised in units of this (linear colour): a veil of 0.02 costs what a 2 % falloff does.
-G_SCALE = 0.02
+#: Additive coefficients are penalised in units of this (linear colour, a typical underwater signal): a veil of 0.01
+#: costs what a 10 % falloff does, the two changing such a signal alike.
+G_SCALE = 0.1
 
 
 def degree_of(n_terms: int) -> int:
