@@ -205,8 +205,8 @@ def default_stack(survey: Path, effects: tuple[str, ...], model: list[dict] | No
                   counts: Counts | None = None) -> Stack:
     """The model to diagnose: the named effects (initial values; ``counts`` sizes their per-frame and
     per-light parameters), or ``model`` (a stack configuration: the site water the water stage estimated, less
-    its nuisance fields, whose content is what the diagnosis looks for), or the survey's visible stack with its parameters when simulated, or attenuation, backscatter,
-    vignetting and gain."""
+    its nuisance fields, whose content is what the diagnosis looks for), or the survey's visible stack with its
+    parameters when simulated, or attenuation, backscatter, vignetting and gain."""
     if effects:
         return Stack.ordered(list(effects), counts)
     if model:
@@ -599,8 +599,9 @@ def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig =
     candidates, write everything to ``out`` and append the fits to the ledger in ``ledger_dir`` (with ``colour``,
     the image folders' consistency and board error when they were measured). ``model``: the stack to start from
     (the water stage's estimate; see :func:`default_stack`); ``fields``: its fields over the image (water.json's;
-    the verdict reads them and an image-position candidate of another form is not accepted). Torch runs on one thread: the tensors are small
-    (observations x 3), and a thread pool competing with other processes for the cores slows a fit many times."""
+    the verdict reads them and an image-position candidate of another form is not accepted). Torch runs on one
+    thread: the tensors are small (observations x 3), and a thread pool competing with other processes for the
+    cores slows a fit many times."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():

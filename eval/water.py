@@ -42,8 +42,9 @@ What pins what (and what does not):
 Uncertainty: the fitter's bootstrap (:func:`eval.fit.bootstrap`: frames, points and board patches resampled, each
 replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
 that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
-less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 +
-change^2 [+ (1.96 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
+less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each
+parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2
+[+ (1.96 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
 (:func:`on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not pin it. Pairs of
 parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs. Where B_inf and beta
 trade (a short range span), what the survey pins is the veil over its ranges: ``veil`` gives B_inf (1 - exp(-beta
@@ -381,7 +382,8 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
     additive = (100 * np.abs(g).max(0) / np.maximum(mean_signal, 1e-6)).round(2).tolist()
     return {"degree": field_effect.degree, "multiplicative_pct": multiplicative, "additive_pct": additive,
             "form": field_form(multiplicative, additive), "range_r2": round(range_r2, 3),
-            "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0), "F_min": np.round(f.min(0), 4).tolist(),
+            "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0),
+            "F_min": np.round(f.min(0), 4).tolist(),
             "F_max": np.round(f.max(0), 4).tolist(), "G_min": np.round(g.min(0), 5).tolist(),
             "G_max": np.round(g.max(0), 5).tolist()}
 

@@ -8,7 +8,8 @@ Reads ``WS/00_survey`` (images, the simulator's board truth, survey.json's light
 result.json (its scale spread) and the dense stage's depth maps; estimates the water with the default
 :class:`eval.water.WaterConfig` (``--field-degree``: the fields over the image, ``image_field``, of that degree; 0
 none) and the truth's board, measuring normals as the water stage does; prints the one-line summary and writes
-``water.json``'s content to ``--out`` (and the measurement table to ``--table``). Older workspaces (folders 04_sfm, 05_dense) are read with ``--sfm`` / ``--dense``.
+``water.json``'s content to ``--out`` (and the measurement table to ``--table``). Older workspaces (folders 04_sfm,
+05_dense) are read with ``--sfm`` / ``--dense``.
 """
 
 from __future__ import annotations
