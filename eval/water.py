@@ -357,6 +357,19 @@ def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float) -> d
 FIELD_FLAT_PCT = 5.0
 
 
+def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str]) -> int:
+    """When the stack holds an effect on image position besides the centred ``vignetting`` and the fields (one added
+    after the diagnosis named it), fit the stack first with the fields held flat (in place; coarse start, then on
+    all points), so that the named effect takes what its form explains and the fields, freed afterwards, only the
+    rest: ``--add`` of the right effect flattens them. Returns the iterations spent (0: nothing to do)."""
+    if FIELD_EFFECT not in stack.names or not any(
+            e.axis == "image_position" and e.name not in ("vignetting", FIELD_EFFECT) for e in stack.effects):
+        return 0
+    field_index = str(stack.names.index(FIELD_EFFECT))
+    first = Problem(stack, obs, fit, [n for n in names if n.split(".")[1] != field_index])
+    return first.coarse_start() + first.converge()[0]
+
+
 def field_form(multiplicative_pct: list[float], additive_pct: list[float]) -> str:
     """"flat", "multiplicative", "additive" or "both": which part of the fields exceeds ``FIELD_FLAT_PCT`` in some
     channel (both: each does, and neither is under half the other)."""
@@ -413,9 +426,10 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             by_effect[name] = (*by_effect.get(name, ()), param)
         names = fitted_names(stack, tuple(fixed), by_effect)
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
-        problem = Problem(stack, obs, config.fit, names)
         start_inside_bounds(stack, names)
-        iterations = problem.coarse_start()
+        iterations = stack_first(stack, obs, config.fit, names)
+        problem = Problem(stack, obs, config.fit, names)
+        iterations += problem.coarse_start() if not iterations else 0
         done, converged = problem.converge()
         iterations += done
         problem.refine(config.fit.refine_evaluations)
