@@ -37,7 +37,8 @@ What pins what (and what does not):
 - the fields over the image (``image_field``, degree ``field_degree``; :func:`decorrelate_fields`): what the stack
   lacks on image position, multiplicative F and additive G per channel, pinned by the same point at different image
   positions; where image position explains most of the range (one altitude over a flat floor) they are kept
-  uncorrelated with range, which is then the water's.
+  uncorrelated with range, which is then the water's. An effect on image position added to the stack is fitted
+  before them (:func:`stack_first`): the fields take only what its form leaves.
 
 Uncertainty: the fitter's bootstrap (:func:`eval.fit.bootstrap`: frames, points and board patches resampled, each
 replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
