@@ -241,9 +241,14 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     for key in ("attenuation.eta_per_m", "backscatter.b_inf"):
         p = water["params"][key]
         assert all(lo < v < hi for lo, v, hi in zip(p["low"], p["value"], p["high"], strict=True)), key
-        # 10 frames of 320x240: measured 3-12 % off for eta and 8-19 % for B_inf (the demo: <= 2 %); WaterGAN's
-        # eta was 43 % off in green on the demo
-        np.testing.assert_allclose(p["value"], truth[key], rtol=0.25, err_msg=key)
+        # 10 frames of 320x240 at one altitude, with the fields over the image: measured 8-23 % off for eta and up to
+        # 26 % for B_inf (red, along its valley with beta; the demo: <= 2 % and 15 %); WaterGAN's eta was 43 % off in
+        # green on the demo
+        np.testing.assert_allclose(p["value"], truth[key], rtol=0.3, err_msg=key)
+    veil = water["veil"]  # what the survey pins of the backscatter: the veil at its median range, within 10 %
+    true_veil = np.array(truth["backscatter.b_inf"]) * -np.expm1(-np.array(truth["backscatter.beta_per_m"])
+                                                                   * veil["range_m"])
+    np.testing.assert_allclose(veil["value"], true_veil, rtol=0.15)
     assert result.board and result.summary.startswith("water: eta_per_m") and result.range_missing < 0.2
     assert result.at_bounds == []  # nothing hidden: the stack fits
     from eval.observations import Observations  # the table the estimate was fitted to, for the diagnosis
