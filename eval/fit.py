@@ -122,7 +122,7 @@ class FitConfig:
 
 
 #: The water estimate's fit: the dense table's views and the board, albedos >= 0 (dark points pin the backscatter),
-#: rounds to convergence, Newton-step replicates in float32.
+#: a coarse start on a quarter of the points, rounds to convergence, Newton-step replicates in float32.
 WATER_FIT = FitConfig(loss_scale=0.01, iterations=100, max_iterations=600, step_rtol=1e-9, polish_iterations=0,
                       albedo_min=0.0, albedo_max=math.inf, holdout_fraction=0.0, fixed_effects=(), bootstrap=30,
                       bootstrap_refit=Refit.newton, bootstrap_iterations=5, float32=True, coarse_fraction=0.25)
