@@ -72,6 +72,7 @@ from .fit import (
 )
 from .ledger import LEDGER_NAME, append_ledger, plot_ledger, read_ledger
 from .observations import Observations
+from .water import field_size
 
 #: Training observations on which the start grid is evaluated.
 START_GRID_OBS = 300
@@ -420,16 +421,14 @@ def form_conflict(name: str, form: str, fields: dict | None) -> str:
     if form in (fields["form"], "both"):
         return ""
     return (f"its form is {form} while the water's fields over the image carry {fields['form']} structure "
-            f"(multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
-            f"{max(fields['additive_pct']):.1f} % of the signal)")
+            f"({field_size(fields)})")
 
 
 def fields_line(fields: dict | None) -> str:
     """The verdict's line on the water's fields over the image ("" without them)."""
     if not fields:
         return ""
-    size = (f"multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
-            f"{max(fields['additive_pct']):.1f} % of the signal")
+    size = field_size(fields)
     if fields["form"] == "flat":
         return f"fields: the water's fields over the image are flat ({size}): nothing missing on image position"
     return (f"fields: the water's fields over the image carry {fields['form']} structure ({size}): an effect of that "

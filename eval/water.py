@@ -354,10 +354,6 @@ def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float) -> d
     return entry
 
 
-#: Fields whose multiplicative and additive parts both stay under this (per cent of the signal) read as flat.
-FIELD_FLAT_PCT = 5.0
-
-
 def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str]) -> int:
     """When the stack holds an effect on image position besides the centred ``vignetting`` and the fields (one added
     after the diagnosis named it), fit the stack first with the fields held flat (in place; coarse start, then on
@@ -371,6 +367,10 @@ def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str
     return first.coarse_start() + first.converge()[0]
 
 
+#: Fields whose multiplicative and additive parts both stay under this (per cent of the signal) read as flat.
+FIELD_FLAT_PCT = 5.0
+
+
 def field_form(multiplicative_pct: list[float], additive_pct: list[float]) -> str:
     """"flat", "multiplicative", "additive" or "both": which part of the fields exceeds ``FIELD_FLAT_PCT`` in some
     channel (both: each does, and neither is under half the other)."""
@@ -382,6 +382,12 @@ def field_form(multiplicative_pct: list[float], additive_pct: list[float]) -> st
     return "multiplicative" if m > a else "additive"
 
 
+def field_size(fields: dict) -> str:
+    """The fields' size in words, from :func:`field_summary`'s entry: the largest multiplicative and additive part."""
+    return (f"multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
+            f"{max(fields['additive_pct']):.1f} % of the signal")
+
+
 def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: int = 33) -> dict | None:
     """JSON-ready: the stack's ``image_field`` (degree; each channel's least and largest F and G over a grid of the
     image; their size in per cent: max |F - 1| and max |G| over the views' ``mean_signal`` (3,); the form,
@@ -390,8 +396,7 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
     if FIELD_EFFECT not in stack.names:
         return None
     field_effect = stack[FIELD_EFFECT]
-    u, v = np.meshgrid(np.linspace(0, 1, grid), np.linspace(0, 1, grid))
-    f, g = (t.numpy() for t in field_effect.at(torch.from_numpy(np.stack([u.ravel(), v.ravel()], 1))))
+    f, g = (t.reshape(-1, 3) for t in field_effect.on_grid(grid, grid))
     multiplicative = (100 * np.abs(f - 1).max(0)).round(2).tolist()
     additive = (100 * np.abs(g).max(0) / np.maximum(mean_signal, 1e-6)).round(2).tolist()
     return {"degree": field_effect.degree, "multiplicative_pct": multiplicative, "additive_pct": additive,

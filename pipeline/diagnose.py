@@ -15,7 +15,6 @@ frames (:func:`corrected_summary`). On a bare survey folder it measures the surv
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from eval.diagnose_measure import (
 from eval.ledger import LEDGER_NAME
 from eval.observations import Observations
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_json
+from watergan.io import atomic_write_json, read_json
 
 from .workspace import Workspace
 
@@ -115,7 +114,7 @@ def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseStageResul
     measured = water_measurements(ws, cfg.geometry, cfg.measure)
     meas, described = measured if measured is not None else (None, "")
     out = ws.stage_dir("diagnose")
-    water_json = json.loads(ws.path(water.water_json).read_text()) if water is not None else {}
+    water_json = read_json(ws.path(water.water_json), "water file") if water is not None else {}
     result = diagnose(ws.folder("survey"), out, out, cfg, tracks, scale, corrected_summary(ws),
                       model=water.stack if water is not None else None, measurements=meas, described=described,
                       fields=water_json.get("fields"))

@@ -148,6 +148,8 @@ def _link(ws, out: Path, path: str | Path, text: str) -> str:
 def found_lines(ws: Workspace) -> tuple[list[str], str]:
     """(what the run found, one line each: the water and how far to trust it, what the fields over the image
     carry, the diagnosis's verdict, how the corrections compare; the command to run next, or "")."""
+    from eval.water import field_size
+
     lines, command = [], ""
     water = ws.result("water")
     if water is not None:
@@ -157,8 +159,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}.")
         fields = data.get("fields")
         if fields:
-            size = (f"multiplicative up to {max(fields['multiplicative_pct']):.0f} %, additive up to "
-                    f"{max(fields['additive_pct']):.1f} % of the signal")
+            size = field_size(fields)
             lines.append("Fields over the image: flat, nothing the stack lacks on image position (" + size + ")."
                          if fields["form"] == "flat" else
                          f"Fields over the image: the stack lacks a {fields['form']} structure on image position "

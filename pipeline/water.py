@@ -43,6 +43,7 @@ from eval.observations import WaterFrame
 from eval.tracks import Tracks
 from eval.water import FIELD_EFFECT, WaterConfig, WaterEstimate, on_bound
 from watergan.errors import UserInputError
+from watergan.formation.effects.image_field import ASPECT
 from watergan.io import (
     atomic_write_json,
     atomic_write_text,
@@ -185,12 +186,8 @@ def _plot_fields(estimate: WaterEstimate, path: Path, grid: int = 49) -> bool:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import torch
 
-    h = int(round(grid * 0.75))
-    u, v = np.meshgrid(np.linspace(0, 1, grid), np.linspace(0, 1, h))
-    f, g = (t.numpy().reshape(h, grid, 3) for t in estimate.stack[FIELD_EFFECT].at(
-        torch.from_numpy(np.stack([u.ravel(), v.ravel()], 1))))
+    f, g = estimate.stack[FIELD_EFFECT].on_grid(grid, int(round(grid * ASPECT)))
     fig, axes = plt.subplots(2, 3, figsize=(10, 5))
     f_span = max(float(np.abs(f - 1).max()), 0.02)
     g_span = max(float(np.abs(g).max()), 0.002)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from ..effect import RANK_OPTICS, Effect
@@ -126,3 +127,9 @@ class ImageField(Effect):
         with torch.no_grad():
             f, g = (torch.einsum("cm,bmhw->bc", c, basis) for c in self.coefficients())
         return torch.exp(f), g
+
+    def on_grid(self, cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+        """(F, G) (rows, cols, 3) on a grid of the image, corner to corner."""
+        u, v = np.meshgrid(np.linspace(0, 1, cols), np.linspace(0, 1, rows))
+        f, g = self.at(torch.from_numpy(np.stack([u.ravel(), v.ravel()], 1)))
+        return f.numpy().reshape(rows, cols, 3), g.numpy().reshape(rows, cols, 3)
