@@ -276,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tracks", action="store_true", help="also give the SfM tracks to the estimator")
     parser.add_argument("--field-degree", type=int, default=None,
                         help="degree of the fields over the image (default: WaterConfig's; 0: none)")
+    parser.add_argument("--no-frame-gain", action="store_true", help="no gain per frame beside the stack")
     parser.add_argument("--no-light-rig", action="store_true", help="leave the declared lights out of the stack "
                         "(the estimate before the water stage modelled them)")
     parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "water.json")
@@ -289,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
         config = replace(config, light_rig=False)
     if args.field_degree is not None:
         config = replace(config, field_degree=args.field_degree)
+    if args.no_frame_gain:
+        config = replace(config, frame_gain=False)
     results = {}
     for name in args.surveys.split(","):
         results[name] = run_survey(args.out, name, config, args.tracks)

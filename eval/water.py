@@ -126,6 +126,10 @@ class WaterConfig:
     field_degree: int = 2
     """Degree of the smooth fields over the image (``image_field``) fitted beside the stack, so that what the stack
     lacks on image position bends them and not the water; 0: none. The corrections invert them with the stack."""
+    frame_gain: bool = True
+    """Fit a gain per frame and channel (``frame_gain``) beside the stack, so that what the stack lacks along the
+    survey (auto-exposure, white balance, a water that drifts) bends it and not the water, unless an effect of the
+    stack already has a value per frame; the physics correction inverts it with the stack."""
     field_max_range_r2: float = 0.5
     """When image position explains more than this fraction of the views' range variance (one altitude over a flat
     floor), the fields are kept uncorrelated with range (:func:`decorrelate_fields`)."""
@@ -154,6 +158,8 @@ RIG_EFFECT = "artificial_light"
 SPEC_ITERATIONS = 30
 #: The nuisance fields over the image (``WaterConfig.field_degree``).
 FIELD_EFFECT = "image_field"
+#: The nuisance gain per frame (``WaterConfig.frame_gain``).
+FRAME_EFFECT = "frame_gain"
 
 
 def rig_lights(config: WaterConfig, lights: list[dict] | None) -> list[dict]:
@@ -176,6 +182,8 @@ def build_stack(config: WaterConfig, n_frames: int | None = None, lights: list[d
         zeros = np.zeros((3, n_terms(config.field_degree))).tolist()
         given[FIELD_EFFECT] = {"multiplicative": zeros, "additive": zeros, "orthogonal_to": zeros[0],
                                **given.get(FIELD_EFFECT, {})}
+    if config.frame_gain and n_frames and not any(p.per == "frame" for n in names for p in get(n).params):
+        names.append(FRAME_EFFECT)
     if lights and not any(get(n).rig_params for n in names):
         names.append(RIG_EFFECT)
     entries = [{"name": n, "params": {**given.get(n, {}), **rig_settings(get(n), lights)}} for n in names]
@@ -282,6 +290,8 @@ class WaterEstimate:
     image centre, 1 at the corners); not in :meth:`to_json`."""
     fields: dict | None = None
     """The fields over the image fitted beside the stack (:func:`field_summary`); None: none fitted."""
+    frames: dict | None = None
+    """The gains per frame fitted beside the stack (:func:`frame_summary`); None: none fitted."""
     veil: dict | None = None
     """The backscatter at the views' median range with its interval (:func:`veil_at_median_range`)."""
     observations: Observations | None = None
@@ -294,6 +304,7 @@ class WaterEstimate:
                 "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
                 "iterations": self.iterations, "converged": self.converged,
                 **({"fields": self.fields} if self.fields is not None else {}),
+                **({"frames": self.frames} if self.frames is not None else {}),
                 **({"veil": self.veil} if self.veil is not None else {}),
                 "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
                             "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
@@ -330,6 +341,26 @@ def decorrelate_fields(stack: Stack, obs: Observations, max_r2: float) -> float:
         q = centred.T @ r / len(r)
         effect.set_values(orthogonal_to=q / max(np.linalg.norm(q), 1e-12))
     return r2
+
+
+def decorrelate_frames(stack: Stack, obs: Observations) -> None:
+    """Set the stack's ``frame_gain.orthogonal_to`` (in place, unless given) to orthonormal columns spanning the
+    constant and each frame's mean range over its views (frames without views at the survey's mean), so that the
+    gains per frame have no mean and cannot take what is linear in the frames' ranges (see
+    :mod:`watergan.formation.effects.frame_gain`)."""
+    if FRAME_EFFECT not in stack.names:
+        return
+    effect = stack[FRAME_EFFECT]
+    if effect.param("orthogonal_to").abs().max() > 0:
+        return
+    n = effect.param("log_gain").shape[0]
+    views = np.bincount(obs.frame, minlength=n)[:n]
+    mean_range = np.bincount(obs.frame, weights=obs.range_m, minlength=n)[:n] / np.maximum(views, 1)
+    mean_range[views == 0] = obs.range_m.mean()
+    columns = np.stack([np.ones(n), mean_range - mean_range.mean()], 1)
+    q, r = np.linalg.qr(columns)
+    q[:, np.abs(np.diag(r)) < 1e-9 * np.sqrt(n)] = 0.0  # every frame at one range: the constant alone
+    effect.set_values(orthogonal_to=q)
 
 
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float) -> dict | None:
@@ -407,6 +438,19 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
             "G_max": np.round(g.max(0), 5).tolist()}
 
 
+def frame_summary(stack: Stack, frames: np.ndarray) -> dict | None:
+    """JSON-ready: the stack's ``frame_gain`` over the ``frames`` with views: per channel the largest |exp(g') - 1|
+    and the standard deviation of g' in per cent, whether that is flat (under ``FIELD_FLAT_PCT``) and the gains
+    exp(g') per frame (frames, 3); None when the stack has none."""
+    if FRAME_EFFECT not in stack.names:
+        return None
+    with torch.no_grad():
+        g = stack[FRAME_EFFECT].gains().numpy()[frames]
+    largest = (100 * np.abs(np.expm1(g)).max(0)).round(2).tolist()
+    return {"largest_pct": largest, "sd_pct": (100 * g.std(0)).round(2).tolist(),
+            "flat": max(largest) < FIELD_FLAT_PCT, "frames": frames.tolist(), "gain": np.exp(g).round(4).tolist()}
+
+
 def _key(stack: Stack, raw_name: str) -> str:
     """"effect.param" of a raw parameter name "effects.I.raw.PARAM"."""
     return f"{stack.effects[int(raw_name.split('.')[1])].name}.{raw_name.rsplit('.', 1)[1]}"
@@ -432,6 +476,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             by_effect[name] = (*by_effect.get(name, ()), param)
         names = fitted_names(stack, tuple(fixed), by_effect)
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
+        decorrelate_frames(stack, obs)
         start_inside_bounds(stack, names)
         iterations = stack_first(stack, obs, config.fit, names)
         problem = Problem(stack, obs, config.fit, names)
@@ -476,6 +521,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
                              converged=converged, fields=field_summary(stack, range_r2, obs.colour.mean(0)),
+                             frames=frame_summary(stack, frames),
                              veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m))))
     finally:
         torch.set_num_threads(threads)

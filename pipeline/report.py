@@ -166,6 +166,16 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
                          f"({size}); the water and the corrections carry it in the fields (see the water section).")
             if fields["form"] != "flat":
                 command = f"watergan diagnose {ws.root}"
+        frames = data.get("frames")
+        if frames:
+            size = f"up to {max(frames['largest_pct']):.0f} %, sd " + " / ".join(f"{v:.1f}" for v in frames["sd_pct"])
+            lines.append(f"Gains per frame: flat, nothing the stack lacks from frame to frame ({size} %)."
+                         if frames["flat"] else
+                         f"Gains per frame: the frames differ by more than the water explains ({size} % per "
+                         f"channel: exposure, white balance or a water that changes along the survey); the water "
+                         f"and the corrections carry it in the gains (see the water section).")
+            if not frames["flat"]:
+                command = command or f"watergan diagnose {ws.root}"
     diagnosed = ws.result("diagnose")
     if diagnosed is not None:
         verdict = Path(diagnosed.out_dir) / "verdict.txt"
@@ -408,12 +418,17 @@ def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
     the residual plot."""
     r = _stage_result(ws, "water")
     water = _load_json(ws.path(r.water_json)) or {}
+    from watergan.formation import builtin_effects
+
+    nuisance = {name for name, cls in builtin_effects().items() if cls.nuisance}
     rows = "".join(f"<tr><th>{_esc(key)}</th><td>{_esc(p.get('value'))}</td>"
                    f"<td>{_esc([p.get('low'), p.get('high')] if p.get('low') is not None else 'held')}</td>"
-                   f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.get("params", {}).items())
+                   f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.get("params", {}).items()
+                   if key.split(".")[0] not in nuisance)
     figure = "".join(_img(data_uri(read_display(plot), "png", None), alt, "wide")
                      for plot, alt in ((ws.path(r.water_json).parent / "residuals.png", "water fit residuals"),
-                                       (ws.path(r.water_json).parent / "fields.png", "fields over the image"))
+                                       (ws.path(r.water_json).parent / "fields.png", "fields over the image"),
+                                       (ws.path(r.water_json).parent / "frames.png", "gains per frame"))
                      if plot.is_file())
     warn = (f"<p class='error'>At a bound of their range: {_esc(', '.join(r.at_bounds))}. The stack does not fit "
             f"this survey there (an effect is missing or has another form): read the residuals and the "

@@ -208,6 +208,30 @@ def _plot_fields(estimate: WaterEstimate, path: Path, grid: int = 49) -> bool:
     return True
 
 
+def _plot_frames(estimate: WaterEstimate, path: Path) -> bool:
+    """The gains per frame (``frame_gain``) per channel against the frame's index (1 = nothing); False (nothing
+    written) when the stack has none."""
+    if estimate.frames is None:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames, gain = np.asarray(estimate.frames["frames"]), np.asarray(estimate.frames["gain"])
+    fig, ax = plt.subplots(figsize=(8, 3))
+    ax.axhline(1.0, color="0.6", lw=0.8)
+    for c, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
+        ax.plot(frames, gain[:, c], ".-", color=colour, lw=0.8, ms=4)
+    ax.set_xlabel("frame index")
+    ax.set_ylabel("gain exp(g)")
+    ax.set_title("what the stack lacks from frame to frame (exposure, white balance, a drifting water): the gains "
+                 "per frame fitted beside the water (flat at 1: nothing)", fontsize=8)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return True
+
+
 def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, agreement: float, scene=None):
     """(range (H,W) metres, NaN = none; the mask of pixels that took the mesh's range; the ray-casting scene):
     the frame's dense range where the fused mesh misses or agrees within ``agreement`` (relative), else the
@@ -298,6 +322,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     atomic_write_text(out / "summary.txt", estimate.summary() + "\n")
     _plot_residuals(estimate, out / "residuals.png")
     _plot_fields(estimate, out / "fields.png")
+    _plot_frames(estimate, out / "frames.png")
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
     mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress)
     print(estimate.summary(), flush=True)

@@ -58,10 +58,16 @@ def test_all_fourteen_builtins_registered():
         assert any(f.__doc__ and "=" in f.__doc__ for f in funcs), f"{name}: no pure function stating its equation"
 
 
+def new(name: str):
+    """A built-in made for a survey of 8 frames (``make_state``'s frame indices are 3 and 4), so that effects with a
+    value per frame (``frame_gain``) have their rows."""
+    return get(name)(counts=Counts(frames=8))
+
+
 @pytest.mark.parametrize("name", EFFECTS)
 def test_smoke_and_shapes(name):
     state = make_state(dtype=torch.float32)
-    effect = get(name)()
+    effect = new(name)
     out = run(effect, state)
     assert out.direct.shape == state.direct.shape
     assert out.backscatter.shape == state.direct.shape
@@ -76,18 +82,21 @@ def test_smoke_and_shapes(name):
 @pytest.mark.parametrize("name", EFFECTS)
 def test_identity_at_neutral(name):
     state = make_state()
-    effect = get(name)().double()
+    effect = new(name).double()
     effect.make_neutral()
     before = get("attenuation")()(state) if name == "backscatter_coefficient" else state
     out = effect(before)
     assert torch.allclose(out.image, before.image, atol=1e-6), name
 
 
-@pytest.mark.parametrize("name", [n for n in EFFECTS if n not in ("gain", "image_field")])  # both start at the identity
+AT_IDENTITY = ("gain", "image_field", "frame_gain")  # built-ins that start at the identity
+
+
+@pytest.mark.parametrize("name", [n for n in EFFECTS if n not in AT_IDENTITY])
 def test_not_identity_at_initial_values(name):
     """The converse of the identity test: at its initial values every effect changes the image."""
     state = make_state()
-    effect = get(name)().double()
+    effect = new(name).double()
     before = get("attenuation")()(state) if name == "backscatter_conv" or name == "backscatter_coefficient" \
         else state
     out = effect(before)
@@ -98,7 +107,7 @@ def test_not_identity_at_initial_values(name):
 def test_gradcheck_float64(name):
     torch.manual_seed(0)
     state = make_state(batch=2, height=5, width=6)
-    effect = get(name)().double()
+    effect = new(name).double()
     if name == "backscatter_conv":
         # the learned layers: check through the noise vector and the convolutions (the 100 -> 3072
         # projection is an ordinary Linear layer)
@@ -133,7 +142,7 @@ def test_gradcheck_float64(name):
 @pytest.mark.parametrize("name", EFFECTS)
 def test_bounds_hold_for_random_raw_parameters(name):
     g = torch.Generator().manual_seed(1)
-    effect = get(name)()
+    effect = new(name)
     for _ in range(20):
         with torch.no_grad():
             for raw in effect.raw.values():
@@ -171,7 +180,7 @@ def test_vignetting_is_monotonic_and_constrained():
 
 
 def test_stack_json_round_trip_every_effect():
-    stack = Stack.from_names(EFFECTS)
+    stack = Stack.from_names(EFFECTS, counts=Counts(frames=8))
     config = stack.to_config()
     text = json.dumps(config)
     again = Stack.from_config(json.loads(text)).to_config()
@@ -302,7 +311,7 @@ def test_effect_declarations_default_to_nothing_declared():
     for name, cls in builtin_effects().items():
         spec = {p.name for p in cls.params}
         assert set(cls.start_grid) <= spec and set(cls.simulation_params) <= spec, name
-        cls(**cls.simulation_params)  # the simulated values are valid
+        cls(counts=Counts(frames=8), **cls.simulation_params)  # the simulated values are valid
 
 
 def test_plugin_registers_a_user_effect(tmp_path):

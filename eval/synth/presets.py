@@ -39,7 +39,8 @@ from .trajectory import TrajectoryConfig
 
 #: Effects that cannot be hidden, and why.
 NOT_SIMULATED = {"backscatter_conv": "it is a learned network (WaterGAN's G-II), not a physical model to render",
-                 "image_field": "a nuisance that stands in for what a fitted stack lacks, not one physical effect"}
+                 **{name: "a nuisance that stands in for what a fitted stack lacks, not one physical effect"
+                    for name, cls in builtin_effects().items() if cls.nuisance}}
 
 #: The parameters the simulator gives each built-in effect it can hide (those not in the visible stack
 #: nor in NOT_SIMULATED): each class's ``simulation_params`` ({} = the effect's own initial values).

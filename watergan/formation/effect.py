@@ -94,10 +94,10 @@ class Effect(nn.Module):
                 return p
         raise ParameterError(f"effect '{self.name}' has no parameter '{name}'")
 
-    def per_frame(self, name: str, state: FormationState) -> torch.Tensor:
-        """The row of per-frame parameter ``name`` for each element of the state's batch (its ``frame_index``),
-        cast to the state's dtype: shape (B, *row)."""
-        value = self.param(name, state.direct)
+    def per_frame(self, name: str, state: FormationState, value: torch.Tensor | None = None) -> torch.Tensor:
+        """The row of per-frame parameter ``name`` (or of ``value``, one row per frame derived from it) for each
+        element of the state's batch (its ``frame_index``), cast to the state's dtype: shape (B, *row)."""
+        value = self.param(name, state.direct) if value is None else value
         frame = state.need("frame_index", self.name).to(torch.long)
         if len(frame) and int(frame.max()) >= value.shape[0]:
             raise ParameterError(f"{self.name}.{name} holds {value.shape[0]} frames' values; the data has frame "

@@ -223,11 +223,14 @@ def fill_range_holes(range_m: torch.Tensor) -> tuple[torch.Tensor, float]:
 
 
 def invertible_water(stack: list[dict]) -> list[dict]:
-    """The effects of a stack configuration that act pixel by pixel: effects on whole-image neighbourhoods
-    (``needs_image``: blur, the learned scattering's masks) have no per-pixel inverse; the nets learn them."""
+    """The effects of a stack configuration that act pixel by pixel on any frame: effects on whole-image
+    neighbourhoods (``needs_image``: blur, the learned scattering's masks) have no per-pixel inverse, and effects
+    with a value per survey frame (``frame_gain``, a plugin's exposure) none for an image of no known frame; the nets
+    learn them."""
     from watergan.formation import get
 
-    return [e for e in stack if not get(e["name"]).needs_image]
+    return [e for e in stack if not get(e["name"]).needs_image
+            and not any(p.per == "frame" for p in get(e["name"]).params)]
 
 
 def water_fields(water: list[dict], range_m: torch.Tensor,
