@@ -435,6 +435,17 @@ def fields_line(fields: dict | None) -> str:
             f"form on image position is missing (03_water/fields.png)")
 
 
+def frames_line(frames: dict | None) -> str:
+    """The verdict's line on the water's gains per frame (water.json's ``frames``; "" without them)."""
+    if not frames:
+        return ""
+    size = f"up to {max(frames['largest_pct']):.0f} %"
+    if frames["flat"]:
+        return f"frames: the water's gains per frame are flat ({size}): nothing missing from frame to frame"
+    return (f"frames: the water's gains per frame carry {size} beyond what the frames' ranges explain: something "
+            f"changes from frame to frame (exposure, white balance, the water along the survey; 03_water/frames.png)")
+
+
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
                     split, names: list[str], progress: bool | None = None,
                     fields: dict | None = None) -> list[CandidateResult]:
@@ -524,10 +535,11 @@ SHORT_VALUES = 6
 
 
 def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
-                 final_structure: dict | None = None, misfit: str = "", fields: dict | None = None) -> str:
+                 final_structure: dict | None = None, misfit: str = "", fields: dict | None = None,
+                 frames: dict | None = None) -> str:
     """One line naming the missing effect (or none); a line per candidate that would explain enough but
     is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure; a line on the water's
-    ``fields`` over the image (:func:`fields_line`)."""
+    ``fields`` over the image (:func:`fields_line`) and one on its gains per frame (:func:`frames_line`)."""
     best = next((r for r in ranking if r.significant), None)
     if best is not None:
         line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
@@ -550,8 +562,8 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
                            for a in unexplained)
         line += (f"\nunexplained structure along: {listed} — no registered candidate explains it; an effect "
                  f"whose signature lies on this axis is missing (write one and pass --plugin FILE.py)")
-    if fields_line(fields):
-        line += "\n" + fields_line(fields)
+    for extra in (fields_line(fields), frames_line(frames)):
+        line += f"\n{extra}" if extra else ""
     return line
 
 
@@ -591,21 +603,22 @@ def _ledger_record(fit: FitResult, kind: str, meas: Observations, colour: dict) 
 def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig = DiagnoseConfig(),
              tracks: Path | None = None, scale: str = "unknown", colour: dict | None = None,
              model: list[dict] | None = None, measurements: Observations | None = None,
-             described: str = "", fields: dict | None = None) -> DiagnoseResult:
+             described: str = "", fields: dict | None = None, frames: dict | None = None) -> DiagnoseResult:
     """Measure the survey (SfM ``tracks`` with their ``scale`` method, else the simulator's truth), or take
     ``measurements`` as given (the workspace stage passes the water stage's table, :func:`eval.diagnose_measure.
     with_survey`; ``described`` says where it came from), fit the model, analyse residuals, rank
     candidates, write everything to ``out`` and append the fits to the ledger in ``ledger_dir`` (with ``colour``,
     the image folders' consistency and board error when they were measured). ``model``: the stack to start from
     (the water stage's estimate; see :func:`default_stack`); ``fields``: its fields over the image (water.json's;
-    the verdict reads them and an image-position candidate of another form is not accepted). Torch runs on one
+    the verdict reads them and an image-position candidate of another form is not accepted), ``frames`` its gains
+    per frame (water.json's; the verdict reads them). Torch runs on one
     thread: the tensors are small (observations x 3), and a thread pool competing with other processes for the
     cores slows a fit many times."""
     from eval.synth.imaging import single_torch_thread
 
     with single_torch_thread():
         return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model, measurements, described,
-                         fields)
+                         fields, frames)
 
 
 def describe_measurements(meas: Observations, where: str = "") -> str:
@@ -616,7 +629,7 @@ def describe_measurements(meas: Observations, where: str = "") -> str:
 
 def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig, tracks: Path | None, scale: str,
               colour: dict, model: list[dict] | None, measurements: Observations | None = None,
-              described: str = "", fields: dict | None = None) -> DiagnoseResult:
+              described: str = "", fields: dict | None = None, frames: dict | None = None) -> DiagnoseResult:
     start = time.perf_counter()
     progress = config.progress
     survey = check_survey_folder(survey)
@@ -667,7 +680,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     final_scores = best.scores if best is not None else base_scores
     final_structure = best.structure if best is not None else relative_amplitudes(analysis, base)
     unexplained = unexplained_axes(final_scores, final_structure, config)
-    verdict = verdict_text(ranking, unexplained, final_scores, final_structure, misfit, fields)
+    verdict = verdict_text(ranking, unexplained, final_scores, final_structure, misfit, fields, frames)
     if meas.source.endswith("(scale: none)"):
         verdict += ("\nnote: the reconstruction has no metric scale (sfm scale 'none'): ranges are in SfM units, so "
                     "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -209,6 +210,21 @@ def is_affine_in_albedo(stack: Stack, state: FormationState) -> bool:
     return bool(torch.allclose(f2 - f1, f1 - f0, atol=1e-9, rtol=1e-6))
 
 
+def channels_separate(stack: Stack, state: FormationState) -> bool:
+    """True when a change of one channel's albedo changes that channel's render alone for these views (no effect
+    mixes the colour channels), in float64."""
+    one = torch.full((state.direct.shape[0], 3), 0.5, dtype=torch.float64)
+    with torch.no_grad():
+        base = _render(stack, state, one)
+        for c in range(3):
+            moved = one.clone()
+            moved[:, c] = 0.6
+            change = (_render(stack, state, moved) - base).abs()
+            if bool((change[:, [k for k in range(3) if k != c]] > 1e-12).any()):
+                return False
+    return True
+
+
 def _render(stack: Stack, state: FormationState, albedo: torch.Tensor) -> torch.Tensor:
     return stack.render(state.replace(direct=albedo.reshape(-1, 3, 1, 1).to(state.direct.dtype)))[:, :, 0, 0]
 
@@ -242,12 +258,19 @@ class Problem:
         self.patch_weight: torch.Tensor | None = None
         by_name = dict(stack.named_parameters(remove_duplicate=False))  # a tied parameter under each name
         self.theta = [by_name[n] for n in names]
-        for p in stack.parameters():
+        self.take_gradients()
+        probe = observation_state(obs, self.rows[:1024])
+        self.affine = is_affine_in_albedo(stack, probe)
+        self.separate = channels_separate(stack, probe)
+        self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
+
+    def take_gradients(self) -> None:
+        """Make this problem's parameters the stack's only ones with gradients (another problem on the same stack
+        made after this one changes them)."""
+        for p in self.stack.parameters():
             p.requires_grad_(False)
         for p in self.theta:
             p.requires_grad_(True)
-        self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
-        self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
 
     # ------------------------------------------------------------------ weights, albedos, residuals
     def view_weight(self) -> torch.Tensor:
@@ -336,18 +359,52 @@ class Problem:
         self.loss().backward()
         return torch.cat([p.grad.reshape(-1) for p in self.theta]).double()
 
+    def channel_groups(self) -> tuple[list[np.ndarray], np.ndarray]:
+        """(groups of flat parameter indices, each index's colour channel or -1): the entries of a parameter that
+        its effect declares per channel (``Effect.channel_axis``) that differ only in their channel form a group;
+        every other entry (shared by the channels, tied to another parameter, or any entry when the stack mixes the
+        channels, :func:`channels_separate`) is a group of its own."""
+        uses = Counter(id(p) for p in self.theta)
+        channel, slots = [], []
+        for name, p in zip(self.names, self.theta, strict=True):
+            axis = type(self.stack.effects[int(name.split(".")[1])]).channel_axis.get(name.rsplit(".", 1)[1])
+            shape = tuple(p.shape)
+            if axis is None or not self.separate or uses[id(p)] > 1 or len(shape) <= axis or shape[axis] != 3:
+                channel += [-1] * p.numel()
+                slots += [(name, k) for k in range(p.numel())]
+                continue
+            index = np.indices(shape).reshape(len(shape), -1)
+            channel += index[axis].tolist()
+            slots += [(name, *np.delete(index, axis, 0)[:, k]) for k in range(p.numel())]
+        groups: dict = {}
+        for i, slot in enumerate(slots):
+            groups.setdefault(slot, []).append(i)
+        return [np.asarray(g) for g in groups.values()], np.asarray(channel)
+
     def hessian(self, step: float = 1e-3) -> torch.Tensor:
-        """Central differences of the gradient in the raw parameters, symmetrised."""
+        """Central differences of the gradient in the raw parameters, symmetrised. The loss is a sum over the colour
+        channels, so the entries of a group of :meth:`channel_groups` are perturbed together: the gradient's change
+        in a parameter of channel c is then the column of the group's channel-c entry (the other channels' entries
+        do not reach it); the columns of shared parameters come from their own rows."""
         x0 = self.flat()
+        groups, channel = self.channel_groups()
         hess = torch.zeros(len(x0), len(x0), dtype=torch.float64)
-        for i in range(len(x0)):
+        for group in groups:
             d = torch.zeros_like(x0)
-            d[i] = step
+            d[group] = step
             self.set_flat(x0 + d)
             gp = self.gradient()
             self.set_flat(x0 - d)
-            hess[i] = (gp - self.gradient()) / (2 * step)
+            change = (gp - self.gradient()) / (2 * step)
+            if len(group) == 1:
+                hess[group[0]] = change
+                continue
+            for i in group:
+                same = torch.from_numpy(channel == channel[i])
+                hess[i, same] = change[same]
         self.set_flat(x0)
+        shared, grouped = np.flatnonzero(channel < 0), np.flatnonzero(channel >= 0)
+        hess[np.ix_(grouped, shared)] = hess[np.ix_(shared, grouped)].T
         return 0.5 * (hess + hess.T)
 
     def physical(self) -> dict[str, np.ndarray]:
@@ -366,17 +423,24 @@ class Problem:
         with torch.no_grad():
             return float(self.loss())
 
-    def coarse_start(self) -> int:
-        """A first fit (:meth:`converge`) on ``config.coarse_fraction`` of the points, drawn with the fit's seed, in
-        float32, whose parameters (shared with this problem) start the full fit; returns its iterations (0: none)."""
+    def coarse(self, names: list[str] | None = None) -> Problem | None:
+        """The problem on ``config.coarse_fraction`` of the points, drawn with the fit's seed, in float32, fitting
+        ``names`` (default this problem's); its parameters are this problem's (the stack's tensors). None when the
+        fraction is not in (0, 1)."""
         fraction = self.config.coarse_fraction
-        if not 0 < fraction < 1 or not self.theta:
-            return 0
+        if not 0 < fraction < 1:
+            return None
         rng = np.random.default_rng([self.config.seed, 31])
         keep = rng.permutation(self.points)[:max(1, int(round(fraction * len(self.points))))]
-        coarse = Problem(self.stack, self.obs, replace(self.config, coarse_fraction=0.0), self.names,
-                         self.rows[np.isin(self.obs.point[self.rows], keep)], self.has_board, float32=True)
-        return coarse.converge()[0]  # its parameters are this problem's: the stack's tensors
+        return Problem(self.stack, self.obs, replace(self.config, coarse_fraction=0.0),
+                       self.names if names is None else names, self.rows[np.isin(self.obs.point[self.rows], keep)],
+                       self.has_board, float32=True)
+
+    def coarse_start(self) -> int:
+        """A first fit (:meth:`converge`) on :meth:`coarse`, whose parameters start the full fit; returns its
+        iterations (0: none)."""
+        coarse = self.coarse() if self.theta else None
+        return coarse.converge()[0] if coarse is not None else 0
 
     def converge(self) -> tuple[int, bool]:
         """Rounds of :meth:`minimise` (see ``FitConfig.max_iterations``); returns (iterations, converged)."""

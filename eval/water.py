@@ -39,6 +39,10 @@ What pins what (and what does not):
   positions; where image position explains most of the range (one altitude over a flat floor) they are kept
   uncorrelated with range, which is then the water's. An effect on image position added to the stack is fitted
   before them (:func:`stack_first`): the fields take only what its form leaves.
+- the gains per frame (``frame_gain``, ``frame_gain=True``; :func:`decorrelate_frames`): what the stack lacks from
+  frame to frame (exposure, white balance, a drifting water), per frame and channel, pinned by the same points seen
+  in several frames; kept off the constant (the survey's gain) and off the frames' mean ranges (the water's), so
+  eta's level comes from the frames' ranges as without them.
 
 Uncertainty: the fitter's bootstrap (:func:`eval.fit.bootstrap`: frames, points and board patches resampled, each
 replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
@@ -438,17 +442,33 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
             "G_max": np.round(g.max(0), 5).tolist()}
 
 
-def frame_summary(stack: Stack, frames: np.ndarray) -> dict | None:
-    """JSON-ready: the stack's ``frame_gain`` over the ``frames`` with views: per channel the largest |exp(g') - 1|
-    and the standard deviation of g' in per cent, whether that is flat (under ``FIELD_FLAT_PCT``) and the gains
-    exp(g') per frame (frames, 3); None when the stack has none."""
-    if FRAME_EFFECT not in stack.names:
-        return None
+def frame_summary(gains: np.ndarray, frames: np.ndarray, carried: bool) -> dict:
+    """JSON-ready: the log gains per frame g' (len(frames), 3) of the ``frames`` with views, as
+    :func:`frame_gains_needed` measured them or the water fitted them: per channel the largest |exp(g') - 1| and
+    the standard deviation of g' in per cent, whether that is flat (under ``FIELD_FLAT_PCT``), whether the water
+    carries them (``carried``), the frames and each one's gain exp(g')."""
+    largest = (100 * np.abs(np.expm1(gains)).max(0)).round(2).tolist()
+    return {"largest_pct": largest, "sd_pct": (100 * gains.std(0)).round(2).tolist(),
+            "flat": max(largest) < FIELD_FLAT_PCT, "carried": carried, "frames": frames.tolist(),
+            "gain": np.exp(gains).round(4).tolist()}
+
+
+def frame_gains_needed(problem: Problem, names: list[str], frames: np.ndarray) -> tuple[bool, np.ndarray]:
+    """(whether the water carries the gains per frame, the gains g' (frames, 3) the ``frames`` with views want):
+    the gains ``names`` fitted alone, every other parameter held where ``problem``'s (coarse) fit left it, on its
+    coarse points (:meth:`eval.fit.Problem.coarse`). They are carried when one exceeds ``FIELD_FLAT_PCT``; else they
+    are set back to 0 (a survey whose frames differ by no more than that keeps the water it had without them)."""
+    probe = problem.coarse(names) or Problem(problem.stack, problem.obs, problem.config, names, float32=True)
+    probe.converge()
+    effect = problem.stack[FRAME_EFFECT]
     with torch.no_grad():
-        g = stack[FRAME_EFFECT].gains().numpy()[frames]
-    largest = (100 * np.abs(np.expm1(g)).max(0)).round(2).tolist()
-    return {"largest_pct": largest, "sd_pct": (100 * g.std(0)).round(2).tolist(),
-            "flat": max(largest) < FIELD_FLAT_PCT, "frames": frames.tolist(), "gain": np.exp(g).round(4).tolist()}
+        gains = effect.gains().numpy()[frames]
+        needed = bool(np.abs(np.expm1(gains)).max() * 100 >= FIELD_FLAT_PCT)
+        if not needed:
+            raw = effect.raw["log_gain"]
+            raw.copy_(effect._spec("log_gain").to_raw(torch.zeros_like(raw)))
+    problem.take_gradients()
+    return needed, gains
 
 
 def _key(stack: Stack, raw_name: str) -> str:
@@ -475,14 +495,34 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             name, param = key.split(".", 1)
             by_effect[name] = (*by_effect.get(name, ()), param)
         names = fitted_names(stack, tuple(fixed), by_effect)
+        gain_names = [n for n in names if stack.effects[int(n.split(".")[1])].name == FRAME_EFFECT]
+        names = [n for n in names if n not in gain_names]
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
         decorrelate_frames(stack, obs)
-        start_inside_bounds(stack, names)
-        iterations = stack_first(stack, obs, config.fit, names)
+        start_inside_bounds(stack, names + gain_names)
         problem = Problem(stack, obs, config.fit, names)
+        x_start = problem.flat()
+        iterations = stack_first(stack, obs, config.fit, names)
+        problem.take_gradients()
         iterations += problem.coarse_start() if not iterations else 0
+        frame_gains = None
+        if gain_names:
+            carried, gains = frame_gains_needed(problem, gain_names, frames)
+            frame_gains = frame_summary(gains, frames, carried)
+            if carried:  # the water again from its start, beside the gains the frames want
+                problem.set_flat(x_start)
+                names += gain_names
+                first = stack_first(stack, obs, config.fit, names)
+                problem = Problem(stack, obs, config.fit, names)
+                iterations += first or problem.coarse_start()
+            else:
+                fixed[FRAME_EFFECT] = (f"the frames' gains are flat (up to {max(frame_gains['largest_pct']):.1f} %, "
+                                       f"under {FIELD_FLAT_PCT:.0f} %): held at 1")
         done, converged = problem.converge()
         iterations += done
+        if frame_gains is not None and frame_gains["carried"]:
+            with torch.no_grad():
+                frame_gains = frame_summary(stack[FRAME_EFFECT].gains().numpy()[frames], frames, True)
         problem.refine(config.fit.refine_evaluations)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
@@ -521,7 +561,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                                                  "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
                              converged=converged, fields=field_summary(stack, range_r2, obs.colour.mean(0)),
-                             frames=frame_summary(stack, frames),
+                             frames=frame_gains,
                              veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m))))
     finally:
         torch.set_num_threads(threads)

@@ -117,7 +117,7 @@ def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseStageResul
     water_json = read_json(ws.path(water.water_json), "water file") if water is not None else {}
     result = diagnose(ws.folder("survey"), out, out, cfg, tracks, scale, corrected_summary(ws),
                       model=water.stack if water is not None else None, measurements=meas, described=described,
-                      fields=water_json.get("fields"))
+                      fields=water_json.get("fields"), frames=water_json.get("frames"))
     fields = {f.name: getattr(result, f.name) for f in dataclasses.fields(result)}
     return DiagnoseStageResult(**fields, ledger=ws.relative(out / LEDGER_NAME))
 

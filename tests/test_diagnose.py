@@ -30,6 +30,7 @@ from eval.diagnose import (
     form_conflict,
     small_survey_config,
     survey_counts,
+    verdict_text,
     why_implausible,
 )
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
@@ -674,3 +675,15 @@ def test_a_candidate_of_another_form_than_the_fields_is_not_accepted():
     assert form_conflict("vignetting_offcentre", "multiplicative", {**additive, "form": "multiplicative"}) == ""
     assert form_conflict("vignetting_offcentre", "multiplicative", None) == ""
     assert form_conflict("backscatter", "additive", {**additive, "form": "multiplicative"}) == ""  # not image axis
+
+
+def test_the_verdict_reads_the_water_gains_per_frame():
+    """The water's gains per frame (water.json's ``frames``) are the frame axis's measurement: the verdict says
+    whether something changes from frame to frame and by how much."""
+    flat = {"largest_pct": [1.2, 0.8, 2.0], "sd_pct": [0.5, 0.4, 0.9], "flat": True}
+    varying = {"largest_pct": [21.0, 19.5, 20.2], "sd_pct": [11.0, 10.1, 10.6], "flat": False}
+    assert verdict_text([], [], {}, frames=flat).splitlines()[-1].startswith("frames: the water's gains per frame "
+                                                                             "are flat (up to 2 %)")
+    line = verdict_text([], [], {}, frames=varying).splitlines()[-1]
+    assert "up to 21 %" in line and "changes from frame to frame" in line
+    assert verdict_text([], [], {}) == "no significant missing effect"

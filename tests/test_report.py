@@ -265,6 +265,7 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
     assert report["sections"][0] is found and found["found"][0].startswith("Water: eta_per_m")
     assert any(line.startswith("Fields over the image: ") for line in found["found"])
     assert any(line.startswith("Comparisons: ") for line in found["found"]) and "fields over the image" in page
+    assert any(line.startswith("Gains per frame: ") for line in found["found"]) and "gains per frame" in page
     frames = next(s for s in report["sections"] if s["id"] == "frames")
     assert len(frames["frames"]) == 3 and frames["columns"][-1] == "inair"
     assert "href='../08_mesh/mesh.glb'" in page and "<b>" in page

@@ -46,8 +46,11 @@ class Effect(nn.Module):
     rig_params:  parameters that a declared rig fixes (survey.json's lights): known settings, set
                  from the declaration and held, not fitted, by the diagnosis.
     nuisance:    True for an effect that stands in for what the stack lacks rather than for one physical
-                 effect (``image_field``): the diagnosis never offers it as a candidate and the simulator
-                 never hides it.
+                 effect (``image_field``, ``frame_gain``): the diagnosis never offers it as a candidate and the
+                 simulator never hides it.
+    channel_axis: {param: axis} of parameters whose entries along that axis (of length 3: R, G, B) each act on
+                 their own colour channel only; a fit differentiates the three together (the loss is a sum over
+                 channels, so they do not interact).
     """
 
     AXES: ClassVar[tuple[str, ...]] = (
@@ -66,6 +69,7 @@ class Effect(nn.Module):
     simulation_params: ClassVar[dict[str, object]] = {}
     rig_params: ClassVar[tuple[str, ...]] = ()
     nuisance: ClassVar[bool] = False
+    channel_axis: ClassVar[dict[str, int]] = {}
 
     def __init__(self, counts: Counts | None = None, **values) -> None:
         """Physical ``values`` by parameter name (the rest start from their ``init``); ``counts``: the survey's

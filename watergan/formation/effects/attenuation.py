@@ -25,6 +25,7 @@ class Attenuation(Effect):
     signature = "range: colour shifts and darkens with distance, red fastest in ocean water"
     axis = "range"
     rank = RANK_WATER
+    channel_axis = {"eta_per_m": 0}
     params = (
         Param("eta_per_m", (0.34, 0.24, 0.33), 0.0, 5.0, "1/m",
               "attenuation coefficient per channel (R, G, B); > 0 in water"),

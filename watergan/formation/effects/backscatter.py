@@ -25,6 +25,7 @@ class Backscatter(Effect):
     signature = "range and intensity: dark, distant pixels tend to a constant water colour"
     axis = "range"
     rank = RANK_SCATTER
+    channel_axis = {"b_inf": 0, "beta_per_m": 0}
     params = (
         Param("b_inf", (0.05, 0.18, 0.22), 0.0, 1.0, "linear radiance", "veiling light at infinite range"),
         Param("beta_per_m", (0.4, 0.3, 0.3), 0.0, 5.0, "1/m", "backscatter coefficient per channel"),

@@ -46,6 +46,7 @@ class FrameGain(Effect):
     axis = "frame"
     rank = RANK_SENSOR + 1
     nuisance = True
+    channel_axis = {"log_gain": 1}
     params = (
         Param("log_gain", (0.0, 0.0, 0.0), -2.0, 2.0, "", "g per frame and channel (frames, 3)", per="frame"),
         Param("orthogonal_to", (0.0, 0.0), -1.0, 1.0, "", "orthonormal columns Q (frames, 2) the gains are kept off "

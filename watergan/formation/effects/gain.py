@@ -21,6 +21,7 @@ class Gain(Effect):
     signature = "intensity: every pixel scaled by the same factor per channel"
     axis = "intensity"
     rank = RANK_SENSOR
+    channel_axis = {"k": 0}
     params = (Param("k", (1.0, 1.0, 1.0), 0.01, 100.0, "", "gain per channel (R, G, B), or one value",
                     shapes=((3,), (1,))),)
     neutral = {"k": (1.0, 1.0, 1.0)}

@@ -86,6 +86,7 @@ class ImageField(Effect):
     axis = "image_position"
     rank = RANK_OPTICS + 1
     nuisance = True
+    channel_axis = {"multiplicative": 0, "additive": 0}
     params = (
         Param("multiplicative", ((0.0,) * 5,) * 3, -2.0, 2.0, "", "log F's coefficients per channel (3, M)",
               shapes=((3, -1),)),
