@@ -59,6 +59,10 @@ SURVEYS = {
     "expo0_add": {"seed": 0, "stereo": True, "hidden": ("survey_exposure",), "add": ("survey_exposure",),
                   "workspace": "expo0"},
     "drift0": {"seed": 0, "stereo": True, "hidden": ("water_drift",)},
+    # the same surveys with the hidden form added to the stack: what the fields' form costs the corrections
+    "clip0_add": {"seed": 0, "stereo": True, "hidden": ("falloff_clipped",), "add": ("falloff_clipped",),
+                  "workspace": "clip0"},
+    "veil0_add": {"seed": 0, "stereo": True, "hidden": ("port_veil",), "add": ("port_veil",), "workspace": "veil0"},
 }
 #: The plugin holding the robustness surveys' hidden effects (loaded when a survey hides one of them).
 ROBUST_PLUGIN = Path(__file__).parent / "plugins" / "robust_forms.py"

@@ -554,3 +554,45 @@ def test_gains_per_frame_keep_the_water_when_the_exposure_changes(survey):
     fitted = np.log(np.asarray(held.frames["gain"]))
     np.testing.assert_allclose(fitted, np.repeat(expected[:, None], 3, 1), atol=0.03)
     assert held.frames["carried"] and not held.frames["flat"] and bent.frames is None
+
+
+def test_the_hessian_perturbs_the_three_channels_of_a_parameter_together(survey):
+    """The loss is a sum over the colour channels, so perturbing the three channels of eta, B_inf, the fields and
+    the gains per frame together gives the Hessian that perturbing each entry gives (to the finite differences'
+    accuracy) from a third of the gradients; a stack that mixes the channels is differentiated entry by entry."""
+    from eval.fit import Problem, channels_separate, fitted_names, start_inside_bounds
+    from eval.water import build_stack, decorrelate_frames
+    from watergan.formation import RANK_SENSOR, Effect, register
+
+    frames, board = survey
+    config = water_config(samples_per_frame=60, margin_px=4, footprint_m=FOOTPRINT_M)
+    obs = measure_frames(frames, K, None, board, config.measure)
+    stack = build_stack(config, len(frames))
+    names = fitted_names(stack, (), {})
+    decorrelate_frames(stack, obs)
+    start_inside_bounds(stack, names)
+    problem = Problem(stack, obs, config.fit, names)
+    problem.minimise(30)
+    groups, channel = problem.channel_groups()
+    assert (channel >= 0).sum() > 0.8 * len(channel) and len(groups) < 0.4 * len(channel)
+    grouped = problem.hessian()
+    problem.separate = False
+    single = problem.hessian()
+    np.testing.assert_allclose(grouped, single, atol=2e-3 * float(single.abs().max()))
+
+    probe = FormationState(direct=torch.full((4, 3, 1, 1), 0.5, dtype=torch.float64),
+                           range_m=torch.full((4, 1, 1, 1), 2.0, dtype=torch.float64),
+                           pixel_uv=torch.full((4, 2, 1, 1), 0.5, dtype=torch.float64), image_wh=(W, H))
+    assert channels_separate(Stack.ordered(TRUE), probe)
+
+    @register
+    class WaterTestCrossTalk(Effect):
+        name = "water_test_cross_talk"
+        summary = "a tenth of each channel leaks into the next (a colour matrix)"
+        axis = "intensity"
+        rank = RANK_SENSOR
+
+        def forward(self, state):
+            return state.replace(direct=state.direct + 0.1 * state.direct.roll(1, dims=1))
+
+    assert not channels_separate(Stack.ordered([*TRUE, {"name": "water_test_cross_talk"}]), probe)
