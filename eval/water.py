@@ -131,9 +131,10 @@ class WaterConfig:
     """Degree of the smooth fields over the image (``image_field``) fitted beside the stack, so that what the stack
     lacks on image position bends them and not the water; 0: none. The corrections invert them with the stack."""
     frame_gain: bool = True
-    """Fit a gain per frame and channel (``frame_gain``) beside the stack, so that what the stack lacks along the
-    survey (auto-exposure, white balance, a water that drifts) bends it and not the water, unless an effect of the
-    stack already has a value per frame; the physics correction inverts it with the stack."""
+    """Measure a gain per frame and channel (``frame_gain``) and fit it beside the stack when a frame's exceeds
+    ``FIELD_FLAT_PCT`` (:func:`frame_gains_needed`), so that what the stack lacks along the survey (auto-exposure,
+    white balance, a water that drifts) bends it and not the water; not when an effect of the stack already has a
+    value per frame. The physics correction inverts it with the stack."""
     field_max_range_r2: float = 0.5
     """When image position explains more than this fraction of the views' range variance (one altitude over a flat
     floor), the fields are kept uncorrelated with range (:func:`decorrelate_fields`)."""
@@ -295,7 +296,7 @@ class WaterEstimate:
     fields: dict | None = None
     """The fields over the image fitted beside the stack (:func:`field_summary`); None: none fitted."""
     frames: dict | None = None
-    """The gains per frame fitted beside the stack (:func:`frame_summary`); None: none fitted."""
+    """The gains per frame measured, and fitted beside the stack when carried (:func:`frame_summary`); None: none."""
     veil: dict | None = None
     """The backscatter at the views' median range with its interval (:func:`veil_at_median_range`)."""
     observations: Observations | None = None

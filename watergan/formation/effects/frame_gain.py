@@ -9,15 +9,17 @@ the water to explain it. This nuisance effect takes it, per frame f and channel 
 S the direct signal and B the backscatter reaching the sensor (a gain at the sensor, like ``gain``), g the
 parameters (frames, 3) and Q (frames, 2) orthonormal columns the gains are kept off (``orthogonal_to``).
 
-What pins what: a frame flown higher sees its points farther, so its mean range makes it darker by exp(-eta_c dr)
-, which is what a gain per frame is too; and the same point seen in two frames differs by g'_a - g'_b - eta (r_a -
-r_b), of which only the range differences that vary across the points the two frames share (relief, view angles)
-pin eta apart from the gains, and only weakly. So a fit sets Q's columns to the constant and to the frames' mean
-ranges (centred; :func:`eval.water.decorrelate_frames`): the gains then have no mean (that is the survey's gain
-``gain.k``) and no covariance with the frames' ranges (that is the water's); they take what changes from frame to
-frame apart from range: exposure, white balance, a drifting water's change at the frame's ranges. An exposure that
-happens to follow altitude is taken by the water, as without this effect. A penalty ``smoothness`` sum_fc g_fc^2
-(:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect) at 0.
+What pins what: a frame flown higher sees its points farther, so its mean range makes it darker by
+exp(-eta_c dr), which is what a gain per frame is too; and the same point seen in two frames differs by
+g'_a - g'_b - eta (r_a - r_b), of which only the range differences that vary across the points the two frames share
+(relief, view angles) pin eta apart from the gains, and only weakly. So a fit sets Q's columns to the constant and
+to the frames' mean ranges (centred; :func:`eval.water.decorrelate_frames`): the gains then have no mean (that is
+the survey's gain ``gain.k``) and no covariance with the frames' ranges (that is the water's); they take what
+changes from frame to frame apart from range: exposure, white balance, a drifting water's change at the frame's
+ranges. An exposure that happens to follow altitude is taken by the water, as without this effect. A penalty
+``smoothness`` sum_fc g_fc^2
+(:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect) at 0. The water measures the
+gains first and fits them only where a frame's exceeds 5 % (:func:`eval.water.frame_gains_needed`).
 """
 
 from __future__ import annotations
@@ -68,8 +70,3 @@ class FrameGain(Effect):
     def penalty(self) -> torch.Tensor:
         """Residuals whose sum of squares is the penalty of the module docstring."""
         return math.sqrt(float(self.param("smoothness"))) * self.param("log_gain").reshape(-1).double()
-
-    def spread_pct(self) -> list[float]:
-        """Per channel the largest |exp(g'_f) - 1| over the frames, in per cent."""
-        with torch.no_grad():
-            return (100 * (torch.exp(self.gains()) - 1).abs().amax(0)).tolist()
