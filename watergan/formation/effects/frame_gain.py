@@ -17,9 +17,9 @@ to the frames' mean ranges (centred; :func:`eval.water.decorrelate_frames`): the
 the survey's gain ``gain.k``) and no covariance with the frames' ranges (that is the water's); they take what
 changes from frame to frame apart from range: exposure, white balance, a drifting water's change at the frame's
 ranges. An exposure that happens to follow altitude is taken by the water, as without this effect. A penalty
-``smoothness`` sum_fc g_fc^2
-(:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect) at 0. The water measures the
-gains first and fits them only where a frame's exceeds 5 % (:func:`eval.water.frame_gains_needed`).
+``smoothness`` sum_fc g_fc^2 (:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect)
+at 0. The water measures the gains first and fits them only where a frame's exceeds 5 %
+(:func:`eval.water.frame_gains_needed`).
 """
 
 from __future__ import annotations
