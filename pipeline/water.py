@@ -227,8 +227,8 @@ def _plot_frames(estimate: WaterEstimate, path: Path) -> bool:
     ax.set_ylabel("gain exp(g)")
     carried = ("fitted beside the water" if estimate.frames["carried"] else
                f"measured, not carried (under {FIELD_FLAT_PCT:.0f} %: the water is fitted without them)")
-    ax.set_title("what the stack lacks from frame to frame (exposure, white balance, a drifting water): the gains "
-                 f"per frame, {carried} (flat at 1: nothing)", fontsize=8)
+    ax.set_title("what the stack lacks from frame to frame (exposure, white balance, a drifting water):\n"
+                 f"the gains per frame, {carried} (flat at 1: nothing)", fontsize=8)
     fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
     return True
