@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from watergan.formation import Counts, MissingInputError, Stack, available, get
+from watergan.formation import Counts, Effect, MissingInputError, Stack, available, get
 from watergan.formation.inverse import affine_images
 from watergan.formation.rig import declared_rig, held_rig, rig_settings
 from watergan.io import atomic_write_json, atomic_write_text
@@ -141,6 +141,9 @@ class CandidateResult:
     structure: dict
     seconds: float
     implausible: str = ""
+    fields_explained: float | None = None
+    """The share of the water's fields over the image it reproduces (:func:`fields_explained`); None: no fields,
+    or not an image-position candidate."""
 
 
 @dataclass(frozen=True)
@@ -412,6 +415,33 @@ def effect_form(stack: Stack, name: str, state) -> str:
         (multiplicative, additive), "neither")
 
 
+def water_field(model: list[dict] | None) -> Effect | None:
+    """The fitted fields over the image (``image_field``) of a water stack configuration, None without them."""
+    entry = next((e for e in model or [] if e["name"] == "image_field"), None)
+    return None if entry is None else Stack.from_config([entry]).to(torch.float64)["image_field"]
+
+
+def fields_explained(stack: Stack, name: str, fitted: Effect, state) -> float:
+    """The share of the water's fields over the image (``fitted``, an ``image_field``) that candidate ``name`` of a
+    fitted ``stack`` reproduces at the views of ``state``: 1 - |d - d_c|^2 / |d|^2, d = (log F, G / G_SCALE) the
+    fields at the views and d_c = (log(A / A_without), (C - C_without A / A_without) / G_SCALE) what the candidate
+    does there (:func:`effect_form`'s A and C), each with its mean over the views removed per channel (a constant
+    is the gain's or the backscatter's); 0 when it explains nothing or makes it worse."""
+    from watergan.formation.effects.image_field import G_SCALE
+
+    without = Stack([e for e in stack.effects if e.name != name])
+    with torch.no_grad():
+        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, without))
+        f, g = fitted.at(state.pixel_uv[:, :, 0, 0])
+    ratio = (a1 / a0.clamp_min(1e-12))[:, :, 0, 0]
+    fields = torch.cat([torch.log(f), g / G_SCALE], 1)
+    candidate = torch.cat([torch.log(ratio.clamp_min(1e-12)), (c1 - c0 * ratio[..., None, None])[:, :, 0, 0]
+                           / G_SCALE], 1)
+    fields, candidate = (t - t.mean(0, keepdim=True) for t in (fields, candidate))
+    norm = float((fields ** 2).sum())
+    return 0.0 if norm <= 0 else max(0.0, 1.0 - float(((fields - candidate) ** 2).sum()) / norm)
+
+
 def form_conflict(name: str, form: str, fields: dict | None) -> str:
     """Why candidate ``name`` of this ``form`` (:func:`effect_form`) does not fit the water's fields over the image
     (``fields``: water.json's, :func:`eval.water.field_summary`), "" when it does or there is nothing to compare:
@@ -448,9 +478,11 @@ def frames_line(frames: dict | None) -> str:
 
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
                     split, names: list[str], progress: bool | None = None,
-                    fields: dict | None = None) -> list[CandidateResult]:
+                    fields: dict | None = None, fitted_fields: Effect | None = None) -> list[CandidateResult]:
     """Refit with each candidate added; sorted by held-out change (best first). ``fields``: the water's fields over
-    the image; an image-position candidate of another form (:func:`form_conflict`) is not accepted."""
+    the image; an image-position candidate of another form (:func:`form_conflict`) is not accepted.
+    ``fitted_fields``: the fields themselves (:func:`water_field`): each image-position candidate says how much of
+    them it reproduces (:func:`fields_explained`)."""
     results = []
     probe = observation_state(meas, np.arange(min(meas.n_obs, 2000)))
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
@@ -467,12 +499,14 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         implausible = why_implausible(name, fit.params[name])
         if not implausible and fields and get(name).axis == "image_position":
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
+        explained = (fields_explained(fit.stack, name, fitted_fields, probe)
+                     if fitted_fields is not None and get(name).axis == "image_position" else None)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
             significant=p < config.alpha and change <= -config.min_improvement and not implausible,
             flattened=flattened, flattened_drop=round(drops[flattened], 3), params=fit.params[name],
             scores=cand_scores, structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
-            implausible=implausible))
+            implausible=implausible, fields_explained=explained))
     return sorted(results, key=lambda r: r.change)
 
 
@@ -544,7 +578,9 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
     if best is not None:
         line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
                 f"(95% CI {best.ci95[0] * 100:+.0f}% to {best.ci95[1] * 100:+.0f}%), {_short_params(best.params)}; "
-                f"flattens the {best.flattened} axis")
+                f"flattens the {best.flattened} axis"
+                + (f"; reproduces {best.fields_explained:.0%} of the water's fields over the image"
+                   if best.fields_explained is not None and fields and fields.get("form") != "flat" else ""))
     else:
         line = "no significant missing effect"
         if ranking:
@@ -666,7 +702,8 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     append_ledger(ledger_dir, _ledger_record(base, "model", meas, colour))
 
     names, skipped = candidate_names(stack, meas, config.candidates)
-    ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress, fields)
+    ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress, fields,
+                              water_field(model))
     misfit = added_form_misfit(config.add, base_scores, relative_amplitudes(analysis, base), config)
     if misfit:
         ranking = [stand_in(r, config.add[-1]) for r in ranking]

@@ -32,8 +32,10 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     print("candidates (held-out error change, 95% CI, p, axis flattened; * accepted, ! implausible values):")
     for r in result.ranking:
         mark = "*" if r["significant"] else "!" if r["implausible"] else " "
+        share = r.get("fields_explained")
         print(f" {mark} {r['name']:24} {r['change'] * 100:+6.1f}%  [{r['ci95'][0] * 100:+.1f}%, "
-              f"{r['ci95'][1] * 100:+.1f}%]  p={r['p']:.3f}  {r['flattened']}")
+              f"{r['ci95'][1] * 100:+.1f}%]  p={r['p']:.3f}  {r['flattened']}"
+              + (f"  (reproduces {share:.0%} of the water's fields)" if share is not None else ""))
     for name, reason in result.skipped.items():
         print(f"   skipped {name}: {reason}")
     print(f"\n{result.verdict}")
