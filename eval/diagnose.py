@@ -421,17 +421,18 @@ def water_field(model: list[dict] | None) -> Effect | None:
     return None if entry is None else Stack.from_config([entry]).to(torch.float64)["image_field"]
 
 
-def fields_explained(stack: Stack, name: str, fitted: Effect, state) -> float:
-    """The share of the water's fields over the image (``fitted``, an ``image_field``) that candidate ``name`` of a
-    fitted ``stack`` reproduces at the views of ``state``: 1 - |d - d_c|^2 / |d|^2, d = (log F, G / G_SCALE) the
-    fields at the views and d_c = (log(A / A_without), (C - C_without A / A_without) / G_SCALE) what the candidate
-    does there (:func:`effect_form`'s A and C), each with its mean over the views removed per channel (a constant
-    is the gain's or the backscatter's); 0 when it explains nothing or makes it worse."""
+def fields_explained(stack: Stack, reference: Stack, fitted: Effect, state) -> float:
+    """The share of the water's fields over the image (``fitted``, an ``image_field``) that a fitted ``stack``
+    reproduces at the views of ``state`` beyond the ``reference`` (the water's stack the fields were fitted beside,
+    without them): 1 - |d - d_c|^2 / |d|^2, d = (log F, G / G_SCALE) the fields at the views and d_c =
+    (log(A / A_ref), (C - C_ref A / A_ref) / G_SCALE) what the fit does differently there (A, C as in
+    :func:`effect_form`; the other effects refitted with the candidate count too: the water's centred vignetting
+    took its share of a falloff before the fields took the rest), each with its mean over the views removed per
+    channel (a constant is the gain's or the backscatter's); 0 when it explains nothing or makes it worse."""
     from watergan.formation.effects.image_field import G_SCALE
 
-    without = Stack([e for e in stack.effects if e.name != name])
     with torch.no_grad():
-        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, without))
+        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, reference))
         f, g = fitted.at(state.pixel_uv[:, :, 0, 0])
     ratio = (a1 / a0.clamp_min(1e-12))[:, :, 0, 0]
     fields = torch.cat([torch.log(f), g / G_SCALE], 1)
@@ -481,8 +482,8 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
                     fields: dict | None = None, fitted_fields: Effect | None = None) -> list[CandidateResult]:
     """Refit with each candidate added; sorted by held-out change (best first). ``fields``: the water's fields over
     the image; an image-position candidate of another form (:func:`form_conflict`) is not accepted.
-    ``fitted_fields``: the fields themselves (:func:`water_field`): each image-position candidate says how much of
-    them it reproduces (:func:`fields_explained`)."""
+    ``fitted_fields``: the fields themselves (:func:`water_field`; ``stack`` is then the water's without them): each
+    image-position candidate says how much of them its fit reproduces (:func:`fields_explained`)."""
     results = []
     probe = observation_state(meas, np.arange(min(meas.n_obs, 2000)))
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
@@ -499,7 +500,7 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         implausible = why_implausible(name, fit.params[name])
         if not implausible and fields and get(name).axis == "image_position":
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
-        explained = (fields_explained(fit.stack, name, fitted_fields, probe)
+        explained = (fields_explained(fit.stack, stack, fitted_fields, probe)
                      if fitted_fields is not None and get(name).axis == "image_position" else None)
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
@@ -703,7 +704,7 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
 
     names, skipped = candidate_names(stack, meas, config.candidates)
     ranking = rank_candidates(stack, meas, base, base_scores, config, split, names, progress, fields,
-                              water_field(model))
+                              None if config.effects else water_field(model))  # the stack is the water's
     misfit = added_form_misfit(config.add, base_scores, relative_amplitudes(analysis, base), config)
     if misfit:
         ranking = [stand_in(r, config.add[-1]) for r in ranking]
