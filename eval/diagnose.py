@@ -589,8 +589,10 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
             line += f" (best candidate {top.name}: held-out error {top.change * 100:+.1f}%, p = {top.p:.2f})"
     for r in ranking:
         if r.implausible and r.p < 0.05 and r.change < 0:
-            line += (f"\nimplausible: {r.name} explains {-r.change:.0%} of the held-out error, but {r.implausible}; "
-                     f"not accepted")
+            share = (f" and reproduces {r.fields_explained:.0%} of the water's fields over the image"
+                     if r.fields_explained is not None else "")
+            line += (f"\nimplausible: {r.name} explains {-r.change:.0%} of the held-out error{share}, but "
+                     f"{r.implausible}; not accepted")
     if misfit:
         line += f"\n{misfit}"
     if unexplained:
