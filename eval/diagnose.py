@@ -399,15 +399,19 @@ def _absorbed_at(stack: Stack, trial: Stack, state, point: np.ndarray) -> bool:
     return float(np.abs(log_ratio - mean[inv]).max()) < 1e-6
 
 
+def affine_change(stack: Stack, reference: Stack, state) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(A / A_ref, C, C_ref) (each (N,3,1,1), float64) at the views of ``state``: A, C of y = A J + C
+    (:func:`watergan.formation.inverse.affine_images`) of ``stack`` and of ``reference``."""
+    with torch.no_grad():
+        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, reference))
+    return a1 / a0.clamp_min(1e-12), c1, c0
+
+
 def effect_form(stack: Stack, name: str, state) -> str:
     """How effect ``name`` of a fitted ``stack`` acts at the views of ``state``, against the same stack without it
-    (A, C of y = A J + C, :func:`watergan.formation.inverse.affine_images`): "multiplicative" (A / A_without
-    varies over the views), "additive" (C changes, and not by the factor A / A_without: light added, not scaled),
-    "both" or "neither"."""
-    without = Stack([e for e in stack.effects if e.name != name])
-    with torch.no_grad():
-        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, without))
-    ratio = a1 / a0.clamp_min(1e-12)
+    (:func:`affine_change`): "multiplicative" (A / A_without varies over the views), "additive" (C changes, and not
+    by the factor A / A_without: light added, not scaled), "both" or "neither"."""
+    ratio, c1, c0 = affine_change(stack, Stack([e for e in stack.effects if e.name != name]), state)
     log_ratio = torch.log(ratio.clamp_min(1e-12))
     multiplicative = float((log_ratio - log_ratio.mean((0, 2, 3), keepdim=True)).abs().max()) > 1e-3
     additive = min(float((c1 - c0).abs().max()), float((c1 - c0 * ratio).abs().max())) > 1e-4
@@ -425,19 +429,16 @@ def fields_explained(stack: Stack, reference: Stack, fitted: Effect, state) -> f
     """The share of the water's fields over the image (``fitted``, an ``image_field``) that a fitted ``stack``
     reproduces at the views of ``state`` beyond the ``reference`` (the water's stack the fields were fitted beside,
     without them): 1 - |d - d_c|^2 / |d|^2, d = (log F, G / G_SCALE) the fields at the views and d_c =
-    (log(A / A_ref), (C - C_ref A / A_ref) / G_SCALE) what the fit does differently there (A, C as in
-    :func:`effect_form`; the other effects refitted with the candidate count too: the water's centred vignetting
-    took its share of a falloff before the fields took the rest), each with its mean over the views removed per
-    channel (a constant is the gain's or the backscatter's); 0 when it explains nothing or makes it worse."""
+    (log(A / A_ref), (C - C_ref A / A_ref) / G_SCALE) what the fit does differently there (:func:`affine_change`;
+    the other effects refitted with the candidate count too: the water's centred vignetting took its share of a
+    falloff before the fields took the rest), each with its mean over the views removed per channel (a constant is
+    the gain's or the backscatter's); 0 when it explains nothing or makes it worse."""
     from watergan.formation.effects.image_field import G_SCALE
 
-    with torch.no_grad():
-        (a1, c1), (a0, c0) = (affine_images(s.to(torch.float64), state) for s in (stack, reference))
-        f, g = fitted.at(state.pixel_uv[:, :, 0, 0])
-    ratio = (a1 / a0.clamp_min(1e-12))[:, :, 0, 0]
+    ratio, c1, c0 = affine_change(stack, reference, state)
+    f, g = fitted.at(state.pixel_uv[:, :, 0, 0])
     fields = torch.cat([torch.log(f), g / G_SCALE], 1)
-    candidate = torch.cat([torch.log(ratio.clamp_min(1e-12)), (c1 - c0 * ratio[..., None, None])[:, :, 0, 0]
-                           / G_SCALE], 1)
+    candidate = torch.cat([torch.log(ratio.clamp_min(1e-12)), (c1 - c0 * ratio) / G_SCALE], 1)[:, :, 0, 0]
     fields, candidate = (t - t.mean(0, keepdim=True) for t in (fields, candidate))
     norm = float((fields ** 2).sum())
     return 0.0 if norm <= 0 else max(0.0, 1.0 - float(((fields - candidate) ** 2).sum()) / norm)

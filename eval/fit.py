@@ -259,9 +259,9 @@ class Problem:
         by_name = dict(stack.named_parameters(remove_duplicate=False))  # a tied parameter under each name
         self.theta = [by_name[n] for n in names]
         self.take_gradients()
-        probe = observation_state(obs, self.rows[:1024])
-        self.affine = is_affine_in_albedo(stack, probe)
-        self.separate = channels_separate(stack, probe)
+        self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
+        self.separate: bool | None = None
+        """Whether the stack keeps the colour channels apart (:func:`channels_separate`); None: not asked yet."""
         self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
 
     def take_gradients(self) -> None:
@@ -364,6 +364,8 @@ class Problem:
         its effect declares per channel (``Effect.channel_axis``) that differ only in their channel form a group;
         every other entry (shared by the channels, tied to another parameter, or any entry when the stack mixes the
         channels, :func:`channels_separate`) is a group of its own."""
+        if self.separate is None:
+            self.separate = channels_separate(self.stack, observation_state(self.obs, self.rows[:1024]))
         uses = Counter(id(p) for p in self.theta)
         channel, slots = [], []
         for name, p in zip(self.names, self.theta, strict=True):

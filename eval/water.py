@@ -132,7 +132,7 @@ class WaterConfig:
     lacks on image position bends them and not the water; 0: none. The corrections invert them with the stack."""
     frame_gain: bool = True
     """Measure a gain per frame and channel (``frame_gain``) and fit it beside the stack when a frame's exceeds
-    ``FIELD_FLAT_PCT`` (:func:`frame_gains_needed`), so that what the stack lacks along the survey (auto-exposure,
+    ``FIELD_FLAT_PCT`` (:func:`measure_frame_gains`), so that what the stack lacks along the survey (auto-exposure,
     white balance, a water that drifts) bends it and not the water; not when an effect of the stack already has a
     value per frame. The physics correction inverts it with the stack."""
     field_max_range_r2: float = 0.5
@@ -187,7 +187,7 @@ def build_stack(config: WaterConfig, n_frames: int | None = None, lights: list[d
         zeros = np.zeros((3, n_terms(config.field_degree))).tolist()
         given[FIELD_EFFECT] = {"multiplicative": zeros, "additive": zeros, "orthogonal_to": zeros[0],
                                **given.get(FIELD_EFFECT, {})}
-    if config.frame_gain and n_frames and not any(p.per == "frame" for n in names for p in get(n).params):
+    if config.frame_gain and n_frames and not any(get(n).varies_by_frame() for n in names):
         names.append(FRAME_EFFECT)
     if lights and not any(get(n).rig_params for n in names):
         names.append(RIG_EFFECT)
@@ -443,33 +443,34 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
             "G_max": np.round(g.max(0), 5).tolist()}
 
 
-def frame_summary(gains: np.ndarray, frames: np.ndarray, carried: bool) -> dict:
-    """JSON-ready: the log gains per frame g' (len(frames), 3) of the ``frames`` with views, as
-    :func:`frame_gains_needed` measured them or the water fitted them: per channel the largest |exp(g') - 1| and
-    the standard deviation of g' in per cent, whether that is flat (under ``FIELD_FLAT_PCT``), whether the water
-    carries them (``carried``), the frames and each one's gain exp(g')."""
-    largest = (100 * np.abs(np.expm1(gains)).max(0)).round(2).tolist()
-    return {"largest_pct": largest, "sd_pct": (100 * gains.std(0)).round(2).tolist(),
-            "flat": max(largest) < FIELD_FLAT_PCT, "carried": carried, "frames": frames.tolist(),
+def frame_summary(stack: Stack, frames: np.ndarray, carried: bool | None = None) -> dict:
+    """JSON-ready: the stack's gains per frame g' (``frame_gain``) over the ``frames`` with views: per channel the
+    largest |exp(g') - 1| and the standard deviation of g' in per cent, whether that is flat (under
+    ``FIELD_FLAT_PCT``), whether the water carries them (``carried``; default: whether they are not flat, the rule
+    :func:`fit_observations` carries them by), the frames and each one's gain exp(g')."""
+    with torch.no_grad():
+        gains = stack[FRAME_EFFECT].gains().numpy()[frames]
+    largest = 100 * np.abs(np.expm1(gains)).max(0)
+    flat = bool(largest.max() < FIELD_FLAT_PCT)
+    return {"largest_pct": largest.round(2).tolist(), "sd_pct": (100 * gains.std(0)).round(2).tolist(), "flat": flat,
+            "carried": not flat if carried is None else carried, "frames": frames.tolist(),
             "gain": np.exp(gains).round(4).tolist()}
 
 
-def frame_gains_needed(problem: Problem, names: list[str], frames: np.ndarray) -> tuple[bool, np.ndarray]:
-    """(whether the water carries the gains per frame, the gains g' (frames, 3) the ``frames`` with views want):
-    the gains ``names`` fitted alone, every other parameter held where ``problem``'s (coarse) fit left it, on its
-    coarse points (:meth:`eval.fit.Problem.coarse`). They are carried when one exceeds ``FIELD_FLAT_PCT``; else they
-    are set back to 0 (a survey whose frames differ by no more than that keeps the water it had without them)."""
+def measure_frame_gains(problem: Problem, names: list[str], frames: np.ndarray) -> dict:
+    """The gains per frame the ``frames`` with views want (:func:`frame_summary`): the gains ``names`` fitted alone,
+    every other parameter held where ``problem``'s (coarse) fit left it, on its coarse points
+    (:meth:`eval.fit.Problem.coarse`). Where they are flat they are set back to 0: a survey whose frames differ by
+    no more than ``FIELD_FLAT_PCT`` keeps the water it had without them."""
     probe = problem.coarse(names) or Problem(problem.stack, problem.obs, problem.config, names, float32=True)
     probe.converge()
-    effect = problem.stack[FRAME_EFFECT]
-    with torch.no_grad():
-        gains = effect.gains().numpy()[frames]
-        needed = bool(np.abs(np.expm1(gains)).max() * 100 >= FIELD_FLAT_PCT)
-        if not needed:
-            raw = effect.raw["log_gain"]
-            raw.copy_(effect._spec("log_gain").to_raw(torch.zeros_like(raw)))
     problem.take_gradients()
-    return needed, gains
+    measured = frame_summary(problem.stack, frames)
+    if not measured["carried"]:
+        raw = problem.stack[FRAME_EFFECT].raw["log_gain"]
+        with torch.no_grad():
+            raw.copy_(problem.stack[FRAME_EFFECT]._spec("log_gain").to_raw(torch.zeros_like(raw)))
+    return measured
 
 
 def _key(stack: Stack, raw_name: str) -> str:
@@ -508,9 +509,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         iterations += problem.coarse_start() if not iterations else 0
         frame_gains = None
         if gain_names:
-            carried, gains = frame_gains_needed(problem, gain_names, frames)
-            frame_gains = frame_summary(gains, frames, carried)
-            if carried:  # the water again from its start, beside the gains the frames want
+            frame_gains = measure_frame_gains(problem, gain_names, frames)
+            if frame_gains["carried"]:  # the water again from its start, beside the gains the frames want
                 problem.set_flat(x_start)
                 names += gain_names
                 first = stack_first(stack, obs, config.fit, names)
@@ -522,8 +522,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         done, converged = problem.converge()
         iterations += done
         if frame_gains is not None and frame_gains["carried"]:
-            with torch.no_grad():
-                frame_gains = frame_summary(stack[FRAME_EFFECT].gains().numpy()[frames], frames, True)
+            frame_gains = frame_summary(stack, frames, carried=True)
         problem.refine(config.fit.refine_evaluations)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0

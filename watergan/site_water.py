@@ -87,8 +87,7 @@ def read_site_water(water_json: str | Path) -> SiteWaterStack:
         raise UserInputError(f"water file {path} has no stack: is it the water stage's water.json?")
     config, left_out = [], []
     for entry in stack:
-        effect = get(entry["name"])
-        if any(p.per == "frame" for p in effect.params):
+        if get(entry["name"]).varies_by_frame():
             left_out.append(entry["name"])
         else:
             config.append(entry)

@@ -98,6 +98,12 @@ class Effect(nn.Module):
                 return p
         raise ParameterError(f"effect '{self.name}' has no parameter '{name}'")
 
+    @classmethod
+    def varies_by_frame(cls) -> bool:
+        """Whether the effect holds a value per survey frame (a :class:`Param` with ``per="frame"``): it has no
+        value for an image of no known frame."""
+        return any(p.per == "frame" for p in cls.params)
+
     def per_frame(self, name: str, state: FormationState, value: torch.Tensor | None = None) -> torch.Tensor:
         """The row of per-frame parameter ``name`` (or of ``value``, one row per frame derived from it) for each
         element of the state's batch (its ``frame_index``), cast to the state's dtype: shape (B, *row)."""

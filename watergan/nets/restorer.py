@@ -229,8 +229,7 @@ def invertible_water(stack: list[dict]) -> list[dict]:
     learn them."""
     from watergan.formation import get
 
-    return [e for e in stack if not get(e["name"]).needs_image
-            and not any(p.per == "frame" for p in get(e["name"]).params)]
+    return [e for e in stack if not get(e["name"]).needs_image and not get(e["name"]).varies_by_frame()]
 
 
 def water_fields(water: list[dict], range_m: torch.Tensor,

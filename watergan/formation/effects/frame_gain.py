@@ -19,7 +19,7 @@ changes from frame to frame apart from range: exposure, white balance, a driftin
 ranges. An exposure that happens to follow altitude is taken by the water, as without this effect. A penalty
 ``smoothness`` sum_fc g_fc^2 (:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect)
 at 0. The water measures the gains first and fits them only where a frame's exceeds 5 %
-(:func:`eval.water.frame_gains_needed`).
+(:func:`eval.water.measure_frame_gains`).
 """
 
 from __future__ import annotations
