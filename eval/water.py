@@ -85,6 +85,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from watergan.errors import UserInputError
 from watergan.formation import Counts, Stack, get
 from watergan.formation.effects.image_field import field_basis, n_terms
 from watergan.formation.inverse import needs_normals
@@ -97,6 +98,7 @@ from .fit import (
     Problem,
     bootstrap,
     fitted_names,
+    insert_by_rank,
     inverse_hessian,
     newton_refit,
     start_inside_bounds,
@@ -135,6 +137,10 @@ class WaterConfig:
     ``FIELD_FLAT_PCT`` (:func:`measure_frame_gains`), so that what the stack lacks along the survey (auto-exposure,
     white balance, a water that drifts) bends it and not the water; not when an effect of the stack already has a
     value per frame. The physics correction inverts it with the stack."""
+    correction_grid: tuple[int, int] | None = (13, 17)
+    """Nodes (rows x cols, at least 3 x 3) of the fine fields over the image (``image_grid``) fitted after the water
+    with every other parameter held, and carried for the corrections where they exceed ``FIELD_FLAT_PCT``
+    (:func:`fit_correction_grid`): what the water's smooth fields leave on image position. None: none."""
     field_max_range_r2: float = 0.5
     """When image position explains more than this fraction of the views' range variance (one altitude over a flat
     floor), the fields are kept uncorrelated with range (:func:`decorrelate_fields`)."""
@@ -165,6 +171,8 @@ SPEC_ITERATIONS = 30
 FIELD_EFFECT = "image_field"
 #: The nuisance gain per frame (``WaterConfig.frame_gain``).
 FRAME_EFFECT = "frame_gain"
+#: The fine fields over the image for the corrections (``WaterConfig.correction_grid``).
+GRID_EFFECT = "image_grid"
 
 
 def rig_lights(config: WaterConfig, lights: list[dict] | None) -> list[dict]:
@@ -297,6 +305,9 @@ class WaterEstimate:
     """The fields over the image fitted beside the stack (:func:`field_summary`); None: none fitted."""
     frames: dict | None = None
     """The gains per frame measured, and fitted beside the stack when carried (:func:`frame_summary`); None: none."""
+    grid: dict | None = None
+    """The fine fields over the image fitted after the water for the corrections, and whether ``stack`` carries
+    them (:func:`fit_correction_grid`); None: none fitted."""
     veil: dict | None = None
     """The backscatter at the views' median range with its interval (:func:`veil_at_median_range`)."""
     observations: Observations | None = None
@@ -310,6 +321,7 @@ class WaterEstimate:
                 "iterations": self.iterations, "converged": self.converged,
                 **({"fields": self.fields} if self.fields is not None else {}),
                 **({"frames": self.frames} if self.frames is not None else {}),
+                **({"grid": self.grid} if self.grid is not None else {}),
                 **({"veil": self.veil} if self.veil is not None else {}),
                 "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
                             "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
@@ -424,23 +436,51 @@ def field_size(fields: dict) -> str:
             f"{max(fields['additive_pct']):.1f} % of the signal")
 
 
+def field_extent(f: np.ndarray, g: np.ndarray, mean_signal: np.ndarray) -> dict:
+    """JSON-ready size of fields (F, G) sampled over the image ((..., 3) each): per channel max |F - 1| and max |G|
+    over the views' ``mean_signal`` (3,) in per cent, their form (:func:`field_form`), F's and G's least and largest
+    values."""
+    f, g = f.reshape(-1, 3), g.reshape(-1, 3)
+    multiplicative = (100 * np.abs(f - 1).max(0)).round(2).tolist()
+    additive = (100 * np.abs(g).max(0) / np.maximum(mean_signal, 1e-6)).round(2).tolist()
+    return {"multiplicative_pct": multiplicative, "additive_pct": additive,
+            "form": field_form(multiplicative, additive), "F_min": np.round(f.min(0), 4).tolist(),
+            "F_max": np.round(f.max(0), 4).tolist(), "G_min": np.round(g.min(0), 5).tolist(),
+            "G_max": np.round(g.max(0), 5).tolist()}
+
+
 def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: int = 33) -> dict | None:
-    """JSON-ready: the stack's ``image_field`` (degree; each channel's least and largest F and G over a grid of the
-    image; their size in per cent: max |F - 1| and max |G| over the views' ``mean_signal`` (3,); the form,
-    :func:`field_form`; ``range_r2`` of :func:`decorrelate_fields` and whether the fields were kept off range);
-    None when the stack has none."""
+    """JSON-ready: the stack's ``image_field`` (degree; its size, :func:`field_extent`, over a grid of the image;
+    ``range_r2`` of :func:`decorrelate_fields` and whether the fields were kept off range); None when the stack has
+    none."""
     if FIELD_EFFECT not in stack.names:
         return None
     field_effect = stack[FIELD_EFFECT]
-    f, g = (t.reshape(-1, 3) for t in field_effect.on_grid(grid, grid))
-    multiplicative = (100 * np.abs(f - 1).max(0)).round(2).tolist()
-    additive = (100 * np.abs(g).max(0) / np.maximum(mean_signal, 1e-6)).round(2).tolist()
-    return {"degree": field_effect.degree, "multiplicative_pct": multiplicative, "additive_pct": additive,
-            "form": field_form(multiplicative, additive), "range_r2": round(range_r2, 3),
-            "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0),
-            "F_min": np.round(f.min(0), 4).tolist(),
-            "F_max": np.round(f.max(0), 4).tolist(), "G_min": np.round(g.min(0), 5).tolist(),
-            "G_max": np.round(g.max(0), 5).tolist()}
+    return {"degree": field_effect.degree, **field_extent(*field_effect.on_grid(grid, grid), mean_signal),
+            "range_r2": round(range_r2, 3), "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0)}
+
+
+def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) -> tuple[Stack, dict | None]:
+    """The fine fields over the image (``image_grid`` on ``config.correction_grid`` nodes) fitted to the table with
+    every parameter of the fitted ``stack`` held, for the corrections: what the water's smooth fields leave on image
+    position (a falloff clipped into a ring, a veil in a spot). Fitted after the water and its intervals, they cannot
+    move them. Returns (a copy of ``stack`` with them when they exceed ``FIELD_FLAT_PCT`` (carried), else ``stack``;
+    their size, :func:`field_extent`, with ``nodes``, ``carried`` and ``seconds``), or (``stack``, None) when the
+    configuration has none. Where nothing is missing they stay flat and the corrections are those of the water."""
+    if config.correction_grid is None:
+        return stack, None
+    rows, cols = config.correction_grid
+    t0 = time.perf_counter()
+    zeros = np.zeros((3, rows, cols)).tolist()
+    refined = insert_by_rank(stack, get(GRID_EFFECT)(multiplicative=zeros, additive=zeros)).to(torch.float64)
+    index = refined.names.index(GRID_EFFECT)
+    Problem(refined, obs, config.fit, [f"effects.{index}.raw.multiplicative", f"effects.{index}.raw.additive"],
+            float32=True).converge()
+    for p in refined.parameters():
+        p.requires_grad_(False)
+    summary = {"nodes": [rows, cols], **field_extent(*refined[GRID_EFFECT].on_grid(65, 49), obs.colour.mean(0))}
+    summary.update(carried=summary["form"] != "flat", seconds=round(time.perf_counter() - t0, 2))
+    return (refined if summary["carried"] else stack), summary
 
 
 def frame_summary(stack: Stack, frames: np.ndarray, carried: bool | None = None) -> dict:
@@ -482,6 +522,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                      lights: list[dict] | None = None) -> WaterEstimate:
     """Fit the stack to a measurement table, bootstrap it and repeat it under the specification alternatives (see
     the module docstring). ``lights``: the light rig survey.json declares (see :func:`build_stack`)."""
+    if config.correction_grid is not None and min(config.correction_grid) < 3:
+        raise UserInputError("correction_grid {}x{}: the fine fields need at least 3 x 3 nodes (or none)".format(
+            *config.correction_grid))
     t0 = time.perf_counter()
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, config.fit.threads))
@@ -548,20 +591,23 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         rmse = float(np.sqrt((residual ** 2).mean()))
         for p in stack.parameters():
             p.requires_grad_(False)
+        t_spec = time.perf_counter() - t0 - t_fit - t_boot
+        corrected, grid = fit_correction_grid(stack, obs, config)
         named = {_key(stack, k): v for k, v in best.items()}
         named_samples = [{_key(stack, k): v for k, v in s.items()} for s in samples]
         params, tradeoffs = _describe(stack, named, named_samples, fixed, {_key(stack, k): v for k, v in spec.items()},
                                       config.range_scale_sd)
-        return WaterEstimate(stack=stack, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
+        return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
                              n_points=obs.n_points,
                              n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),
                              residuals={"residual": residual, "range_m": obs.range_m,
                                         "radius": np.hypot(*(2 * obs.pixel_uv - 1).T) / np.sqrt(2)},
                              rmse=rmse, seconds={"fit": round(t_fit, 2), "bootstrap": round(t_boot, 2),
-                                                 "specification": round(time.perf_counter() - t0 - t_fit - t_boot, 2)},
+                                                 "specification": round(t_spec, 2),
+                                                 **({"grid": grid["seconds"]} if grid else {})},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
                              converged=converged, fields=field_summary(stack, range_r2, obs.colour.mean(0)),
-                             frames=frame_gains,
+                             frames=frame_gains, grid=grid,
                              veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m))))
     finally:
         torch.set_num_threads(threads)

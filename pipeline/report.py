@@ -166,6 +166,12 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
                          f"({size}); the water and the corrections carry it in the fields (see the water section).")
             if fields["form"] != "flat":
                 command = f"watergan diagnose {ws.root}"
+        grid = data.get("grid")
+        if grid and grid["carried"]:
+            rows, cols = grid["nodes"]
+            lines.append(f"Finer structure on image position than the fields follow ({field_size(grid)}): the "
+                         f"corrections carry it on a {rows} x {cols} grid fitted with the water held.")
+            command = command or f"watergan diagnose {ws.root}"
         frames = data.get("frames")
         if frames:
             size = f"up to {max(frames['largest_pct']):.0f} %, sd " + " / ".join(f"{v:.1f}" for v in frames["sd_pct"])

@@ -41,7 +41,7 @@ import numpy as np
 
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
-from eval.water import FIELD_EFFECT, FIELD_FLAT_PCT, WaterConfig, WaterEstimate, on_bound
+from eval.water import FIELD_EFFECT, FIELD_FLAT_PCT, GRID_EFFECT, WaterConfig, WaterEstimate, on_bound
 from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
 from watergan.io import (
@@ -177,17 +177,33 @@ def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
     plt.close(fig)
 
 
+def total_fields(stack, cols: int, rows: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(F, G) (rows, cols, 3) of everything the stack carries on image position beyond its physics: the fields
+    fitted beside the water (``image_field``) and the fine grid fitted after it (``image_grid``), composed as they
+    apply (F = F_field F_grid, G = F_grid G_field + G_grid); None when it carries neither."""
+    if FIELD_EFFECT not in stack.names and GRID_EFFECT not in stack.names:
+        return None
+    f, g = np.ones((rows, cols, 3)), np.zeros((rows, cols, 3))
+    if FIELD_EFFECT in stack.names:
+        f, g = stack[FIELD_EFFECT].on_grid(cols, rows)
+    if GRID_EFFECT in stack.names:
+        f_grid, g_grid = stack[GRID_EFFECT].on_grid(cols, rows)
+        f, g = f * f_grid, g * f_grid + g_grid
+    return f, g
+
+
 def _plot_fields(estimate: WaterEstimate, path: Path, grid: int = 49) -> bool:
-    """The fields over the image (``image_field``) per channel: F (top, 1 = nothing) and G (bottom, 0 = nothing);
-    False (nothing written) when the stack has none."""
-    if FIELD_EFFECT not in estimate.stack.names:
+    """The fields over the image per channel (:func:`total_fields`): F (top, 1 = nothing) and G (bottom,
+    0 = nothing); False (nothing written) when the stack has none."""
+    fields = total_fields(estimate.stack, grid, int(round(grid * ASPECT)))
+    if fields is None:
         return False
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    f, g = estimate.stack[FIELD_EFFECT].on_grid(grid, int(round(grid * ASPECT)))
+    f, g = fields
     fig, axes = plt.subplots(2, 3, figsize=(10, 5))
     f_span = max(float(np.abs(f - 1).max()), 0.02)
     g_span = max(float(np.abs(g).max()), 0.002)
@@ -201,7 +217,8 @@ def _plot_fields(estimate: WaterEstimate, path: Path, grid: int = 49) -> bool:
             ax.set_yticks([])
     fig.colorbar(top, ax=axes[0].tolist(), fraction=0.02, label="multiplicative F")
     fig.colorbar(bottom, ax=axes[1].tolist(), fraction=0.02, label="additive G (linear)")
-    fig.suptitle("what the stack lacks on image position: the fields fitted beside the water (flat: nothing)",
+    fine = " and the fine grid after it" if GRID_EFFECT in estimate.stack.names else ""
+    fig.suptitle(f"what the stack lacks on image position: the fields fitted beside the water{fine} (flat: nothing)",
                  fontsize=9)
     fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)

@@ -152,8 +152,18 @@ class Effect(nn.Module):
             hi = "inf" if not p.bounded_above else f"{p.upper:g}"
             fixed = "" if p.learnable else " (fixed setting)"
             per = f" per {p.per}" if p.per else ""
-            lines.append(f"    - {p.name} = {p.init}{per} in [{p.lower:g}, {hi}] {p.units}{fixed}  {p.doc}".rstrip())
+            lines.append(f"    - {p.name} = {_shown(p.init)}{per} in [{p.lower:g}, {hi}] {p.units}{fixed}  {p.doc}".rstrip())
         return "\n".join(lines)
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={to_json_value(v)}" for k, v in self.values().items())
+
+
+def _shown(init) -> str:
+    """A parameter's starting value for :meth:`Effect.describe`: as given, or its shape when it has many entries."""
+    value = as_tensor(init)
+    if value.numel() <= 15:
+        return str(init)
+    same = bool((value == value.flatten()[0]).all())
+    return (f"{value.flatten()[0].item():g} at every entry of " if same else "an array of ") + \
+        "x".join(map(str, value.shape))
