@@ -241,6 +241,11 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
         print(f"   {key:32s} est {est:30s} truth {tru:30s} err {rel:24s} covered {cover}")
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)
+    if estimate.grid is not None:
+        from eval.water import field_size
+
+        print(f"   fine grid after the water: {'carried' if estimate.grid['carried'] else 'flat, not carried'} "
+              f"({field_size(estimate.grid)}, {estimate.grid['seconds']:.1f} s)")
     out = ws_root / f"water_bench_{name}"
     corr = correct_folders(ws_root, frames, K, estimate.stack, out, config.range_agreement)
     names = [f.name for f in frames]
