@@ -243,6 +243,22 @@ def load_board_json(path: str | Path) -> Board:
     return Board(names=names, true_linear_rgb=np.array(colours, float), quads=quads)
 
 
+def check_board_frames(board: Board, images: list[str], where: str) -> None:
+    """Refuse a board whose frames (the board file's ``images`` keys) name none of the survey's ``images``: it
+    would take part with no rows. Frames of the board that match no image are named on stderr."""
+    import sys
+
+    marked = [name for name, quads in board.quads.items() if np.isfinite(quads).any()]
+    matched = set(marked) & set(images)
+    if marked and not matched:
+        raise UserInputError(f"board file {where}: none of its {len(marked)} frames is an image of the survey (e.g. "
+                             f"{marked[0]!r}; the survey's are like {images[0]!r}): its 'images' keys must be the "
+                             f"survey's file names")
+    if len(matched) < len(marked):
+        print(f"board file {where}: {len(marked) - len(matched)} of its frames are not images of the survey; "
+              f"they are left out", file=sys.stderr)
+
+
 @dataclass
 class PatchAccuracy:
     name: str

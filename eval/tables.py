@@ -644,10 +644,12 @@ def method_inputs(cfg: EvaluateConfig, survey: Path, tracks, simulated: bool, de
 
 def measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -> tuple[object, dict, str]:
     """(board or None, method -> BoardResult, why there is none)."""
-    from eval.colour import board_accuracy, load_board_json, truth_board
+    from eval.colour import board_accuracy, check_board_frames, load_board_json, truth_board
+    from watergan.data import IMAGE_SUFFIXES, list_files
 
     if cfg.board_json:
         board = load_board_json(cfg.board_json)
+        check_board_frames(board, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)], cfg.board_json)
     elif (survey / "truth" / "board.json").is_file():
         try:
             board = truth_board(survey)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import sys
 import time
 import zlib  # noqa: F401  load before pycolmap: importing pycolmap first makes Python's zlib corrupt the heap
@@ -136,6 +137,12 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except (UserInputError, UnknownEffectError) as exc:
         print(f"watergan: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a full disk under a writer that is not ours (open3d, SQLite, matplotlib)
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        print(f"watergan: error: cannot write {exc.filename or 'an output'}: {exc.strerror}; free some space and "
+              f"rerun (finished stages are kept, the one that failed runs again)", file=sys.stderr)
         return 2
 
 

@@ -50,6 +50,8 @@ run's. Patch-match and the fusion run here.
 
 from __future__ import annotations
 
+import errno
+import os
 import shutil
 import time
 import zlib  # noqa: F401  must load before pycolmap (see pipeline.sfm)
@@ -60,7 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import read_camera_json
+from watergan.io import file_mode, read_camera_json, write_failed
 
 
 class DenseMethod(StrEnum):
@@ -435,11 +437,37 @@ def fuse_depths(depths: dict[str, np.ndarray], poses: dict[str, np.ndarray], K: 
     cloud = grid.extract_point_cloud(weight_threshold)
     mesh = grid.extract_triangle_mesh(weight_threshold)
     points_path, mesh_path = out_dir / "fused_points.ply", out_dir / "fused_mesh.ply"
-    if not o3d.t.io.write_point_cloud(str(points_path), cloud):
-        raise OSError(f"could not write {points_path}")
-    if not o3d.t.io.write_triangle_mesh(str(mesh_path), mesh):
-        raise OSError(f"could not write {mesh_path}")
+    write_checked(points_path, cloud, o3d.t.io.write_point_cloud, o3d.t.io.read_point_cloud)
+    write_checked(mesh_path, mesh, o3d.t.io.write_triangle_mesh, o3d.t.io.read_triangle_mesh)
     return str(points_path), str(mesh_path), int(cloud.point.positions.shape[0])
+
+
+def write_checked(path: Path, geometry, write, read) -> None:
+    """Write an open3d tensor point cloud or mesh to ``path`` through a temporary file beside it, read it back and
+    rename it into place only when its vertices are the ones written: open3d reports a file cut short by a full
+    disk as written (and reads one back with the missing vertices filled in). Raises
+    :class:`watergan.io.WriteError` naming the path otherwise."""
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    expected = _positions(geometry)
+    try:
+        back = _positions(read(str(tmp))) if write(str(tmp), geometry) else np.zeros((0, 3))
+        if back.shape != expected.shape or not np.array_equal(back, expected):
+            raise OSError(errno.EIO, f"open3d's file does not hold the {len(expected)} vertices written (a full "
+                                     f"disk?)")
+        os.chmod(tmp, file_mode())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise write_failed(path, exc) from exc
+
+
+def _positions(geometry) -> np.ndarray:
+    """(N,3) vertex (point) positions of an open3d tensor point cloud or mesh; (0,3) when it has none."""
+    attributes = geometry.point if hasattr(geometry, "point") else geometry.vertex
+    try:
+        return attributes.positions.numpy()
+    except (AttributeError, KeyError, RuntimeError):
+        return np.zeros((0, 3))
 
 
 def dense_method(method: str) -> str:

@@ -70,12 +70,12 @@ def gan_configs(ws: Workspace, cfg: GanStage) -> tuple[GanConfig, GenerateConfig
     train = cfg.train
     limits = train.iterations is not None or train.epochs is not None
     budget = cfg.budget_min if cfg.budget_min is not None else None if limits else GAN_BUDGET_MIN
-    train = dataclasses.replace(train, rgbd_dir=Path(survey.rgbd_dir), underwater_dir=ws.folder("survey") / "images",
+    train = dataclasses.replace(train, rgbd_dir=ws.path(survey.rgbd_dir), underwater_dir=ws.folder("survey") / "images",
                                 out_dir=folder / "model", effects=tuple(dict.fromkeys(train.effects + cfg.add)),
                                 budget_min=budget)
     if train.site_water_mode != SiteWater.learned:  # the water stage's estimate, held or under its prior
         train = dataclasses.replace(train, site_water=ws.path(ws.require("water", "WaterGAN").water_json))
-    generate = dataclasses.replace(cfg.generate, model_dir=folder / "model", rgbd_dir=Path(survey.rgbd_dir),
+    generate = dataclasses.replace(cfg.generate, model_dir=folder / "model", rgbd_dir=ws.path(survey.rgbd_dir),
                                    out_dir=folder / "generated")
     return train, generate
 

@@ -24,7 +24,8 @@ def check_survey(survey_dir: Path) -> dict:
     """Refuse a survey folder that cannot be processed, before any training starts: a missing
     ``images/`` folder, fewer than 3 images, unreadable or truncated files, images of different
     sizes, ``right/`` frames that do not pair with ``images/`` by name, a missing or malformed ``camera.json``,
-    a malformed ``survey.json`` (its light rig included). Returns a summary."""
+    a malformed ``survey.json`` (its light rig included) or one whose frames name an image that is not there.
+    Returns a summary."""
     survey_dir = Path(survey_dir)
     images_dir = survey_dir / "images"
     if not survey_dir.is_dir():
@@ -68,6 +69,12 @@ def check_survey(survey_dir: Path) -> dict:
                              f"the images in {images_dir} are {w}x{h}")
     if (survey_dir / "survey.json").is_file():
         declared = read_survey_json(survey_dir / "survey.json")
+        named = {p.name for p in files}
+        absent = [f for f in declared.get("frames") or [] if f not in named]
+        if absent:
+            raise UserInputError(f"survey file {survey_dir / 'survey.json'} lists {len(absent)} frame(s) with no image "
+                                 f"in {images_dir} (e.g. {absent[0]}): add the images or remove them from its "
+                                 f"frames (and their navigation values)")
         if "lights" in declared:
             from watergan.formation.effects.artificial_light import check_rig
 
@@ -113,7 +120,7 @@ class SurveyResult:
     simulated: bool
     """Whether it is a simulated survey with truth/."""
     rgbd_dir: str
-    """The in-air RGB-D set WaterGAN uses (absolute)."""
+    """The in-air RGB-D set WaterGAN uses (workspace-relative when it is in the workspace, else absolute)."""
     survey_dir: str
     """The survey folder (absolute); the workspace's survey folder links to it."""
     navigation: bool = False
@@ -146,4 +153,6 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
         write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
     nav = survey / "survey.json"
     navigation = nav.is_file() and "nav_altitude_m" in read_json(nav, "survey file")
-    return SurveyResult(**summary, rgbd_dir=str(rgbd), survey_dir=str(survey), navigation=navigation)
+    inside = rgbd.resolve().is_relative_to(ws.root.resolve())
+    return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),
+                        navigation=navigation)

@@ -138,10 +138,13 @@ def survey_lights(survey: Path) -> list[dict]:
 
 
 def _board(ws: Workspace, cfg: WaterConfig, survey: Path):
-    from eval.colour import load_board_json, truth_board
+    from eval.colour import check_board_frames, load_board_json, truth_board
+    from watergan.data import IMAGE_SUFFIXES, list_files
 
     if cfg.board_json:
-        return load_board_json(cfg.board_json)
+        board = load_board_json(cfg.board_json)
+        check_board_frames(board, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)], cfg.board_json)
+        return board
     if (survey / "truth" / "board.json").is_file():
         return truth_board(survey)
     return None

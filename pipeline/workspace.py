@@ -16,15 +16,26 @@ never read under the new names.
 A stage's hash covers its configuration and the hashes of the result records of the stages it
 reads (``reads`` in the stage table), so a standalone stage command (``watergan sfm``) and
 ``watergan run`` recognise each other's results, and a rerun upstream reruns the stages after it.
-A stage whose ``result.json`` records the same hash is finished and is skipped unless forced.
+A stage whose ``result.json`` records the same hash, and whose files are all there as it wrote
+them (the record lists each file of the stage's folder with its size), is finished and is skipped
+unless forced; a stage whose files were deleted or cut short reruns, saying which. Paths inside the
+workspace enter a configuration's hash relative to it, so a moved or renamed workspace is still
+finished (results store workspace-relative paths).
 Every file is written atomically (a temporary file renamed into place), so an interrupted run
 never leaves a half-written output that looks finished.
+
+One process at a time writes a workspace: the first stage a process runs takes the lock
+``WORKSPACE/.lock`` (held until the process ends); another process is refused with an error naming
+the first's process id and command.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
+import os
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -35,11 +46,40 @@ from watergan.io import atomic_write_json, from_jsonable, to_jsonable
 if TYPE_CHECKING:
     from .stages import Stage
 
-def config_hash(config: Any) -> str:
+def config_hash(config: Any, root: Path | None = None) -> str:
     """SHA-256 (first 16 hex digits) of the configuration's canonical JSON (fields marked
-    ``metadata={"hash": False}`` left out)."""
+    ``metadata={"hash": False}`` left out); with a workspace ``root``, paths inside it count relative to it."""
     text = json.dumps(to_jsonable(config, for_hash=True), sort_keys=True, separators=(",", ":"))
+    if root is not None:
+        for prefix in dict.fromkeys((str(root.resolve()), str(root.absolute()))):
+            text = text.replace(json.dumps(prefix)[1:-1] + "/", "<workspace>/")
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+#: The workspaces this process holds the lock of: resolved root -> the open lock file.
+_LOCKS: dict[Path, Any] = {}
+
+
+def lock_workspace(root: Path) -> None:
+    """Take the workspace's lock for this process (kept until it ends; taking it again is a no-op). Raises
+    :class:`UserInputError` naming the process that holds it."""
+    root = root.resolve()
+    if root in _LOCKS:
+        return
+    handle = open(root / ".lock", "a+")  # noqa: SIM115  held open: the lock lives as long as the file is open
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        raise UserInputError(f"workspace {root} is in use by {holder}: wait for it to finish, or run into another "
+                             f"workspace") from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"process {os.getpid()} ({' '.join(sys.argv)[:200]})\n")
+    handle.flush()
+    _LOCKS[root] = handle
 
 
 class Workspace:
@@ -122,14 +162,35 @@ class Workspace:
         return {s: config_hash(self.record(s) or {}) for s in self.stage(stage).reads}
 
     def stage_hash(self, stage: str, config: Any) -> str:
-        """The hash a finished ``stage`` records: its configuration and the results it read."""
-        return config_hash({"config": config, "upstream": self.upstream(stage)})
+        """The hash a finished ``stage`` records: its configuration (paths inside the workspace relative to it,
+        so that a moved workspace is still done) and the results it read (records, as saved)."""
+        return config_hash({"config": config, "upstream": self.upstream(stage)}, self.root)
+
+    def outputs(self, stage: str) -> dict[str, int]:
+        """{workspace-relative path: size in bytes} of every file in the stage's folder but its config and result
+        (what :meth:`save` records; a linked file counts by its target, a linked folder is not walked: the survey
+        stage's links to the user's survey)."""
+        folder = self.folder(stage)
+        found = {}
+        for path in sorted(folder.rglob("*")) if folder.is_dir() else ():
+            record = path.parent == folder and path.name in ("config.json", "result.json")
+            if path.is_file() and not record and not path.name.startswith("."):
+                found[str(path.relative_to(self.root))] = path.stat().st_size
+        return found
+
+    def missing(self, stage: str) -> list[str]:
+        """The files the stage's record lists that are gone or changed size (deleted, cut short); empty for a
+        stage that has not run or whose record lists none."""
+        listed = (self.record(stage) or {}).get("outputs", {})
+        return [p for p, size in listed.items()
+                if not (self.root / p).is_file() or (self.root / p).stat().st_size != size]
 
     def is_done(self, stage: str, config: Any) -> bool:
-        """True when the stage finished with this very configuration on the same upstream results (and its
-        record reads back: one from another version of watergan is not done)."""
+        """True when the stage finished with this very configuration on the same upstream results, its files
+        are there as it wrote them (:meth:`missing`) and its record reads back (one from another version of
+        watergan is not done)."""
         record = self.record(stage)
-        if record is None or record.get("config_hash") != self.stage_hash(stage, config):
+        if record is None or record.get("config_hash") != self.stage_hash(stage, config) or self.missing(stage):
             return False
         try:
             self.result(stage)
@@ -138,19 +199,27 @@ class Workspace:
         return True
 
     def save(self, stage: str, config: Any, result: Any) -> dict:
-        """Record a finished stage: config.json, then result.json (written last: it marks completion)."""
+        """Record a finished stage: config.json, then result.json (written last: it marks completion) with the
+        stage's files and their sizes (:meth:`outputs`)."""
         folder = self.stage_dir(stage)
         upstream = self.upstream(stage)
         digest = self.stage_hash(stage, config)
         atomic_write_json(folder / "config.json", {"config": config, "config_hash": digest, "upstream": upstream})
-        record = {"stage": stage, "config_hash": digest, "upstream": upstream, "result": to_jsonable(result)}
+        record = {"stage": stage, "config_hash": digest, "upstream": upstream, "result": to_jsonable(result),
+                  "outputs": self.outputs(stage)}
         atomic_write_json(folder / "result.json", record)
         return record
 
     def run(self, stage: str, config: Any, force: bool = False) -> Any:
         """Run the stage's function ``fn(ws, config)`` unless it is already done with this configuration
-        on the same upstream results; returns its typed result."""
+        on the same upstream results; returns its typed result. The first stage a process runs takes the
+        workspace's lock (:func:`lock_workspace`); a stage whose files are gone reruns, saying which."""
         if force or not self.is_done(stage, config):
+            lock_workspace(self.root)
+            gone = self.missing(stage)
+            if gone and not force:
+                print(f"{stage}: {len(gone)} of its files are gone or cut short since it ran (e.g. {gone[0]}): "
+                      f"running it again", file=sys.stderr)
             (self.folder(stage) / "result.json").unlink(missing_ok=True)  # a rerun is unfinished until it saves again
             self.save(stage, config, self.stage(stage).fn(self, config))
         return self.result(stage)

@@ -5,8 +5,10 @@ import pytest
 from test_sfm import survey_and_sfm
 
 from eval.colour import (
+    Board,
     ColourEvalConfig,
     board_accuracy,
+    check_board_frames,
     consistency,
     normalise,
     patch_means,
@@ -70,3 +72,15 @@ def test_project_board_hides_patches_outside_the_image():
     board = project_board(["in", "out"], [square, square + [5, 0, 0]], np.ones((2, 3)), ["a.png"], pose[None],
                           K, 100, 100)
     assert np.allclose(board.quads["a.png"][0, 0], [44.5, 44.5]) and np.isnan(board.quads["a.png"][1]).all()
+
+
+def test_a_board_whose_frames_match_no_image_is_refused(capsys):
+    """A board file keyed by other names than the survey's images (its JPEG originals, say) would take part with
+    no rows: refused, naming both; a board with some frames unmatched is used and says how many are left out."""
+    quad = np.array([[[1.0, 1.0], [5.0, 1.0], [5.0, 5.0], [1.0, 5.0]]])
+    board = Board(names=["white"], true_linear_rgb=np.ones((1, 3)), quads={"IMG_0001.JPG": quad, "000001.png": quad})
+    with pytest.raises(UserInputError, match=r"board file b.json: none of its 2 frames is an image of the survey "
+                                             r"\(e.g. 'IMG_0001.JPG'; the survey's are like '000000.png'\)"):
+        check_board_frames(board, ["000000.png"], "b.json")
+    check_board_frames(board, ["000000.png", "000001.png"], "b.json")
+    assert "1 of its frames are not images of the survey" in capsys.readouterr().err

@@ -13,6 +13,7 @@ from pipeline.dense import (
     refine_disparity,
     run_dense,
     run_dense_folder,
+    write_checked,
 )
 
 
@@ -116,3 +117,26 @@ def test_read_colmap_array(tmp_path):
     path = tmp_path / "a.geometric.bin"
     path.write_bytes(b"4&3&1&" + depth.astype("<f4").tobytes())  # COLMAP: x fastest, then y, then channel
     assert np.array_equal(read_colmap_array(path), depth)
+
+
+def test_a_mesh_file_cut_short_is_an_error_and_not_kept(tmp_path):
+    """open3d reports a file cut short (a full disk) as written: the fused geometry is read back and renamed into
+    place only when it holds every vertex."""
+    import open3d as o3d
+
+    from watergan.io import WriteError
+
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.random.default_rng(0).random((50, 3), np.float32)))
+    write_checked(tmp_path / "points.ply", cloud, o3d.t.io.write_point_cloud, o3d.t.io.read_point_cloud)
+    assert o3d.t.io.read_point_cloud(str(tmp_path / "points.ply")).point.positions.shape[0] == 50
+
+    def cut_short(path, geometry):
+        o3d.t.io.write_point_cloud(path, geometry)
+        with open(path, "r+b") as f:
+            f.truncate(f.seek(0, 2) // 2)
+        return True
+
+    with pytest.raises(WriteError, match=r"cannot write .*fused.ply: open3d.s file does not hold the 50 vertices "
+                                         r"written \(a full disk\?\); free some space"):
+        write_checked(tmp_path / "fused.ply", cloud, cut_short, o3d.t.io.read_point_cloud)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["points.ply"]

@@ -96,6 +96,15 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert main(["report", "--workspace", str(out), "--force"]) == 0
     assert capsys.readouterr().out.strip() == str(report)
 
+    # a moved workspace is still finished; a stage whose output is gone runs again, and the stages after it
+    moved = out.rename(tmp_path / "moved")
+    (moved / "03_water" / "water.json").unlink()
+    assert main(["demo", "--preset", "small", "--out", str(moved), *FAST]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.count("finished earlier, skipped") == 3, captured.out  # survey, sfm, dense
+    assert "water: 1 of its files are gone or cut short since it ran (e.g. 03_water/water.json)" in captured.err
+    assert (moved / "03_water" / "water.json").is_file()
+
 
 def _survey(root, n=4, size=(48, 64)):
     images = root / "images"
@@ -128,6 +137,7 @@ def test_good_survey_is_accepted(tmp_path):
                             r"\(e.g. f1.png: -2.0\)"),
     ("survey_short_list", r"survey file .*survey.json: 2 nav_depth_m values for 4 frames"),
     ("survey_bad_light", r"survey file .*survey.json: lights\[0\].offset_m = 'left' is not a number"),
+    ("survey_missing_frame", r"survey file .*survey.json lists 1 frame\(s\) with no image in .*images \(e.g. f9.png\)"),
 ])
 def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
     survey = tmp_path / "survey"
@@ -161,7 +171,8 @@ def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
         text = {"survey_not_json": json.dumps(good)[:-20],
                 "survey_bad_altitude": json.dumps({**good, "nav_altitude_m": [2.0, -2.0, 2.0, 2.0]}),
                 "survey_short_list": json.dumps({**good, "nav_depth_m": [10.0, 10.0]}),
-                "survey_bad_light": json.dumps({**good, "lights": [{"offset_m": "left"}]})}[problem]
+                "survey_bad_light": json.dumps({**good, "lights": [{"offset_m": "left"}]}),
+                "survey_missing_frame": json.dumps({**good, "frames": frames[:3] + ["f9.png"]})}[problem]
         (survey / "survey.json").write_text(text)
     before = sorted(p.name for p in survey.rglob("*"))
     with pytest.raises(UserInputError, match=message):

@@ -132,3 +132,121 @@ def test_a_workspace_an_older_version_made_is_refused_with_what_to_do(tmp_path):
     assert out.returncode == 2 and "older version" in out.stderr and "Traceback" not in out.stderr
     (old / "notes").mkdir()  # a folder of the user's without a stage record is not a stage
     assert Workspace(tmp_path / "new").root.is_dir()
+
+
+def _writes(name="out.txt", text="x" * 100):
+    def stage(ws_, cfg):
+        atomic_write_text(ws_.stage_dir("a") / name, text)
+        return {"out": f"00_a/{name}"}
+    return stage
+
+
+def test_a_stage_whose_files_were_deleted_or_cut_short_runs_again_and_says_so(tmp_path, capsys):
+    calls = []
+    ws = Workspace(tmp_path / "ws", _table(a=lambda w, c: calls.append(1) or _writes()(w, c)))
+    ws.run("a", Cfg())
+    assert ws.is_done("a", Cfg()) and ws.record("a")["outputs"] == {"00_a/out.txt": 100}
+    (ws.folder("a") / "out.txt").write_text("x" * 10)  # cut short
+    assert not ws.is_done("a", Cfg())
+    ws.run("a", Cfg())
+    assert "files are gone or cut short" in capsys.readouterr().err and len(calls) == 2
+    (ws.folder("a") / "out.txt").unlink()  # deleted
+    assert ws.missing("a") == ["00_a/out.txt"]
+    ws.run("a", Cfg())
+    assert len(calls) == 3 and ws.is_done("a", Cfg()) and (ws.folder("a") / "out.txt").stat().st_size == 100
+
+
+@dataclass(frozen=True)
+class PathCfg:
+    folder: str = ""
+
+
+def test_a_moved_workspace_is_still_done(tmp_path):
+    """A configuration that holds a path inside the workspace (as the pipeline's stages fill theirs in) hashes it
+    relative to the workspace; the results it read hash as saved."""
+    table = {"a": Stage("a", "00_a", PathCfg, dict, _writes(), (), "first"),
+             "b": Stage("b", "01_b", PathCfg, dict, lambda w, c: {"ok": 1}, ("a",), "second")}
+    ws = Workspace(tmp_path / "ws", table)
+    for stage in ("a", "b"):
+        ws.run(stage, PathCfg(str(ws.root.resolve() / "00_a")))
+    (tmp_path / "ws").rename(tmp_path / "moved")
+    moved = Workspace(tmp_path / "moved", table)
+    assert all(moved.is_done(s, PathCfg(str(moved.root.resolve() / "00_a"))) for s in ("a", "b"))
+    assert not moved.is_done("a", PathCfg(str(tmp_path / "elsewhere" / "00_a")))
+
+
+def test_a_second_process_is_refused_while_the_first_writes_the_workspace(tmp_path):
+    import subprocess
+    import sys
+
+    ws = Workspace(tmp_path / "ws", _table(a=_writes()))
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pipeline.workspace import lock_workspace; "
+                               f"from pathlib import Path; lock_workspace(Path({str(ws.root)!r})); print('held', "
+                               "flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(UserInputError, match=rf"in use by process {holder.pid} .*wait for it to finish"):
+            ws.run("a", Cfg())
+    finally:
+        holder.kill()
+        holder.wait()
+    ws.run("a", Cfg())  # the first process has ended: its lock went with it
+    assert ws.is_done("a", Cfg())
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_written_files_follow_the_umask(tmp_path, umask, mode):
+    import os
+
+    before = os.umask(umask)
+    try:
+        atomic_write_text(tmp_path / "a.txt", "hello")
+    finally:
+        os.umask(before)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == mode
+
+
+def test_a_full_disk_is_one_clear_error_and_a_rerun_completes(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    import watergan.io as io
+
+    real_fdopen = io.os.fdopen
+
+    class Full:
+        def __init__(self, fd, mode):
+            self.file = real_fdopen(fd, mode)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.file.close()
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    ws = Workspace(tmp_path / "ws", _table(a=_writes()))
+    monkeypatch.setattr(io.os, "fdopen", Full)
+    with pytest.raises(io.WriteError, match=r"cannot write .*00_a/out.txt: No space left on device; free some space"):
+        ws.run("a", Cfg())
+    assert not ws.is_done("a", Cfg()) and list(ws.folder("a").iterdir()) == []  # nothing half-written kept
+    monkeypatch.setattr(io.os, "fdopen", real_fdopen)
+    ws.run("a", Cfg())
+    assert ws.is_done("a", Cfg())
+
+
+def test_a_full_disk_under_another_writer_is_one_line_from_the_command(monkeypatch, capsys):
+    import errno
+    import os
+
+    import pipeline.cli as cli
+
+    def full(args):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/ws/02_dense/fused_mesh.ply")
+
+    monkeypatch.setattr(cli, "cmd_effects", full)
+    assert cli.main(["effects"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write /ws/02_dense/fused_mesh.ply: No space left on device" in err

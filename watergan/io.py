@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import errno
 import json
 import os
 import tempfile
@@ -47,15 +48,42 @@ class DataError(UserInputError):
 
 
 # ---------------------------------------------------------------------------------------- writes
+class WriteError(UserInputError):
+    """An output that could not be written (a full disk, no permission): the message names the path."""
+
+
+def file_mode() -> int:
+    """The mode a new file gets under the process's umask (0644 under umask 022), as ``open`` would give it."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def write_failed(path: str | Path, exc: OSError) -> WriteError:
+    """The one-line error for an output ``path`` that could not be written."""
+    why = exc.strerror or str(exc)
+    hint = "free some space" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EIO) else "check the folder can be written"
+    return WriteError(f"cannot write {path}: {why}; {hint} and rerun (nothing half-written was kept)")
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``; the file gets the
+    umask's mode (:func:`file_mode`). A failed write (a full disk) leaves the old file, or none, and raises
+    :class:`WriteError` naming the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise write_failed(path, exc) from exc
+    try:
+        os.fchmod(fd, file_mode())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise write_failed(path, exc) from exc
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -152,7 +152,8 @@ class Effect(nn.Module):
             hi = "inf" if not p.bounded_above else f"{p.upper:g}"
             fixed = "" if p.learnable else " (fixed setting)"
             per = f" per {p.per}" if p.per else ""
-            lines.append(f"    - {p.name} = {_shown(p.init)}{per} in [{p.lower:g}, {hi}] {p.units}{fixed}  {p.doc}".rstrip())
+            bounds = f"[{p.lower:g}, {hi}] {p.units}{fixed}"
+            lines.append(f"    - {p.name} = {_shown(p.init)}{per} in {bounds}  {p.doc}".rstrip())
         return "\n".join(lines)
 
     def extra_repr(self) -> str:

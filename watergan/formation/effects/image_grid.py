@@ -63,7 +63,7 @@ class ImageGrid(Effect):
     name = "image_grid"
     summary = "fine per-channel multiplicative and additive fields on a grid over the image (a nuisance for the " \
               "correction: what the water's smooth fields leave)"
-    signature = "image position: structure fixed to the camera finer than the water's fields (a clipped falloff, a spot)"
+    signature = "image position: structure fixed to the camera, finer than the water's fields (a clipped ring, a spot)"
     axis = "image_position"
     rank = RANK_OPTICS + 2
     nuisance = True
