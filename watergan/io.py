@@ -62,7 +62,8 @@ def file_mode() -> int:
 def write_failed(path: str | Path, exc: OSError) -> WriteError:
     """The one-line error for an output ``path`` that could not be written."""
     why = exc.strerror or str(exc)
-    hint = "free some space" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EIO) else "check the folder can be written"
+    full = exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EIO)
+    hint = "free some space" if full else "check the folder can be written"
     return WriteError(f"cannot write {path}: {why}; {hint} and rerun (nothing half-written was kept)")
 
 
