@@ -82,6 +82,12 @@ def lock_workspace(root: Path) -> None:
     _LOCKS[root] = handle
 
 
+def release_workspaces() -> None:
+    """Give up every workspace lock this process holds (a long-lived process, a test session, between runs)."""
+    while _LOCKS:
+        _LOCKS.popitem()[1].close()
+
+
 class Workspace:
     """A run folder. ``Workspace(path)`` creates it when missing. ``stages`` is the stage table
     (default: :data:`pipeline.stages.STAGES`; a test may give its own)."""

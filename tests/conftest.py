@@ -13,6 +13,16 @@ os.environ.setdefault("MPLCONFIGDIR", os.path.join(SCRATCH, "mpl"))
 from watergan.formation import FormationState, pixel_grid  # noqa: E402
 
 
+@pytest.fixture(autouse=True)
+def _release_workspace_locks():
+    """Each test's in-process runs give up their workspaces' locks when it ends (a process holds them until it
+    exits), so the session holds no more open lock files than one test needs."""
+    yield
+    from pipeline.workspace import release_workspaces
+
+    release_workspaces()
+
+
 def pytest_sessionfinish(session, exitstatus):
     shutil.rmtree(SCRATCH, ignore_errors=True)
 
