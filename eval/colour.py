@@ -37,7 +37,7 @@ import numpy as np
 
 from watergan.data import srgb_to_linear
 from watergan.errors import UserInputError
-from watergan.io import read_json
+from watergan.io import frame_file, read_json
 
 
 def read_rgb(path: str | Path, linear: bool = True) -> np.ndarray:
@@ -110,16 +110,16 @@ def observation_colours(tracks, folder: str | Path, patch_px: int = 5, linear: b
     folder = Path(folder)
     out = np.full((len(tracks.obs_xy), 3), np.nan)
     images = np.unique(tracks.obs_image)
-    missing = [str(tracks.image_names[k]) for k in images if not (folder / str(tracks.image_names[k])).is_file()]
+    located = [frame_file(folder, str(tracks.image_names[k])) for k in images]
+    missing = [path.name for path in located if not path.is_file()]
     if missing:
         raise UserInputError(f"{folder} lacks {len(missing)} of the SfM images (e.g. {missing[0]}): "
-                             f"every folder must hold the same file names as the images SfM ran on")
+                             f"every folder must hold the same frames as the images SfM ran on")
     if patch_px < 1 or patch_px % 2 == 0:  # before any work is sent
         raise UserInputError(f"patch size must be an odd number of pixels >= 1, got {patch_px}")
     distributed = is_distributed(scheduler)
     rows = rows_by_label(tracks.obs_image, images)
-    paths = [shared_path(folder / str(tracks.image_names[k])) if distributed else folder / str(tracks.image_names[k])
-             for k in images]
+    paths = [shared_path(path) if distributed else path for path in located]
     parts = chunks(list(range(len(images))), chunk_size if distributed else 1)
     jobs = [ColourJob(tuple(paths[i] for i in part), tuple(tracks.obs_xy[rows[i]] for i in part), patch_px, linear)
             for part in parts]
@@ -243,13 +243,17 @@ def load_board_json(path: str | Path) -> Board:
     return Board(names=names, true_linear_rgb=np.array(colours, float), quads=quads)
 
 
-def check_board_frames(board: Board, images: list[str], where: str) -> None:
-    """Refuse a board whose frames (the board file's ``images`` keys) name none of the survey's ``images``: it
-    would take part with no rows. Frames of the board that match no image are named on stderr."""
+def board_for_images(board: Board, images: list[str], where: str) -> Board:
+    """``board`` with its frames (the board file's ``images`` keys) named as the survey's ``images`` where only the
+    suffix differs (a board marked on the JPEG originals of a PNG survey, or the simulator's truth of a survey
+    converted to JPEG or TIFF). Refuses a board whose frames name none of the images: it would take part with no
+    rows. Frames that match no image are named on stderr and left out."""
     import sys
 
-    marked = [name for name, quads in board.quads.items() if np.isfinite(quads).any()]
-    matched = set(marked) & set(images)
+    by_stem = {Path(name).stem: name for name in images}
+    quads = {(name if name in images else by_stem.get(Path(name).stem, name)): q for name, q in board.quads.items()}
+    marked = [name for name, q in quads.items() if np.isfinite(q).any()]
+    matched = [name for name in marked if name in by_stem.values()]
     if marked and not matched:
         raise UserInputError(f"board file {where}: none of its {len(marked)} frames is an image of the survey (e.g. "
                              f"{marked[0]!r}; the survey's are like {images[0]!r}): its 'images' keys must be the "
@@ -257,6 +261,8 @@ def check_board_frames(board: Board, images: list[str], where: str) -> None:
     if len(matched) < len(marked):
         print(f"board file {where}: {len(marked) - len(matched)} of its frames are not images of the survey; "
               f"they are left out", file=sys.stderr)
+    return Board(names=board.names, true_linear_rgb=board.true_linear_rgb,
+                 quads={name: q for name, q in quads.items() if name in matched})
 
 
 @dataclass
@@ -299,7 +305,7 @@ def board_accuracy(folder: str | Path, board: Board, inset: float = 0.2, min_pix
     de = [[] for _ in range(n_patches)]
     n_images = 0
     for name, quads in sorted(board.quads.items()):
-        path = folder / name
+        path = frame_file(folder, name)
         if not path.is_file():
             continue
         image = read_rgb(path, linear)

@@ -50,7 +50,7 @@ import numpy as np
 
 from eval.baselines import BASELINES, jaffe_coefficients
 from watergan.errors import UserInputError
-from watergan.io import z_to_range
+from watergan.io import frame_file, z_to_range
 
 OURS = "ours"
 PHYSICS = "physics"
@@ -190,7 +190,7 @@ class RangeSource:
         from watergan.io import read_depth
 
         if self.kind == "truth":
-            r = read_depth(self.truth_dir / name)
+            r = read_depth(frame_file(self.truth_dir, name))
         else:
             path = self.dense_dir / f"{Path(name).stem}.png"
             z = read_depth(path) if path.is_file() else np.full(shape, np.nan)
@@ -221,14 +221,15 @@ class OracleGeometry:
         self.intr = intrinsics_for(cfg.camera)
         self.stack = Stack.from_config(self.truth.effects["full"])
         self.index = {name: k for k, name in enumerate(self.truth.frames)}
+        self.stems = {Path(name).stem: k for k, name in enumerate(self.truth.frames)}  # a survey in another format
 
     def state(self, name: str):
         from eval.synth.render import frame_state, render_view
 
         cfg = self.truth.config
-        if name not in self.index:
+        k = self.index.get(name, self.stems.get(Path(name).stem))
+        if k is None:
             raise UserInputError(f"frame {name} is not in the simulator's truth of {self.truth.root}")
-        k = self.index[name]
         view = render_view(self.caster, self.scene, self.intr, self.truth.world_from_cam[k], cfg.render)
         return frame_state(view, k, cfg.render.site_depth_m)
 
@@ -246,7 +247,8 @@ def _write_srgb8(path: Path, linear: np.ndarray) -> None:
 
 
 def missing_files(folder: Path, names: list[str]) -> list[str]:
-    return [n for n in names if not (folder / n).is_file()]
+    """The frames ``names`` that ``folder`` holds in no image format (:func:`watergan.io.frame_file`)."""
+    return [n for n in names if not frame_file(folder, n).is_file()]
 
 
 # ---------------------------------------------------------------------------------- measurement
@@ -288,7 +290,7 @@ def fidelity(folder: Path, truth_dir: Path, names: list[str], mask_dir: Path | N
 
     psnr, ssim = [], []
     for name in names:
-        a, b = read_rgb(folder / name, linear=False), read_rgb(truth_dir / name, linear=False)
+        a, b = read_rgb(frame_file(folder, name), linear=False), read_rgb(frame_file(truth_dir, name), linear=False)
         if mask_dir is None:
             psnr.append(peak_signal_noise_ratio(b, a, data_range=1.0))
             ssim.append(structural_similarity(b, a, channel_axis=2, data_range=1.0))
@@ -644,15 +646,15 @@ def method_inputs(cfg: EvaluateConfig, survey: Path, tracks, simulated: bool, de
 
 def measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -> tuple[object, dict, str]:
     """(board or None, method -> BoardResult, why there is none)."""
-    from eval.colour import board_accuracy, check_board_frames, load_board_json, truth_board
+    from eval.colour import board_accuracy, board_for_images, load_board_json, truth_board
     from watergan.data import IMAGE_SUFFIXES, list_files
 
+    images = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
     if cfg.board_json:
-        board = load_board_json(cfg.board_json)
-        check_board_frames(board, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)], cfg.board_json)
+        board = board_for_images(load_board_json(cfg.board_json), images, cfg.board_json)
     elif (survey / "truth" / "board.json").is_file():
         try:
-            board = truth_board(survey)
+            board = board_for_images(truth_board(survey), images, str(survey / "truth" / "board.json"))
         except UserInputError as exc:
             return None, {}, str(exc)
     else:

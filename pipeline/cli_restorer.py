@@ -37,7 +37,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     c = config_from_args(CorrectConfig, args)
     result = correct_folder(c.model_dir, c.images_dir, c.out_dir, force=c.force, batch_size=c.batch_size,
                             device=c.device, scheduler=c.scheduler or None, navigation=c.navigation,
-                            range_dir=c.range_dir, mode=str(c.mode))
+                            range_dir=c.range_dir, mode=str(c.mode), image_format=str(c.image_format))
     print(f"corrected {result.corrected} ({result.mode} mode), already done {result.already_done}, "
           f"failed {len(result.failed)} in {result.seconds:.1f} s -> {result.out_dir} (images/, depth/, summary.json)")
     for line in result.failed:

@@ -3,7 +3,8 @@
 Every PNG, JPEG or TIFF directly in ``images_dir`` is corrected at its native size (padded to the
 restorer's multiple and cropped back) and written as::
 
-    OUT/images/<stem>.png   corrected colour, the input's bit depth (8 or 16 bit; a JPEG gives an 8-bit PNG)
+    OUT/images/<name>       corrected colour in the input's format and bit depth (``image_format``: or as PNG,
+                            16-bit TIFF or JPEG; a JPEG is 8 bits, quality 95)
     OUT/depth/<stem>.png    relative depth, 16-bit PNG, value = d_rel * 65535 (0..1 -> 0..65535)
     OUT/depth/<stem>.npy    relative depth, float32 (H,W), 0..1
     OUT/summary.json        counts and the files that could not be read
@@ -58,7 +59,6 @@ from watergan.data import (
     DataError,
     PinholeIntrinsics,
     atomic_write_bytes,
-    encode_png,
     index_by_stem,
     list_files,
     read_image,
@@ -69,7 +69,7 @@ from watergan.data import (
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
 from watergan.formation.inverse import flat_floor_range, needs_normals
-from watergan.io import bit_depth, depth_or_zero, read_depth
+from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, read_depth
 from watergan.nets.restorer import WaterFields, fill_range_holes, restore
 from watergan.train_restorer import load_restorer
 
@@ -92,15 +92,35 @@ class CorrectResult:
     """"rgb-d" (each pixel's range from its range map) or "monocular" (see the module docstring)."""
 
 
-def _outputs(out: Path, stem: str) -> tuple[Path, Path, Path]:
-    return out / "images" / f"{stem}.png", out / "depth" / f"{stem}.png", out / "depth" / f"{stem}.npy"
+class ImageFormat(StrEnum):
+    """The corrected frames' file format: the input's (its bit depth kept), or PNG, TIFF (the input's bit depth) or
+    JPEG (8 bits, quality ``watergan.io.JPEG_QUALITY``)."""
+
+    input = "input"
+    png = "png"
+    tiff = "tiff"
+    jpeg = "jpeg"
 
 
-def _write(out: Path, stem: str, rgb: np.ndarray, depth: np.ndarray, bits: int) -> None:
-    """(H,W,3) and (H,W) 0..1 arrays to the three output files, atomically."""
-    image_path, depth_png, depth_npy = _outputs(out, stem)
+def corrected_name(name: str, image_format: str) -> str:
+    """The corrected frame's file name for input ``name``: the same name, or its stem with the format's suffix."""
+    suffix = {"png": ".png", "tiff": ".tif", "jpeg": ".jpg"}.get(str(image_format), Path(name).suffix)
+    return f"{Path(name).stem}{suffix}"
+
+
+def _outputs(out: Path, name: str, image_format: str) -> tuple[Path, Path, Path]:
+    stem = Path(name).stem
+    return (out / "images" / corrected_name(name, image_format), out / "depth" / f"{stem}.png",
+            out / "depth" / f"{stem}.npy")
+
+
+def _write(out: Path, name: str, image_format: str, rgb: np.ndarray, depth: np.ndarray, bits: int) -> None:
+    """(H,W,3) and (H,W) 0..1 arrays to the three output files of input ``name``, atomically."""
+    image_path, depth_png, depth_npy = _outputs(out, name, image_format)
+    if image_path.suffix.lower() in (".jpg", ".jpeg"):
+        bits = 8
     top, dtype = (65535.0, np.uint16) if bits == 16 else (255.0, np.uint8)
-    atomic_write_bytes(image_path, encode_png(np.rint(rgb * top).astype(dtype)))
+    atomic_write_bytes(image_path, encode_image(image_path.suffix, np.rint(rgb * top).astype(dtype)))
     atomic_write_bytes(depth_png, encode_png(np.rint(depth * 65535.0).astype(np.uint16)))
     buffer = io.BytesIO()
     np.save(buffer, depth.astype(np.float32))
@@ -127,6 +147,8 @@ class CorrectChunk:
     ``altitude_m`` and ``camera``)."""
     down_cam: tuple[tuple[float, float, float], ...] | None = None
     """Per path, "down" in the camera frame from the navigation's attitude (None: nadir cameras)."""
+    image_format: str = "input"
+    """The corrected frames' format (:class:`ImageFormat`)."""
 
 
 @dataclass
@@ -181,7 +203,7 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path) -> tuple[np.ndarray, int,
 
 
 Item = tuple[str, np.ndarray, int, float, np.ndarray | None]
-"""One image to correct: stem, image (H,W,3), bit depth, altitude (metres; 0 when not used), range map or None."""
+"""One image to correct: file name, image (H,W,3), bit depth, altitude (metres; 0 when not used), range map or None."""
 
 
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
@@ -211,8 +233,8 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
             rgb, depth = restore(model, x, altitude, range_m, intrinsics, water)
         rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().double().numpy()
-        for k, (stem, _, bits, _, _) in enumerate(batch):
-            _write(out, stem, rgb_np[k], depth_np[k], bits)
+        for k, (name, _, bits, _, _) in enumerate(batch):
+            _write(out, name, chunk.image_format, rgb_np[k], depth_np[k], bits)
         return len(batch)
 
     running: deque[Future] = deque()
@@ -248,7 +270,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                     continue
                 if batch and batch[0][1].shape != image.shape:
                     submit()
-                batch.append((path.stem, image, bits,
+                batch.append((path.name, image, bits,
                               chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m))
                 if len(batch) == chunk.batch_size:
                     submit()
@@ -282,7 +304,8 @@ class CorrectMode(StrEnum):
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
                    batch_size: int = 4, device: str = "auto", progress: bool = True, scheduler=None,
                    chunk_size: int = 64, navigation: str | Path | None = None,
-                   range_dir: str | Path | None = None, mode: str = "auto") -> CorrectResult:
+                   range_dir: str | Path | None = None, mode: str = "auto",
+                   image_format: str = "input") -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
     images of the same size are corrected together, ``batch_size`` at a time.
 
@@ -294,7 +317,7 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
     ``images_dir``), read for a restorer trained with ``altitude`` and in monocular mode. ``range_dir``: the folder
     of each image's range map, for a restorer trained with ``range_input`` in RGB-D mode. ``mode``: a
-    :class:`CorrectMode` (auto: RGB-D when ``range_dir`` is given)."""
+    :class:`CorrectMode` (auto: RGB-D when ``range_dir`` is given). ``image_format``: an :class:`ImageFormat`."""
     from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     began = time.perf_counter()
@@ -305,13 +328,15 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         raise DataError(f"batch_size must be at least 1, got {batch_size}")
     if mode not in tuple(CorrectMode):
         raise DataError(f"mode must be one of {', '.join(CorrectMode)}, not '{mode}'")
+    if image_format not in tuple(ImageFormat):
+        raise DataError(f"image_format must be one of {', '.join(ImageFormat)}, not '{image_format}'")
     targets = {p.resolve() for p in (out, out / "images", out / "depth")}
     if images_dir.resolve() in targets:
         raise DataError(f"the output folder {out} would write into the input folder {images_dir}: choose another")
     files = list_files(images_dir, IMAGE_SUFFIXES)
     if not files:
         raise DataError(f"image folder {images_dir} holds no PNG, JPEG or TIFF images")
-    index_by_stem(files, "image")  # refuses two inputs with one stem: outputs are <stem>.png
+    index_by_stem(files, "image")  # refuses two inputs with one stem: the depth outputs are <stem>.png
     distributed = is_distributed(scheduler)
     if not distributed or device not in ("auto", "cpu", "cuda"):
         pick_device(device)  # a bad device name fails here (a cluster's workers may have CUDA where this has none)
@@ -358,7 +383,7 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
     result = CorrectResult(out, 0, 0, mode=str(mode))
-    todo = [p for p in files if force or not all(p.is_file() for p in _outputs(out, p.stem))]
+    todo = [p for p in files if force or not all(o.is_file() for o in _outputs(out, p.name, image_format))]
     result.already_done = len(files) - len(todo)
 
     def altitude_of(paths: list[Path]) -> tuple[float, ...] | None:
@@ -371,14 +396,14 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
         with tqdm(total=len(files), initial=result.already_done, disable=not progress, desc="correct",
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
-                                              altitude_of(todo), ranges, camera, flat_floor, down_of(todo)),
-                                 bar, model)
+                                              altitude_of(todo), ranges, camera, flat_floor, down_of(todo),
+                                              str(image_format)), bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
                              batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera,
-                             flat_floor, down_of(part))
+                             flat_floor, down_of(part), str(image_format))
                 for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):
@@ -405,6 +430,9 @@ class CorrectStage:
     mode: CorrectMode = CorrectMode.auto
     """How an RGB-D restorer gets each pixel's range: auto (the water stage's range maps when it wrote them, else
     monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, as for frames without range)."""
+    image_format: ImageFormat = ImageFormat.input
+    """The corrected frames' format: input (the survey's own, its bit depth kept), png, tiff, or jpeg (8 bits,
+    quality 95)."""
     scheduler: str = field(default="", metadata={"hash": False})
     """Dask scheduler address (tcp://HOST:8786) for the restorer's per-image work; empty: this machine."""
     progress: bool = field(default=True, metadata={"hash": False})
@@ -446,15 +474,17 @@ class CorrectStageResult:
     range, else the restorer's."""
 
 
-def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True) -> tuple[float, float]:
+def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
+                           image_format: str = "input") -> tuple[float, float]:
     """Every frame the sfm stage lists through the inverse of the water stage's estimate with the water stage's
     range maps and, when the stack reads surface normals, :func:`pipeline.water.correction_normals`; writes
-    ``out/images/<stem>.png`` (sRGB, the input's bit depth, black without range) and ``out/mask/<stem>.png`` (255:
-    corrected). Returns (share of the pixels without range, seconds)."""
+    ``out/images/<name>`` (sRGB, the input's bit depth, black without range, in ``image_format``:
+    :func:`corrected_name`) and ``out/mask/<stem>.png`` (255: corrected). Returns (share of the pixels without range,
+    seconds)."""
     from eval.synth.imaging import single_torch_thread
     from eval.tracks import Tracks
     from watergan.formation.inverse import correct_physics
-    from watergan.io import write_png, write_srgb_png
+    from watergan.io import write_png, write_srgb_image
 
     from .water import correction_normals, water_frames
 
@@ -480,7 +510,7 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True) -
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
             unresolved.append(float(np.mean(~valid)))
             rgb = np.where(valid[..., None], np.clip(np.nan_to_num(corrected), 0.0, 1.0), 0.0)
-            write_srgb_png(out / "images" / f"{stem}.png", rgb, bit_depth(images / f.name))
+            write_srgb_image(out / "images" / corrected_name(f.name, image_format), rgb, bit_depth(images / f.name))
             write_png(out / "mask" / f"{stem}.png", np.where(valid, 255, 0).astype(np.uint8))
     return float(np.mean(unresolved)), time.perf_counter() - began
 
@@ -499,14 +529,15 @@ def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
     physics = restored = ""
     unresolved, physics_s = 1.0, 0.0
     if water is not None:
-        unresolved, physics_s = correct_physics_folder(ws, images, folder / "physics", cfg.progress)
+        unresolved, physics_s = correct_physics_folder(ws, images, folder / "physics", cfg.progress,
+                                                       str(cfg.image_format))
         physics = ws.relative(folder / "physics")
     result = CorrectResult(folder / "restorer", 0, 0, mode="")
     if restorer is not None:
         ranges = ws.path(water.range_dir) if water is not None else None
         result = correct_folder(restorer.out_dir, images, folder / "restorer", force=True, batch_size=cfg.batch_size,
                                 progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges,
-                                mode=str(cfg.mode))
+                                mode=str(cfg.mode), image_format=str(cfg.image_format))
         restored = ws.relative(folder / "restorer")
     mesh = f"{physics}/images" if physics and (unresolved == 0.0 or not restored) else f"{restored}/images"
     return CorrectStageResult(
@@ -537,6 +568,9 @@ class CorrectConfig:
     mode: CorrectMode = CorrectMode.auto
     """How a restorer trained in RGB-D mode gets each pixel's range: auto (rgb-d with --range-dir, else monocular),
     rgb-d (the range maps), or monocular (a flat seafloor at each frame's navigation altitude; needs camera.json)."""
+    image_format: ImageFormat = ImageFormat.input
+    """The corrected frames' format: input (each frame's own, its bit depth kept), png, tiff, or jpeg (8 bits,
+    quality 95)."""
     force: bool = False
     """Redo images already corrected."""
     batch_size: int = 4

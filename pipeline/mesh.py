@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import frame_file
 
 
 class PointSource(StrEnum):
@@ -239,9 +240,10 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
                                        (height, width))
         if rows.start >= rows.stop or cols.start >= cols.stop:
             continue
-        image = cv2.imread(str(images_dir / str(tracks.image_names[k])), cv2.IMREAD_COLOR)
+        path = frame_file(images_dir, str(tracks.image_names[k]))
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
-            raise UserInputError(f"cannot read {images_dir / str(tracks.image_names[k])}")
+            raise UserInputError(f"cannot read {path}")
         pc = (surface[rows, cols] - pose[:3, 3]) @ pose[:3, :3]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[0, 0] * pc[..., 0] / pc[..., 2] + K[0, 2]
@@ -397,9 +399,10 @@ def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size:
         idx = idx[np.abs(pc[idx, 2] - nearest) <= 0.02 * pc[idx, 2]]
         if not len(idx):
             continue
-        image = cv2.imread(str(images_dir / str(tracks.image_names[k])), cv2.IMREAD_COLOR)
+        path = frame_file(images_dir, str(tracks.image_names[k]))
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
-            raise UserInputError(f"cannot read {images_dir / str(tracks.image_names[k])}")
+            raise UserInputError(f"cannot read {path}")
         rho2 = ((u[idx] - centre[0]) ** 2 + (v[idx] - centre[1]) ** 2) / half_diag**2
         to_cam = pose[:3, 3] - points[idx]
         cos = np.abs(np.einsum("ni,ni->n", normals[idx], to_cam)) / np.linalg.norm(to_cam, axis=1)

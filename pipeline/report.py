@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_json, atomic_write_text
+from watergan.io import atomic_write_json, atomic_write_text, frame_file
 
 from .workspace import Workspace
 
@@ -244,7 +244,7 @@ def section_frames(ws, out: Path) -> tuple[str, dict]:
     for name in frames:
         cells = []
         for m in columns:
-            path = folders[m] / name
+            path = frame_file(folders[m], name)
             cells.append(f"<td>{_img(data_uri(read_display(path)), f'{m} {name}')}</td>" if path.is_file()
                          else "<td class='missing'>missing</td>")
         rows.append(f"<tr><th>{_esc(name)}</th>{''.join(cells)}</tr>")

@@ -138,15 +138,14 @@ def survey_lights(survey: Path) -> list[dict]:
 
 
 def _board(ws: Workspace, cfg: WaterConfig, survey: Path):
-    from eval.colour import check_board_frames, load_board_json, truth_board
+    from eval.colour import board_for_images, load_board_json, truth_board
     from watergan.data import IMAGE_SUFFIXES, list_files
 
+    images = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
     if cfg.board_json:
-        board = load_board_json(cfg.board_json)
-        check_board_frames(board, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)], cfg.board_json)
-        return board
+        return board_for_images(load_board_json(cfg.board_json), images, cfg.board_json)
     if (survey / "truth" / "board.json").is_file():
-        return truth_board(survey)
+        return board_for_images(truth_board(survey), images, str(survey / "truth" / "board.json"))
     return None
 
 

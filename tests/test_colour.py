@@ -8,7 +8,7 @@ from eval.colour import (
     Board,
     ColourEvalConfig,
     board_accuracy,
-    check_board_frames,
+    board_for_images,
     consistency,
     normalise,
     patch_means,
@@ -75,12 +75,16 @@ def test_project_board_hides_patches_outside_the_image():
 
 
 def test_a_board_whose_frames_match_no_image_is_refused(capsys):
-    """A board file keyed by other names than the survey's images (its JPEG originals, say) would take part with
-    no rows: refused, naming both; a board with some frames unmatched is used and says how many are left out."""
+    """A board file keyed by names that are no image of the survey would take part with no rows: refused, naming
+    both. Names that differ only in the suffix (the board marked on a survey's JPEG originals, the simulator's truth
+    of a survey converted to TIFF) are the images'; other unmatched frames are left out, saying how many."""
     quad = np.array([[[1.0, 1.0], [5.0, 1.0], [5.0, 5.0], [1.0, 5.0]]])
     board = Board(names=["white"], true_linear_rgb=np.ones((1, 3)), quads={"IMG_0001.JPG": quad, "000001.png": quad})
     with pytest.raises(UserInputError, match=r"board file b.json: none of its 2 frames is an image of the survey "
                                              r"\(e.g. 'IMG_0001.JPG'; the survey's are like '000000.png'\)"):
-        check_board_frames(board, ["000000.png"], "b.json")
-    check_board_frames(board, ["000000.png", "000001.png"], "b.json")
+        board_for_images(board, ["000000.png"], "b.json")
+    used = board_for_images(board, ["000000.png", "000001.png"], "b.json")
+    assert list(used.quads) == ["000001.png"]
     assert "1 of its frames are not images of the survey" in capsys.readouterr().err
+    assert sorted(board_for_images(board, ["IMG_0001.png", "000001.tif"], "b.json").quads) == ["000001.tif",
+                                                                                              "IMG_0001.png"]

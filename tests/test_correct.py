@@ -62,15 +62,32 @@ def test_correct_keeps_bit_depth_and_names_and_reports_bad_files(tmp_path, model
     assert any("d_truncated.png" in f and "truncated" in f for f in result.failed)
     assert any("e_garbage.png" in f for f in result.failed)
     assert sorted(p.name for p in images.iterdir()) == before  # nothing written into the input folder
-    assert sorted(p.name for p in (out / "images").iterdir()) == ["a8.png", "b16.png", "c.png"]
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["a8.png", "b16.png", "c.jpg"]  # the input's format
     for stem, dtype, hw in (("a8", np.uint8, (37, 45)), ("b16", np.uint16, (40, 48)), ("c", np.uint8, (37, 45))):
-        corrected = cv2.imread(str(out / "images" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+        corrected = cv2.imread(str(next((out / "images").glob(f"{stem}.*"))), cv2.IMREAD_UNCHANGED)
         assert corrected.dtype == dtype and corrected.shape == (*hw, 3)
         depth = cv2.imread(str(out / "depth" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
         assert depth.dtype == np.uint16 and depth.shape == hw
         rel = np.load(out / "depth" / f"{stem}.npy")
         assert rel.shape == hw and rel.dtype == np.float32 and 0 <= rel.min() and rel.max() <= 1
     assert '"failed": 2' in (out / "summary.json").read_text()
+
+
+@pytest.mark.parametrize("image_format, names, dtypes", [
+    ("png", ["a8.png", "b16.png", "c.png"], [np.uint8, np.uint16, np.uint8]),
+    ("tiff", ["a8.tif", "b16.tif", "c.tif"], [np.uint8, np.uint16, np.uint8]),
+    ("jpeg", ["a8.jpg", "b16.jpg", "c.jpg"], [np.uint8, np.uint8, np.uint8]),
+])
+def test_the_corrected_frames_format_is_an_option(tmp_path, model_dir, images, image_format, names, dtypes):
+    """PNG and TIFF keep the input's bit depth (a 16-bit frame stays 16-bit), JPEG is 8 bits; a rerun in the same
+    format finds its outputs done."""
+    out = tmp_path / "out"
+    correct_folder(model_dir, images, out, progress=False, image_format=image_format)
+    assert sorted(p.name for p in (out / "images").iterdir()) == names
+    assert [cv2.imread(str(out / "images" / n), cv2.IMREAD_UNCHANGED).dtype for n in names] == dtypes
+    assert correct_folder(model_dir, images, out, progress=False, image_format=image_format).already_done == 3
+    with pytest.raises(DataError, match="image_format must be one of"):
+        correct_folder(model_dir, images, out, progress=False, image_format="bmp")
 
 
 def test_default_skips_done_images_and_force_redoes(tmp_path, model_dir, images):

@@ -240,3 +240,19 @@ def test_bad_navigation_is_named(tmp_path, survey, message):
         read_nav_altitudes(path)
     with pytest.raises(DataError, match="does not exist"):
         read_nav_altitudes(tmp_path / "missing.json")
+
+
+def test_frames_are_found_by_name_or_in_another_format(tmp_path):
+    """A corrected set written in another format than the survey's (PNG of a JPEG survey) is found by stem; two
+    files of one stem are ambiguous and the asked name comes back, for the caller's message."""
+    from watergan.io import frame_file, read_image, write_srgb_image
+
+    linear = np.random.default_rng(0).uniform(0, 1, (8, 10, 3))
+    write_srgb_image(tmp_path / "a.tif", linear, 16)
+    write_srgb_image(tmp_path / "b.jpg", linear, 16)  # JPEG: 8 bits whatever is asked
+    assert cv2.imread(str(tmp_path / "a.tif"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+    assert cv2.imread(str(tmp_path / "b.jpg"), cv2.IMREAD_UNCHANGED).dtype == np.uint8
+    np.testing.assert_allclose(read_image(tmp_path / "a.tif"), linear, atol=1e-4)
+    assert frame_file(tmp_path, "a.png") == tmp_path / "a.tif" and frame_file(tmp_path, "b.jpg") == tmp_path / "b.jpg"
+    write_srgb_image(tmp_path / "a.png", linear)
+    assert frame_file(tmp_path, "a.jpg") == tmp_path / "a.jpg" and frame_file(tmp_path, "c.png") == tmp_path / "c.png"

@@ -256,6 +256,47 @@ def quantise(values: np.ndarray, bit_depth: int) -> np.ndarray:
     return np.rint(np.clip(values, 0.0, 1.0) * (2**bit_depth - 1)).astype(dtype)
 
 
+#: JPEG quality of written frames (a corrected set in the input's JPEG format).
+JPEG_QUALITY = 95
+
+
+def encode_image(suffix: str, image: np.ndarray) -> bytes:
+    """Bytes of an (H,W,3) RGB uint8/uint16 array in the format of a file suffix: PNG and TIFF keep 8 or 16 bits,
+    JPEG (quality ``JPEG_QUALITY``) takes 8."""
+    suffix = suffix.lower()
+    if suffix == ".png":
+        return encode_png(image)
+    if suffix not in (".jpg", ".jpeg", ".tif", ".tiff"):
+        raise ValueError(f"cannot write images as {suffix!r}: use .png, .jpg or .tif")
+    if suffix in (".jpg", ".jpeg") and image.dtype != np.uint8:
+        raise TypeError("JPEG images are 8-bit: quantise to 8 bits first")
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if suffix in (".jpg", ".jpeg") else []
+    ok, buffer = cv2.imencode(suffix, np.ascontiguousarray(image[..., ::-1]), params)
+    if not ok:
+        raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as {suffix}")
+    return buffer.tobytes()
+
+
+def write_srgb_image(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 8) -> None:
+    """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16; JPEG: 8) bits, in the format of
+    the path's suffix (PNG, TIFF or JPEG), atomically."""
+    path = Path(path)
+    bits = 8 if path.suffix.lower() in (".jpg", ".jpeg") else bit_depth
+    atomic_write_bytes(path, encode_image(path.suffix, quantise(linear_to_srgb(linear_rgb), bits)))
+
+
+def frame_file(folder: Path, name: str) -> Path:
+    """The file of frame ``name`` in ``folder``: ``folder/name``, else the one image file with its stem (a frame
+    written in another format: a JPEG survey's corrected PNGs); ``folder/name`` when there is none, for the
+    caller's message."""
+    path = folder / name
+    if path.is_file():
+        return path
+    stem = Path(name).stem
+    found = [folder / f"{stem}{s}" for s in IMAGE_SUFFIXES if (folder / f"{stem}{s}").is_file()]
+    return found[0] if len(found) == 1 else path
+
+
 def write_srgb_png(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 8) -> None:
     """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16) bits as a PNG, atomically."""
     write_png(path, quantise(linear_to_srgb(linear_rgb), bit_depth))
