@@ -15,17 +15,29 @@ from pathlib import Path
 
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
-from watergan.io import read_camera_json, read_json, read_survey_json
+from watergan.io import atomic_write_json, read_camera_json, read_survey_json
 
+from .navigation import NAVIGATION_CSV, navigation_from_log
 from .workspace import Workspace
+
+
+def survey_navigation(survey_dir: Path, images: list[str]) -> dict:
+    """The survey file's content (``survey.json``, checked; {} without one) with the navigation of the log beside it
+    (``navigation.csv``, :mod:`pipeline.navigation`) for its frames (``frames``, else the ``images`` in order)."""
+    declared = read_survey_json(survey_dir / "survey.json") if (survey_dir / "survey.json").is_file() else {}
+    log = survey_dir / NAVIGATION_CSV
+    if log.is_file():
+        frames = declared.get("frames") or sorted(images)
+        declared = {**declared, "frames": frames, **navigation_from_log(log, frames, declared.get("frame_time_s"))}
+    return declared
 
 
 def check_survey(survey_dir: Path) -> dict:
     """Refuse a survey folder that cannot be processed, before any training starts: a missing
     ``images/`` folder, fewer than 3 images, unreadable or truncated files, images of different
     sizes, ``right/`` frames that do not pair with ``images/`` by name, a missing or malformed ``camera.json``,
-    a malformed ``survey.json`` (its light rig included) or one whose frames name an image that is not there.
-    Returns a summary."""
+    a malformed ``survey.json`` (its light rig included) or one whose frames name an image that is not there, a
+    navigation log (``navigation.csv``) that does not reach every frame. Returns a summary."""
     survey_dir = Path(survey_dir)
     images_dir = survey_dir / "images"
     if not survey_dir.is_dir():
@@ -67,8 +79,8 @@ def check_survey(survey_dir: Path) -> dict:
     if (cam["width"], cam["height"]) != (w, h):
         raise UserInputError(f"camera file {survey_dir / 'camera.json'} is for {cam['width']}x{cam['height']} images; "
                              f"the images in {images_dir} are {w}x{h}")
+    declared = survey_navigation(survey_dir, [p.name for p in files])
     if (survey_dir / "survey.json").is_file():
-        declared = read_survey_json(survey_dir / "survey.json")
         named = {p.name for p in files}
         absent = [f for f in declared.get("frames") or [] if f not in named]
         if absent:
@@ -132,8 +144,11 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     render a generic in-air RGB-D set when none is given."""
     survey, target = Path(cfg.survey_dir).resolve(), ws.stage_dir("survey").resolve()
     summary = check_survey(survey)
+    logged = (survey / NAVIGATION_CSV).is_file()
     if survey != target:
         for name in ("images", "right", "camera.json", "survey.json", "truth"):
+            if name == "survey.json" and logged:  # the survey file with the log's navigation, written below
+                continue
             src, dst = survey / name, target / name
             if dst.is_symlink() and dst.resolve() != src.resolve():
                 dst.unlink()  # a link left by a run on another survey folder
@@ -151,8 +166,15 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
             shutil.rmtree(rgbd)
         print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
         write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
-    nav = survey / "survey.json"
-    navigation = nav.is_file() and "nav_altitude_m" in read_json(nav, "survey file")
+    declared = survey_navigation(survey, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)])
+    if logged:
+        if survey == target:
+            raise UserInputError(f"{survey} holds a navigation log: run on the survey folder, not on a workspace's "
+                                 f"00_survey")
+        if (target / "survey.json").is_symlink():
+            (target / "survey.json").unlink()
+        atomic_write_json(target / "survey.json", declared)
+    navigation = "nav_altitude_m" in declared
     inside = rgbd.resolve().is_relative_to(ws.root.resolve())
     return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),
                         navigation=navigation)

@@ -138,6 +138,8 @@ def test_good_survey_is_accepted(tmp_path):
     ("survey_short_list", r"survey file .*survey.json: 2 nav_depth_m values for 4 frames"),
     ("survey_bad_light", r"survey file .*survey.json: lights\[0\].offset_m = 'left' is not a number"),
     ("survey_missing_frame", r"survey file .*survey.json lists 1 frame\(s\) with no image in .*images \(e.g. f9.png\)"),
+    ("log_missing_frame", r"navigation log .*navigation.csv has no row for 1 of the 4 frames \(e.g. f3.png\)"),
+    ("log_not_a_number", r"navigation log .*navigation.csv: altitude_m holds 'high', not a number"),
 ])
 def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
     survey = tmp_path / "survey"
@@ -165,6 +167,9 @@ def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
                 "camera_bad_value": json.dumps({**camera, "fx": "fifty"}),
                 "camera_other_size": json.dumps({**camera, "width": 320, "height": 240})}[problem]
         (survey / "camera.json").write_text(text)
+    elif problem.startswith("log_"):
+        rows = ["f0.png,2.0", "f1.png,2.1", "f2.png,2.2"] + (["f3.png,high"] if problem == "log_not_a_number" else [])
+        (survey / "navigation.csv").write_text("frame,altitude_m\n" + "\n".join(rows) + "\n")
     elif problem.startswith("survey_"):
         frames = sorted(p.name for p in images.iterdir())
         good = {"frames": frames, "nav_altitude_m": [2.0] * 4, "nav_depth_m": [10.0] * 4, "lights": []}
@@ -373,3 +378,30 @@ def test_the_restorer_finds_its_pairs_altitude_and_range_mode_in_the_workspace(t
     assert restorer_config(ws, RestorerStage()).altitude
     assert not restorer_config(ws, RestorerStage(altitude=False)).altitude
     assert restorer_config(ws, RestorerStage(range_input=True)).range_input
+
+
+def test_a_navigation_log_gives_the_survey_its_navigation(tmp_path):
+    """navigation.csv by time: interpolated at survey.json's frame times; roll and pitch give "down" in the camera
+    frame. The survey stage writes the merged survey file into the workspace and leaves the user's as it was."""
+    from pipeline.navigation import down_in_camera
+    from pipeline.workspace import Workspace
+
+    survey = tmp_path / "survey"
+    _survey(survey)
+    frames = [f"f{k}.png" for k in range(4)]
+    (survey / "rgbd" / "rgb").mkdir(parents=True)  # an in-air set (not read here): no generic one rendered
+    (survey / "survey.json").write_text(json.dumps({"frames": frames, "frame_time_s": [0.5, 1.5, 2.5, 3.0]}))
+    (survey / "navigation.csv").write_text("time_s,depth_m,altitude_m,roll_deg,pitch_deg,heading_deg\n"
+                                           "0,10,2.0,0,0,90\n1,10.5,2.2,10,0,90\n2,11,2.4,0,-10,90\n"
+                                           "3,11.5,2.6,0,0,90\n")
+    before = (survey / "survey.json").read_text()
+    opts = RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False)
+    result = Workspace(opts.workspace).run("survey", stage_config("survey", opts))
+    written = json.loads((tmp_path / "ws" / "00_survey" / "survey.json").read_text())
+    assert result.navigation and (survey / "survey.json").read_text() == before
+    np.testing.assert_allclose(written["nav_altitude_m"], [2.1, 2.3, 2.5, 2.6])
+    np.testing.assert_allclose(written["nav_depth_m"], [10.25, 10.75, 11.25, 11.5])
+    np.testing.assert_allclose(written["nav_down_cam"][0], down_in_camera(np.array([5.0]), np.array([0.0]))[0],
+                               atol=1e-6)
+    np.testing.assert_allclose(down_in_camera(np.array([0.0, 90.0, 0.0]), np.array([0.0, 0.0, 90.0])),
+                               [[0, 0, 1], [1, 0, 0], [0, 1, 0]], atol=1e-12)  # starboard down: +x; bow up: +y

@@ -428,12 +428,12 @@ def _is_number(value: Any) -> bool:
 
 
 #: survey.json's per-frame lists and what each value must be.
-_PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number"}
+_PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number", "frame_time_s": "a number"}
 
 
 def read_survey_json(path: Path) -> dict:
-    """A survey file (``survey.json``: ``frames``, ``nav_altitude_m``, ``nav_depth_m``, ``site_depth_m``,
-    ``lights``; every key optional), checked: malformed JSON, a value of the wrong type, or per-frame
+    """A survey file (``survey.json``: ``frames``, ``nav_altitude_m``, ``nav_depth_m``, ``frame_time_s``,
+    ``site_depth_m``, ``lights``; every key optional), checked: malformed JSON, a value of the wrong type, or per-frame
     lists whose length differs from ``frames`` are an error naming the file and the key."""
     path = Path(path)
     survey = read_json(path, "survey file")
