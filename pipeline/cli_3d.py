@@ -98,6 +98,8 @@ def print_texture(ws, r) -> None:
 def print_mosaic(ws, r) -> None:
     print(f"mosaic: {1000 * r.texel_m:.1f} mm per pixel, {100 * r.mosaic_coverage:.1f} % covered")
     print(f"png: {ws.path(r.mosaic_png)}\nworld file: {ws.path(r.world_file)}")
+    if r.mosaic_tif:
+        print(f"GeoTIFF: {ws.path(r.mosaic_tif)}\nDEM: {ws.path(r.dem_tif)}")
 
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:

@@ -36,7 +36,10 @@ The orthophoto mosaic is still made from the 2.5D height field.
 
 Outputs (``08_mesh/``): ``mesh.glb`` (textured), ``obj/mesh.obj`` + ``mesh.mtl`` + texture PNG,
 ``mesh_colours.ply`` (vertex colours), ``mosaic.png`` + ``mosaic.pgw`` (world file: texel size,
-rotation terms, -texel size, x and y of the upper-left texel's centre).
+rotation terms, -texel size, x and y of the upper-left texel's centre), ``mosaic.tif`` (the mosaic as an RGBA
+GeoTIFF, alpha 0 where no image saw the texel) and ``dem.tif`` (the height field's z at each texel, float32
+metres, NaN off the mesh), both on the mosaic's grid in the survey's local metric frame
+(:func:`write_geotiff`).
 """
 
 from __future__ import annotations
@@ -117,6 +120,11 @@ class MeshResult:
     seconds: float
     mesh_kind: str = "2.5d"
     """'2.5d' or 'tsdf': which mesh was textured and exported."""
+    mosaic_tif: str = ""
+    """The mosaic as a GeoTIFF (RGBA: alpha 0 where no image saw the texel) in the survey's local metric frame."""
+    dem_tif: str = ""
+    """The surface's height at each mosaic texel (float32 metres, NaN off the mesh) as a GeoTIFF on the same
+    grid."""
 
 
 @dataclass
@@ -215,9 +223,10 @@ def _footprint_window(world_from_cam: np.ndarray, K: np.ndarray, width: int, hei
 
 
 def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend_power: float,
-               progress: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Blended orthophoto (H,W,3) uint8 over the mesh bounds (row 0 = largest y) and its coverage
-    mask (H,W); see the module docstring."""
+               progress: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blended orthophoto (H,W,3) uint8 over the mesh bounds (row 0 = largest y), its coverage
+    mask (H,W) and the surface's height z at each texel centre (H,W; NaN off the mesh); see the module
+    docstring."""
     import cv2
     from tqdm import tqdm
 
@@ -260,7 +269,45 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
     covered = weight > 0
     mosaic = np.zeros((height, width, 3), np.uint8)
     mosaic[covered] = np.clip(np.rint(acc[covered] / weight[covered, None]), 0, 255).astype(np.uint8)
-    return mosaic, covered
+    return mosaic, covered, z
+
+
+#: GeoTIFF tags (GeoTIFF 1.1, OGC 19-008): pixel scale, tie point, geokey directory, ASCII parameters, GDAL's no-data.
+PIXEL_SCALE, TIE_POINT, GEO_KEYS, GEO_ASCII, GDAL_NODATA = 33550, 33922, 34735, 34737, 42113
+#: The citation of the user-defined projected CRS of the survey's local frame.
+LOCAL_FRAME = "watergan survey frame: local metric x (columns), y (rows up), metres|"
+
+
+def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_centre_xy: tuple[float, float]) -> None:
+    """``image`` (H,W[,C]; row 0 at the largest y) as a GeoTIFF in the survey's local metric frame, atomically:
+    pixel scale ``texel_m``, the upper-left texel's centre at ``upper_left_centre_xy`` (pixel-is-area: its corner
+    half a texel up and left), a user-defined projected CRS in metres (GIS opens it as an unknown local frame with
+    true distances). A float image's NaN is declared as no-data."""
+    import io
+
+    import tifffile
+
+    from watergan.io import atomic_write_bytes
+
+    x, y = upper_left_centre_xy
+    ascii_params = LOCAL_FRAME
+    keys = [1, 1, 0, 5,
+            1024, 0, 1, 1,                          # GTModelTypeGeoKey: projected
+            1025, 0, 1, 1,                          # GTRasterTypeGeoKey: pixel is area
+            1026, GEO_ASCII, len(ascii_params), 0,  # GTCitationGeoKey
+            3072, 0, 1, 32767,                      # ProjectedCSTypeGeoKey: user-defined
+            3076, 0, 1, 9001]                       # ProjLinearUnitsGeoKey: metre
+    tags = [(PIXEL_SCALE, "d", 3, (texel_m, texel_m, 0.0), False),
+            (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, x - texel_m / 2, y + texel_m / 2, 0.0), False),
+            (GEO_KEYS, "H", len(keys), keys, False), (GEO_ASCII, "s", 0, ascii_params, False)]
+    if image.dtype.kind == "f":
+        tags.append((GDAL_NODATA, "s", 0, "nan", False))
+    buffer = io.BytesIO()
+    photometric = "rgb" if image.ndim == 3 else "minisblack"
+    tifffile.imwrite(buffer, image, photometric=photometric, compression="zlib",
+                     extrasamples=("unassalpha",) if image.ndim == 3 and image.shape[2] == 4 else None,
+                     extratags=tags)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def write_world_file(path: Path, texel_m: float, upper_left_centre_xy: tuple[float, float]) -> None:
@@ -524,7 +571,7 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     ground_sampling = depth / float(tracks.K[0, 0])
     texel = cfg.texel_m or max(extent / 3000, ground_sampling / 2)
     mesh = mesh.on_texel_grid(texel)
-    mosaic, covered = orthophoto(mesh, texel, tracks, images_dir, cfg.blend_power, cfg.progress)
+    mosaic, covered, heights = orthophoto(mesh, texel, tracks, images_dir, cfg.blend_power, cfg.progress)
     kind = cfg.mesh_kind
     if kind == "auto":
         has_fused = dense_mesh_ply is not None and dense_mesh_ply.is_file()
@@ -542,8 +589,13 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     mosaic_png = out_dir / "mosaic.png"
     atomic_write_bytes(mosaic_png, png.tobytes())
     world_file = out_dir / "mosaic.pgw"
-    write_world_file(world_file, texel, (float(mesh.bounds[0, 0]), float(mesh.bounds[1, 1])))
+    upper_left = (float(mesh.bounds[0, 0]), float(mesh.bounds[1, 1]))
+    write_world_file(world_file, texel, upper_left)
+    alpha = np.where(covered, 255, 0).astype(np.uint8)[..., None]
+    write_geotiff(out_dir / "mosaic.tif", np.concatenate([mosaic, alpha], -1), texel, upper_left)
+    write_geotiff(out_dir / "dem.tif", heights.astype(np.float32), texel, upper_left)
     return MeshResult(glb=str(glb), obj=str(obj), ply=str(ply), mosaic_png=str(mosaic_png), world_file=str(world_file),
+                      mosaic_tif=str(out_dir / "mosaic.tif"), dem_tif=str(out_dir / "dem.tif"),
                       n_vertices=n_vertices, n_faces=n_faces, texel_m=texel, mosaic_coverage=float(covered.mean()),
                       seconds=time.perf_counter() - start, mesh_kind=kind)
 
@@ -561,6 +613,6 @@ def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
     dense = ws.result("dense")
     points, mesh = (ws.path(dense.points_ply), ws.path(dense.mesh_ply)) if dense and dense.points_ply else (None, None)
     result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, points, mesh)
-    for name in ("glb", "obj", "ply", "mosaic_png", "world_file"):
+    for name in ("glb", "obj", "ply", "mosaic_png", "world_file", "mosaic_tif", "dem_tif"):
         setattr(result, name, ws.relative(getattr(result, name)))
     return result

@@ -413,7 +413,10 @@ def section_mosaic(ws, out: Path) -> tuple[str, dict]:
     r = _stage_result(ws, "mesh")
     mosaic = read_display(ws.path(r.mosaic_png))
     body = (f"<p>{_link(ws, out, r.mosaic_png, 'full-size mosaic (PNG)')} · "
-            f"{_link(ws, out, r.world_file, 'world file')} — {mosaic.shape[1]} x {mosaic.shape[0]} texels, "
+            f"{_link(ws, out, r.world_file, 'world file')}"
+            + (f" · {_link(ws, out, r.mosaic_tif, 'GeoTIFF')} · {_link(ws, out, r.dem_tif, 'DEM (GeoTIFF)')}"
+               if r.mosaic_tif else "")
+            + f" — {mosaic.shape[1]} x {mosaic.shape[0]} texels, "
             f"{1000 * r.texel_m:.1f} mm per texel, {100 * r.mosaic_coverage:.1f} % covered.</p>"
             f"{_img(data_uri(mosaic, 'jpeg', MOSAIC_PX), 'mosaic', 'wide')}")
     return body, {"mosaic_png": r.mosaic_png, "coverage": r.mosaic_coverage}

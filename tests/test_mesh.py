@@ -43,6 +43,33 @@ def test_obj_ply_and_mosaic_files(meshed):
     assert len(world) == 6 and world[0] == pytest.approx(result.texel_m) and world[3] == -world[0]
 
 
+def test_mosaic_and_dem_geotiffs_share_the_world_file_s_grid(meshed):
+    """mosaic.tif (RGBA) and dem.tif carry GeoTIFF's pixel scale and tie point: the upper-left texel's centre is
+    the world file's, its corner half a texel up and left; a local metric frame (user-defined CRS in metres)."""
+    import tifffile
+
+    _, ws, result = meshed
+    world = [float(x) for x in ws.path(result.world_file).read_text().split()]
+    png = cv2.imread(str(ws.path(result.mosaic_png)))[..., ::-1]
+    for name, channels in ((result.mosaic_tif, 4), (result.dem_tif, 1)):
+        with tifffile.TiffFile(ws.path(name)) as tif:
+            page = tif.pages[0]
+            data = page.asarray()
+            scale = page.tags["ModelPixelScaleTag"].value
+            tie = page.tags["ModelTiepointTag"].value
+            keys = page.tags["GeoKeyDirectoryTag"].value
+        assert data.shape[:2] == png.shape[:2] and (data.shape[2] if data.ndim == 3 else 1) == channels
+        assert scale[0] == pytest.approx(result.texel_m) and scale[1] == pytest.approx(result.texel_m)
+        assert tie[3] == pytest.approx(world[4] - world[0] / 2) and tie[4] == pytest.approx(world[5] + world[0] / 2)
+        assert 3072 in keys[4::4] and 9001 in keys[7::4]  # a user-defined CRS in metres
+    with tifffile.TiffFile(ws.path(result.mosaic_tif)) as tif:
+        rgba = tif.pages[0].asarray()
+    np.testing.assert_array_equal(rgba[..., :3], png)
+    assert ((rgba[..., 3] > 0).mean()) == pytest.approx(result.mosaic_coverage)
+    dem = tifffile.imread(ws.path(result.dem_tif))
+    assert dem.dtype == np.float32 and np.isfinite(dem).mean() > 0.2
+
+
 def test_render_back_matches_an_image(meshed):
     survey, ws, result = meshed
     tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
