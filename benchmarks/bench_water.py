@@ -63,6 +63,10 @@ SURVEYS = {
     "clip0_add": {"seed": 0, "stereo": True, "hidden": ("falloff_clipped",), "add": ("falloff_clipped",),
                   "workspace": "clip0"},
     "veil0_add": {"seed": 0, "stereo": True, "hidden": ("port_veil",), "add": ("port_veil",), "workspace": "veil0"},
+    # issue 29: the demo (nothing hidden) seen through a wide lens (OpenCV k1 -0.2, k2 0.05), its distortion in
+    # camera.json (the survey stage undistorts the frames), and the same frames with the distortion withheld
+    "lens0": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0)},
+    "lens0_withheld": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0), "withhold_lens": True},
 }
 #: The plugin holding the robustness surveys' hidden effects (loaded when a survey hides one of them).
 ROBUST_PLUGIN = Path(__file__).parent / "plugins" / "robust_forms.py"
@@ -97,7 +101,19 @@ def prepare(root: Path, name: str) -> Path:
             eta = next(e for e in visible if e["name"] == "attenuation")["params"]["eta_per_m"]
             next(e for e in visible if e["name"] == "backscatter")["params"]["beta_per_m"] = list(eta)
             cfg = replace(cfg, formation=replace(cfg.formation, visible=tuple(visible)))
-        simulate_survey(survey, cfg, force=True, progress=False)
+        if spec.get("lens"):  # simulated beside the workspace, then through the survey stage (it undistorts)
+            from pipeline.survey import SurveyConfig
+
+            cfg = replace(cfg, camera=replace(cfg.camera, distortion=tuple(spec["lens"])))
+            raw = root / f"{name}_raw_survey"
+            simulate_survey(raw, cfg, force=True, progress=False)
+            if spec.get("withhold_lens"):
+                camera = json.loads((raw / "camera.json").read_text())
+                (raw / "camera.json").write_text(json.dumps({k: v for k, v in camera.items()
+                                                             if k not in ("k1", "k2", "p1", "p2", "k3")}))
+            ws.run("survey", SurveyConfig(survey_dir=str(raw), progress=False))
+        else:
+            simulate_survey(survey, cfg, force=True, progress=False)
     if not (ws.stage_dir("sfm") / "tracks.npz").is_file():  # reused when present, whatever made it
         ws.run("sfm", SfmConfig())
     if not (ws.stage_dir("dense") / "result.json").is_file():
@@ -229,6 +245,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     truth = truth_params(ws_root / "00_survey")
     params = compare(estimate, truth)
     print(f"\n== {name}: {estimate.summary()}")
+    print(f"   sfm: reprojection {sfm['mean_reprojection_error_px']:.3f} px, scale spread "
+          f"{100 * sfm['scale_spread']:.2f} %, refined k1 {sfm.get('lens_k1')}")
     print(f"   water estimate {water_seconds:.1f} s (+ {load_seconds:.1f} s reading frames and range; "
           f"{estimate.seconds}; {estimate.iterations} iterations, converged {estimate.converged}); "
           f"{estimate.n_points} points, {estimate.n_observations} views, "
@@ -272,6 +290,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     print("   targets:", targets)
     return {"params": params, "estimate": estimate.to_json(), "correction": metrics,
             "filled_fraction": corr["filled_fraction"], "mesh_fraction": corr["mesh_fraction"], "targets": targets,
+            "sfm": {k: sfm.get(k) for k in ("mean_reprojection_error_px", "scale_spread", "lens_k1")},
             "seconds": {"prepare": round(prep_seconds, 1), "load": round(load_seconds, 2),
                         "water": round(water_seconds, 2),
                         "physics_per_frame": round(corr["physics_seconds_per_frame"], 3)}}

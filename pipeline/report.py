@@ -151,6 +151,11 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
     from eval.water import field_size
 
     lines, command = [], ""
+    sfm = ws.result("sfm")
+    if sfm is not None and sfm.looks_distorted:  # before the water: it carries the distortion's error
+        from .sfm import distortion_warning
+
+        lines.append("Lens: " + distortion_warning(sfm.lens_k1).removeprefix("sfm: ") + ".")
     water = ws.result("water")
     if water is not None:
         data = _load_json(ws.path(water.water_json)) or {}

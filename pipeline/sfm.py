@@ -141,13 +141,55 @@ class SfmResult:
     """Median absolute deviation / median of the per-sample scale estimates (0 for 'none')."""
     seconds: float
     """Wall time of the stage."""
+    lens_k1: float | None = None
+    """How distorted the frames look: k1 of a one-coefficient radial camera (COLMAP's SIMPLE_RADIAL, OpenCV's k1)
+    that bundle adjustment fits on the model with the known intrinsics held (:func:`refined_k1`); near 0 for
+    pinhole or undistorted frames. None: the intrinsics were estimated (their model has its own k)."""
+
+    @property
+    def looks_distorted(self) -> bool:
+        """SfM's refined k1 exceeds ``DISTORTED_K1``: camera.json lacks the lens's distortion."""
+        return self.lens_k1 is not None and abs(self.lens_k1) > DISTORTED_K1
 
     def summary(self) -> str:
-        """One line: registration, points, track length, reprojection error, matching, scale, time."""
-        return (f"sfm: registered {self.n_registered} of {self.n_images} images, {self.n_points} points "
+        """One line: registration, points, track length, reprojection error, matching, scale, time, and a warning
+        when the frames look distorted."""
+        line = (f"sfm: registered {self.n_registered} of {self.n_images} images, {self.n_points} points "
                 f"(mean track {self.mean_track_length:.1f}, reprojection {self.mean_reprojection_error_px:.2f} px), "
                 f"{self.matching} matching, scale from {self.scale_method} (x{self.scale_factor:.4g}, "
                 f"spread {100 * self.scale_spread:.1f} %), {self.seconds:.1f} s")
+        return line + (f"\n{distortion_warning(self.lens_k1)}" if self.looks_distorted else "")
+
+
+#: |k1| above which the frames look distorted to SfM (a moderate wide lens behind a flat port: -0.1 to -0.3).
+DISTORTED_K1 = 0.02
+
+
+def distortion_warning(k1: float) -> str:
+    """What to do when SfM's refined k1 says the frames are distorted."""
+    return (f"sfm: the frames look distorted (SfM's refined k1 = {k1:+.3f}, where an undistorted camera gives "
+            f"about 0): give the lens's k1, k2, p1, p2, k3 (OpenCV's model) in camera.json; until then the water and "
+            f"the corrections carry the distortion's error on image position")
+
+
+def refined_k1(rec) -> float | None:
+    """k1 of a SIMPLE_RADIAL camera fitted by bundle adjustment on a copy of the PINHOLE model ``rec`` (focal
+    length and principal point held, poses and points free); None when its camera is not PINHOLE."""
+    import pycolmap
+
+    copy = pycolmap.Reconstruction(rec)
+    for camera in copy.cameras.values():
+        if camera.model != pycolmap.CameraModelId.PINHOLE:
+            return None
+        fx, fy, cx, cy = camera.params
+        camera.model = pycolmap.CameraModelId.SIMPLE_RADIAL
+        camera.params = [0.5 * (fx + fy), cx, cy, 0.0]
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = options.refine_principal_point = False
+    options.refine_extra_params = True
+    options.print_summary = False
+    pycolmap.bundle_adjustment(copy, options)
+    return float(np.median([camera.params[3] for camera in copy.cameras.values()]))
 
 
 def _pose_matrix(image) -> np.ndarray:
@@ -349,6 +391,7 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
         matching = _match_features(database, names, cfg)
         raw_dir = out_dir / "colmap_raw"
         rec, n_reg = _map_incrementally(database, images_dir, raw_dir, names, cam, cfg)
+        lens_k1 = refined_k1(rec) if cam is not None else None
     tracks, method, scale, spread = _to_survey_frame(rec, names, images_dir, cam, cfg)
     model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)
     result = SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
@@ -356,9 +399,11 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
                        mean_track_length=float(rec.compute_mean_track_length()),
                        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                        matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
-                       seconds=time.perf_counter() - start)
+                       seconds=time.perf_counter() - start, lens_k1=lens_k1)
     if cfg.progress:
         print(result.summary(), file=sys.stderr, flush=True)
+    elif result.looks_distorted:
+        print(distortion_warning(lens_k1), file=sys.stderr, flush=True)
     return result
 
 

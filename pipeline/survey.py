@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import shutil
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_json, read_camera_json, read_survey_json
+from watergan.io import atomic_write_bytes, atomic_write_json, read_camera_json, read_survey_json
+from watergan.lens import DISTORTION_KEYS, camera_matrix, distortion_of, undistort_image
 
 from .navigation import NAVIGATION_CSV, navigation_from_log
 from .workspace import Workspace
@@ -109,6 +110,8 @@ class SurveyConfig:
     seafloor set rendered by the simulator into the workspace."""
     seed: int = 0
     """Seed of the generic RGB-D set."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Progress bars (undistorting a lens's frames)."""
 
     def __post_init__(self) -> None:
         # absolute folders: `./S` and `S` are the same survey (and the same configuration hash)
@@ -137,6 +140,33 @@ class SurveyResult:
     """The survey folder (absolute); the workspace's survey folder links to it."""
     navigation: bool = False
     """Whether survey.json gives each frame's altitude (``nav_altitude_m``)."""
+    undistorted: dict = field(default_factory=dict)
+    """The lens distortion camera.json gives (k1, k2, p1, p2, k3), removed from the frames: every stage after this
+    one works in the undistorted pinhole geometry (the workspace's images/, right/ and camera.json); empty: none."""
+
+
+def undistort_frames(survey: Path, target: Path, camera: dict, distortion, progress: bool = True) -> None:
+    """The survey's frames (images/, right/) undistorted into the workspace's survey folder (same names, format and
+    bit depth; :func:`watergan.lens.undistort_image`) and its camera.json without the distortion (the same
+    intrinsics, a pinhole camera)."""
+    import cv2
+    from tqdm import tqdm
+
+    K = camera_matrix(camera)
+    for folder in ("images", "right"):
+        if not (survey / folder).is_dir():
+            continue
+        (target / folder).mkdir(exist_ok=True)
+        for path in tqdm(list_files(survey / folder, IMAGE_SUFFIXES), desc=f"undistort {folder}", unit="frame",
+                         disable=not progress):
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            ok, data = cv2.imencode(path.suffix, undistort_image(image, K, distortion))
+            if not ok:
+                raise DataError(f"cannot encode the undistorted {path}")
+            atomic_write_bytes(target / folder / path.name, data.tobytes())
+    pinhole = {k: v for k, v in camera.items() if k not in DISTORTION_KEYS}
+    atomic_write_json(target / "camera.json", {**pinhole, "undistorted": {k: camera.get(k, 0.0)
+                                                                          for k in DISTORTION_KEYS}})
 
 
 def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
@@ -145,9 +175,18 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     survey, target = Path(cfg.survey_dir).resolve(), ws.stage_dir("survey").resolve()
     summary = check_survey(survey)
     logged = (survey / NAVIGATION_CSV).is_file()
+    camera = read_camera_json(survey / "camera.json")
+    distortion = distortion_of(camera)
+    if distortion is not None and survey == target:
+        raise UserInputError(f"{survey} is a workspace's survey folder with a lens distortion in camera.json: run on "
+                             f"the survey folder itself, so that its frames can be undistorted into the workspace")
     if survey != target:
+        written = ({"survey.json"} if logged else set()) | \
+            ({"images", "right", "camera.json"} if distortion is not None else set())
         for name in ("images", "right", "camera.json", "survey.json", "truth"):
-            if name == "survey.json" and logged:  # the survey file with the log's navigation, written below
+            if name in written:  # the workspace's own version, written below
+                if (target / name).is_symlink():
+                    (target / name).unlink()
                 continue
             src, dst = survey / name, target / name
             if dst.is_symlink() and dst.resolve() != src.resolve():
@@ -166,15 +205,17 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
             shutil.rmtree(rgbd)
         print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
         write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
+    if distortion is not None:
+        undistort_frames(survey, target, camera, distortion, cfg.progress)
     declared = survey_navigation(survey, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)])
     if logged:
         if survey == target:
             raise UserInputError(f"{survey} holds a navigation log: run on the survey folder, not on a workspace's "
                                  f"00_survey")
-        if (target / "survey.json").is_symlink():
-            (target / "survey.json").unlink()
         atomic_write_json(target / "survey.json", declared)
     navigation = "nav_altitude_m" in declared
     inside = rgbd.resolve().is_relative_to(ws.root.resolve())
     return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),
-                        navigation=navigation)
+                        navigation=navigation,
+                        undistorted=dict(zip(DISTORTION_KEYS, distortion.tolist(), strict=True))
+                        if distortion is not None else {})

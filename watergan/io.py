@@ -399,8 +399,9 @@ def image_files(folder: Path) -> list[str]:
 
 
 def read_camera_json(path: Path) -> dict | None:
-    """camera.json's intrinsics (fx, fy, cx, cy, width, height; optional baseline_m), None when there is
-    no such file; malformed JSON or a missing key is an error naming the file."""
+    """camera.json's intrinsics (fx, fy, cx, cy, width, height; optional baseline_m and OpenCV's lens distortion
+    k1, k2, p1, p2, k3, :mod:`watergan.lens`), None when there is no such file; malformed JSON or a missing key is
+    an error naming the file."""
     path = Path(path)
     if not path.is_file():
         return None
@@ -410,9 +411,13 @@ def read_camera_json(path: Path) -> dict | None:
     missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
     if missing:
         raise DataError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height")
-    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m"):
+    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m", "k1", "k2", "p1", "p2", "k3"):
         value = cam.get(key)
-        if key == "baseline_m" and value is None:
+        if key not in ("fx", "fy", "cx", "cy", "width", "height") and value is None:
+            continue
+        if key in ("k1", "k2", "p1", "p2", "k3"):
+            if not _is_number(value):
+                raise DataError(f"camera file {path}: {key} = {value!r} is not a number (OpenCV's lens distortion)")
             continue
         positive = key not in ("cx", "cy")
         if not _is_number(value) or (positive and not value > 0):

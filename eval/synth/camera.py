@@ -28,6 +28,9 @@ class CameraConfig:
     """Image height, pixels."""
     hfov_deg: float = 70.0
     """Horizontal field of view (in water, i.e. of the housing + lens system), degrees."""
+    distortion: tuple[float, ...] = ()
+    """The lens's distortion, OpenCV's (k1, k2, p1, p2, k3) (:mod:`watergan.lens`); empty: a pinhole camera. The
+    images are rendered through it and camera.json gives it; the truth stays in the pinhole geometry."""
 
 
 def intrinsics_from_fov(width: int, height: int, hfov_deg: float) -> Intrinsics:
@@ -69,6 +72,18 @@ def pixel_rays_cam(intr: Intrinsics) -> np.ndarray:
     rays = n / np.linalg.norm(n, axis=-1, keepdims=True)
     rays.flags.writeable = False
     return rays
+
+
+def lens_rays_cam(intr: Intrinsics, distortion: tuple[float, ...]) -> np.ndarray:
+    """(H,W,3) unit ray directions in the camera frame through each pixel centre of a camera whose lens distorts
+    by OpenCV's ``distortion`` (:func:`watergan.lens.undistorted_points`)."""
+    from watergan.lens import undistorted_points
+
+    i, j = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+    K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+    xy = undistorted_points(np.stack([i.ravel(), j.ravel()], 1), K, np.asarray(distortion, float))
+    n = np.concatenate([xy, np.ones((len(xy), 1))], 1).reshape(intr.height, intr.width, 3)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
 def world_to_cam(points_world: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray:

@@ -65,11 +65,12 @@ def make_raycaster(scene: Scene) -> o3d.t.geometry.RaycastingScene:
 
 
 def render_view(caster: o3d.t.geometry.RaycastingScene, scene: Scene, intr: Intrinsics,
-                world_from_cam: np.ndarray, config: RenderConfig) -> View:
-    """Render one frame with a single ``cast_rays`` call over all pixels."""
+                world_from_cam: np.ndarray, config: RenderConfig, rays_cam: np.ndarray | None = None) -> View:
+    """Render one frame with a single ``cast_rays`` call over all pixels; ``rays_cam`` (H,W,3): each pixel's unit
+    ray in the camera frame (a lens's, :func:`eval.synth.camera.lens_rays_cam`; default the pinhole's)."""
     rotation = world_from_cam[:3, :3].astype(np.float32)
     origin = world_from_cam[:3, 3].astype(np.float32)
-    dirs = pixel_rays_cam(intr).astype(np.float32) @ rotation.T
+    dirs = (pixel_rays_cam(intr) if rays_cam is None else rays_cam).astype(np.float32) @ rotation.T
     rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], -1)
     hit = caster.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
     t = hit["t_hit"].numpy()

@@ -35,8 +35,9 @@ from watergan.errors import UserInputError
 from watergan.formation import Counts, Stack
 from watergan.formation.effects.artificial_light import beam_angle_deg
 from watergan.io import quantise, write_depth_png, write_png, write_srgb_png
+from watergan.lens import DISTORTION_KEYS
 
-from .camera import intrinsics_for
+from .camera import intrinsics_for, lens_rays_cam
 from .config import SimulationConfig, config_to_dict
 from .imaging import add_sensor_noise, build_stacks, encode, linear_image, rig_camera_config, single_torch_thread
 from .io import write_json
@@ -208,11 +209,12 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     board_pixels = []
     names = [frame_name(k) for k in range(len(trajectory))]
     f = config.formation
+    lens = lens_rays_cam(intr, config.camera.distortion) if config.camera.distortion else None
     with _Writer() as writer, single_torch_thread():
         for k in tqdm(range(len(trajectory)), desc="survey", unit="frame",
                       disable=None if progress is None else not progress):
             for cam, (folder, poses, stack) in enumerate(cameras):
-                view = render_view(caster, scene, intr, poses[k], config.render)
+                view = render_view(caster, scene, intr, poses[k], config.render, lens)
                 if not view.valid.all():
                     raise SimulationError(f"frame {k} ({folder}) sees past the edge of the site: enlarge "
                                           f"the scene or shrink the survey")
@@ -221,11 +223,14 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
                                          np.random.default_rng([config.seed, 41, k, cam]))
                 writer.submit(_write_image, root / folder / names[k], noisy, f.bit_depth)
                 if cam == 0:
+                    if lens is not None:  # the truth in the pinhole geometry the survey stage undistorts to
+                        view = render_view(caster, scene, intr, poses[k], config.render)
                     writer.submit(_write_frame_truth, truth, names[k], view)
                     board_pixels.append(int((view.part == board_part).sum()) if board_part is not None else 0)
 
     altitudes = nav_altitudes(caster, trajectory, config.trajectory.nav_altitude_noise_m, config.seed)
     camera_json = intr.to_json()
+    camera_json.update(zip(DISTORTION_KEYS, config.camera.distortion, strict=False))
     if stereo:
         camera_json["baseline_m"] = config.trajectory.baseline_m
     write_json(root / "camera.json", camera_json)
