@@ -57,6 +57,51 @@ def test_all_frames_register_with_stereo_scale(sfm):
     assert tracks.registered.all() and len(tracks.obs_xy) == len(tracks.obs_point) == len(tracks.obs_image)
     # the stage is skipped when run again with the same configuration
     assert ws.run("sfm", SfmConfig()).seconds == result.seconds
+    assert abs(result.lens_k1) < 0.02 and not result.looks_distorted  # a pinhole camera looks undistorted
+
+
+@pytest.mark.slow
+def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named(tmp_path):
+    """The survey seen through a wide lens (OpenCV k1 -0.2, k2 0.05): given in camera.json, the survey stage
+    undistorts the frames into the workspace (the user's stay as they are) and SfM finds them undistorted; withheld,
+    SfM's refined k1 names the distortion and its one-line summary says what to do."""
+    import json
+
+    import cv2
+
+    from eval.synth import make_config, simulate_survey
+    from eval.synth.camera import CameraConfig
+    from pipeline.survey import SurveyConfig
+    from watergan.lens import DISTORTION_KEYS
+
+    base = make_config("tiny")
+    config = replace(base, camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0,
+                                               distortion=(-0.2, 0.05, 0.0, 0.0, 0.0)),
+                     trajectory=replace(base.trajectory, n_lines=2, frames_per_line=5, forward_overlap=0.75))
+    raw = tmp_path / "lens"
+    simulate_survey(raw, config, force=True, progress=False)
+    before = (raw / "images" / "000000.png").read_bytes()
+    ws = Workspace(tmp_path / "ws")
+    survey = ws.run("survey", SurveyConfig(survey_dir=str(raw), progress=False))
+    assert survey.undistorted["k1"] == -0.2 and (raw / "images" / "000000.png").read_bytes() == before
+    assert "k1" not in json.loads((ws.folder("survey") / "camera.json").read_text())
+    undistorted = cv2.imread(str(ws.folder("survey") / "images" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+    truth = cv2.imread(str(raw / "truth" / "inair" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+    distorted = cv2.imread(str(raw / "images" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+
+    def edges(image):
+        return cv2.Laplacian(cv2.GaussianBlur(image.astype(float), (5, 5), 1.0), cv2.CV_64F)[30:-30, 40:-40].ravel()
+
+    assert np.corrcoef(edges(undistorted), edges(truth))[0, 1] > np.corrcoef(edges(distorted), edges(truth))[0, 1] + 0.2
+    assert abs(ws.run("sfm", SfmConfig(progress=False)).lens_k1) < 0.02
+
+    camera = json.loads((raw / "camera.json").read_text())
+    (raw / "camera.json").write_text(json.dumps({k: v for k, v in camera.items() if k not in DISTORTION_KEYS}))
+    withheld = Workspace(tmp_path / "withheld")
+    assert not withheld.run("survey", SurveyConfig(survey_dir=str(raw), progress=False)).undistorted
+    result = withheld.run("sfm", SfmConfig(progress=False))
+    assert result.lens_k1 < -0.05 and result.looks_distorted  # -0.08 measured: one coefficient for k1 and k2
+    assert "the frames look distorted (SfM's refined k1 = -0." in result.summary()
 
 
 def test_camera_centres_match_truth_after_similarity(sfm):
