@@ -474,8 +474,10 @@ def frames_line(frames: dict | None) -> str:
     size = f"up to {max(frames['largest_pct']):.0f} %"
     if frames["flat"]:
         return f"frames: the water's gains per frame are flat ({size}): nothing missing from frame to frame"
+    kept = "" if frames.get("carried", True) else "; small enough that the water is fitted without them"
     return (f"frames: the water's gains per frame carry {size} beyond what the frames' ranges explain: something "
-            f"changes from frame to frame (exposure, white balance, the water along the survey; 03_water/frames.png)")
+            f"changes from frame to frame (exposure, white balance, the water along the survey; 03_water/frames.png)"
+            + kept)
 
 
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,

@@ -180,11 +180,13 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         frames = data.get("frames")
         if frames:
             size = f"up to {max(frames['largest_pct']):.0f} %, sd " + " / ".join(f"{v:.1f}" for v in frames["sd_pct"])
+            carry = ("the water and the corrections carry it in the gains" if frames.get("carried", True) else
+                     "too little for the water to carry them")
             lines.append(f"Gains per frame: flat, nothing the stack lacks from frame to frame ({size} %)."
                          if frames["flat"] else
                          f"Gains per frame: the frames differ by more than the water explains ({size} % per "
-                         f"channel: exposure, white balance or a water that changes along the survey); the water "
-                         f"and the corrections carry it in the gains (see the water section).")
+                         f"channel: exposure, white balance or a water that changes along the survey); {carry} "
+                         f"(see the water section).")
             if not frames["flat"]:
                 command = command or f"watergan diagnose {ws.root}"
     diagnosed = ws.result("diagnose")

@@ -41,7 +41,7 @@ import numpy as np
 
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
-from eval.water import FIELD_EFFECT, FIELD_FLAT_PCT, GRID_EFFECT, WaterConfig, WaterEstimate, on_bound
+from eval.water import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT, WaterConfig, WaterEstimate, on_bound
 from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
 from watergan.io import (
@@ -245,7 +245,7 @@ def _plot_frames(estimate: WaterEstimate, path: Path) -> bool:
     ax.set_xlabel("frame index")
     ax.set_ylabel("gain exp(g)")
     carried = ("fitted beside the water" if estimate.frames["carried"] else
-               f"measured, not carried (under {FIELD_FLAT_PCT:.0f} %: the water is fitted without them)")
+               f"measured, not carried (under {FRAME_CARRY_PCT:.0f} %: the water is fitted without them)")
     ax.set_title("what the stack lacks from frame to frame (exposure, white balance, a drifting water):\n"
                  f"the gains per frame, {carried} (flat at 1: nothing)", fontsize=8)
     fig.savefig(path, dpi=90, bbox_inches="tight")
