@@ -33,6 +33,7 @@ Pixel convention everywhere outside COLMAP: OpenCV, the centre of pixel (column 
 
 from __future__ import annotations
 
+import os
 import shutil
 import sys
 import time
@@ -188,8 +189,24 @@ def refined_k1(rec) -> float | None:
     options.refine_focal_length = options.refine_principal_point = False
     options.refine_extra_params = True
     options.print_summary = False
-    pycolmap.bundle_adjustment(copy, options)
+    with stderr_to_null():  # the adjuster logs its start at INFO whatever glog's level
+        pycolmap.bundle_adjustment(copy, options)
     return float(np.median([camera.params[3] for camera in copy.cameras.values()]))
+
+
+@contextmanager
+def stderr_to_null():
+    """The process's standard error (file descriptor 2, where C++ logs) sent to /dev/null while the block runs."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(null)
+        os.close(saved)
 
 
 def _pose_matrix(image) -> np.ndarray:
