@@ -198,6 +198,7 @@ def test_a_survey_file_spoilt_after_the_survey_stage_is_refused_on_the_next_run(
 
     survey = tmp_path / "survey"
     _survey(survey)
+    (survey / "rgbd" / "rgb").mkdir(parents=True)  # an in-air set (not read here): no generic one rendered
     opts = RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False)
     Workspace(opts.workspace).run("survey", stage_config("survey", opts))
     (survey / "survey.json").write_text('{"frames": ["f0.png", "f1.png"], "nav_altitude_m": [2.0, ')
