@@ -41,8 +41,8 @@ def undistorted_points(pixels: np.ndarray, K: np.ndarray, distortion: np.ndarray
 
 
 def undistort_image(image: np.ndarray, K: np.ndarray, distortion: np.ndarray) -> np.ndarray:
-    """The frame as the pinhole camera K without distortion sees it (same size and dtype; bicubic; pixels whose ray
+    """The frame as the pinhole camera K without distortion sees it (same size and dtype; bilinear; pixels whose ray
     falls outside the distorted frame are 0)."""
     h, w = image.shape[:2]
     map_x, map_y = cv2.initUndistortRectifyMap(K, np.asarray(distortion, np.float64), None, K, (w, h), cv2.CV_32FC1)
-    return cv2.remap(image, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
