@@ -235,15 +235,11 @@ class OracleGeometry:
 
 
 def _write_srgb8(path: Path, linear: np.ndarray) -> None:
-    import cv2
+    """A baseline's frame as an 8-bit sRGB PNG (``path``'s stem; lossless whatever the survey's format: a JPEG's
+    block artefacts would be measured as the method's)."""
+    from watergan.io import write_srgb8
 
-    from watergan.io import atomic_write_bytes, linear_to_srgb, quantise
-
-    rgb = quantise(linear_to_srgb(linear), 8)
-    ok, data = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(rgb[..., ::-1]))  # the frame's own format
-    if not ok:
-        raise OSError(f"could not encode {path}")
-    atomic_write_bytes(path, data.tobytes())
+    write_srgb8(path.with_suffix(".png"), linear)
 
 
 def missing_files(folder: Path, names: list[str]) -> list[str]:

@@ -3,8 +3,8 @@
 Every PNG, JPEG or TIFF directly in ``images_dir`` is corrected at its native size (padded to the
 restorer's multiple and cropped back) and written as::
 
-    OUT/images/<name>       corrected colour in the input's format and bit depth (``image_format``: or as PNG,
-                            16-bit TIFF or JPEG; a JPEG is 8 bits, quality 95)
+    OUT/images/<name>       corrected colour in the input's format and bit depth, a JPEG's as PNG
+                            (``image_format``: or as PNG, TIFF or JPEG, 8 bits, quality 95)
     OUT/depth/<stem>.png    relative depth, 16-bit PNG, value = d_rel * 65535 (0..1 -> 0..65535)
     OUT/depth/<stem>.npy    relative depth, float32 (H,W), 0..1
     OUT/summary.json        counts and the files that could not be read
@@ -93,8 +93,9 @@ class CorrectResult:
 
 
 class ImageFormat(StrEnum):
-    """The corrected frames' file format: the input's (its bit depth kept), or PNG, TIFF (the input's bit depth) or
-    JPEG (8 bits, quality ``watergan.io.JPEG_QUALITY``)."""
+    """The corrected frames' file format: the input's (its bit depth kept; a JPEG's as PNG: compressing a corrected
+    frame again puts block artefacts where the correction brightened the signal), or PNG, TIFF (the input's bit
+    depth) or JPEG (8 bits, quality ``watergan.io.JPEG_QUALITY``)."""
 
     input = "input"
     png = "png"
@@ -103,8 +104,10 @@ class ImageFormat(StrEnum):
 
 
 def corrected_name(name: str, image_format: str) -> str:
-    """The corrected frame's file name for input ``name``: the same name, or its stem with the format's suffix."""
-    suffix = {"png": ".png", "tiff": ".tif", "jpeg": ".jpg"}.get(str(image_format), Path(name).suffix)
+    """The corrected frame's file name for input ``name``: the same name (a JPEG's stem with .png), or its stem with
+    the format's suffix."""
+    own = ".png" if Path(name).suffix.lower() in (".jpg", ".jpeg") else Path(name).suffix
+    suffix = {"png": ".png", "tiff": ".tif", "jpeg": ".jpg"}.get(str(image_format), own)
     return f"{Path(name).stem}{suffix}"
 
 
@@ -431,8 +434,8 @@ class CorrectStage:
     """How an RGB-D restorer gets each pixel's range: auto (the water stage's range maps when it wrote them, else
     monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, as for frames without range)."""
     image_format: ImageFormat = ImageFormat.input
-    """The corrected frames' format: input (the survey's own, its bit depth kept), png, tiff, or jpeg (8 bits,
-    quality 95)."""
+    """The corrected frames' format: input (the survey's own, its bit depth kept; a JPEG survey's as PNG), png,
+    tiff, or jpeg (8 bits, quality 95)."""
     scheduler: str = field(default="", metadata={"hash": False})
     """Dask scheduler address (tcp://HOST:8786) for the restorer's per-image work; empty: this machine."""
     progress: bool = field(default=True, metadata={"hash": False})
@@ -569,8 +572,8 @@ class CorrectConfig:
     """How a restorer trained in RGB-D mode gets each pixel's range: auto (rgb-d with --range-dir, else monocular),
     rgb-d (the range maps), or monocular (a flat seafloor at each frame's navigation altitude; needs camera.json)."""
     image_format: ImageFormat = ImageFormat.input
-    """The corrected frames' format: input (each frame's own, its bit depth kept), png, tiff, or jpeg (8 bits,
-    quality 95)."""
+    """The corrected frames' format: input (each frame's own, its bit depth kept; a JPEG's as PNG), png, tiff, or
+    jpeg (8 bits, quality 95)."""
     force: bool = False
     """Redo images already corrected."""
     batch_size: int = 4

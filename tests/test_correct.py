@@ -62,7 +62,7 @@ def test_correct_keeps_bit_depth_and_names_and_reports_bad_files(tmp_path, model
     assert any("d_truncated.png" in f and "truncated" in f for f in result.failed)
     assert any("e_garbage.png" in f for f in result.failed)
     assert sorted(p.name for p in images.iterdir()) == before  # nothing written into the input folder
-    assert sorted(p.name for p in (out / "images").iterdir()) == ["a8.png", "b16.png", "c.jpg"]  # the input's format
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["a8.png", "b16.png", "c.png"]  # a JPEG's as PNG
     for stem, dtype, hw in (("a8", np.uint8, (37, 45)), ("b16", np.uint16, (40, 48)), ("c", np.uint8, (37, 45))):
         corrected = cv2.imread(str(next((out / "images").glob(f"{stem}.*"))), cv2.IMREAD_UNCHANGED)
         assert corrected.dtype == dtype and corrected.shape == (*hw, 3)
