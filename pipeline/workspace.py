@@ -56,17 +56,21 @@ def config_hash(config: Any, root: Path | None = None) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-#: The workspaces this process holds the lock of: resolved root -> the open lock file.
-_LOCKS: dict[Path, Any] = {}
+#: The workspaces this process holds the lock of: the lock file's (device, inode) -> the open lock file (by inode:
+#: a workspace moved while this process holds it is still held).
+_LOCKS: dict[tuple[int, int], Any] = {}
 
 
 def lock_workspace(root: Path) -> None:
     """Take the workspace's lock for this process (kept until it ends; taking it again is a no-op). Raises
     :class:`UserInputError` naming the process that holds it."""
     root = root.resolve()
-    if root in _LOCKS:
-        return
     handle = open(root / ".lock", "a+")  # noqa: SIM115  held open: the lock lives as long as the file is open
+    stat = os.fstat(handle.fileno())
+    key = (stat.st_dev, stat.st_ino)
+    if key in _LOCKS:
+        handle.close()
+        return
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -79,7 +83,7 @@ def lock_workspace(root: Path) -> None:
     handle.truncate()
     handle.write(f"process {os.getpid()} ({' '.join(sys.argv)[:200]})\n")
     handle.flush()
-    _LOCKS[root] = handle
+    _LOCKS[key] = handle
 
 
 def release_workspaces() -> None:

@@ -89,7 +89,7 @@ def test_identity_at_neutral(name):
     assert torch.allclose(out.image, before.image, atol=1e-6), name
 
 
-AT_IDENTITY = ("gain", "image_field", "frame_gain")  # built-ins that start at the identity
+AT_IDENTITY = ("gain", "image_field", "frame_gain", "image_grid")  # built-ins that start at the identity
 
 
 @pytest.mark.parametrize("name", [n for n in EFFECTS if n not in AT_IDENTITY])

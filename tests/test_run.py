@@ -46,7 +46,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == [
         "00_survey", "01_sfm", "02_dense", "03_water", "04_gan", "05_restorer", "06_correct", "07_eval", "08_mesh",
         "09_diagnose", "10_report"]  # numbered in run order, nothing loose but the run's summary
-    assert sorted(p.name for p in out.iterdir() if p.is_file()) == ["run_summary.json"]
+    assert sorted(p.name for p in out.iterdir() if p.is_file()) == [".lock", "run_summary.json"]  # the run's lock
     assert len(list((out / "06_correct" / "restorer" / "images").glob("*.png"))) == 10
     assert len(list((out / "06_correct" / "physics" / "images").glob("*.png"))) == 10
     correct = json.loads((out / "06_correct" / "result.json").read_text())["result"]

@@ -35,11 +35,12 @@ BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
 
 
 def water_config(base: WaterConfig | None = None, **flat) -> WaterConfig:
-    """``base`` (default: WaterConfig()) changed by flat field names: those of the measurement
+    """``base`` (default: WaterConfig() without the fine grid after the water, which only serves the corrections:
+    the tests that need it ask for it) changed by flat field names: those of the measurement
     (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to its nested configurations."""
     from dataclasses import fields, replace
 
-    base = base or WaterConfig()
+    base = base or WaterConfig(correction_grid=None)
     nested = {}
     for name, cls in (("measure", DenseMeasureConfig), ("fit", FitConfig)):
         own = {k: flat.pop(k) for k in [f.name for f in fields(cls)] if k in flat}
@@ -511,7 +512,7 @@ def test_image_fields_keep_the_water_when_a_falloff_is_missing(survey):
     hidden = TRUE + [{"name": "vignetting_offcentre", "params": {"centre_uv": [0.7, 0.4], "a_margin": 0.5, "b": 0.0,
                                                                  "c": 0.1, "strength": [1.0, 0.85, 0.7]}}]
     frames, board = make_survey(hidden)
-    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100)
+    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100, correction_grid=(13, 17))
     bent = estimate_water(frames, K, board=board, config=water_config(config, field_degree=0))
     carried = estimate_water(frames, K, board=board, config=config)
     assert np.abs(_value(bent, "attenuation.eta_per_m") / truth - 1).max() > 0.1
@@ -542,7 +543,7 @@ def test_a_fine_grid_after_the_water_takes_a_veil_the_fields_cannot_follow(surve
     spot = np.exp(-((xs - 0.7 * W) ** 2 + (ys - 0.35 * H) ** 2) / (2 * (0.1 * W) ** 2))
     veil = spot[..., None] * np.array([0.03, 0.05, 0.06])
     veiled = [replace(f, image=np.clip(f.image + veil, 0, 1).astype(np.float32)) for f in frames]
-    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100)
+    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100, correction_grid=(13, 17))
     estimate = estimate_water(veiled, K, board=board, config=config)
     assert estimate.grid["carried"] and estimate.grid["form"] in ("additive", "both")
     fields_only = Stack.from_config([e for e in estimate.stack.to_config() if e["name"] != "image_grid"])
