@@ -437,23 +437,20 @@ def fuse_depths(depths: dict[str, np.ndarray], poses: dict[str, np.ndarray], K: 
     cloud = grid.extract_point_cloud(weight_threshold)
     mesh = grid.extract_triangle_mesh(weight_threshold)
     points_path, mesh_path = out_dir / "fused_points.ply", out_dir / "fused_mesh.ply"
-    write_checked(points_path, cloud, o3d.t.io.write_point_cloud, o3d.t.io.read_point_cloud)
-    write_checked(mesh_path, mesh, o3d.t.io.write_triangle_mesh, o3d.t.io.read_triangle_mesh)
+    write_checked(points_path, cloud, o3d.t.io.write_point_cloud)
+    write_checked(mesh_path, mesh, o3d.t.io.write_triangle_mesh)
     return str(points_path), str(mesh_path), int(cloud.point.positions.shape[0])
 
 
-def write_checked(path: Path, geometry, write, read) -> None:
-    """Write an open3d tensor point cloud or mesh to ``path`` through a temporary file beside it, read it back and
-    rename it into place only when its vertices are the ones written: open3d reports a file cut short by a full
-    disk as written (and reads one back with the missing vertices filled in). Raises
+def write_checked(path: Path, geometry, write) -> None:
+    """Write an open3d tensor point cloud or triangle mesh to ``path`` as PLY through a temporary file beside it and
+    rename it into place only when the file is as long as its header says (:func:`ply_complete`): open3d reports a
+    file cut short by a full disk as written, and reads one back with whatever memory held. Raises
     :class:`watergan.io.WriteError` naming the path otherwise."""
     tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    expected = _positions(geometry)
     try:
-        back = _positions(read(str(tmp))) if write(str(tmp), geometry) else np.zeros((0, 3))
-        if back.shape != expected.shape or not np.array_equal(back, expected):
-            raise OSError(errno.EIO, f"open3d's file does not hold the {len(expected)} vertices written (a full "
-                                     f"disk?)")
+        if not write(str(tmp), geometry) or not ply_complete(tmp):
+            raise OSError(errno.EIO, "open3d's file is shorter than its header says (a full disk?)")
         os.chmod(tmp, file_mode())
         os.replace(tmp, path)
     except OSError as exc:
@@ -461,13 +458,31 @@ def write_checked(path: Path, geometry, write, read) -> None:
         raise write_failed(path, exc) from exc
 
 
-def _positions(geometry) -> np.ndarray:
-    """(N,3) vertex (point) positions of an open3d tensor point cloud or mesh; (0,3) when it has none."""
-    attributes = geometry.point if hasattr(geometry, "point") else geometry.vertex
-    try:
-        return attributes.positions.numpy()
-    except (AttributeError, KeyError, RuntimeError):
-        return np.zeros((0, 3))
+#: Bytes of each PLY scalar type.
+PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def ply_complete(path: Path) -> bool:
+    """Whether a binary PLY file holds every element its header declares (lists taken as triangles, as open3d
+    writes them); an ASCII PLY counts as complete when it has its header."""
+    data = path.read_bytes() if path.is_file() else b""
+    end = data.find(b"end_header\n")
+    if end < 0:
+        return False
+    header = data[:end].decode("ascii", "replace").splitlines()
+    if not any(line.startswith("format binary") for line in header):
+        return True
+    size = end + len("end_header\n")
+    elements: list[list] = []
+    for line in header:
+        parts = line.split()
+        if parts[:1] == ["element"]:
+            elements.append([int(parts[2]), 0])
+        elif parts[:1] == ["property"] and elements:
+            elements[-1][1] += (PLY_SIZES[parts[2]] + 3 * PLY_SIZES[parts[3]] if parts[1] == "list"
+                                else PLY_SIZES[parts[1]])
+    return size + sum(count * row for count, row in elements) == len(data)
 
 
 def dense_method(method: str) -> str:

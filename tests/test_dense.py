@@ -8,6 +8,7 @@ from eval.depth import read_depth
 from eval.tracks import Tracks
 from pipeline.dense import (
     DenseConfig,
+    ply_complete,
     rectified_pair_depth,
     rectifying_rotation,
     refine_disparity,
@@ -120,23 +121,28 @@ def test_read_colmap_array(tmp_path):
 
 
 def test_a_mesh_file_cut_short_is_an_error_and_not_kept(tmp_path):
-    """open3d reports a file cut short (a full disk) as written: the fused geometry is read back and renamed into
-    place only when it holds every vertex."""
+    """open3d reports a file cut short (a full disk) as written: the fused geometry is renamed into place only when
+    the file is as long as its header says."""
     import open3d as o3d
 
     from watergan.io import WriteError
 
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.random.default_rng(0).random((50, 3), np.float32)))
-    write_checked(tmp_path / "points.ply", cloud, o3d.t.io.write_point_cloud, o3d.t.io.read_point_cloud)
+    rng = np.random.default_rng(0)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(rng.random((50, 3), np.float32)))
+    cloud.point.colors = o3d.core.Tensor(rng.random((50, 3), np.float32))
+    write_checked(tmp_path / "points.ply", cloud, o3d.t.io.write_point_cloud)
     assert o3d.t.io.read_point_cloud(str(tmp_path / "points.ply")).point.positions.shape[0] == 50
+    mesh = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh.create_sphere(0.5))
+    write_checked(tmp_path / "mesh.ply", mesh, o3d.t.io.write_triangle_mesh)
+    assert ply_complete(tmp_path / "mesh.ply")
 
     def cut_short(path, geometry):
         o3d.t.io.write_point_cloud(path, geometry)
         with open(path, "r+b") as f:
-            f.truncate(f.seek(0, 2) // 2)
+            f.truncate(f.seek(0, 2) - 7)
         return True
 
-    with pytest.raises(WriteError, match=r"cannot write .*fused.ply: open3d.s file does not hold the 50 vertices "
-                                         r"written \(a full disk\?\); free some space"):
-        write_checked(tmp_path / "fused.ply", cloud, cut_short, o3d.t.io.read_point_cloud)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["points.ply"]
+    with pytest.raises(WriteError, match=r"cannot write .*fused.ply: open3d.s file is shorter than its header says "
+                                         r"\(a full disk\?\); free some space"):
+        write_checked(tmp_path / "fused.ply", cloud, cut_short)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply", "points.ply"]
