@@ -98,12 +98,12 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
 
     # a moved workspace is still finished; a stage whose output is gone runs again, and the stages after it
     moved = out.rename(tmp_path / "moved")
-    (moved / "08_mesh" / "mosaic.png").unlink()
+    (moved / "10_report" / "report.html").unlink()
     assert main(["demo", "--preset", "small", "--out", str(moved), *FAST]) == 0
     captured = capsys.readouterr()
-    assert captured.out.count("finished earlier, skipped") == 9, captured.out  # all but the mesh and the report
-    assert "mesh: 1 of its files are gone or cut short since it ran (e.g. 08_mesh/mosaic.png)" in captured.err
-    assert (moved / "08_mesh" / "mosaic.png").is_file()
+    assert captured.out.count("finished earlier, skipped") == 10, captured.out  # all but the report
+    assert "report: 1 of its files are gone or cut short since it ran (e.g. 10_report/report.html)" in captured.err
+    assert (moved / "10_report" / "report.html").is_file()
 
 
 def _survey(root, n=4, size=(48, 64)):
