@@ -69,7 +69,7 @@ from watergan.data import (
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
 from watergan.formation.inverse import flat_floor_range, needs_normals
-from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, read_depth
+from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, is_jpeg, output_bits, read_depth
 from watergan.nets.restorer import WaterFields, fill_range_holes, restore
 from watergan.train_restorer import load_restorer
 
@@ -106,7 +106,7 @@ class ImageFormat(StrEnum):
 def corrected_name(name: str, image_format: str) -> str:
     """The corrected frame's file name for input ``name``: the same name (a JPEG's stem with .png), or its stem with
     the format's suffix."""
-    own = ".png" if Path(name).suffix.lower() in (".jpg", ".jpeg") else Path(name).suffix
+    own = ".png" if is_jpeg(name) else Path(name).suffix
     suffix = {"png": ".png", "tiff": ".tif", "jpeg": ".jpg"}.get(str(image_format), own)
     return f"{Path(name).stem}{suffix}"
 
@@ -120,9 +120,7 @@ def _outputs(out: Path, name: str, image_format: str) -> tuple[Path, Path, Path]
 def _write(out: Path, name: str, image_format: str, rgb: np.ndarray, depth: np.ndarray, bits: int) -> None:
     """(H,W,3) and (H,W) 0..1 arrays to the three output files of input ``name``, atomically."""
     image_path, depth_png, depth_npy = _outputs(out, name, image_format)
-    if image_path.suffix.lower() in (".jpg", ".jpeg"):
-        bits = 8
-    top, dtype = (65535.0, np.uint16) if bits == 16 else (255.0, np.uint8)
+    top, dtype = (65535.0, np.uint16) if output_bits(image_path, bits) == 16 else (255.0, np.uint8)
     atomic_write_bytes(image_path, encode_image(image_path.suffix, np.rint(rgb * top).astype(dtype)))
     atomic_write_bytes(depth_png, encode_png(np.rint(depth * 65535.0).astype(np.uint16)))
     buffer = io.BytesIO()

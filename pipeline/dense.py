@@ -62,7 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import file_mode, read_camera_json, write_failed
+from watergan.io import read_camera_json, write_failed
 
 
 class DenseMethod(StrEnum):
@@ -451,8 +451,7 @@ def write_checked(path: Path, geometry, write) -> None:
     try:
         if not write(str(tmp), geometry) or not ply_complete(tmp):
             raise OSError(errno.EIO, "open3d's file is shorter than its header says (a full disk?)")
-        os.chmod(tmp, file_mode())
-        os.replace(tmp, path)
+        os.replace(tmp, path)  # open3d creates it with the umask's mode
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise write_failed(path, exc) from exc

@@ -200,12 +200,22 @@ def read_image(path: Path, encoding: str = "srgb") -> np.ndarray:
     return srgb_to_linear(rgb) if encoding == "srgb" else rgb
 
 
+def is_jpeg(path: str | Path) -> bool:
+    """Whether a file name is a JPEG's (.jpg or .jpeg, any case)."""
+    return Path(path).suffix.lower() in (".jpg", ".jpeg")
+
+
+def output_bits(path: str | Path, bit_depth: int) -> int:
+    """The bits per sample a frame written to ``path`` keeps of ``bit_depth``: 8 for a JPEG, else all of them."""
+    return 8 if is_jpeg(path) else bit_depth
+
+
 def is_complete(path: Path, data: bytes) -> bool:
     """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker (truncated)."""
     suffix = path.suffix.lower()
     if suffix == ".png":
         return data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82")
-    if suffix in (".jpg", ".jpeg"):
+    if is_jpeg(path):
         return data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9")
     return True
 
@@ -228,7 +238,7 @@ def bit_depth(path: Path, image: np.ndarray | None = None) -> int:
         with path.open("rb") as f:
             header = f.read(25)
         return 16 if len(header) == 25 and header[24] == 16 else 8
-    if suffix in (".jpg", ".jpeg"):
+    if is_jpeg(path):
         return 8
     decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     return 16 if decoded is not None and decoded.dtype == np.uint16 else 8
@@ -268,9 +278,9 @@ def encode_image(suffix: str, image: np.ndarray) -> bytes:
         return encode_png(image)
     if suffix not in (".jpg", ".jpeg", ".tif", ".tiff"):
         raise ValueError(f"cannot write images as {suffix!r}: use .png, .jpg or .tif")
-    if suffix in (".jpg", ".jpeg") and image.dtype != np.uint8:
+    if is_jpeg(suffix) and image.dtype != np.uint8:
         raise TypeError("JPEG images are 8-bit: quantise to 8 bits first")
-    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if suffix in (".jpg", ".jpeg") else []
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if is_jpeg(suffix) else []
     ok, buffer = cv2.imencode(suffix, np.ascontiguousarray(image[..., ::-1]), params)
     if not ok:
         raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as {suffix}")
@@ -281,8 +291,8 @@ def write_srgb_image(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 
     """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16; JPEG: 8) bits, in the format of
     the path's suffix (PNG, TIFF or JPEG), atomically."""
     path = Path(path)
-    bits = 8 if path.suffix.lower() in (".jpg", ".jpeg") else bit_depth
-    atomic_write_bytes(path, encode_image(path.suffix, quantise(linear_to_srgb(linear_rgb), bits)))
+    rgb = quantise(linear_to_srgb(linear_rgb), output_bits(path, bit_depth))
+    atomic_write_bytes(path, encode_image(path.suffix, rgb))
 
 
 def frame_file(folder: Path, name: str) -> Path:
