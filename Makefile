@@ -21,11 +21,13 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	MPLCONFIGDIR=$${MPLCONFIGDIR:-$(CURDIR)/.mplconfig} .venv/bin/watergan demo --out $(DEMO_OUT)
 
+# Tests run on every core (pytest-xdist), a file's tests on one worker so that its shared surveys are made once;
+# each worker computes on one thread (tests/conftest.py).
 test: $(STAMP)
-	MPLCONFIGDIR=$${MPLCONFIGDIR:-$(CURDIR)/.mplconfig} $(PY) -m pytest -q
+	MPLCONFIGDIR=$${MPLCONFIGDIR:-$(CURDIR)/.mplconfig} $(PY) -m pytest -q -n auto --dist loadfile
 
 test-fast: $(STAMP)
-	MPLCONFIGDIR=$${MPLCONFIGDIR:-$(CURDIR)/.mplconfig} $(PY) -m pytest -q -m "not slow"
+	MPLCONFIGDIR=$${MPLCONFIGDIR:-$(CURDIR)/.mplconfig} $(PY) -m pytest -q -n auto --dist loadfile -m "not slow"
 
 lint: $(STAMP)
 	.venv/bin/ruff check .

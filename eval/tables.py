@@ -503,20 +503,38 @@ def restorer_table(restorer_dir: Path) -> dict:
 
 
 def depth_table(depth_dir: Path) -> dict:
-    """Monocular vs stereo depth from ``depth_dir/metrics.json`` (or a 'not run' table)."""
+    """Monocular vs stereo depth from ``depth_dir/metrics.json`` (or a 'not run' table): the depth net beside the
+    planes that know nothing of the image (:mod:`eval.depth`), over all and over relief pixels; the best plane
+    is a reference column (an upper bound for any plane)."""
     path = depth_dir / "metrics.json"
-    title = "Depth: monocular (restorer) vs stereo/MVS"
+    title = "Depth: monocular (restorer) vs stereo/MVS, beside planes"
     if not path.is_file():
         return make_table("depth", title, [], [], status=f"not run: no {depth_dir}/metrics.json (needs the "
                           "restorer's relative depth and the dense stage, or `watergan depth-compare`)")
     data = json.loads(path.read_text())
-    o = data["overall"]
-    rows = [{"label": label, "values": [o[key]], "better": ""} for key, label in (
-        ("rmse_m", "RMSE (m)"), ("rmse_over_range", "RMSE / depth range"), ("abs_rel", "AbsRel"),
-        ("delta_125", "delta < 1.25"), ("coverage", "coverage"), ("scale", "median scale"))]
-    rows.append({"label": "images", "values": [len(data.get("per_image", {}))], "better": ""})
-    return make_table("depth", title, ["monocular vs stereo"], rows, "none",
-                      note=f"alignment: {data.get('alignment', '?')}; {len(data.get('skipped', []))} skipped.")
+    sources = data.get("sources") or {"depth net": {"alignment": data.get("alignment", "?"), "all": data["overall"],
+                                                    "relief": None}}
+    columns = list(sources)
+    value = lambda part, key: [(sources[c][part] or {}).get(key) for c in columns]  # noqa: E731
+    rows = [{"label": "RMSE (m)", "values": value("all", "rmse_m"), "better": "lower"},
+            {"label": "RMSE, relief pixels (m)", "values": value("relief", "rmse_m"), "better": "lower"},
+            {"label": "RMSE / depth range (the paper's)", "values": value("all", "rmse_over_range"), "better": "lower"},
+            {"label": "AbsRel", "values": value("all", "abs_rel"), "better": "lower"},
+            {"label": "delta < 1.25", "values": value("all", "delta_125"), "better": "higher"},
+            {"label": "median scale", "values": value("all", "scale"), "better": ""}]
+    alignments = "; ".join(f"{c}: {sources[c]['alignment']}" for c in columns)
+    ratio = data.get("relief_rmse_ratio")
+    verdict = (f" The net's RMSE on relief pixels is {ratio:.2f}x the {data['ratio_to']}'s"
+               f" ({data['all_rmse_ratio']:.2f}x over all pixels): "
+               + ("it beats the plane where the plane is wrong." if ratio < 1 else "a plane does better.")
+               if ratio is not None and np.isfinite(ratio) else "")
+    relief = data.get("relief_fraction")
+    relief_note = (f" Relief pixels: more than 5 cm from the frame's best plane ({100 * relief:.0f} % of the pixels)."
+                   if relief is not None and np.isfinite(relief) else "")
+    return make_table("depth", title, columns, rows, "row", reference=("best plane",),
+                      note=f"{len(data.get('per_image', {}))} frames, {len(data.get('skipped', []))} skipped; "
+                           f"the net was not trained on the survey's frames. Alignment: {alignments}."
+                           f"{relief_note}{verdict}")
 
 
 # ------------------------------------------------------------------------------------------ stage

@@ -84,6 +84,12 @@ def cmd_depth_compare(args: argparse.Namespace) -> int:
     print(f"depth ({r.alignment}): {len(r.per_image)} images, RMSE {o.rmse_m:.4f} m "
           f"({100 * o.rmse_over_range:.2f} % of range), AbsRel {o.abs_rel:.4f}, delta<1.25 {o.delta_125:.3f}, "
           f"coverage {100 * o.coverage:.1f} %; {len(r.skipped)} skipped")
+    for name, m in r.sources.items():
+        relief = f", relief pixels {m.relief.rmse_m:.4f} m" if m.relief is not None else ""
+        print(f"  {name} ({m.alignment}): RMSE {m.all.rmse_m:.4f} m{relief}")
+    if r.ratio_to:
+        print(f"the net's RMSE on relief pixels ({100 * r.relief_fraction:.0f} % of the pixels) is "
+              f"{r.relief_rmse_ratio:.2f}x the {r.ratio_to}'s, {r.all_rmse_ratio:.2f}x over all pixels")
     print(f"table: {r.table}")
     return 0
 

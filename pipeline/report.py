@@ -336,10 +336,17 @@ def section_depth(ws, out: Path) -> tuple[str, dict]:
         raise NotRun(table["status"])
     maps = sorted((folder / "errors").glob("*.png"))
     picks = [maps[i] for i in sorted({0, len(maps) // 2, len(maps) - 1})] if maps else []
-    images = "".join(f"<figure>{_img(data_uri(read_display(p)), f'depth error {p.stem}')}"
-                     f"<figcaption>{_esc(p.stem)}</figcaption></figure>" for p in picks)
-    note = ("<p class='note'>|aligned monocular depth - stereo depth|, colour map magma from 0 to the 95th "
-            "percentile of the error; black: no value.</p>")
+    images = ""
+    for p in picks:
+        floor = folder / "errors_floor" / p.name
+        images += f"<figure>{_img(data_uri(read_display(p)), f'depth net error {p.stem}')}" \
+                  f"<figcaption>{_esc(p.stem)}: depth net</figcaption></figure>"
+        if floor.is_file():
+            images += f"<figure>{_img(data_uri(read_display(floor)), f'flat seafloor error {p.stem}')}" \
+                      f"<figcaption>{_esc(p.stem)}: flat seafloor</figcaption></figure>"
+    note = ("<p class='note'>|depth - stereo depth| of the depth net (aligned as the table says) and of the flat "
+            "seafloor at the navigation's altitude and attitude, side by side on the same frames; colour map magma "
+            "from 0 to the 95th percentile of the net's error; black: no value.</p>")
     return table_html(table) + f"<div class='row'>{images}</div>" + note, {"error_maps": len(maps)}
 
 

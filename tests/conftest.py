@@ -9,6 +9,11 @@ import torch
 # One scratch folder for the whole session (shared surveys, matplotlib's cache), removed when it ends.
 SCRATCH = tempfile.mkdtemp(prefix="watergan-tests-")
 os.environ.setdefault("MPLCONFIGDIR", os.path.join(SCRATCH, "mpl"))
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs two workers on two cores: one thread each (and in the commands the tests start), as two
+    # torch jobs on two threads each slow each other many times over
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
 
 from watergan.formation import FormationState, pixel_grid  # noqa: E402
 

@@ -84,3 +84,59 @@ def test_folders_png_roundtrip_and_error_maps(tmp_path):
 
     glob = compare_depth_folders(pred_dir, ref_dir, out, DepthCompareConfig(pred_dir=str(pred_dir), per_image=False))
     assert glob.alignment == "scale, global" and glob.overall.rmse_m > 0.1  # one scale cannot fit both
+
+
+def _floor_with_mound(altitude=2.0, h=60, w=80, mound_m=0.3):
+    """A nadir camera (f = 60 px) over a level seafloor ``altitude`` below, a mound rising ``mound_m`` towards
+    the camera over the image's centre: the camera and the camera-z depth and height above the floor of each pixel."""
+    from watergan.data import PinholeIntrinsics
+
+    camera = PinholeIntrinsics(60.0, 60.0, (w - 1) / 2, (h - 1) / 2, w, h)
+    y, x = np.mgrid[0:h, 0:w]
+    bump = mound_m * np.clip(1 - ((x - w / 2) ** 2 + (y - h / 2) ** 2) / 12.0**2, 0, None)
+    return camera, altitude - bump, bump
+
+
+def test_planes_beside_the_net_over_all_and_relief_pixels(tmp_path):
+    """A level floor with a mound: the flat seafloor at the navigation's altitude is exact off the mound and wrong
+    on it by the mound's height; a net that sees the mound is exact on it, one that predicts the floor's shape is
+    as wrong as the floor (ratio 1); the best plane is the floor (the mound is a small share of the points)."""
+    from eval.depth import BEST_PLANE, FLOOR, FLOOR_ALIGNED, NET, RELIEF_M, Navigation, best_plane
+    from watergan.formation.inverse import flat_floor_depth
+
+    camera, ref, bump = _floor_with_mound()
+    mound = bump > 0.05
+    np.testing.assert_allclose(flat_floor_depth(2.0, camera.K, 60, 80), 2.0)
+    plane, distance = best_plane(np.where(bump > 0, np.nan, ref), camera.K)
+    np.testing.assert_allclose(plane, 2.0, atol=1e-9)
+    assert np.nanmax(distance) < 1e-9
+
+    tilted = flat_floor_depth(2.0, camera.K, 60, 80, np.array([0.0, np.sin(0.3), np.cos(0.3)]))
+    plane, distance = best_plane(tilted, camera.K)  # a tilted floor is a plane too
+    np.testing.assert_allclose(plane, tilted, rtol=1e-9)
+
+    ref_dir, seen, floor_like = tmp_path / "ref", tmp_path / "seen", tmp_path / "floor"
+    for folder in (ref_dir, seen, floor_like):
+        folder.mkdir()
+    write_depth_png(ref_dir / "f0.png", ref)
+    np.save(seen / "f0.npy", ref / 4.0)  # a relative depth with the mound, any scale
+    np.save(floor_like / "f0.npy", np.full_like(ref, 0.5))
+    nav = Navigation(camera, {"f0": 2.0})
+    good = compare_depth_folders(seen, ref_dir, tmp_path / "a", DepthCompareConfig(pred_dir=str(seen)), nav)
+    assert set(good.sources) == {NET, FLOOR, FLOOR_ALIGNED, BEST_PLANE} and good.ratio_to == FLOOR_ALIGNED
+    assert good.sources[FLOOR].alignment == "none" and good.sources[FLOOR_ALIGNED].alignment == "scale, per image"
+    assert good.relief_fraction == pytest.approx(mound.mean(), abs=0.01)
+    assert good.sources[NET].relief.rmse_m < 1e-3
+    relief = best_plane(ref, camera.K)[1] > RELIEF_M  # the mound's pixels, as the plane through it all sees them
+    assert (relief == mound).mean() > 0.99
+    floor_on_mound = np.sqrt(np.mean((2.0 - ref[relief]) ** 2))  # the floor misses the mound by its height
+    assert good.sources[FLOOR].relief.rmse_m == pytest.approx(floor_on_mound, rel=0.01)
+    assert good.relief_rmse_ratio < 0.01
+    assert (tmp_path / "a" / "errors_floor" / "f0.png").is_file()
+    flat = compare_depth_folders(floor_like, ref_dir, tmp_path / "b", DepthCompareConfig(pred_dir=str(floor_like)),
+                                 nav)
+    assert flat.relief_rmse_ratio == pytest.approx(1.0, rel=1e-6) and flat.all_rmse_ratio == pytest.approx(1.0)
+
+    no_nav = compare_depth_folders(seen, ref_dir, tmp_path / "c", DepthCompareConfig(pred_dir=str(seen)),
+                                   Navigation(camera))
+    assert set(no_nav.sources) == {NET, BEST_PLANE} and no_nav.ratio_to == BEST_PLANE

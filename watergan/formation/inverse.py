@@ -37,6 +37,14 @@ def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int,
     return altitude_m * length / np.maximum(along, 0.01 * length)
 
 
+def flat_floor_depth(altitude_m: float, K: np.ndarray, h: int, w: int,
+                     down_cam: np.ndarray | None = None) -> np.ndarray:
+    """(H,W) camera-z depth (metres) of the same seafloor: :func:`flat_floor_range` over each ray's length
+    |K^-1 (x, y, 1)|."""
+    rays = np.linalg.norm(rays_cam(np.asarray(K, np.float64), h, w), axis=-1)
+    return flat_floor_range(altitude_m, K, h, w, down_cam) / rays
+
+
 def clean_range(r: np.ndarray) -> np.ndarray:
     """A range map (metres) as float64 with NaN wherever it holds no range (NaN, inf or <= 0)."""
     r = np.asarray(r, np.float64)
