@@ -32,7 +32,8 @@ camera matrix (and the navigation, where the survey has one), planes that know n
 Errors are pooled over all compared pixels and over *relief pixels*: those more than ``RELIEF_M`` (5 cm) from
 their frame's best plane (rocks, mounds, coral), where a plane is wrong by construction and where the colour
 correction needs the range. ``relief_rmse_ratio`` is the net's RMSE on relief pixels over the plane's under the
-same alignment (the flat seafloor's; the best plane's without navigation).
+same alignment (the flat seafloor's; the best plane's without navigation). A metric prediction (``metric``: a net
+scaled by the altimeter) is compared as it is, beside the flat seafloor as it is.
 """
 
 from __future__ import annotations
@@ -172,6 +173,9 @@ class DepthCompareConfig:
     navigation: str = ""
     """Survey file with each frame's nav_altitude_m (and nav_down_cam) and camera.json beside it, for the flat
     seafloor; empty: the workspace's survey (none: the planes are left out)."""
+    metric: bool = False
+    """The predictions are metric camera-z depth (a net scaled by the altimeter): compared as they are, and the
+    ratios divide by the flat seafloor as it is."""
     with_shift: bool = False
     """Fit scale and shift (True) or scale only (False)."""
     per_image: bool = True
@@ -212,7 +216,7 @@ class SourceMetrics:
 @dataclass
 class DepthCompareResult:
     alignment: str
-    """The net's: 'scale' or 'scale+shift', and 'per image' or 'global'."""
+    """The net's: 'scale' or 'scale+shift', and 'per image' or 'global'; 'none' for metric predictions."""
     overall: DepthMetrics
     """The net's errors, all compared pixels pooled (after their alignment)."""
     per_image: dict[str, DepthMetrics]
@@ -229,11 +233,12 @@ class DepthCompareResult:
     relief_fraction: float = float("nan")
     """Share of the compared pixels that are relief pixels."""
     relief_rmse_ratio: float = float("nan")
-    """The net's RMSE on relief pixels over the plane's under the same alignment (``ratio_to``)."""
+    """The net's RMSE on relief pixels over the plane's under the same alignment (``ratio_to``: the flat seafloor,
+    aligned as the net is or as it is for metric predictions; the best plane without navigation)."""
     all_rmse_ratio: float = float("nan")
     """The same over all compared pixels."""
     ratio_to: str = ""
-    """The plane the ratios divide by: ``FLOOR_ALIGNED``, or ``BEST_PLANE`` without navigation."""
+    """The plane the ratios divide by."""
     floor_error_maps: list[str] = field(default_factory=list)
     """The flat seafloor's |error| PNGs (errors_floor/, the net's colour scale), same frames."""
 
@@ -307,12 +312,13 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
         preds[stem], refs[stem] = read_depth(path), read_depth(ref_files[stem])
     if not preds:
         raise UserInputError(f"no depth map in {pred_dir} has a reference of the same name in {ref_dir}")
-    per_image, errors = _compare_source(preds, refs, cfg, aligned=True)
+    per_image, errors = _compare_source(preds, refs, cfg, aligned=not cfg.metric)
     if not per_image:
         raise UserInputError(f"no image has {cfg.min_valid} pixels valid in both depth maps")
     skipped += [stem for stem in preds if stem not in per_image]
     refs = {stem: refs[stem] for stem in per_image}
-    alignment = ("scale+shift" if cfg.with_shift else "scale") + (", per image" if cfg.per_image else ", global")
+    alignment = "none" if cfg.metric else (
+        ("scale+shift" if cfg.with_shift else "scale") + (", per image" if cfg.per_image else ", global"))
     sources: dict[str, SourceMetrics] = {}
     floor_errors: dict[str, np.ndarray] = {}
     relief = None
@@ -324,7 +330,8 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
         if have_nav:
             floors = {stem: flat_floor_depth(navigation.altitude_m[stem], navigation.K_for(*ref.shape), *ref.shape,
                                              navigation.down_cam.get(stem)) for stem, ref in refs.items()}
-            compared = {FLOOR: ("none", floors), FLOOR_ALIGNED: (alignment, floors), **compared}
+            aligned_floor = {} if cfg.metric else {FLOOR_ALIGNED: (alignment, floors)}
+            compared = {FLOOR: ("none", floors), **aligned_floor, **compared}
         for name, (how, maps) in compared.items():
             m, e = _compare_source(maps, refs, cfg, aligned=how != "none")
             sources[name] = SourceMetrics(how, _pooled(m, e, refs), _pooled(m, e, refs, relief))
@@ -341,7 +348,8 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
     if relief:
         n_relief = sum(int((relief[s] & np.isfinite(errors[s])).sum()) for s in errors)
         result.relief_fraction = n_relief / max(overall.n_valid, 1)
-        result.ratio_to = FLOOR_ALIGNED if FLOOR_ALIGNED in sources else BEST_PLANE
+        result.ratio_to = next(name for name in (FLOOR_ALIGNED, FLOOR, BEST_PLANE)
+                               if name in sources and (name != FLOOR or cfg.metric))
         plane = sources[result.ratio_to]
         result.all_rmse_ratio = overall.rmse_m / plane.all.rmse_m
         if sources[NET].relief is not None and plane.relief is not None:

@@ -502,18 +502,25 @@ def restorer_table(restorer_dir: Path) -> dict:
     return table
 
 
-def depth_table(depth_dir: Path) -> dict:
-    """Monocular vs stereo depth from ``depth_dir/metrics.json`` (or a 'not run' table): the depth net beside the
-    planes that know nothing of the image (:mod:`eval.depth`), over all and over relief pixels; the best plane
-    is a reference column (an upper bound for any plane)."""
+SITE_NET = "site depth net (held-out)"
+
+
+def depth_table(depth_dir: Path, site_metrics: Path | None = None) -> dict:
+    """Monocular vs stereo depth from ``depth_dir/metrics.json`` (or a 'not run' table): the restorer's depth net
+    beside the planes that know nothing of the image (:mod:`eval.depth`), over all and over relief pixels; the best
+    plane is a reference column (an upper bound for any plane). With ``site_metrics`` (the site depth net's held-out
+    comparison, :mod:`pipeline.site_depth`) a column of the site net, metric, on its held-out frames."""
     path = depth_dir / "metrics.json"
-    title = "Depth: monocular (restorer) vs stereo/MVS, beside planes"
+    title = "Depth: monocular vs stereo/MVS, beside planes"
     if not path.is_file():
         return make_table("depth", title, [], [], status=f"not run: no {depth_dir}/metrics.json (needs the "
                           "restorer's relative depth and the dense stage, or `watergan depth-compare`)")
     data = json.loads(path.read_text())
     sources = data.get("sources") or {"depth net": {"alignment": data.get("alignment", "?"), "all": data["overall"],
                                                     "relief": None}}
+    site = json.loads(site_metrics.read_text()) if site_metrics is not None and site_metrics.is_file() else None
+    if site is not None:
+        sources = {**sources, SITE_NET: site["sources"]["depth net"]}
     columns = list(sources)
     value = lambda part, key: [(sources[c][part] or {}).get(key) for c in columns]  # noqa: E731
     rows = [{"label": "RMSE (m)", "values": value("all", "rmse_m"), "better": "lower"},
@@ -524,16 +531,20 @@ def depth_table(depth_dir: Path) -> dict:
             {"label": "median scale", "values": value("all", "scale"), "better": ""}]
     alignments = "; ".join(f"{c}: {sources[c]['alignment']}" for c in columns)
     ratio = data.get("relief_rmse_ratio")
-    verdict = (f" The net's RMSE on relief pixels is {ratio:.2f}x the {data['ratio_to']}'s"
+    verdict = (f" The restorer's net's RMSE on relief pixels is {ratio:.2f}x the {data['ratio_to']}'s"
                f" ({data['all_rmse_ratio']:.2f}x over all pixels): "
                + ("it beats the plane where the plane is wrong." if ratio < 1 else "a plane does better.")
                if ratio is not None and np.isfinite(ratio) else "")
+    if site is not None:
+        verdict += (f" The site depth net (trained on the survey's dense depth, metric) on its "
+                    f"{len(site['per_image'])} held-out frames: {site['relief_rmse_ratio']:.2f}x the flat seafloor's "
+                    f"RMSE on relief pixels, {site['all_rmse_ratio']:.2f}x over all pixels.")
     relief = data.get("relief_fraction")
     relief_note = (f" Relief pixels: more than 5 cm from the frame's best plane ({100 * relief:.0f} % of the pixels)."
                    if relief is not None and np.isfinite(relief) else "")
     return make_table("depth", title, columns, rows, "row", reference=("best plane",),
                       note=f"{len(data.get('per_image', {}))} frames, {len(data.get('skipped', []))} skipped; "
-                           f"the net was not trained on the survey's frames. Alignment: {alignments}."
+                           f"the restorer's net was not trained on the survey's frames. Alignment: {alignments}."
                            f"{relief_note}{verdict}")
 
 

@@ -42,12 +42,17 @@ def cmd_correct(args: argparse.Namespace) -> int:
           f"failed {len(result.failed)} in {result.seconds:.1f} s -> {result.out_dir} (images/, depth/, summary.json)")
     for line in result.failed:
         print(f"  {line}")
+    if result.range_source:
+        print(f"range: {result.range_source}" + (f" (site depth net: {result.range_why})" if result.range_why else ""))
     return 0
 
 
 def print_restorer(ws, r) -> None:
     print(f"restorer: {r.steps[0]} + {r.steps[1]} iterations in {r.seconds:.0f} s, loss {r.loss:.4f}; "
           f"{r.train_count} training, {r.val_count} held-out frames")
+    site = getattr(r, "site_depth", {})
+    if site:
+        print(f"site depth net: {site['why']}")
     print(f"model: {r.out_dir}")
 
 
@@ -56,7 +61,8 @@ def print_correct(ws, r) -> None:
         print(f"physics: {ws.path(r.physics_images)} ({100 * r.unresolved_fraction:.1f} % of the pixels without "
               f"range: black, masked), {r.physics_seconds:.1f} s")
     if r.restorer:
-        print(f"restorer: {r.corrected} frames ({r.mode} mode), {len(r.failed)} failed, {r.seconds:.1f} s "
+        source = f", range from the {r.range_source}" if r.range_source else ""
+        print(f"restorer: {r.corrected} frames ({r.mode} mode{source}), {len(r.failed)} failed, {r.seconds:.1f} s "
               f"-> {ws.path(r.images)}")
         for line in r.failed:
             print(f"  {line}")

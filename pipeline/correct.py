@@ -22,8 +22,10 @@ work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's rang
 - ``monocular``, for frames without range (a live camera, a survey without stereo overlap): the range of a flat,
   level seafloor at the frame's altitude (:func:`watergan.formation.inverse.flat_floor_range`), from the navigation's
   altitude, its attitude where it gives one (``nav_down_cam``: :func:`watergan.data.read_nav_down`; else a nadir
-  camera) and the camera's intrinsics. The restorer's depth net cannot stand in: on the demo its
-  relative depth scaled to the altitude is 4.0 % off the true range (median per frame), the flat seafloor 2.3 %.
+  camera) and the camera's intrinsics; times the site depth net's factor where the restorer's folder holds one that
+  beat the flat seafloor on the survey's held-out frames (:mod:`pipeline.site_depth`; the result's ``range_source``
+  and ``range_why`` say which and by how much). The restorer's own depth net cannot stand in: it never saw the site's
+  range, and the eval stage's depth table shows it further from the stereo depth than the flat seafloor.
 
 A restorer trained monocular (``--no-range-input``, the paper's) takes the image and its altitude only. A restorer
 that starts from a water's inverse (:func:`watergan.nets.restorer.water_fields`) takes the images' intrinsics from
@@ -71,7 +73,9 @@ from watergan.formation import Stack
 from watergan.formation.inverse import flat_floor_range, needs_normals
 from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, is_jpeg, output_bits, read_depth
 from watergan.nets.restorer import WaterFields, fill_range_holes, restore
+from watergan.nets.site_depth import SiteDepthNet
 from watergan.train_restorer import load_restorer
+from watergan.train_site_depth import load_site_depth
 
 SUMMARY = "summary.json"
 
@@ -90,6 +94,11 @@ class CorrectResult:
     seconds: float = 0.0
     mode: str = "monocular"
     """"rgb-d" (each pixel's range from its range map) or "monocular" (see the module docstring)."""
+    range_source: str = ""
+    """Where an RGB-D restorer's range came from: "range maps", "flat seafloor" or "site depth net" (monocular mode:
+    the net beside the restorer when it beat the flat seafloor on held-out frames); "" for a monocular restorer."""
+    range_why: str = ""
+    """Why monocular mode took the site depth net or kept the flat seafloor (the net's record), when one was trained."""
 
 
 class ImageFormat(StrEnum):
@@ -150,6 +159,9 @@ class CorrectChunk:
     """Per path, "down" in the camera frame from the navigation's attitude (None: nadir cameras)."""
     image_format: str = "input"
     """The corrected frames' format (:class:`ImageFormat`)."""
+    site_depth: bool = False
+    """Monocular mode: each image's range is the flat seafloor's times the site depth net's factor (the net in
+    ``model_dir``, :mod:`watergan.nets.site_depth`)."""
 
 
 @dataclass
@@ -178,11 +190,13 @@ nets, bounds a GPU's frames per second). On an H100 with 16 cores, the demo's 44
 2 lanes 41-47, 3 53-55, 4 55-56, 6 56."""
 
 
-def _read_one(chunk: CorrectChunk, k: int, path: Path) -> tuple[np.ndarray, int, np.ndarray | None]:
+def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None
+              ) -> tuple[np.ndarray, int, np.ndarray | None]:
     """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer,
     its range (float32 metres): its range map, holes filled (:func:`watergan.nets.restorer.fill_range_holes`), or a
-    flat seafloor's (``chunk.flat_floor``); a DataError names what is wrong. Runs in the I/O threads, off the nets'
-    thread."""
+    flat seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site`` (the factor on
+    depth is the factor on range: both scale along the same ray); a DataError names what is wrong. Runs in the I/O
+    threads, off the nets' thread."""
     image = read_image(path, "linear").astype(np.float32)
     bits = bit_depth(path)
     range_m = None
@@ -190,7 +204,8 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path) -> tuple[np.ndarray, int,
         h, w = image.shape[:2]
         K = chunk.camera.resized(h, w).K
         down = chunk.down_cam[k] if chunk.down_cam is not None else None
-        range_m = flat_floor_range(chunk.altitude_m[k], K, h, w, down).astype(np.float32)
+        range_m = flat_floor_range(chunk.altitude_m[k], K, h, w, down)
+        range_m = (site.depth(image, range_m) if site is not None else range_m).astype(np.float32)
     elif chunk.range_dir is not None:
         range_path = chunk.range_dir / f"{path.stem}.png"
         range_m = depth_or_zero(read_depth(range_path))
@@ -216,6 +231,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     dev = pick_device(chunk.device)
     model = (model if model is not None else load_restorer(chunk.model_dir)).for_inference().to(dev)
     fields = WaterFields(model.water) if model.water is not None else None
+    site = load_site_depth(chunk.model_dir)[0] if chunk.site_depth else None
     out = chunk.out_dir
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
@@ -260,7 +276,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                 running.append(nets.submit(correct_batch, list(batch)))
                 batch.clear()
 
-            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * chunk.batch_size):
+            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * chunk.batch_size, site):
                 try:
                     image, bits, range_m = read.result()
                 except DataError as exc:
@@ -283,12 +299,13 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     return result
 
 
-def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int) -> Iterator[tuple[int, Path, Future]]:
+def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int, site: SiteDepthNet | None = None
+                ) -> Iterator[tuple[int, Path, Future]]:
     """(index, path, the future of :func:`_read_one`) of each path in order, with up to ``ahead`` reads
     submitted before the one yielded."""
     reads: deque[tuple[int, Path, Future]] = deque()
     for k, path in enumerate(chunk.paths):
-        reads.append((k, path, pool.submit(_read_one, chunk, k, path)))
+        reads.append((k, path, pool.submit(_read_one, chunk, k, path, site)))
         if len(reads) > ahead:
             yield reads.popleft()
     yield from reads
@@ -383,7 +400,12 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
-    result = CorrectResult(out, 0, 0, mode=str(mode))
+    site_net, site_record = load_site_depth(model_dir) if flat_floor else (None, None)
+    site_depth = site_net is not None
+    result = CorrectResult(out, 0, 0, mode=str(mode),
+                           range_source="" if not model.range_input else "range maps" if ranges is not None
+                           else "site depth net" if site_depth else "flat seafloor",
+                           range_why=(site_record or {}).get("why", ""))
     todo = [p for p in files if force or not all(o.is_file() for o in _outputs(out, p.name, image_format))]
     result.already_done = len(files) - len(todo)
 
@@ -398,13 +420,13 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
                                               altitude_of(todo), ranges, camera, flat_floor, down_of(todo),
-                                              str(image_format)), bar, model)
+                                              str(image_format), site_depth), bar, model)
         parts = [done]
     else:
         size = -(-max(chunk_size, 1) // batch_size) * batch_size
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
                              batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera,
-                             flat_floor, down_of(part), str(image_format))
+                             flat_floor, down_of(part), str(image_format), site_depth)
                 for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):
@@ -414,7 +436,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     result.seconds = time.perf_counter() - began
     summary = {"images_dir": str(images_dir), "model_dir": str(model_dir), "total": len(files),
                "corrected": result.corrected, "already_done": result.already_done,
-               "failed": len(result.failed), "failed_files": result.failed, "seconds": round(result.seconds, 3)}
+               "failed": len(result.failed), "failed_files": result.failed, "seconds": round(result.seconds, 3),
+               "mode": result.mode, "range_source": result.range_source, "range_why": result.range_why}
     atomic_write_bytes(out / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
     return result
 
@@ -473,6 +496,10 @@ class CorrectStageResult:
     mesh_images: str
     """The corrected frames the mesh stage textures with: the physics correction's when every pixel of it had a
     range, else the restorer's."""
+    range_source: str = ""
+    """The restorer's range: "range maps", "flat seafloor" or "site depth net" (:class:`CorrectResult`)."""
+    range_why: str = ""
+    """Why monocular mode took the site depth net or kept the flat seafloor."""
 
 
 def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
@@ -547,7 +574,7 @@ def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
         physics_seconds=physics_s, restorer=restored, images=f"{restored}/images" if restored else "",
         depth=f"{restored}/depth" if restored else "", corrected=result.corrected, failed=result.failed,
         seconds=result.seconds, fps=result.corrected / max(result.seconds, 1e-9), mode=result.mode,
-        mesh_images=mesh)
+        mesh_images=mesh, range_source=result.range_source, range_why=result.range_why)
 
 
 @dataclass(frozen=True)

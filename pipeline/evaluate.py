@@ -47,6 +47,7 @@ from eval.tracks import Tracks
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_bytes, atomic_write_json, atomic_write_text, image_files
 
+from .site_depth import site_depth_metrics
 from .workspace import Workspace
 
 
@@ -185,7 +186,7 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
     else:
         tables.append(make_table("fidelity", "Fidelity against the in-air truth", [], [],
                                  status="not measured: not a simulated survey (no truth/inair)"))
-    tables.append(depth_table(ws.stage_dir("eval") / "depth"))
+    tables.append(depth_table(ws.stage_dir("eval") / "depth", site_depth_metrics(ws)))
     tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
         {"label": "seconds per frame", "values": [f.per_frame_s.get(m) for m in methods], "better": "lower"}], "row",
         note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "

@@ -108,6 +108,16 @@ class RestorerStage:
     """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
     range_input: bool | None = None
     """RGB-D mode (each pixel's range); auto: when the water stage wrote each frame's range maps."""
+    site_depth_steps: int = 1000
+    """Steps of the site depth net (:mod:`pipeline.site_depth`: monocular depth learned from the survey's dense depth,
+    taken by monocular correction where it beats the flat seafloor on held-out frames); 0: none."""
+
+
+@dataclass
+class RestorerStageResult(RestorerResult):
+    site_depth: dict = field(default_factory=dict)
+    """The site depth net's record (``site_depth.json`` in the restorer's folder): held-out comparison with the flat
+    seafloor, ``use`` and ``why``; {} when not trained."""
 
 
 def restorer_config(ws: Workspace, cfg: RestorerStage) -> RestorerConfig:
@@ -122,8 +132,19 @@ def restorer_config(ws: Workspace, cfg: RestorerStage) -> RestorerConfig:
                                altitude=altitude, range_input=range_input)
 
 
-def run_restorer_stage(ws: Workspace, cfg: RestorerStage) -> RestorerResult:
-    """Train the restorer on the paired set (:func:`restorer_config`)."""
+def run_restorer_stage(ws: Workspace, cfg: RestorerStage) -> RestorerStageResult:
+    """Train the restorer on the paired set (:func:`restorer_config`), then the site depth net beside it
+    (:func:`pipeline.site_depth.fit_site_depth`, unless ``site_depth_steps`` is 0)."""
     from watergan.train_restorer import train_restorer
+    from watergan.train_site_depth import SiteDepthConfig
 
-    return train_restorer(restorer_config(ws, cfg))
+    from .site_depth import fit_site_depth
+
+    config = restorer_config(ws, cfg)
+    result = train_restorer(config)
+    site = {}
+    if cfg.site_depth_steps > 0:
+        site = fit_site_depth(ws, SiteDepthConfig(steps=cfg.site_depth_steps, seed=config.seed), config.out_dir,
+                              config.progress)
+    return RestorerStageResult(**{f.name: getattr(result, f.name) for f in dataclasses.fields(result)},
+                               site_depth=site)

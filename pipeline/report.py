@@ -326,12 +326,13 @@ def section_consistency(ws, out: Path) -> tuple[str, dict]:
 
 def section_depth(ws, out: Path) -> tuple[str, dict]:
     from eval.tables import depth_table, table_html
+    from pipeline.site_depth import site_depth_metrics
 
     r = _stage_result(ws, "eval")
     if not r.depth:
         raise NotRun("not measured: no restorer depth or no dense depth (the eval stage's depth comparison)")
     folder = ws.path(r.depth)
-    table = depth_table(folder)
+    table = depth_table(folder, site_depth_metrics(ws))
     if table["status"] != "ok":
         raise NotRun(table["status"])
     maps = sorted((folder / "errors").glob("*.png"))

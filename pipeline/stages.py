@@ -104,9 +104,10 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           "gan", found=("train.rgbd_dir", "train.underwater_dir", "train.out_dir", "train.site_water",
                         "train.budget_min", "generate.model_dir", "generate.rgbd_dir", "generate.out_dir"),
           local=("train.resume", "train.device", "generate.device")),
-    Stage("restorer", "05_restorer", "pipeline.gan:RestorerStage", "watergan.train_restorer:RestorerResult",
-          "pipeline.gan:run_restorer_stage", ("survey", "water", "gan"),
-          "train the restorer (depth and colour nets) on WaterGAN's pairs", "restorer",
+    Stage("restorer", "05_restorer", "pipeline.gan:RestorerStage", "pipeline.gan:RestorerStageResult",
+          "pipeline.gan:run_restorer_stage", ("survey", "dense", "water", "gan"),
+          "train the restorer (depth and colour nets) on WaterGAN's pairs, and the site depth net on the survey's "
+          "dense depth", "restorer",
           found=("train.data_dir", "train.out_dir", "train.altitude", "train.range_input"),
           local=("train.resume", "train.device")),
     Stage("correct", "06_correct", "pipeline.correct:CorrectStage", "pipeline.correct:CorrectStageResult",

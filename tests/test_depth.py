@@ -137,6 +137,10 @@ def test_planes_beside_the_net_over_all_and_relief_pixels(tmp_path):
                                  nav)
     assert flat.relief_rmse_ratio == pytest.approx(1.0, rel=1e-6) and flat.all_rmse_ratio == pytest.approx(1.0)
 
+    metric = compare_depth_folders(seen, ref_dir, tmp_path / "m", DepthCompareConfig(pred_dir=str(seen), metric=True),
+                                   nav)  # as it is: a quarter of the depth
+    assert metric.ratio_to == FLOOR and FLOOR_ALIGNED not in metric.sources and metric.alignment == "none"
+    assert metric.overall.rmse_m == pytest.approx(np.sqrt(np.mean((0.75 * ref) ** 2)), rel=1e-3)
     no_nav = compare_depth_folders(seen, ref_dir, tmp_path / "c", DepthCompareConfig(pred_dir=str(seen)),
                                    Navigation(camera))
     assert set(no_nav.sources) == {NET, BEST_PLANE} and no_nav.ratio_to == BEST_PLANE

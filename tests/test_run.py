@@ -22,7 +22,8 @@ from pipeline.run import (
 from pipeline.survey import SurveyConfig, SurveyResult, check_survey
 from watergan.errors import UserInputError
 
-FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--diagnose-measure-n-points", "200",
+FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--restorer-site-depth-steps", "20",
+        "--diagnose-measure-n-points", "200",
         "--diagnose-candidates", "vignetting_offcentre,sensor_response", "--no-progress"]
 
 
