@@ -70,7 +70,7 @@ from watergan.data import (
 )
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
-from watergan.formation.inverse import flat_floor_range, needs_normals
+from watergan.formation.inverse import flat_floor_depth, flat_floor_range, needs_normals
 from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, is_jpeg, output_bits, read_depth
 from watergan.nets.restorer import WaterFields, fill_range_holes, restore
 from watergan.nets.site_depth import SiteDepthNet
@@ -194,9 +194,8 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None
               ) -> tuple[np.ndarray, int, np.ndarray | None]:
     """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer,
     its range (float32 metres): its range map, holes filled (:func:`watergan.nets.restorer.fill_range_holes`), or a
-    flat seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site`` (the factor on
-    depth is the factor on range: both scale along the same ray); a DataError names what is wrong. Runs in the I/O
-    threads, off the nets' thread."""
+    flat seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site``; a DataError names
+    what is wrong. Runs in the I/O threads, off the nets' thread."""
     image = read_image(path, "linear").astype(np.float32)
     bits = bit_depth(path)
     range_m = None
@@ -205,7 +204,9 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None
         K = chunk.camera.resized(h, w).K
         down = chunk.down_cam[k] if chunk.down_cam is not None else None
         range_m = flat_floor_range(chunk.altitude_m[k], K, h, w, down)
-        range_m = (site.depth(image, range_m) if site is not None else range_m).astype(np.float32)
+        if site is not None:
+            range_m = range_m * site.factor(image, flat_floor_depth(chunk.altitude_m[k], K, h, w, down))
+        range_m = range_m.astype(np.float32)
     elif chunk.range_dir is not None:
         range_path = chunk.range_dir / f"{path.stem}.png"
         range_m = depth_or_zero(read_depth(range_path))

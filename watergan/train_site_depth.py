@@ -39,7 +39,7 @@ RECORD = "site_depth.json"
 class SiteDepthConfig:
     """Options of the site depth net's training."""
 
-    steps: int = 1000
+    steps: int = 3000
     """Optimiser steps."""
     batch: int = 8
     """Frames per step."""
@@ -93,7 +93,7 @@ def train_site_depth(frames: list[SiteFrame], config: SiteDepthConfig = SiteDept
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     net = SiteDepthNet(scale=config.scale)
-    x = torch.cat([net.small(f.image) for f in training])
+    x = torch.cat([net.small(f.image, f.floor_z) for f in training])
     net.normalise(x)
     h, w = x.shape[-2:]
     t = torch.from_numpy(np.stack([np.log(_area_mean(f.ref_z, h, w) / _area_mean(f.floor_z, h, w))
