@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.baselines import BASELINES, jaffe_coefficients
+from eval.depth import BEST_PLANE, FLOOR, FLOOR_ALIGNED, NET
 from watergan.errors import UserInputError
 from watergan.io import frame_file, z_to_range
 
@@ -516,11 +517,13 @@ def depth_table(depth_dir: Path, site_metrics: Path | None = None) -> dict:
         return make_table("depth", title, [], [], status=f"not run: no {depth_dir}/metrics.json (needs the "
                           "restorer's relative depth and the dense stage, or `watergan depth-compare`)")
     data = json.loads(path.read_text())
-    sources = data.get("sources") or {"depth net": {"alignment": data.get("alignment", "?"), "all": data["overall"],
-                                                    "relief": None}}
+    sources = data.get("sources") or {NET: {"alignment": data.get("alignment", "?"), "all": data["overall"],
+                                            "relief": None}}
+    order = (NET, FLOOR, FLOOR_ALIGNED, BEST_PLANE)  # metrics.json sorts its keys
+    sources = {name: sources[name] for name in sorted(sources, key=lambda n: order.index(n) if n in order else 9)}
     site = json.loads(site_metrics.read_text()) if site_metrics is not None and site_metrics.is_file() else None
     if site is not None:
-        sources = {**sources, SITE_NET: site["sources"]["depth net"]}
+        sources = {**sources, SITE_NET: site["sources"][NET]}
     columns = list(sources)
     value = lambda part, key: [(sources[c][part] or {}).get(key) for c in columns]  # noqa: E731
     rows = [{"label": "RMSE (m)", "values": value("all", "rmse_m"), "better": "lower"},
@@ -542,7 +545,7 @@ def depth_table(depth_dir: Path, site_metrics: Path | None = None) -> dict:
     relief = data.get("relief_fraction")
     relief_note = (f" Relief pixels: more than 5 cm from the frame's best plane ({100 * relief:.0f} % of the pixels)."
                    if relief is not None and np.isfinite(relief) else "")
-    return make_table("depth", title, columns, rows, "row", reference=("best plane",),
+    return make_table("depth", title, columns, rows, "row", reference=(BEST_PLANE,),
                       note=f"{len(data.get('per_image', {}))} frames, {len(data.get('skipped', []))} skipped; "
                            f"the restorer's net was not trained on the survey's frames. Alignment: {alignments}."
                            f"{relief_note}{verdict}")

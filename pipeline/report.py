@@ -332,23 +332,33 @@ def section_depth(ws, out: Path) -> tuple[str, dict]:
     if not r.depth:
         raise NotRun("not measured: no restorer depth or no dense depth (the eval stage's depth comparison)")
     folder = ws.path(r.depth)
-    table = depth_table(folder, site_depth_metrics(ws))
+    site = site_depth_metrics(ws)
+    table = depth_table(folder, site)
     if table["status"] != "ok":
         raise NotRun(table["status"])
+    rows, maps = _error_map_row(folder, "restorer's depth net"), sorted((folder / "errors").glob("*.png"))
+    if site is not None and site.is_file():
+        rows += _error_map_row(site.parent, "site depth net (held-out)")
+    note = ("<p class='note'>|depth - stereo depth| of each net (the restorer's aligned as the table says, the site "
+            "depth net's metric on frames it never trained on) and of the flat seafloor at the navigation's altitude "
+            "and attitude, side by side on the same frames; colour map magma from 0 to the 95th percentile of the "
+            "net's error; black: no value.</p>")
+    return table_html(table) + rows + note, {"error_maps": len(maps)}
+
+
+def _error_map_row(folder: Path, label: str) -> str:
+    """Three frames' error maps of a depth comparison's net (``errors/``) and flat seafloor (``errors_floor/``)."""
     maps = sorted((folder / "errors").glob("*.png"))
     picks = [maps[i] for i in sorted({0, len(maps) // 2, len(maps) - 1})] if maps else []
     images = ""
     for p in picks:
         floor = folder / "errors_floor" / p.name
-        images += f"<figure>{_img(data_uri(read_display(p)), f'depth net error {p.stem}')}" \
-                  f"<figcaption>{_esc(p.stem)}: depth net</figcaption></figure>"
+        images += f"<figure>{_img(data_uri(read_display(p)), f'{label} error {p.stem}')}" \
+                  f"<figcaption>{_esc(p.stem)}: {_esc(label)}</figcaption></figure>"
         if floor.is_file():
             images += f"<figure>{_img(data_uri(read_display(floor)), f'flat seafloor error {p.stem}')}" \
                       f"<figcaption>{_esc(p.stem)}: flat seafloor</figcaption></figure>"
-    note = ("<p class='note'>|depth - stereo depth| of the depth net (aligned as the table says) and of the flat "
-            "seafloor at the navigation's altitude and attitude, side by side on the same frames; colour map magma "
-            "from 0 to the 95th percentile of the net's error; black: no value.</p>")
-    return table_html(table) + f"<div class='row'>{images}</div>" + note, {"error_maps": len(maps)}
+    return f"<div class='row'>{images}</div>"
 
 
 def render_mesh_view(mosaic_rgb: np.ndarray, world: list[float], vertices: np.ndarray, max_px: int = 110,

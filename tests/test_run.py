@@ -90,7 +90,8 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert "registered 10 of 10" in capsys.readouterr().out
     assert (out / "01_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
     correct_mtime = (out / "06_correct" / "result.json").stat().st_mtime_ns
-    for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1"], ["correct"]):
+    for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1", "--site-depth-steps", "20"],
+                    ["correct"]):
         assert main([*command, "--workspace", str(out), "--no-progress"]) == 0, command  # as run did them: skipped
     assert (out / "06_correct" / "result.json").stat().st_mtime_ns == correct_mtime
     capsys.readouterr()
