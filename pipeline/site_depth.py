@@ -13,6 +13,7 @@ beside the restorer.
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from eval.depth import DepthCompareConfig, compare_depth_folders
 from watergan.data import read_image
 from watergan.errors import UserInputError
 from watergan.formation.inverse import flat_floor_depth
-from watergan.io import frame_file, read_depth
+from watergan.io import atomic_write_bytes, frame_file, read_depth
 from watergan.train_site_depth import SiteDepthConfig, SiteFrame, save_site_depth, train_site_depth
 
 HELD_OUT = "site_depth_heldout"
@@ -63,11 +64,14 @@ def fit_site_depth(ws, config: SiteDepthConfig, model_dir: Path, progress: bool 
     held = Path(model_dir) / HELD_OUT
     for f in frames:
         if f.name in record["held_out"]:
-            path = held / "pred" / f"{Path(f.name).stem}.npy"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            np.save(path, net.depth(f.image, f.floor_z).astype(np.float32))
-    compared = compare_depth_folders(held / "pred", dense_dir, held,
-                                     DepthCompareConfig(pred_dir=str(held / "pred"), metric=True), navigation)
+            buffer = io.BytesIO()
+            np.save(buffer, net.depth(f.image, f.floor_z).astype(np.float32))
+            atomic_write_bytes(held / "pred" / f"{Path(f.name).stem}.npy", buffer.getvalue())
+    try:
+        compared = compare_depth_folders(held / "pred", dense_dir, held,
+                                         DepthCompareConfig(pred_dir=str(held / "pred"), metric=True), navigation)
+    except UserInputError as exc:  # no held-out frame with enough dense depth
+        return {"use": False, "why": f"the held-out frames cannot be compared: {exc}"}
     relief, overall = compared.relief_rmse_ratio, compared.all_rmse_ratio
     use = bool(np.isfinite(relief) and relief < 1.0 and overall < 1.0)
     record.update(use=use, relief_rmse_ratio=relief, all_rmse_ratio=overall, held_out_frames=len(compared.per_image),
