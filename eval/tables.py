@@ -503,6 +503,7 @@ def restorer_table(restorer_dir: Path) -> dict:
     return table
 
 
+RESTORER_NET = "restorer's depth net"
 SITE_NET = "site depth net (held-out)"
 
 
@@ -522,6 +523,7 @@ def depth_table(depth_dir: Path, site_metrics: Path | None = None) -> dict:
     order = (NET, FLOOR, FLOOR_ALIGNED, BEST_PLANE)  # metrics.json sorts its keys
     sources = {name: sources[name] for name in sorted(sources, key=lambda n: order.index(n) if n in order else 9)}
     site = json.loads(site_metrics.read_text()) if site_metrics is not None and site_metrics.is_file() else None
+    sources = {(RESTORER_NET if name == NET else name): value for name, value in sources.items()}
     if site is not None:
         sources = {**sources, SITE_NET: site["sources"][NET]}
     columns = list(sources)
@@ -534,7 +536,7 @@ def depth_table(depth_dir: Path, site_metrics: Path | None = None) -> dict:
             {"label": "median scale", "values": value("all", "scale"), "better": ""}]
     alignments = "; ".join(f"{c}: {sources[c]['alignment']}" for c in columns)
     ratio = data.get("relief_rmse_ratio")
-    verdict = (f" The restorer's net's RMSE on relief pixels is {ratio:.2f}x the {data['ratio_to']}'s"
+    verdict = (f" The restorer's net's RMSE on relief pixels is {ratio:.2f}x that of the {data['ratio_to']}"
                f" ({data['all_rmse_ratio']:.2f}x over all pixels): "
                + ("it beats the plane where the plane is wrong." if ratio < 1 else "a plane does better.")
                if ratio is not None and np.isfinite(ratio) else "")

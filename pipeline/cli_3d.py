@@ -89,7 +89,7 @@ def cmd_depth_compare(args: argparse.Namespace) -> int:
         print(f"  {name} ({m.alignment}): RMSE {m.all.rmse_m:.4f} m{relief}")
     if r.ratio_to:
         print(f"the net's RMSE on relief pixels ({100 * r.relief_fraction:.0f} % of the pixels) is "
-              f"{r.relief_rmse_ratio:.2f}x the {r.ratio_to}'s, {r.all_rmse_ratio:.2f}x over all pixels")
+              f"{r.relief_rmse_ratio:.2f}x that of the {r.ratio_to}, {r.all_rmse_ratio:.2f}x over all pixels")
     print(f"table: {r.table}")
     return 0
 
