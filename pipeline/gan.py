@@ -108,7 +108,7 @@ class RestorerStage:
     """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
     range_input: bool | None = None
     """RGB-D mode (each pixel's range); auto: when the water stage wrote each frame's range maps."""
-    site_depth_steps: int = 3000
+    site_depth_steps: int = 5000
     """Steps of the site depth net (:mod:`pipeline.site_depth`: monocular depth learned from the survey's dense depth,
     taken by monocular correction where it beats the flat seafloor on held-out frames); 0: none."""
 

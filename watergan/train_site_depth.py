@@ -39,7 +39,7 @@ RECORD = "site_depth.json"
 class SiteDepthConfig:
     """Options of the site depth net's training."""
 
-    steps: int = 3000
+    steps: int = 5000
     """Optimiser steps."""
     batch: int = 8
     """Frames per step."""
