@@ -35,9 +35,9 @@ from pathlib import Path
 import torch
 
 from eval.colour import ColourEvalConfig
-from eval.depth import DepthCompareConfig, compare_depth_folders
+from eval.depth import DepthCompareConfig, Navigation, compare_depth_folders
 from pipeline.correct import correct_folder
-from pipeline.evaluate import depth_navigation, run_colour_eval
+from pipeline.evaluate import run_colour_eval
 from pipeline.site_depth import fit_site_depth
 from pipeline.workspace import Workspace
 from watergan.train_site_depth import SiteDepthConfig
@@ -52,7 +52,7 @@ def _summary(result) -> dict:
 def bench_survey(ws: Workspace, out: Path, steps: int) -> dict:
     survey = ws.stage_dir("survey")
     dense = ws.path(ws.require("dense", "the depth benchmark").depth_dir)
-    nav = depth_navigation(survey / "survey.json")
+    nav = Navigation.from_survey(survey / "survey.json")
     if nav is None or not nav.altitude_m:
         raise SystemExit(f"{ws.root}: the survey has no camera.json or no nav_altitude_m")
     record: dict = {"workspace": str(ws.root)}

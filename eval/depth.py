@@ -200,6 +200,25 @@ class Navigation:
         """The camera matrix for maps of h x w pixels."""
         return self.camera.resized(h, w).K
 
+    @classmethod
+    def from_survey(cls, survey_json: Path) -> Navigation | None:
+        """The planes' inputs of a survey: ``camera.json`` beside its survey file (None without one) and, by image
+        stem, the file's ``nav_altitude_m`` and ``nav_down_cam`` where it has them."""
+        from watergan.data import DataError, read_intrinsics, read_nav_altitudes, read_nav_down
+
+        camera = read_intrinsics(survey_json.parent)
+        if camera is None:
+            return None
+        if not survey_json.is_file():
+            return cls(camera)
+        try:
+            altitudes = read_nav_altitudes(survey_json)
+        except DataError:
+            return cls(camera)
+        downs = read_nav_down(survey_json, list(altitudes)) or {}
+        return cls(camera, {Path(name).stem: a for name, a in altitudes.items()},
+                   {Path(name).stem: d for name, d in downs.items()})
+
 
 @dataclass(frozen=True)
 class SourceMetrics:

@@ -131,26 +131,6 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     return _Folders(folders, methods, reference, skipped, per_frame, masks), ranges
 
 
-def depth_navigation(survey_json: Path) -> Navigation | None:
-    """The planes' inputs for a depth comparison: ``camera.json`` beside the survey file (None without one) and,
-    by image stem, the file's ``nav_altitude_m`` and ``nav_down_cam`` where it has them."""
-    from watergan.data import DataError, read_intrinsics, read_nav_altitudes, read_nav_down
-
-    camera = read_intrinsics(survey_json.parent)
-    if camera is None:
-        return None
-    navigation = Navigation(camera)
-    if survey_json.is_file():
-        try:
-            altitudes = read_nav_altitudes(survey_json)
-        except DataError:
-            return navigation
-        downs = read_nav_down(survey_json, list(altitudes)) or {}
-        navigation = Navigation(camera, {Path(name).stem: a for name, a in altitudes.items()},
-                                {Path(name).stem: d for name, d in downs.items()})
-    return navigation
-
-
 def _depth_compare(ws: Workspace, correct_dir: Path | None) -> tuple[str, str]:
     """Run the restorer's depth against the dense stage's (again: the restorer may have changed) when both exist,
     into the stage's ``depth/``: (its workspace-relative folder or "", why it failed or "")."""
@@ -161,7 +141,7 @@ def _depth_compare(ws: Workspace, correct_dir: Path | None) -> tuple[str, str]:
     try:
         compare_depth_folders(correct_dir / "depth", dense, out,
                               DepthCompareConfig(pred_dir=str(correct_dir / "depth")),
-                              depth_navigation(ws.stage_dir("survey") / "survey.json"))
+                              Navigation.from_survey(ws.stage_dir("survey") / "survey.json"))
     except UserInputError as exc:
         return "", f"depth comparison failed: {exc}"
     return ws.relative(out), ""
@@ -325,4 +305,4 @@ def run_depth_compare(ws: Workspace | None, cfg: DepthCompareConfig, out: Path) 
     survey = Path(cfg.navigation) if cfg.navigation else ws.stage_dir("survey") / "survey.json" if ws else None
     if cfg.navigation and not survey.is_file():
         raise UserInputError(f"navigation file {survey} does not exist")
-    return compare_depth_folders(cfg.pred_dir, ref_dir, out, cfg, depth_navigation(survey) if survey else None)
+    return compare_depth_folders(cfg.pred_dir, ref_dir, out, cfg, Navigation.from_survey(survey) if survey else None)

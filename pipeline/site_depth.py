@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.depth import DepthCompareConfig, compare_depth_folders
+from eval.depth import DepthCompareConfig, Navigation, compare_depth_folders
 from watergan.data import read_image
 from watergan.errors import UserInputError
 from watergan.formation.inverse import flat_floor_depth
@@ -48,11 +48,9 @@ def site_frames(survey: Path, dense_dir: Path, navigation) -> list[SiteFrame]:
 def fit_site_depth(ws, config: SiteDepthConfig, model_dir: Path, progress: bool = True) -> dict:
     """Train, compare on the held-out frames and save into ``model_dir`` (see the module docstring); returns the
     record, or {"use": False, "why": ...} without training when the survey lacks what the net needs."""
-    from pipeline.evaluate import depth_navigation
-
     dense = ws.result("dense")
     survey = ws.stage_dir("survey")
-    navigation = depth_navigation(survey / "survey.json")
+    navigation = Navigation.from_survey(survey / "survey.json")
     if dense is None or navigation is None or not navigation.altitude_m:
         return {"use": False, "why": "no dense depth, camera.json or navigation altitude: nothing to learn from"}
     dense_dir = ws.path(dense.depth_dir)
