@@ -336,18 +336,19 @@ def section_depth(ws, out: Path) -> tuple[str, dict]:
     table = depth_table(folder, site)
     if table["status"] != "ok":
         raise NotRun(table["status"])
-    rows, maps = _error_map_row(folder, "restorer's depth net"), sorted((folder / "errors").glob("*.png"))
+    rows, n_maps = _error_map_row(folder, "restorer's depth net")
     if site is not None and site.is_file():
-        rows += _error_map_row(site.parent, "site depth net (held-out)")
+        rows += _error_map_row(site.parent, "site depth net (held-out)")[0]
     note = ("<p class='note'>|depth - stereo depth| of each net (the restorer's aligned as the table says, the site "
             "depth net's metric on frames it never trained on) and of the flat seafloor at the navigation's altitude "
             "and attitude, side by side on the same frames; colour map magma from 0 to the 95th percentile of the "
             "net's error; black: no value.</p>")
-    return table_html(table) + rows + note, {"error_maps": len(maps)}
+    return table_html(table) + rows + note, {"error_maps": n_maps}
 
 
-def _error_map_row(folder: Path, label: str) -> str:
-    """Three frames' error maps of a depth comparison's net (``errors/``) and flat seafloor (``errors_floor/``)."""
+def _error_map_row(folder: Path, label: str) -> tuple[str, int]:
+    """Three frames' error maps of a depth comparison's net (``errors/``) and flat seafloor (``errors_floor/``), as
+    a row of figures, and how many maps of the net the folder holds."""
     maps = sorted((folder / "errors").glob("*.png"))
     picks = [maps[i] for i in sorted({0, len(maps) // 2, len(maps) - 1})] if maps else []
     images = ""
@@ -358,7 +359,7 @@ def _error_map_row(folder: Path, label: str) -> str:
         if floor.is_file():
             images += f"<figure>{_img(data_uri(read_display(floor)), f'flat seafloor error {p.stem}')}" \
                       f"<figcaption>{_esc(p.stem)}: flat seafloor</figcaption></figure>"
-    return f"<div class='row'>{images}</div>"
+    return f"<div class='row'>{images}</div>", len(maps)
 
 
 def render_mesh_view(mosaic_rgb: np.ndarray, world: list[float], vertices: np.ndarray, max_px: int = 110,
