@@ -196,7 +196,7 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None
     its range (float32 metres): its range map, holes filled (:func:`watergan.nets.restorer.fill_range_holes`), or a
     flat seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site``; a DataError names
     what is wrong. Runs in the I/O threads, off the nets' thread."""
-    image = read_image(path, "linear").astype(np.float32)
+    image = read_image(path, "linear", np.float32)
     bits = bit_depth(path)
     range_m = None
     if chunk.flat_floor:
@@ -249,8 +249,8 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
         with torch.no_grad():
             water = fields(range_m, intrinsics) if fields is not None else None
             rgb, depth = restore(model, x, altitude, range_m, intrinsics, water)
-        rgb_np = rgb.cpu().double().numpy().transpose(0, 2, 3, 1)
-        depth_np = depth[:, 0].cpu().double().numpy()
+        rgb_np = rgb.cpu().numpy().transpose(0, 2, 3, 1)
+        depth_np = depth[:, 0].cpu().numpy()
         for k, (name, _, bits, _, _) in enumerate(batch):
             _write(out, name, chunk.image_format, rgb_np[k], depth_np[k], bits)
         return len(batch)
@@ -509,13 +509,19 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
     range maps and, when the stack reads surface normals, :func:`pipeline.water.correction_normals`; writes
     ``out/images/<name>`` (sRGB, the input's bit depth, black without range, in ``image_format``:
     :func:`corrected_name`) and ``out/mask/<stem>.png`` (255: corrected). Returns (share of the pixels without range,
-    seconds)."""
+    seconds).
+
+    The frames stream through :func:`cpu_lanes` threads, each reading, correcting and writing one frame at a time on
+    one torch thread, so memory does not grow with the survey. A stack whose fields depend on the pixel's position
+    and range alone (no surface normals, no value per frame) is inverted with the interpolated fields of
+    :class:`watergan.nets.restorer.WaterFields` in float32 (:func:`invert_with_fields`); otherwise each frame's
+    exact fields (:func:`watergan.formation.inverse.correct_physics`, float64)."""
     from eval.synth.imaging import single_torch_thread
     from eval.tracks import Tracks
     from watergan.formation.inverse import correct_physics
     from watergan.io import write_png, write_srgb_image
 
-    from .water import correction_normals, water_frames
+    from .water import correction_normals, water_frame
 
     began = time.perf_counter()
     water = ws.require("water", "the physics correction")
@@ -524,24 +530,63 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
     K = np.asarray(tracks.K, float)
     stack = Stack.from_config(water.stack)
     with_normals = needs_normals(stack)
+    fields = None if with_normals or varies_by_frame(stack) else WaterFields(water.stack)
     # the dense range only feeds the normals (the correction's range is the water stage's map)
-    frames = water_frames(tracks, images, ws.path(dense.depth_dir) if with_normals else None)
-    unresolved = []
-    with single_torch_thread():
-        for k, f in enumerate(tqdm(frames, desc="physics correction", unit="frame", disable=not progress)):
-            stem = Path(f.name).stem
-            path = ws.path(water.range_dir) / f"{stem}.png"
-            if not path.is_file():
-                raise DataError(f"the water stage wrote no range map for {f.name} ({path}): rerun it "
-                                f"(`watergan water --workspace WS --force`)")
-            r = read_depth(path)
+    depth_dir = ws.path(dense.depth_dir) if with_normals else None
+    range_dir = ws.path(water.range_dir)
+
+    def correct_frame(k: int) -> float:
+        name = str(tracks.image_names[k])
+        path = range_dir / f"{Path(name).stem}.png"
+        if not path.is_file():
+            raise DataError(f"the water stage wrote no range map for {name} ({path}): rerun it "
+                            f"(`watergan water --workspace WS --force`)")
+        r = read_depth(path)
+        if fields is not None:
+            corrected, valid = invert_with_fields(read_image(images / name, dtype=np.float32), r, fields, K)
+        else:
+            f = water_frame(tracks, k, images, depth_dir)
             normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
-            unresolved.append(float(np.mean(~valid)))
-            rgb = np.where(valid[..., None], np.clip(np.nan_to_num(corrected), 0.0, 1.0), 0.0)
-            write_srgb_image(out / "images" / corrected_name(f.name, image_format), rgb, bit_depth(images / f.name))
-            write_png(out / "mask" / f"{stem}.png", np.where(valid, 255, 0).astype(np.uint8))
+        rgb = np.clip(np.nan_to_num(corrected, copy=False), 0.0, 1.0, out=corrected)
+        rgb[~valid] = 0.0
+        write_srgb_image(out / "images" / corrected_name(name, image_format), rgb, bit_depth(images / name))
+        write_png(out / "mask" / f"{Path(name).stem}.png", np.where(valid, 255, 0).astype(np.uint8))
+        return float(np.mean(~valid))
+
+    lanes = cpu_lanes()
+    count = len(tracks.image_names)
+    with single_torch_thread(), ThreadPoolExecutor(lanes) as pool:
+        unresolved = list(tqdm(pool.map(correct_frame, range(count)), total=count, desc="physics correction",
+                               unit="frame", disable=not progress))
     return float(np.mean(unresolved)), time.perf_counter() - began
+
+
+def varies_by_frame(stack: Stack) -> bool:
+    """Whether an effect of the stack holds a value per survey frame (its fields differ from frame to frame)."""
+    return any(type(effect).varies_by_frame() for effect in stack.effects)
+
+
+def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields,
+                       K: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """J = exp(g) I + o, the physics inverse J = (I - C) / A with the log gain g = -ln A and offset o = -C / A of
+    ``fields`` at each pixel's range (holes take the median range, then are marked), as
+    :func:`watergan.formation.inverse.correct_physics` returns it: (J (H,W,3) float32 linear, unclipped, NaN where
+    the map has no range; valid (H,W) bool). ``image``: (H,W,3) raw linear RGB; ``range_m``: (H,W) metres along the
+    ray, NaN or <= 0 = none; ``K``: the frames' intrinsics (3x3, None: depth = range)."""
+    r = np.asarray(range_m, np.float32)
+    valid = np.isfinite(r) & (r > 0)
+    if not valid.any():
+        return np.full(image.shape, np.nan, np.float32), valid
+    filled = np.where(valid, r, 0.0)
+    filled = np.where(valid, filled, filled.max())  # any range the frame holds: the table need not grow for holes
+    intrinsics = None if K is None else (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    with torch.no_grad():
+        g_o = fields(torch.from_numpy(filled)[None, None], intrinsics)[0]
+        rgb = torch.from_numpy(np.ascontiguousarray(image, np.float32)).permute(2, 0, 1)
+        out = (rgb * g_o[:3].exp() + g_o[3:]).permute(1, 2, 0).contiguous().numpy()
+    out[~valid] = np.nan
+    return out, valid
 
 
 def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:

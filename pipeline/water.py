@@ -94,20 +94,23 @@ class WaterResult:
 
 def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
     """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered)."""
+    return [water_frame(tracks, k, images, depth_dir) for k in range(len(tracks.image_names))]
+
+
+def water_frame(tracks: Tracks, k: int, images: Path, depth_dir: Path | None) -> WaterFrame:
+    """The k-th frame of :func:`water_frames`, read alone (for work that streams the frames)."""
     from watergan.data import read_image
 
     K = np.asarray(tracks.K, float)
-    frames = []
-    for k, name in enumerate(str(n) for n in tracks.image_names):
-        image = read_image(images / name).astype(np.float32)
-        path = depth_dir / f"{Path(name).stem}.png" if depth_dir is not None else None
-        if path is not None and path.is_file():
-            range_m = z_to_range(read_depth(path), K).astype(np.float32)
-        else:
-            range_m = np.full(image.shape[:2], np.nan, np.float32)
-        frames.append(WaterFrame(name=name, image=image, range_m=range_m,
-                                 world_from_cam=tracks.world_from_cam[k] if tracks.registered[k] else None))
-    return frames
+    name = str(tracks.image_names[k])
+    image = read_image(images / name).astype(np.float32)
+    path = depth_dir / f"{Path(name).stem}.png" if depth_dir is not None else None
+    if path is not None and path.is_file():
+        range_m = z_to_range(read_depth(path), K).astype(np.float32)
+    else:
+        range_m = np.full(image.shape[:2], np.nan, np.float32)
+    return WaterFrame(name=name, image=image, range_m=range_m,
+                      world_from_cam=tracks.world_from_cam[k] if tracks.registered[k] else None)
 
 
 def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None):

@@ -386,6 +386,32 @@ def test_interpolated_water_fields_match_the_exact_ones(with_intrinsics):
     assert exact[:, :3].std() > 0.05  # the fields vary: the test is not comparing constants
 
 
+def test_a_low_rank_field_table_samples_as_its_trilinear_interpolation():
+    """A water of attenuation, backscatter and (off-centre) falloffs has fields that are sums of range-by-position
+    products: the table is sampled as that sum, within a few 1e-4 of the trilinear interpolation of the same table
+    (the range functions' 1 mm step); a table that is not of low rank is sampled trilinearly."""
+    import dataclasses
+
+    from watergan.formation import Stack
+    from watergan.formation.inverse import FieldTable, factorised
+
+    water = [*WATER[:3], {"name": "vignetting_offcentre", "params": {"centre_uv": [0.6, 0.44]}}, WATER[3]]
+    K = np.array([[140.0, 0.0, 79.5], [0.0, 140.0, 59.5], [0.0, 0.0, 1.0]])
+    table = FieldTable.build(Stack.from_config(water), 160, 120, K, 1.0, 5.0)
+    assert table.curves is not None
+    rng = np.random.default_rng(3)
+    range_m = torch.from_numpy(cv2.GaussianBlur(rng.uniform(1.2, 4.8, (120, 160)), (0, 0), 2)).float()[None, None]
+    fast = table.sample(range_m)
+    trilinear = dataclasses.replace(table, curves=None, maps=None).sample(range_m)
+    error = (fast - trilinear).abs()
+    assert error[:, :3].max() < 3e-4 and error[:, 3:].max() < 1e-4
+    assert fast[:, :3].std() > 0.05
+    r = torch.linspace(1.0, 5.0, 41, dtype=torch.float64)
+    x = torch.linspace(-1.0, 1.0, 9, dtype=torch.float64)
+    tangled = torch.exp(3.0 * r[:, None, None] * x[None, :, None] * x[None, None, :])  # no few-term product
+    assert factorised(tangled[None].expand(6, -1, -1, -1), r) == (None, None)
+
+
 def test_the_inference_copy_gives_the_same_colours_and_depth():
     """for_inference folds each batch norm into its convolution (with trained, not default, statistics) and lays out
     the output convolution channels-last; the outputs are those of the model itself."""
@@ -430,6 +456,7 @@ def test_water_fields_keep_their_grid_while_it_covers_the_frames():
         assert (got - exact)[:, :3].abs().max() < 1e-3 and (got - exact)[:, 3:].abs().max() < 1e-4
         tables.append(fields._table)
     assert tables[0] is tables[1]  # covered: kept
-    assert tables[2] is not tables[1] and (tables[2].r_lo_m, tables[2].r_hi_m) == (2.0, 4.5)  # farther: both spans
+    # the first span, 2.1-2.9 m widened by 1 m and rounded, is 1.0-4.0 m; farther: both spans
+    assert tables[2] is not tables[1] and (tables[2].r_lo_m, tables[2].r_hi_m) == (1.0, 5.5)
     assert tables[3] is tables[2]
     assert tables[4] is not tables[3] and tables[4].K is None  # another camera

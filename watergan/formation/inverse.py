@@ -156,8 +156,10 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
 LUT_POSITIONS = (49, 65)
 #: The grid's step in range, metres.
 LUT_RANGE_STEP_M = 0.05
-#: A table's range span is rounded outwards to multiples of this (metres), so that the next frames' ranges, a
-#: little nearer or farther, are still covered.
+#: A table's range span is widened by this on each side (metres) and rounded outwards to multiples of
+#: ``LUT_RANGE_ROUND_M``, so that the next frames' ranges, nearer or farther, are still covered: a survey's frames
+#: then share one table instead of rebuilding it as each new extreme comes.
+LUT_RANGE_MARGIN_M = 1.0
 LUT_RANGE_ROUND_M = 0.5
 
 
@@ -175,7 +177,14 @@ class FieldTable:
     :func:`needs_normals`). With K the grid's points and depths come from the pixels' rays, as in
     :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs), so a coarse grid
     interpolates them closely (its accuracy on the demo: benchmarks/RESULTS.md). A table is built once and sampled
-    for every frame it covers: building one evaluates the stack at 100k-300k grid points."""
+    for every frame it covers: building one evaluates the stack at 100k-300k grid points.
+
+    Most stacks' fields are sums of a few products of a function of range and a function of position (attenuation
+    and backscatter in range times falloffs and gains over the image): per channel, the table's (range x position)
+    matrix is then of low rank, T = sum_k U_k(r) V_k(x, y). Where ``LOW_RANK_MAX`` terms reproduce the table within
+    ``LOW_RANK_TOL``, :meth:`sample` evaluates that sum instead of trilinear interpolation: the V_k bilinear at each
+    pixel (once per image size), the U_k looked up every ``CURVE_STEP_M`` of range; about twice as fast, the same
+    values to the tolerance and the curves' step."""
 
     table: torch.Tensor
     """(1,6,R,rows,cols) float32: g then o per channel."""
@@ -185,7 +194,13 @@ class FieldTable:
     r_hi_m: float
     K: tuple[float, float, float, float] | None
     """The intrinsics (fx, fy, cx, cy) the table was built with (None: depth = range)."""
+    curves: torch.Tensor | None = None
+    """(6k, n) float32: the range functions U_k of each channel (:meth:`factorised`) every ``CURVE_STEP_M`` from
+    ``r_lo_m``; None: the table is not of low rank."""
+    maps: torch.Tensor | None = None
+    """(1, 6k, rows, cols) float32: the position functions V_k on the grid, beside ``curves``."""
     _grid_xy: torch.Tensor | None = field(default=None, repr=False)
+    _maps_hw: torch.Tensor | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, stack: Stack, width: int, height: int, K: np.ndarray | None, r_lo_m: float, r_hi_m: float,
@@ -214,8 +229,8 @@ class FieldTable:
         with torch.no_grad():
             a, c = affine_images(stack.to(torch.float64), state)
         a = a.clamp_min(1e-12)
-        table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, len(rs), rows, cols).float()
-        return cls(table, w, h, float(rs[0]), float(rs[-1]), _intrinsics(K))
+        table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, len(rs), rows, cols)
+        return cls(table.float(), w, h, float(rs[0]), float(rs[-1]), _intrinsics(K), *factorised(table[0], rs))
 
     def serves(self, height: int, width: int, K: np.ndarray | None) -> bool:
         """Whether the table is for images of this size and these intrinsics (3x3, or None)."""
@@ -230,6 +245,8 @@ class FieldTable:
         """(B,6,H,W) the fields at every pixel of range maps (B,1,H,W) (metres, holes filled), in their dtype and
         on their device; ranges outside the table take its nearest range."""
         b, _, h, w = range_m.shape
+        if self.curves is not None:
+            return self._sample_factorised(range_m)
         if self._grid_xy is None:  # the pixels' places in the table, the same for every frame
             py, px = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
                                     indexing="ij")
@@ -241,10 +258,58 @@ class FieldTable:
         return torch.nn.functional.grid_sample(table.expand(b, -1, -1, -1, -1), grid[:, None], mode="bilinear",
                                                padding_mode="border", align_corners=True)[:, :, 0]
 
+    def _sample_factorised(self, range_m: torch.Tensor) -> torch.Tensor:
+        """:meth:`sample` as sum_k U_k(r) V_k(x, y) per channel (the class docstring)."""
+        b, _, h, w = range_m.shape
+        device, dtype = range_m.device, range_m.dtype
+        if self._maps_hw is None or self._maps_hw.shape[-1] != h * w:  # V_k at every pixel, as trilinear takes them
+            self._maps_hw = torch.nn.functional.interpolate(self.maps, size=(h, w), mode="bilinear",
+                                                            align_corners=True)[0].reshape(len(self.maps[0]), h * w)
+        maps, curves = self._maps_hw.to(device, dtype), self.curves.to(device, dtype)
+        terms = len(curves) // 6
+        index = ((range_m.reshape(b, h * w) - self.r_lo_m) / CURVE_STEP_M).round_().clamp_(0, curves.shape[1] - 1)
+        index = index.long()
+        out = torch.zeros(b, 6, h * w, device=device, dtype=dtype)
+        for j in range(len(curves)):
+            out[:, j // terms].addcmul_(curves[j][index], maps[j])
+        return out.reshape(b, 6, h, w)
 
-def range_span(range_m: torch.Tensor, round_m: float = LUT_RANGE_ROUND_M) -> tuple[float, float]:
-    """(least, largest) range of maps (metres), rounded outwards to multiples of ``round_m`` (least >= 0)."""
-    lo, hi = float(range_m.min()), float(range_m.max())
+
+#: Largest number of range-by-position products :func:`factorised` takes per channel.
+LOW_RANK_MAX = 3
+#: Largest difference from the table (log gain, linear offset) that the products may leave.
+LOW_RANK_TOL = 1e-5
+#: The range functions' step in :meth:`FieldTable.sample`, metres: within half of it a field moves by eta * 0.5 mm
+#: (a few 1e-4 of the gain at eta = 0.5 /m).
+CURVE_STEP_M = 1e-3
+
+
+def factorised(table: torch.Tensor, ranges_m: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """(curves (6k, n), maps (1, 6k, rows, cols)), both float32, of a field table (6, R, rows, cols) at ``ranges_m``
+    (R,): per channel the fewest terms k <= ``LOW_RANK_MAX`` (the same for every channel) whose truncated singular
+    value decomposition T_c = sum_k U_ck(r) V_ck(x, y) is within ``LOW_RANK_TOL`` of the table everywhere, U
+    resampled every ``CURVE_STEP_M`` by linear interpolation; (None, None) when no such k exists."""
+    channels, count, rows, cols = table.shape
+    svds = [torch.linalg.svd(table[c].reshape(count, rows * cols), full_matrices=False) for c in range(channels)]
+    for k in range(1, LOW_RANK_MAX + 1):
+        error = max(float(((u[:, :k] * s[:k]) @ vh[:k] - table[c].reshape(count, -1)).abs().max())
+                    for c, (u, s, vh) in enumerate(svds))
+        if error <= LOW_RANK_TOL:
+            break
+    else:
+        return None, None
+    fine = np.arange(float(ranges_m[0]), float(ranges_m[-1]) + CURVE_STEP_M, CURVE_STEP_M)
+    r = ranges_m.numpy()
+    curves = [np.interp(fine, r, (u[:, j] * s[j]).numpy()) for u, s, _ in svds for j in range(k)]
+    maps = torch.cat([vh[:k] for _, _, vh in svds]).reshape(1, channels * k, rows, cols)
+    return torch.from_numpy(np.stack(curves)).float(), maps.float()
+
+
+def range_span(range_m: torch.Tensor, margin_m: float = LUT_RANGE_MARGIN_M,
+               round_m: float = LUT_RANGE_ROUND_M) -> tuple[float, float]:
+    """(least, largest) range of maps (metres), widened by ``margin_m`` and rounded outwards to multiples of
+    ``round_m`` (least >= 0)."""
+    lo, hi = float(range_m.min()) - margin_m, float(range_m.max()) + margin_m
     return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
 
 
