@@ -70,7 +70,8 @@ from watergan.data import (
 )
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
-from watergan.formation.inverse import flat_floor_depth, flat_floor_range, needs_normals
+from watergan.formation import get as get_effect
+from watergan.formation.inverse import flat_floor_depth, flat_floor_range, frame_affine, needs_normals
 from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, is_jpeg, output_bits, read_depth
 from watergan.nets.restorer import WaterFields, fill_range_holes, restore
 from watergan.nets.site_depth import SiteDepthNet
@@ -190,6 +191,20 @@ nets, bounds a GPU's frames per second). On an H100 with 16 cores, the demo's 44
 2 lanes 41-47, 3 53-55, 4 55-56, 6 56."""
 
 
+def monocular_range(image: np.ndarray, altitude_m: float, K: np.ndarray, down_cam: np.ndarray | None = None,
+                    site: SiteDepthNet | None = None) -> np.ndarray:
+    """(H,W) float32 range (metres) of a frame without a range map: a flat seafloor's at the navigation's
+    ``altitude_m`` below the camera (:func:`watergan.formation.inverse.flat_floor_range`; ``down_cam``: "down" in the
+    camera frame, None: a nadir camera), times the site depth net's factor exp(D) with ``site``
+    (:meth:`watergan.nets.site_depth.SiteDepthNet.factor`, which reads ``image``: (H,W,3), the stored values 0..1).
+    ``K``: the frame's intrinsics at its size."""
+    h, w = image.shape[:2]
+    range_m = flat_floor_range(altitude_m, K, h, w, down_cam)
+    if site is not None:
+        range_m = range_m * site.factor(image, flat_floor_depth(altitude_m, K, h, w, down_cam))
+    return range_m.astype(np.float32)
+
+
 def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None
               ) -> tuple[np.ndarray, int, np.ndarray | None]:
     """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer,
@@ -200,13 +215,8 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None
     bits = bit_depth(path)
     range_m = None
     if chunk.flat_floor:
-        h, w = image.shape[:2]
-        K = chunk.camera.resized(h, w).K
-        down = chunk.down_cam[k] if chunk.down_cam is not None else None
-        range_m = flat_floor_range(chunk.altitude_m[k], K, h, w, down)
-        if site is not None:
-            range_m = range_m * site.factor(image, flat_floor_depth(chunk.altitude_m[k], K, h, w, down))
-        range_m = range_m.astype(np.float32)
+        range_m = monocular_range(image, chunk.altitude_m[k], chunk.camera.resized(*image.shape[:2]).K,
+                                  chunk.down_cam[k] if chunk.down_cam is not None else None, site)
     elif chunk.range_dir is not None:
         range_path = chunk.range_dir / f"{path.stem}.png"
         range_m = depth_or_zero(read_depth(range_path))
@@ -453,8 +463,9 @@ class CorrectStage:
     batch_size: int = 4
     """Images per batch of the restorer."""
     mode: CorrectMode = CorrectMode.auto
-    """How an RGB-D restorer gets each pixel's range: auto (the water stage's range maps when it wrote them, else
-    monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, as for frames without range)."""
+    """How the physics correction and an RGB-D restorer get each pixel's range: auto (the water stage's range maps
+    when it wrote them, else monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, times the site
+    depth net's factor where it beat the flat seafloor, as for frames without range)."""
     image_format: ImageFormat = ImageFormat.input
     """The corrected frames' format: input (the survey's own, its bit depth kept; a JPEG survey's as PNG), png,
     tiff, or jpeg (8 bits, quality 95)."""
@@ -501,20 +512,39 @@ class CorrectStageResult:
     """The restorer's range: "range maps", "flat seafloor" or "site depth net" (:class:`CorrectResult`)."""
     range_why: str = ""
     """Why monocular mode took the site depth net or kept the flat seafloor."""
+    physics_range_source: str = ""
+    """The physics correction's range: "range maps", "flat seafloor" or "site depth net" (:class:`PhysicsResult`)."""
 
 
-def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
-                           image_format: str = "input") -> tuple[float, float]:
-    """Every frame the sfm stage lists through the inverse of the water stage's estimate with the water stage's
-    range maps and, when the stack reads surface normals, :func:`pipeline.water.correction_normals`; writes
+@dataclass
+class PhysicsResult:
+    """What :func:`correct_physics_folder` did."""
+
+    unresolved_fraction: float
+    """Share of the pixels left black (no range)."""
+    seconds: float
+    """Wall time, files included."""
+    range_source: str
+    """"range maps" (the water stage's), "flat seafloor" or "site depth net" (monocular: :func:`monocular_range`)."""
+
+
+def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, image_format: str = "input",
+                           mode: str = CorrectMode.rgbd) -> PhysicsResult:
+    """Every frame the sfm stage lists through the inverse of the water stage's estimate; writes
     ``out/images/<name>`` (sRGB, the input's bit depth, black without range, in ``image_format``:
-    :func:`corrected_name`) and ``out/mask/<stem>.png`` (255: corrected). Returns (share of the pixels without range,
-    seconds).
+    :func:`corrected_name`) and ``out/mask/<stem>.png`` (255: corrected).
+
+    Each pixel's range: ``mode`` rgb-d (and auto), the water stage's range maps; monocular, for frames without range,
+    a flat seafloor's at the frame's navigation altitude and attitude (the survey's ``survey.json`` beside
+    ``images``), times the site depth net's factor where the restorer stage trained one that beat the flat seafloor
+    (:func:`monocular_range`). A stack that reads surface normals takes :func:`pipeline.water.correction_normals`
+    (in monocular mode those of the range used).
 
     The frames stream through :func:`cpu_lanes` threads, each reading, correcting and writing one frame at a time on
-    one torch thread, so memory does not grow with the survey. A stack whose fields depend on the pixel's position
-    and range alone (no surface normals, no value per frame) is inverted with the interpolated fields of
-    :class:`watergan.nets.restorer.WaterFields` in float32 (:func:`invert_with_fields`); otherwise each frame's
+    one torch thread, so memory does not grow with the survey. A stack that does not read surface normals is inverted
+    with the interpolated fields of :class:`watergan.nets.restorer.WaterFields` in float32 (:func:`invert_with_fields`)
+    of its effects without a value per frame, each frame's image first freed of the others by the affine map they
+    apply to it (:func:`watergan.formation.inverse.frame_affine`: a gain or exposure per frame); otherwise each frame's
     exact fields (:func:`watergan.formation.inverse.correct_physics`, float64)."""
     from eval.synth.imaging import single_torch_thread
     from eval.tracks import Tracks
@@ -530,22 +560,54 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
     K = np.asarray(tracks.K, float)
     stack = Stack.from_config(water.stack)
     with_normals = needs_normals(stack)
-    fields = None if with_normals or varies_by_frame(stack) else WaterFields(water.stack)
+    # effects with a value per frame (a gain, an exposure) are taken as an affine map of each frame's image, measured
+    # on a probe (frame_affine), and the rest of the stack from one table of fields for every frame
+    base = [e for e in water.stack if not get_effect(e["name"]).varies_by_frame()]
+    per_frame = Stack.from_config(base) if len(base) < len(water.stack) else None
+    fields = None if with_normals else WaterFields(base)
+    names = [str(n) for n in tracks.image_names]
+    monocular = mode == CorrectMode.monocular
     # the dense range only feeds the normals (the correction's range is the water stage's map)
-    depth_dir = ws.path(dense.depth_dir) if with_normals else None
+    depth_dir = ws.path(dense.depth_dir) if with_normals and not monocular else None
     range_dir = ws.path(water.range_dir)
+    site, source = None, "range maps"
+    if monocular:
+        nav = images.parent / "survey.json"
+        if not nav.is_file():
+            raise DataError(f"the physics correction in monocular mode takes each frame's range from a flat seafloor "
+                            f"at its altitude, and there is no navigation file {nav} with nav_altitude_m per frame: "
+                            f"add one, or correct with the water stage's range maps (--mode rgb-d)")
+        altitudes, downs = read_nav_altitudes(nav, names), read_nav_down(nav, names)
+        lacking = [n for n in names if n not in altitudes]
+        if lacking:
+            raise DataError(f"the navigation {nav} has no altitude for {len(lacking)} of the {len(names)} frames "
+                            f"(e.g. {lacking[0]}): the monocular physics correction needs one per frame")
+        site = load_site_depth(ws.folder("restorer"))[0] if ws.result("restorer") is not None else None
+        source = "site depth net" if site is not None else "flat seafloor"
 
-    def correct_frame(k: int) -> float:
-        name = str(tracks.image_names[k])
+    def frame_range(name: str, size_hw: tuple[int, int]) -> np.ndarray:
+        if monocular:  # the site depth net reads the stored values; the flat seafloor only the frame's size
+            stored = read_image(images / name, "linear", np.float32) if site is not None else \
+                np.empty((*size_hw, 3), np.float32)
+            return monocular_range(stored, altitudes[name], K, downs[name] if downs else None, site)
         path = range_dir / f"{Path(name).stem}.png"
         if not path.is_file():
             raise DataError(f"the water stage wrote no range map for {name} ({path}): rerun it "
                             f"(`watergan water --workspace WS --force`)")
-        r = read_depth(path)
-        if fields is not None:
-            corrected, valid = invert_with_fields(read_image(images / name, dtype=np.float32), r, fields, K)
+        return read_depth(path)
+
+    def correct_frame(k: int) -> float:
+        name = names[k]
+        image = read_image(images / name, dtype=np.float32) if fields is not None else None
+        affine = (np.ones(3), np.zeros(3)) if per_frame is None or image is None else \
+            frame_affine(stack, per_frame, k, K, *image.shape[:2])
+        if affine is not None:
+            s, t = affine
+            corrected, valid = invert_with_fields((image - t.astype(np.float32)) / s.astype(np.float32),
+                                                  frame_range(name, image.shape[:2]), fields, K)
         else:
             f = water_frame(tracks, k, images, depth_dir)
+            r = frame_range(name, f.image.shape[:2])
             normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
         rgb = np.clip(np.nan_to_num(corrected, copy=False), 0.0, 1.0, out=corrected)
@@ -555,16 +617,10 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True,
         return float(np.mean(~valid))
 
     lanes = cpu_lanes()
-    count = len(tracks.image_names)
     with single_torch_thread(), ThreadPoolExecutor(lanes) as pool:
-        unresolved = list(tqdm(pool.map(correct_frame, range(count)), total=count, desc="physics correction",
-                               unit="frame", disable=not progress))
-    return float(np.mean(unresolved)), time.perf_counter() - began
-
-
-def varies_by_frame(stack: Stack) -> bool:
-    """Whether an effect of the stack holds a value per survey frame (its fields differ from frame to frame)."""
-    return any(type(effect).varies_by_frame() for effect in stack.effects)
+        unresolved = list(tqdm(pool.map(correct_frame, range(len(names))), total=len(names),
+                               desc="physics correction", unit="frame", disable=not progress))
+    return PhysicsResult(float(np.mean(unresolved)), time.perf_counter() - began, source)
 
 
 def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields,
@@ -600,11 +656,12 @@ def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
                         f"{ws.stage('water').how_to_run()} or {ws.stage('restorer').how_to_run()} first")
     images = Path(cfg.images_dir) if cfg.images_dir else ws.folder("survey") / "images"
     folder = ws.stage_dir("correct")
-    physics = restored = ""
+    physics = restored = physics_source = ""
     unresolved, physics_s = 1.0, 0.0
     if water is not None:
-        unresolved, physics_s = correct_physics_folder(ws, images, folder / "physics", cfg.progress,
-                                                       str(cfg.image_format))
+        done = correct_physics_folder(ws, images, folder / "physics", cfg.progress, str(cfg.image_format),
+                                      CorrectMode.monocular if cfg.mode == CorrectMode.monocular else CorrectMode.rgbd)
+        unresolved, physics_s, physics_source = done.unresolved_fraction, done.seconds, done.range_source
         physics = ws.relative(folder / "physics")
     result = CorrectResult(folder / "restorer", 0, 0, mode="")
     if restorer is not None:
@@ -620,7 +677,8 @@ def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
         physics_seconds=physics_s, restorer=restored, images=f"{restored}/images" if restored else "",
         depth=f"{restored}/depth" if restored else "", corrected=result.corrected, failed=result.failed,
         seconds=result.seconds, fps=result.corrected / max(result.seconds, 1e-9), mode=result.mode,
-        mesh_images=mesh, range_source=result.range_source, range_why=result.range_why)
+        mesh_images=mesh, range_source=result.range_source, range_why=result.range_why,
+        physics_range_source=physics_source)
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from eval.tables import (
 from pipeline.evaluate import run_evaluate
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
+from watergan.io import DataError
 
 CHROMIUM = Path("/usr/bin/chromium")
 VALIDATION = {"val_count": 2, "units": "stored sRGB 0..1; relative depth 0..1",
@@ -80,7 +81,8 @@ def evaluated():
                                                 mean_coverage=1.0))
     ws.run("water", water_config(bootstrap=4, progress=False))
     # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
-    unresolved, physics_s = correct_physics_folder(ws, survey / "images", ws.root / "06_correct" / "physics", False)
+    physics = correct_physics_folder(ws, survey / "images", ws.root / "06_correct" / "physics", False)
+    unresolved, physics_s = physics.unresolved_fraction, physics.seconds
     ws.save("correct", CorrectStage(), CorrectStageResult(
         physics="06_correct/physics", physics_images="06_correct/physics/images",
         physics_mask="06_correct/physics/mask", unresolved_fraction=unresolved, physics_seconds=physics_s,
@@ -178,6 +180,31 @@ def test_dense_depth_becomes_the_true_range(evaluated):
 
 
 @pytest.mark.slow
+def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_navigation_s_altitude(
+        evaluated, tmp_path):
+    """Without range maps the physics correction ranges each pixel on a flat seafloor at the frame's altitude: every
+    pixel corrected, nearer the in-air truth than the raw frames are (a range off by the wrong unit or camera would
+    over- or under-correct them); without a navigation file it says what it needs."""
+    from pipeline.correct import correct_physics_folder
+    from watergan.io import read_image
+
+    survey, ws, _, _ = evaluated
+    result = correct_physics_folder(ws, survey / "images", tmp_path / "mono", False, mode="monocular")
+    assert result.range_source == "flat seafloor" and result.unresolved_fraction == 0.0
+
+    def error(folder: Path) -> float:
+        return float(np.mean([np.abs(read_image(folder / p.name) - read_image(p)).mean()
+                              for p in sorted((survey / "truth" / "inair").glob("*.png"))]))
+
+    raw, mono, rgbd = error(survey / "images"), error(tmp_path / "mono" / "images"), \
+        error(ws.root / "06_correct" / "physics" / "images")
+    assert mono < 0.25 * raw and rgbd < 0.25 * raw, (raw, mono, rgbd)
+    images = tmp_path / "frames" / "images"
+    shutil.copytree(survey / "images", images)
+    with pytest.raises(DataError, match="no navigation file"):
+        correct_physics_folder(ws, images, tmp_path / "none", False, mode="monocular")
+
+
 def test_missing_inputs_are_skipped_with_reasons(tmp_path):
     survey, ws = _copy_workspace("watergan-eval-plain-")
     plain = tmp_path / "survey"  # what a user has: images and camera.json, no truth

@@ -68,9 +68,10 @@ def pose(cx: float, cy: float, altitude: float) -> np.ndarray:
     return m
 
 
-def render(world_from_cam: np.ndarray, stack: Stack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render(world_from_cam: np.ndarray, stack: Stack,
+           frame_index: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(raw linear image, range, in-air J) of the flat seafloor z = 0 (its normal faces straight up: in the frame
-    of a camera looking straight down, (0, 0, -1))."""
+    of a camera looking straight down, (0, 0, -1)), as survey frame ``frame_index``."""
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
     rays = np.stack([(xs - K[0, 2]) / F, (ys - K[1, 2]) / F, np.ones_like(xs)], -1) @ world_from_cam[:3, :3].T
     t = -world_from_cam[2, 3] / rays[..., 2]
@@ -84,7 +85,8 @@ def render(world_from_cam: np.ndarray, stack: Stack) -> tuple[np.ndarray, np.nda
                            pixel_uv=pixel_grid(H, W, 1, torch.float64), image_wh=(W, H),
                            depth_m=torch.from_numpy(pc[..., 2][None, None].copy()),
                            points_cam=torch.from_numpy(pc.transpose(2, 0, 1)[None].copy()),
-                           normals_cam=torch.from_numpy(normals.transpose(2, 0, 1)[None].copy()))
+                           normals_cam=torch.from_numpy(normals.transpose(2, 0, 1)[None].copy()),
+                           frame_index=torch.tensor([frame_index]))
     with torch.no_grad():
         image = stack.to(torch.float64).render(state)[0].permute(1, 2, 0).numpy()
     return image, rng, j
@@ -198,6 +200,31 @@ def test_correct_physics_inverts_the_stack_exactly(survey):
     # the configuration form gives the same
     again, _ = correct_physics(image, r, TRUE)
     np.testing.assert_allclose(again[valid], corrected[valid], atol=1e-6)
+
+
+def test_the_fields_inverse_with_a_gain_per_frame_matches_the_exact_one(survey):
+    """The correct stage's inverse (one table of fields for the effects without a value per frame; each frame's image
+    first freed of its gain by the affine map measured on a probe) is the exact inverse of a stack with
+    ``frame_gain`` within 5e-4 of the in-air colour (an eighth of an 8-bit level: the table's interpolation; a gain
+    left in place would be off by up to 20 %); the probe refuses a difference that varies over the image."""
+    from pipeline.correct import invert_with_fields
+    from watergan.formation.inverse import frame_affine
+    from watergan.nets.restorer import WaterFields
+
+    gains = [[0.1, -0.05, 0.02], [-0.2, 0.15, 0.0], [0.0, 0.0, 0.0]]
+    full = Stack.from_config([*TRUE, {"name": "frame_gain", "params": {"log_gain": gains,
+                                                                        "orthogonal_to": [[0.0, 0.0]] * 3}}])
+    base = Stack.from_config(TRUE)
+    fields = WaterFields(TRUE)
+    for k in range(3):
+        image, r, j = render(pose(0.1 * k, -0.2, 2.2 + 0.4 * k), full, frame_index=k)
+        s, t = frame_affine(full, base, k, K, H, W)
+        np.testing.assert_allclose(s, np.exp(gains[k]), rtol=1e-9)
+        np.testing.assert_allclose(t, 0.0, atol=1e-12)
+        corrected, valid = invert_with_fields((image - t) / s, r, fields, K)
+        assert valid.all() and np.abs(corrected - j).max() < 5e-4
+    no_falloff = Stack.from_config([e for e in TRUE if e["name"] != "vignetting"])
+    assert frame_affine(base, no_falloff, 0, K, H, W) is None  # a falloff is no gain of the whole frame
 
 
 def test_too_little_input_is_refused_with_what_to_give(survey):

@@ -199,12 +199,12 @@ def read_image(path: Path, encoding: str = "srgb", dtype: type = np.float64) -> 
     else:
         raise DataError(f"image {path} has sample type {image.dtype}; expected 8- or 16-bit integers")
     if encoding == "srgb":  # BGR(A) -> RGB, each stored level through its decoded value
-        return np.take(srgb_decode_table(int(scale) + 1, np.dtype(dtype)), image[..., 2::-1])
+        return np.take(srgb_decode_table(int(scale) + 1, np.dtype(dtype).name), image[..., 2::-1])
     return image[..., 2::-1].astype(dtype) / np.array(scale, dtype)
 
 
 @functools.cache
-def srgb_decode_table(levels: int, dtype: np.dtype = np.dtype(np.float64)) -> np.ndarray:
+def srgb_decode_table(levels: int, dtype: str = "float64") -> np.ndarray:
     """(levels,) of ``dtype``: :func:`srgb_to_linear` of each stored level v / (levels - 1) of an 8-bit (256) or
     16-bit (65536) image, the values decoding computes level by level; looking them up is several times faster."""
     table = srgb_to_linear(np.arange(levels) / (levels - 1.0)).astype(dtype)

@@ -10,6 +10,7 @@ applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`)
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,11 +31,21 @@ def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int,
     """(H,W) the range (metres) of a flat, level seafloor ``altitude_m`` below the camera, along each pixel's ray
     d = K^-1 (x, y, 1): r = a |d| / (d . g), g the unit "down" in the camera frame (``down_cam``; None: a nadir
     camera, g = (0, 0, 1), r = a |d|). Rays at or above the horizon (d . g <= 1 % of |d|) take 100 a."""
-    rays = rays_cam(np.asarray(K, np.float64), h, w)
+    K = np.asarray(K, np.float64)
+    unit = unit_rays((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), h, w)
     g = np.array([0.0, 0.0, 1.0]) if down_cam is None else np.asarray(down_cam, np.float64)
-    length = np.linalg.norm(rays, axis=-1)
-    along = rays @ (g / np.linalg.norm(g))
-    return altitude_m * length / np.maximum(along, 0.01 * length)
+    return altitude_m / np.maximum(unit @ (g / np.linalg.norm(g)), 0.01)
+
+
+@functools.lru_cache(maxsize=8)
+def unit_rays(intrinsics: tuple[float, float, float, float], h: int, w: int) -> np.ndarray:
+    """(H,W,3) read-only unit vectors along each pixel's ray of a camera (fx, fy, cx, cy): :func:`rays_cam` over its
+    length, kept for the last few cameras and sizes (a survey's frames share one)."""
+    fx, fy, cx, cy = intrinsics
+    rays = rays_cam(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), h, w)
+    unit = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    unit.flags.writeable = False
+    return unit
 
 
 def flat_floor_depth(altitude_m: float, K: np.ndarray, h: int, w: int,
@@ -150,6 +161,36 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
     with torch.no_grad():
         a, c = affine_images(stack, state)
     return a, c, valid
+
+
+#: The probe :func:`frame_affine` evaluates both stacks on: (rows, columns) of pixels, ranges spread over 0.5-6 m.
+PROBE_HW = (6, 8)
+
+
+def frame_affine(stack: Stack, base: Stack, frame_index: int, K: np.ndarray | None, height: int, width: int,
+                 tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray] | None:
+    """(s, t), each (3,): a stack's fields at one survey frame as those of ``base`` (the same stack without its
+    effects that hold a value per frame) mapped by y -> s y + t per channel, A_f = s A and C_f = s C + t, as a gain or
+    exposure per frame acts (``frame_gain``: s = exp(g'_f), t = 0). The inverse is then the base's applied to
+    (I - t) / s. Measured on a probe of ``PROBE_HW`` pixels of an image of ``height`` x ``width`` with intrinsics K at
+    ranges 0.5-6 m, both stacks rendered there; None when the frame's effects do not act so within ``tol`` (relative)
+    anywhere on the probe (they vary over the image or with range: then the exact fields)."""
+    rows, cols = PROBE_HW
+    probe_K = None
+    if K is not None:
+        sx, sy = cols / width, rows / height
+        probe_K = np.array([[K[0, 0] * sx, 0.0, (K[0, 2] + 0.5) * sx - 0.5],
+                            [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+    r = np.linspace(0.5, 6.0, rows * cols).reshape(cols, rows).T.copy()  # ranges across rows and columns
+    a_f, c_f, _ = inverse_fields(r, stack, probe_K, frame_index)
+    a_b, c_b, _ = inverse_fields(r, base, probe_K, 0)
+    s = (a_f / a_b).flatten(2)[0]
+    t = (c_f - s.view(1, 3, rows, cols) * c_b).flatten(2)[0]
+    scale = float(c_f.abs().max()) + 1e-12
+    if float((s - s.mean(1, keepdim=True)).abs().max()) > tol * float(s.abs().max()) or \
+            float((t - t.mean(1, keepdim=True)).abs().max()) > tol * scale:
+        return None
+    return s.mean(1).numpy(), t.mean(1).numpy()
 
 
 #: The grid of :class:`FieldTable`: (rows, columns) of pixel positions, corner to corner.
