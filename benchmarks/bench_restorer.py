@@ -1,18 +1,27 @@
-"""Restorer speed: frames per second correcting 640x480 images (depth + colour nets, pad/un-pad included),
-on the CPU with 2 threads and on CUDA when present, with peak memory.
+"""Correction speed: frames per second correcting 640x480 images, on the CPU with 2 threads and on CUDA when present,
+with peak memory.
 
     .venv/bin/python benchmarks/bench_restorer.py [--widths cpu|paper] [--batch 4] [--repeats 5] [--workspace WS]
 
-With ``--workspace`` (a ``watergan run`` workspace) it also times ``watergan correct`` as the correct stage runs it
-(:func:`pipeline.correct.correct_folder` on the survey's frames with the workspace's restorer and, in RGB-D mode,
-the water stage's range maps: model load, file reading and writing included; best of ``--repeats`` passes, at
-most 3), and the parts of one batch of 4 as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
+Without ``--workspace``: the restorer's nets alone (depth + colour, pad/un-pad included, untrained weights: the speed
+does not depend on them) on random 640x480 batches.
+
+With ``--workspace`` (a ``watergan run`` workspace) it times both corrections as the correct stage runs them, on the
+survey's frames, model load and file reading and writing included (best of ``--repeats`` passes, at most 3; every
+pass's figure is kept under ``runs``), in both modes (``frames_per_s``, keyed by correction and mode):
+
+- ``physics``: :func:`pipeline.correct.correct_physics_folder`, the water stage's estimate inverted with its range maps
+  (``rgb-d``) or with a flat seafloor at the navigation's altitude (``monocular``; times the site depth net's factor
+  where the restorer stage trained one that won);
+- ``restorer``: :func:`pipeline.correct.correct_folder` with the workspace's restorer, the same two ranges.
+
+It also times the parts of one batch of 4 as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
 thread): the water's inverse fields (:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the
-lookup per frame) and the nets given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference` copy).
-Writes ``benchmarks/results/restorer.json``.
+lookup per frame) and the restorer's nets given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference`
+copy). Writes ``benchmarks/results/restorer.json``.
 
 Peak memory: the process's maximum resident set (``resource.getrusage``, CPU) and
-``torch.cuda.max_memory_allocated`` (CUDA). Untrained weights: the speed does not depend on them.
+``torch.cuda.max_memory_allocated`` (CUDA).
 """
 
 from __future__ import annotations
@@ -47,23 +56,47 @@ def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int
 
 
 def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
-    """``correct_folder`` on the workspace's frames (best of the passes), and one batch of 4 split into its parts."""
-    from pipeline.correct import correct_folder, cpu_lanes
+    """Both corrections in both modes on the workspace's frames (best of the passes), and one batch of 4 of the
+    restorer split into its parts."""
+    from pipeline.correct import correct_folder, correct_physics_folder, cpu_lanes
+    from pipeline.workspace import Workspace
     from watergan.data import read_intrinsics
     from watergan.io import depth_or_zero, read_depth, read_image
     from watergan.nets.restorer import WaterFields, fill_range_holes
     from watergan.train_restorer import load_restorer
 
+    workspace = Workspace(ws)
+    images = ws / "00_survey" / "images"
     ranges = ws / "03_water" / "range"
-    best = float("inf")
-    for _ in range(max(1, min(repeats, 3))):
-        began = time.perf_counter()
-        result = correct_folder(ws / "05_restorer", ws / "00_survey" / "images", out, force=True, progress=False,
-                                range_dir=ranges if ranges.is_dir() else None)
-        best = min(best, time.perf_counter() - began)
+    frames = len(list(images.glob("*.png")))
+    passes = max(1, min(repeats, 3))
+    fps: dict[str, dict[str, float]] = {"physics": {}, "restorer": {}}
+    runs: dict[str, dict[str, list[float]]] = {"physics": {}, "restorer": {}}
+    sources: dict[str, dict[str, str]] = {"physics": {}, "restorer": {}}
+    range_input = load_restorer(ws / "05_restorer").range_input
+    for mode in ("rgb-d", "monocular"):
+        for correction in ("physics", "restorer"):
+            if correction == "restorer" and mode == "rgb-d" and not range_input:
+                continue  # a monocular restorer has no RGB-D mode
+            seconds = []
+            for _ in range(passes):
+                if correction == "physics":
+                    done = correct_physics_folder(workspace, images, out / correction / mode, progress=False,
+                                                  mode=mode)
+                    seconds.append(done.seconds)
+                else:
+                    done = correct_folder(ws / "05_restorer", images, out / correction / mode, force=True,
+                                          progress=False, range_dir=ranges, mode=mode)
+                    seconds.append(done.seconds)
+            sources[correction][mode] = done.range_source
+            runs[correction][mode] = [round(frames / t, 2) for t in seconds]
+            fps[correction][mode] = frames / min(seconds)
+            print(f"{correction} {mode} (range from the {done.range_source}): {frames} frames, "
+                  f"{fps[correction][mode]:.1f} frames/s with file I/O and model load (passes: "
+                  f"{', '.join(f'{v:.1f}' for v in runs[correction][mode])})")
     lanes = cpu_lanes()
     model = load_restorer(ws / "05_restorer").for_inference()
-    paths = sorted((ws / "00_survey" / "images").glob("*.png"))[:4]
+    paths = sorted(images.glob("*.png"))[:4]
     x = torch.from_numpy(np.stack([read_image(p, "linear") for p in paths]).transpose(0, 3, 1, 2)).float()
     parts = {}
     threads = torch.get_num_threads()
@@ -73,7 +106,7 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
         if model.range_input:
             range_m = fill_range_holes(torch.stack([torch.from_numpy(depth_or_zero(read_depth(ranges / p.name)))
                                                     for p in paths])[:, None].float())[0]
-        camera = read_intrinsics(ws / "00_survey")
+        camera = read_intrinsics(images.parent)
         intrinsics = camera.resized(*x.shape[-2:]).as_tuple() if camera is not None else None
         if model.water is not None:
             fields = WaterFields(model.water)
@@ -89,9 +122,8 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
         restore(model, x, altitude, range_m, intrinsics, water)
         parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
     torch.set_num_threads(threads)
-    return {"lanes": lanes, "workspace": str(ws), "frames": result.corrected,
-            "mode": result.mode, "water": model.water is not None,
-            "best_s": best, "frames_per_s": result.corrected / best, **parts}
+    return {"lanes": lanes, "workspace": str(ws), "frames": frames, "frames_per_s": fps, "runs": runs,
+            "range_source": sources, **parts}
 
 
 def main() -> None:
@@ -120,15 +152,12 @@ def main() -> None:
               f"{fps:.1f} frames/s at 640x480; peak allocated {peak:.0f} MiB")
     if args.workspace is not None:
         record = {"untrained_nets_cpu_frames_per_s": cpu_fps, **correct_speed(args.workspace, args.repeats, args.out)}
-        print(f"correct on {record['workspace']} ({record['mode']}, water {record['water']}): {record['frames']} "
-              f"frames in {record['best_s']:.2f} s = {record['frames_per_s']:.2f} frames/s with file I/O "
-              f"({record['lanes']} lanes); one batch of 4 on one thread: fields "
+        print(f"one batch of 4 of the restorer on one thread: fields "
               f"{1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
-              f"{1000 * record['nets_s_per_frame']:.0f} ms/frame")
+              f"{1000 * record['nets_s_per_frame']:.0f} ms/frame ({record['lanes']} lanes side by side)")
         path = Path(__file__).resolve().parent / "results" / "restorer.json"
         path.write_text(json.dumps({"command": "benchmarks/bench_restorer.py --workspace " + str(args.workspace),
                                     "threads": torch.get_num_threads(), **record}, indent=2) + "\n")
-
 
 if __name__ == "__main__":
     main()

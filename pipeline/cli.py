@@ -77,12 +77,17 @@ class SimulateOptions:
     stereo: bool = True
     """Write the rig's right frames (right/, baseline_m); --no-stereo: a monocular survey, scale from the
     navigation altitude (nav_altitude_m in survey.json) and range from multi-view stereo."""
+    frames: int = 0
+    """Survey length: at least this many frames, the preset's lines and frames per line grown alike over a site
+    grown with them (0: the preset's)."""
 
 
 def simulate(opts: SimulateOptions) -> int:
-    from eval.synth import make_config, simulate_survey
+    from eval.synth import make_config, simulate_survey, with_frames
 
     config = make_config(opts.preset.value, hidden=list(opts.hidden), seed=opts.seed)
+    if opts.frames:
+        config = with_frames(config, opts.frames)
     if not opts.stereo:
         config = dataclasses.replace(config, trajectory=dataclasses.replace(config.trajectory, stereo=False))
     start = time.perf_counter()

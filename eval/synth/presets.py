@@ -24,6 +24,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from watergan.formation import builtin_effects, get
@@ -168,6 +169,25 @@ PRESETS["small"] = replace(
     PRESETS["tiny"], preset="small", camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0),
     trajectory=replace(PRESETS["tiny"].trajectory, n_lines=2, frames_per_line=5, forward_overlap=0.75),
     rgbd=replace(PRESETS["tiny"].rgbd, views_per_scene=12))
+
+
+def with_frames(config: SimulationConfig, frames: int) -> SimulationConfig:
+    """The survey flown longer or shorter over a site grown or shrunk alike: at least ``frames`` frames, its lines
+    scaled by sqrt(frames / the survey's frames) and as many frames per line as it then takes, the site's sides grown
+    (never shrunk: the frames would see past its edge) by the same factors as the lines and the frames per line (its
+    rocks by their product); camera, altitudes, overlaps
+    and the RGB-D set as they are. The demo's 44 frames (4 x 11) become 176 as 8 x 22 over a site twice as long and
+    wide, 500 as 13 x 39 (507 frames)."""
+    t, scene = config.trajectory, config.scene
+    if frames < 1:
+        raise SimulationError(f"a survey needs at least one frame, not {frames}")
+    factor = math.sqrt(frames / (t.n_lines * t.frames_per_line))
+    lines = max(1, round(t.n_lines * factor))
+    per_line = math.ceil(frames / lines)
+    grow_x, grow_y = max(1.0, per_line / t.frames_per_line), max(1.0, lines / t.n_lines)  # lines run along x
+    return replace(config, trajectory=replace(t, n_lines=lines, frames_per_line=per_line),
+                   scene=replace(scene, size_x_m=scene.size_x_m * grow_x, size_y_m=scene.size_y_m * grow_y,
+                                 n_rocks=max(1, round(scene.n_rocks * grow_x * grow_y))))
 
 
 def make_config(preset: str = "demo", hidden: list[str] | tuple[str, ...] = (), seed: int = 0) -> SimulationConfig:
