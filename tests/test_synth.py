@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.synth import HIDDEN_DEFAULTS, SimulationError, load_truth, make_config, simulate_survey
+from eval.synth import HIDDEN_DEFAULTS, SimulationError, load_truth, make_config, simulate_survey, with_frames
 from eval.synth.camera import intrinsics_from_fov, make_pose, pixel_rays_cam, project
 from eval.synth.imaging import full_stack_config, linear_image
 from eval.synth.render import RenderConfig, frame_state, make_raycaster, render_view
 from eval.synth.rgbd import RGBDConfig
 from eval.synth.scene import SceneConfig, build_scene, make_board
-from eval.synth.trajectory import CAM_IN_BODY, TrajectoryConfig, body_rotation
+from eval.synth.trajectory import CAM_IN_BODY, TrajectoryConfig, body_rotation, lawnmower
 from watergan.formation import Stack
 from watergan.io import linear_to_srgb, read_png
 
@@ -182,6 +182,28 @@ def test_board_patches_render_to_true_colours(tmp_path):
             assert np.abs(patch - np.rint(truth.board.srgb[i] * 255)).max() <= 1, (name, truth.board.names[i])
             seen.add(i)
     assert seen == set(range(24))
+
+
+@pytest.mark.parametrize("frames", [176, 500, 10])
+def test_a_longer_survey_flies_more_lines_over_a_site_grown_with_them(frames):
+    """--frames N: at least N frames (whole lines), lines and frames per line grown alike, and the frames' centres
+    as far from the site's edge as the preset's are (a shorter survey keeps the site, never shrinks it)."""
+    base = make_config("demo")
+    config = with_frames(base, frames)
+    t = config.trajectory
+    assert frames <= t.n_lines * t.frames_per_line < frames + t.n_lines
+    if frames > 44:
+        assert t.n_lines > base.trajectory.n_lines and t.frames_per_line > base.trajectory.frames_per_line
+
+    def margin_m(c) -> float:
+        intr = intrinsics_from_fov(c.camera.width_px, c.camera.height_px, c.camera.hfov_deg)
+        centres = lawnmower(c.trajectory, intr, 0).world_from_cam[:, :2, 3]
+        return min(c.scene.size_x_m / 2 - np.abs(centres[:, 0]).max(),
+                   c.scene.size_y_m / 2 - np.abs(centres[:, 1]).max())
+
+    assert margin_m(config) >= margin_m(base) - 0.05
+    with pytest.raises(SimulationError, match="at least one frame"):
+        with_frames(base, 0)
 
 
 def test_existing_output_is_refused_unless_forced(tmp_path):
