@@ -598,9 +598,11 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
 
     def correct_frame(k: int) -> float:
         name = names[k]
-        image = read_image(images / name, dtype=np.float32) if fields is not None else None
-        affine = (np.ones(3), np.zeros(3)) if per_frame is None or image is None else \
-            frame_affine(stack, per_frame, k, K, *image.shape[:2])
+        affine = image = None
+        if fields is not None:
+            image = read_image(images / name, dtype=np.float32)
+            affine = (np.ones(3), np.zeros(3)) if per_frame is None else \
+                frame_affine(stack, per_frame, k, K, *image.shape[:2])
         if affine is not None:
             s, t = affine
             corrected, valid = invert_with_fields((image - t.astype(np.float32)) / s.astype(np.float32),
@@ -626,7 +628,8 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
 def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields,
                        K: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """J = exp(g) I + o, the physics inverse J = (I - C) / A with the log gain g = -ln A and offset o = -C / A of
-    ``fields`` at each pixel's range (holes take the median range, then are marked), as
+    ``fields`` at each pixel's range (holes take the frame's farthest range, which the table covers, then are
+    marked), as
     :func:`watergan.formation.inverse.correct_physics` returns it: (J (H,W,3) float32 linear, unclipped, NaN where
     the map has no range; valid (H,W) bool). ``image``: (H,W,3) raw linear RGB; ``range_m``: (H,W) metres along the
     ray, NaN or <= 0 = none; ``K``: the frames' intrinsics (3x3, None: depth = range)."""

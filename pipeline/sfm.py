@@ -1,7 +1,7 @@
 """Structure from motion with pycolmap: once, on the raw images; every later measurement reuses it.
 
 Steps: SIFT features -> matching (sequential with quadratic overlap for image sequences, which
-also links neighbouring survey lines, or exhaustive for small sets) -> incremental mapping
+also links neighbouring survey lines, or exhaustive for small sets) -> incremental or global mapping
 (known PINHOLE intrinsics from ``camera.json`` held fixed, or estimated) -> the largest model is
 moved into a *survey frame* and given a metric scale:
 
@@ -59,6 +59,14 @@ class Matching(StrEnum):
     exhaustive = "exhaustive"
 
 
+class Mapper(StrEnum):
+    """How SfM recovers the poses from the matches."""
+
+    incremental = "incremental"
+    hierarchical = "hierarchical"
+    global_ = "global"
+
+
 class ScaleSource(StrEnum):
     """Where SfM's metric scale comes from."""
 
@@ -88,6 +96,11 @@ class SfmConfig:
     quadratic overlap, with images 2^k ahead (k < overlap), which reaches neighbouring survey lines."""
     exhaustive_max_images: int = 40
     """'auto' matching uses exhaustive matching up to this many images."""
+    mapper: Mapper = Mapper.incremental
+    """'incremental' (COLMAP's: images registered one at a time, bundle adjustment as the model grows),
+    'hierarchical' (overlapping clusters of at most 500 images mapped incrementally side by side, then merged) or
+    'global' (GLOMAP's, in pycolmap: rotation averaging and global positioning of every image at once, then one
+    bundle adjustment)."""
     max_features: int = 4096
     """SIFT features per image at most."""
     init_min_tri_angle_deg: float = 8.0
@@ -407,7 +420,9 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
         _extract_features(database, images_dir, names, cam, cfg)
         matching = _match_features(database, names, cfg)
         raw_dir = out_dir / "colmap_raw"
-        rec, n_reg = _map_incrementally(database, images_dir, raw_dir, names, cam, cfg)
+        mapping = {Mapper.incremental: _map_incrementally, Mapper.hierarchical: _map_hierarchically,
+                   Mapper.global_: _map_globally}[Mapper(cfg.mapper)]
+        rec, n_reg = mapping(database, images_dir, raw_dir, names, cam, cfg)
         lens_k1 = refined_k1(rec) if cam is not None else None
     tracks, method, scale, spread = _to_survey_frame(rec, names, images_dir, cam, cfg)
     model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)
@@ -485,11 +500,8 @@ def _match_features(database: Path, names: list[str], cfg: SfmConfig) -> str:
     return matching
 
 
-def _map_incrementally(database: Path, images_dir: Path, raw_dir: Path, names: list[str], cam: dict | None,
-                       cfg: SfmConfig):
-    """Incremental mapping (seeded; intrinsics held when known and ``fix_intrinsics``) into a fresh
-    ``raw_dir``; returns the model with the most registered images and their count (an error naming what
-    to try when fewer than ``min_registered_fraction`` of the images, or 3, are registered)."""
+def _incremental_options(cam: dict | None, cfg: SfmConfig):
+    """COLMAP's incremental mapper options: seeded, one model, intrinsics held when known and ``fix_intrinsics``."""
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -503,14 +515,70 @@ def _map_incrementally(database: Path, images_dir: Path, raw_dir: Path, names: l
     options.ba_refine_principal_point = False
     options.mapper.abs_pose_refine_focal_length = not fixed
     options.mapper.abs_pose_refine_extra_params = not fixed
+    return options
+
+
+def _map_incrementally(database: Path, images_dir: Path, raw_dir: Path, names: list[str], cam: dict | None,
+                       cfg: SfmConfig):
+    """Incremental mapping (:func:`_incremental_options`) into a fresh ``raw_dir``; returns the model with the most
+    registered images and their count (an error naming what to try when fewer than ``min_registered_fraction`` of
+    the images, or 3, are registered)."""
+    import pycolmap
+
     shutil.rmtree(raw_dir, ignore_errors=True)
     raw_dir.mkdir()
-    models = pycolmap.incremental_mapping(database, images_dir, raw_dir, options)
+    models = pycolmap.incremental_mapping(database, images_dir, raw_dir, _incremental_options(cam, cfg))
+    return _largest_model(models, names, cfg)
+
+
+def _map_hierarchically(database: Path, images_dir: Path, raw_dir: Path, names: list[str], cam: dict | None,
+                        cfg: SfmConfig):
+    """Hierarchical mapping: the images split into overlapping clusters of at most ``HIERARCHICAL_LEAF_IMAGES``,
+    each mapped incrementally (:func:`_incremental_options`), the clusters' models merged; returns what
+    :func:`_map_incrementally` returns."""
+    import pycolmap
+
+    options = pycolmap.HierarchicalPipelineOptions()
+    options.incremental_options = _incremental_options(cam, cfg)
+    options.clustering_options.leaf_max_num_images = HIERARCHICAL_LEAF_IMAGES
+    shutil.rmtree(raw_dir, ignore_errors=True)
+    raw_dir.mkdir()
+    return _largest_model(pycolmap.hierarchical_mapping(database, images_dir, raw_dir, options), names, cfg)
+
+
+#: Largest cluster of hierarchical mapping (COLMAP's default): a survey of fewer images is mapped as one cluster.
+HIERARCHICAL_LEAF_IMAGES = 500
+
+
+def _map_globally(database: Path, images_dir: Path, raw_dir: Path, names: list[str], cam: dict | None,
+                  cfg: SfmConfig):
+    """Global mapping (GLOMAP's rotation averaging and global positioning, seeded; intrinsics held when known and
+    ``fix_intrinsics``) into a fresh ``raw_dir``; returns what :func:`_map_incrementally` returns."""
+    import pycolmap
+
+    options = pycolmap.GlobalPipelineOptions()
+    options.random_seed = cfg.seed
+    options.mapper.random_seed = cfg.seed
+    options.multiple_models = False
+    options.min_model_size = 3
+    fixed = cam is not None and cfg.fix_intrinsics
+    options.mapper.bundle_adjustment.refine_focal_length = not fixed
+    options.mapper.bundle_adjustment.refine_extra_params = not fixed
+    options.mapper.bundle_adjustment.refine_principal_point = False
+    shutil.rmtree(raw_dir, ignore_errors=True)
+    raw_dir.mkdir()
+    return _largest_model(pycolmap.global_mapping(database, images_dir, raw_dir, options), names, cfg)
+
+
+def _largest_model(models: dict, names: list[str], cfg: SfmConfig):
+    """The model with the most registered images and their count; an error naming what to try when fewer than
+    ``min_registered_fraction`` of the images, or 3, are registered."""
     rec = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
     n_reg = rec.num_reg_images() if rec is not None else 0
     if n_reg < max(3, cfg.min_registered_fraction * len(names)):
         hint = ("try exhaustive matching (--matching exhaustive), a larger --sequential-overlap, "
-                "a lower --init-min-tri-angle-deg, more features, or images with more overlap and texture")
+                "a lower --init-min-tri-angle-deg, the other --mapper, more features, or images with more overlap "
+                "and texture")
         raise UserInputError(f"SfM registered only {n_reg} of {len(names)} images "
                              f"(need {max(3, int(np.ceil(cfg.min_registered_fraction * len(names))))}): {hint}")
     return rec, n_reg

@@ -9,6 +9,7 @@ relative depth is half the true depth, and Table III reads a validation.json in 
 watergan.train_restorer writes."""
 
 import argparse
+import dataclasses
 import json
 import re
 import shutil
@@ -203,6 +204,40 @@ def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_n
     shutil.copytree(survey / "images", images)
     with pytest.raises(DataError, match="no navigation file"):
         correct_physics_folder(ws, images, tmp_path / "none", False, mode="monocular")
+
+
+def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_path):
+    """A water with strobes reads surface normals, so its fields differ from frame to frame with the geometry: the
+    physics correction takes each frame's exact inverse (:func:`correct_physics` with the correction's normals),
+    not the table of fields."""
+    from test_water import water_config
+
+    from eval.tracks import Tracks
+    from pipeline.correct import correct_physics_folder
+    from pipeline.water import correction_normals, water_frame
+    from watergan.formation import get
+    from watergan.formation.inverse import correct_physics
+    from watergan.io import read_depth, read_image
+
+    survey, ws, _, _ = evaluated
+    shutil.copytree(ws.root, tmp_path / "ws", symlinks=True)
+    lit = Workspace(tmp_path / "ws")
+    water = lit.result("water")
+    light = {"name": "artificial_light", "params": dict(get("artificial_light").simulation_params)}
+    stack = [*water.stack, light]
+    lit.save("water", water_config(bootstrap=4, progress=False), dataclasses.replace(water, stack=stack))
+    result = correct_physics_folder(lit, survey / "images", tmp_path / "lit", False)
+    tracks = Tracks.load(lit.path(lit.result("sfm").tracks))
+    K = np.asarray(tracks.K, float)
+    frame = water_frame(tracks, 3, survey / "images", lit.path(lit.result("dense").depth_dir))
+    r = read_depth(lit.path(water.range_dir) / f"{Path(frame.name).stem}.png")
+    exact, valid = correct_physics(frame.image, r, stack, K, frame_index=3,
+                                   normals_cam=correction_normals(frame, r, K, water.normal_smooth_px))
+    written = read_image(tmp_path / "lit" / "images" / frame.name)
+    expected = np.clip(np.nan_to_num(exact), 0.0, 1.0)
+    assert result.range_source == "range maps"
+    assert np.abs(written - expected)[valid].max() < 2 / 255  # the 8-bit file's rounding, in linear light
+    assert np.abs(written - read_image(ws.root / "06_correct" / "physics" / "images" / frame.name))[valid].mean() > 0.01
 
 
 def test_missing_inputs_are_skipped_with_reasons(tmp_path):

@@ -117,6 +117,23 @@ def test_camera_centres_match_truth_after_similarity(sfm):
     assert s == pytest.approx(1.0, abs=0.02)  # metric scale from the stereo baseline
 
 
+@pytest.mark.parametrize("mapper", ["global", "hierarchical"])
+def test_the_other_mappers_recover_the_same_cameras(sfm, tmp_path, mapper):
+    """Global mapping (GLOMAP's) and hierarchical mapping (clusters merged; one cluster here) register every frame
+    and put the cameras where the truth has them, at the stereo scale, as incremental mapping does."""
+    survey, _, _ = sfm
+    truth, index = _truth_index(survey)
+    result = Workspace(tmp_path / "ws").run("sfm", SfmConfig(images_dir=str(survey / "images"), mapper=mapper,
+                                                              progress=False))
+    assert result.n_registered == result.n_images == 10 and result.scale_method == "stereo"
+    tracks = Tracks.load(tmp_path / "ws" / result.tracks)
+    est = tracks.world_from_cam[:, :3, 3]
+    true = truth.world_from_cam[[index[str(n)] for n in tracks.image_names], :3, 3]
+    s, R, t = similarity_align(est, true)
+    assert np.linalg.norm(s * est @ R.T + t - true, axis=1).max() < 0.01 * np.linalg.norm(true.max(0) - true.min(0))
+    assert s == pytest.approx(1.0, abs=0.02)
+
+
 def test_sparse_depth_matches_rendered_depth(sfm):
     survey, ws, record = sfm
     truth, index = _truth_index(survey)
