@@ -118,14 +118,42 @@ def best_plane(ref: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def metrics(aligned: np.ndarray, ref: np.ndarray, n_pixels: int, scale: float, shift_m: float) -> DepthMetrics:
     """Errors of aligned depths against reference depths (1-D arrays of valid samples)."""
-    err = aligned - ref
-    rmse = float(np.sqrt(np.mean(err**2)))
-    span = float(ref.max() - ref.min())
-    ratio = np.maximum(aligned / ref, ref / np.maximum(aligned, 1e-12))
-    return DepthMetrics(scale=scale, shift_m=shift_m, rmse_m=rmse, rmse_over_range=rmse / span if span > 0 else np.nan,
-                        abs_rel=float(np.mean(np.abs(err) / ref)),
-                        delta_125=float(np.mean((aligned > 0) & (ratio < 1.25))),
-                        coverage=ref.size / n_pixels, n_valid=int(ref.size))
+    pool = Pool()
+    pool.add(aligned, ref, n_pixels)
+    return pool.metrics(scale, shift_m)
+
+
+class Pool:
+    """Running sums of aligned depths against their references, frame by frame: :meth:`metrics` gives what
+    :func:`metrics` gives for all the samples at once, without holding them (a survey's frames one after another)."""
+
+    def __init__(self) -> None:
+        self.n = self.pixels = self.within = 0
+        self.squared = self.relative = 0.0
+        self.lo, self.hi = np.inf, -np.inf
+
+    def add(self, aligned: np.ndarray, ref: np.ndarray, n_pixels: int) -> None:
+        """One frame's valid samples (1-D) and its pixel count."""
+        aligned, ref = np.asarray(aligned, np.float64), np.asarray(ref, np.float64)
+        err = aligned - ref
+        ratio = np.maximum(aligned / ref, ref / np.maximum(aligned, 1e-12))
+        self.n += ref.size
+        self.pixels += n_pixels
+        self.squared += float(err @ err)
+        self.relative += float(np.sum(np.abs(err) / ref))
+        self.within += int(np.sum((aligned > 0) & (ratio < 1.25)))
+        if ref.size:
+            self.lo, self.hi = min(self.lo, float(ref.min())), max(self.hi, float(ref.max()))
+
+    def metrics(self, scale: float, shift_m: float) -> DepthMetrics | None:
+        """The pooled samples' metrics with this scale and shift recorded; None with fewer than two samples."""
+        if self.n < 2:
+            return None
+        rmse = float(np.sqrt(self.squared / self.n))
+        span = self.hi - self.lo
+        return DepthMetrics(scale=scale, shift_m=shift_m, rmse_m=rmse,
+                            rmse_over_range=rmse / span if span > 0 else np.nan, abs_rel=self.relative / self.n,
+                            delta_125=self.within / self.n, coverage=self.n / max(self.pixels, 1), n_valid=int(self.n))
 
 
 def compare_depth(pred: np.ndarray, ref: np.ndarray, with_shift: bool = False, min_valid: int = 100,
@@ -271,46 +299,25 @@ def _depth_files(folder: Path) -> dict[str, Path]:
     return files
 
 
-def _global_fit(maps: dict[str, np.ndarray], refs: dict[str, np.ndarray], with_shift: bool) -> tuple[float, float]:
-    pred = np.concatenate([maps[k][np.isfinite(maps[k]) & np.isfinite(refs[k])] for k in maps])
-    ref = np.concatenate([refs[k][np.isfinite(maps[k]) & np.isfinite(refs[k])] for k in maps])
-    return fit_scale_shift(pred, ref, with_shift)
-
-
-def _compare_source(maps: dict[str, np.ndarray], refs: dict[str, np.ndarray], cfg: DepthCompareConfig,
-                    aligned: bool) -> tuple[dict[str, DepthMetrics], dict[str, np.ndarray]]:
-    """Each map against its reference, aligned as ``cfg`` says (``aligned``) or as it is: per-image metrics and
-    signed error maps; frames with too few valid pixels are left out."""
-    fixed = (1.0, 0.0) if not aligned else None if cfg.per_image else _global_fit(maps, refs, cfg.with_shift)
-    per_image, errors = {}, {}
-    for stem, pred in maps.items():
-        try:
-            per_image[stem], errors[stem] = compare_depth(pred, refs[stem], cfg.with_shift, cfg.min_valid, fixed)
-        except UserInputError:
-            continue
-    return per_image, errors
-
-
-def _pooled(per_image: dict[str, DepthMetrics], errors: dict[str, np.ndarray], refs: dict[str, np.ndarray],
-            mask: dict[str, np.ndarray] | None = None) -> DepthMetrics | None:
-    """The metrics of every compared pixel (inside ``mask`` when given) of the frames, their alignments' medians
-    as its scale and shift; None when no pixel is left."""
-    aligned, ref, n_pixels = [], [], 0
-    for stem, err in errors.items():
-        keep = np.isfinite(err) & (mask[stem] if mask is not None else True)
-        aligned.append(refs[stem][keep] + err[keep])
-        ref.append(refs[stem][keep])
-        n_pixels += err.size
-    if sum(a.size for a in aligned) < 2:
-        return None
-    return metrics(np.concatenate(aligned), np.concatenate(ref), n_pixels,
-                   float(np.median([m.scale for m in per_image.values()])),
-                   float(np.median([m.shift_m for m in per_image.values()])))
+def _global_fit(pairs, with_shift: bool) -> tuple[float, float]:
+    """Least-squares (s, t) of :func:`fit_scale_shift` over the valid pixels of every (prediction, reference) pair of
+    ``pairs`` (an iterable, read one at a time), from running sums."""
+    n = sp = sr = spp = spr = 0.0
+    for pred, ref in pairs:
+        valid = np.isfinite(pred) & np.isfinite(ref)
+        p, r = pred[valid], ref[valid]
+        n, sp, sr, spp, spr = n + p.size, sp + p.sum(), sr + r.sum(), spp + p @ p, spr + p @ r
+    if n < 2:
+        raise ValueError("need at least two valid pixels to align depth")
+    if not with_shift:
+        return float(spr / spp), 0.0
+    s, t = np.linalg.solve(np.array([[spp, sp], [sp, n]]), np.array([spr, sr]))
+    return float(s), float(t)
 
 
 def _write_maps(folder: Path, errors: dict[str, np.ndarray], top: float) -> list[str]:
     for stem, err in errors.items():
-        error_map_png(folder / f"{stem}.png", err, top)
+        error_map_png(folder / f"{stem}.png", err.astype(np.float32), top)
     return [str(folder / f"{stem}.png") for stem in errors]
 
 
@@ -319,54 +326,89 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
     """Per-image and pooled metrics of every prediction that has a reference of the same stem and, with
     ``navigation``, of the planes on the same frames (over all and over relief pixels); writes
     ``out_dir/errors/<stem>.png`` (the net), ``out_dir/errors_floor/<stem>.png`` (the flat seafloor) and
-    ``out_dir/metrics.json``."""
+    ``out_dir/metrics.json``. The frames are read one at a time and pooled as running sums (:class:`Pool`), so memory
+    does not grow with the survey beyond the error maps kept for the figures (half precision)."""
 
     pred_files, ref_files = _depth_files(Path(pred_dir)), _depth_files(Path(ref_dir))
     out_dir = Path(out_dir)
-    preds, refs, skipped = {}, {}, []
-    for stem, path in pred_files.items():
-        if stem not in ref_files:
-            skipped.append(stem)
-            continue
-        preds[stem], refs[stem] = read_depth(path), read_depth(ref_files[stem])
-    if not preds:
+    stems = [stem for stem in pred_files if stem in ref_files]
+    skipped = [stem for stem in pred_files if stem not in ref_files]
+    if not stems:
         raise UserInputError(f"no depth map in {pred_dir} has a reference of the same name in {ref_dir}")
-    per_image, errors = _compare_source(preds, refs, cfg, aligned=not cfg.metric)
-    if not per_image:
-        raise UserInputError(f"no image has {cfg.min_valid} pixels valid in both depth maps")
-    skipped += [stem for stem in preds if stem not in per_image]
-    refs = {stem: refs[stem] for stem in per_image}
+
+    def read(stem: str) -> tuple[np.ndarray, np.ndarray]:
+        return read_depth(pred_files[stem]), read_depth(ref_files[stem])
+
+    have_nav = navigation is not None and all(stem in navigation.altitude_m for stem in stems)
+
+    def floor_of(stem: str, shape: tuple[int, int]) -> np.ndarray:
+        return flat_floor_depth(navigation.altitude_m[stem], navigation.K_for(*shape), *shape,
+                                navigation.down_cam.get(stem))
+
     alignment = "none" if cfg.metric else (
         ("scale+shift" if cfg.with_shift else "scale") + (", per image" if cfg.per_image else ", global"))
-    sources: dict[str, SourceMetrics] = {}
-    floor_errors: dict[str, np.ndarray] = {}
-    relief = None
-    if navigation is not None:
-        planes = {stem: best_plane(ref, navigation.K_for(*ref.shape)) for stem, ref in refs.items()}
-        relief = {stem: distance > RELIEF_M for stem, (_, distance) in planes.items()}
-        compared = {BEST_PLANE: ("none", {stem: depth for stem, (depth, _) in planes.items()})}
-        have_nav = all(stem in navigation.altitude_m for stem in refs)
+    fixed_net = fixed_floor = (1.0, 0.0) if cfg.metric else None
+    if not cfg.metric and not cfg.per_image:  # one alignment over every frame: a first pass of running sums
+        fixed_net = _global_fit((read(stem) for stem in stems), cfg.with_shift)
         if have_nav:
-            floors = {stem: flat_floor_depth(navigation.altitude_m[stem], navigation.K_for(*ref.shape), *ref.shape,
-                                             navigation.down_cam.get(stem)) for stem, ref in refs.items()}
-            aligned_floor = {} if cfg.metric else {FLOOR_ALIGNED: (alignment, floors)}
-            compared = {FLOOR: ("none", floors), **aligned_floor, **compared}
-        for name, (how, maps) in compared.items():
-            m, e = _compare_source(maps, refs, cfg, aligned=how != "none")
-            sources[name] = SourceMetrics(how, _pooled(m, e, refs), _pooled(m, e, refs, relief))
-            if name == FLOOR:
-                floor_errors = e
-    sources = {NET: SourceMetrics(alignment, _pooled(per_image, errors, refs),
-                                  _pooled(per_image, errors, refs, relief) if relief else None), **sources}
+            fixed_floor = _global_fit(((floor_of(stem, ref.shape), ref) for stem in stems
+                                       for ref in [read(stem)[1]]), cfg.with_shift)
+    pools: dict[str, tuple[Pool, Pool]] = {}
+    fits: dict[str, list[tuple[float, float]]] = {}
+    per_image: dict[str, DepthMetrics] = {}
+    errors, floor_errors = {}, {}
+    for stem in stems:
+        pred, ref = read(stem)
+        try:
+            per_image[stem], err = compare_depth(pred, ref, cfg.with_shift, cfg.min_valid, fixed_net)
+        except UserInputError:
+            skipped.append(stem)
+            continue
+        compared = {NET: (per_image[stem], err)}
+        relief = None
+        if navigation is not None:
+            plane, distance = best_plane(ref, navigation.K_for(*ref.shape))
+            relief = distance > RELIEF_M
+            planes = {}
+            if have_nav:
+                floor = floor_of(stem, ref.shape)
+                planes = {FLOOR: (floor, (1.0, 0.0)), **({} if cfg.metric else {FLOOR_ALIGNED: (floor, fixed_floor)})}
+            for name, (depth, fixed) in {**planes, BEST_PLANE: (plane, (1.0, 0.0))}.items():
+                try:
+                    compared[name] = compare_depth(depth, ref, cfg.with_shift, cfg.min_valid, fixed)
+                except UserInputError:
+                    continue
+        for name, (m, e) in compared.items():
+            everywhere, on_relief = pools.setdefault(name, (Pool(), Pool()))
+            keep = np.isfinite(e)
+            everywhere.add(ref[keep] + e[keep], ref[keep], e.size)
+            if relief is not None:
+                keep &= relief
+                on_relief.add(ref[keep] + e[keep], ref[keep], e.size)
+            fits.setdefault(name, []).append((m.scale, m.shift_m))
+        errors[stem] = err.astype(np.float16)
+        if FLOOR in compared:
+            floor_errors[stem] = compared[FLOOR][1].astype(np.float16)
+    if not per_image:
+        raise UserInputError(f"no image has {cfg.min_valid} pixels valid in both depth maps")
+
+    def pooled(name: str, pool: Pool) -> DepthMetrics | None:
+        scale, shift = np.median(np.array(fits[name]), axis=0)
+        return pool.metrics(float(scale), float(shift))
+
+    how = {NET: alignment, FLOOR: "none", FLOOR_ALIGNED: alignment, BEST_PLANE: "none"}
+    sources = {name: SourceMetrics(how[name], pooled(name, pools[name][0]),
+                                   pooled(name, pools[name][1]) if navigation is not None else None)
+               for name in (NET, FLOOR, FLOOR_ALIGNED, BEST_PLANE) if name in pools}
     overall = sources[NET].all
-    top = cfg.error_max_m or float(np.nanpercentile(np.abs(np.concatenate([e.ravel() for e in errors.values()])), 95))
+    top = cfg.error_max_m or float(np.nanpercentile(
+        np.abs(np.concatenate([e.ravel() for e in errors.values()]).astype(np.float32)), 95))
     result = DepthCompareResult(alignment=alignment, overall=overall, per_image=per_image, skipped=sorted(skipped),
                                 error_maps=_write_maps(out_dir / "errors", errors, top),
                                 table=str(out_dir / "metrics.json"), sources=sources,
                                 floor_error_maps=_write_maps(out_dir / "errors_floor", floor_errors, top))
-    if relief:
-        n_relief = sum(int((relief[s] & np.isfinite(errors[s])).sum()) for s in errors)
-        result.relief_fraction = n_relief / max(overall.n_valid, 1)
+    if navigation is not None:
+        result.relief_fraction = pools[NET][1].n / max(overall.n_valid, 1)
         result.ratio_to = next(name for name in (FLOOR_ALIGNED, FLOOR, BEST_PLANE)
                                if name in sources and (name != FLOOR or cfg.metric))
         plane = sources[result.ratio_to]
