@@ -39,9 +39,9 @@ def site_frames(survey: Path, dense_dir: Path, navigation) -> list[SiteFrame]:
         image = read_image(frame_file(survey / "images", name), "linear").astype(np.float32)
         h, w = image.shape[:2]
         floor = flat_floor_depth(navigation.altitude_m[stem], navigation.K_for(h, w), h, w,
-                                 navigation.down_cam.get(stem))
-        ref = dense_dir / f"{stem}.png"
-        frames.append(SiteFrame(name, image, floor, read_depth(ref) if ref.is_file() else None))
+                                 navigation.down_cam.get(stem)).astype(np.float32)
+        ref = dense_dir / f"{stem}.png"  # single precision: a survey's frames are held together
+        frames.append(SiteFrame(name, image, floor, read_depth(ref).astype(np.float32) if ref.is_file() else None))
     return frames
 
 
