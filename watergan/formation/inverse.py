@@ -224,8 +224,8 @@ class FieldTable:
     and backscatter in range times falloffs and gains over the image): per channel, the table's (range x position)
     matrix is then of low rank, T = sum_k U_k(r) V_k(x, y). Where ``LOW_RANK_MAX`` terms reproduce the table within
     ``LOW_RANK_TOL``, :meth:`sample` evaluates that sum instead of trilinear interpolation: the V_k bilinear at each
-    pixel (once per image size), the U_k looked up every ``CURVE_STEP_M`` of range; about twice as fast, the same
-    values to the tolerance and the curves' step."""
+    pixel (once per image size), the U_k looked up every ``CURVE_STEP_M`` of range: the same values to the tolerance
+    and the curves' step, for less work per pixel (speeds: benchmarks/RESULTS.md)."""
 
     table: torch.Tensor
     """(1,6,R,rows,cols) float32: g then o per channel."""
@@ -236,7 +236,7 @@ class FieldTable:
     K: tuple[float, float, float, float] | None
     """The intrinsics (fx, fy, cx, cy) the table was built with (None: depth = range)."""
     curves: torch.Tensor | None = None
-    """(6k, n) float32: the range functions U_k of each channel (:meth:`factorised`) every ``CURVE_STEP_M`` from
+    """(6k, n) float32: the range functions U_k of each channel (:func:`factorised`) every ``CURVE_STEP_M`` from
     ``r_lo_m``; None: the table is not of low rank."""
     maps: torch.Tensor | None = None
     """(1, 6k, rows, cols) float32: the position functions V_k on the grid, beside ``curves``."""
@@ -303,10 +303,10 @@ class FieldTable:
         """:meth:`sample` as sum_k U_k(r) V_k(x, y) per channel (the class docstring)."""
         b, _, h, w = range_m.shape
         device, dtype = range_m.device, range_m.dtype
-        if self._maps_hw is None or self._maps_hw.shape[-1] != h * w:  # V_k at every pixel, as trilinear takes them
+        if self._maps_hw is None or self._maps_hw.shape[-2:] != (h, w):  # V_k at every pixel, as trilinear takes them
             self._maps_hw = torch.nn.functional.interpolate(self.maps, size=(h, w), mode="bilinear",
-                                                            align_corners=True)[0].reshape(len(self.maps[0]), h * w)
-        maps, curves = self._maps_hw.to(device, dtype), self.curves.to(device, dtype)
+                                                            align_corners=True)[0]
+        maps, curves = self._maps_hw.reshape(-1, h * w).to(device, dtype), self.curves.to(device, dtype)
         terms = len(curves) // 6
         index = ((range_m.reshape(b, h * w) - self.r_lo_m) / CURVE_STEP_M).round_().clamp_(0, curves.shape[1] - 1)
         index = index.long()
