@@ -352,7 +352,7 @@ def compare_depth_folders(pred_dir: str | Path, ref_dir: str | Path, out_dir: st
         fixed_net = _global_fit((read(stem) for stem in stems), cfg.with_shift)
         if have_nav:
             fixed_floor = _global_fit(((floor_of(stem, ref.shape), ref) for stem in stems
-                                       for ref in [read(stem)[1]]), cfg.with_shift)
+                                       for ref in [read_depth(ref_files[stem])]), cfg.with_shift)
     pools: dict[str, tuple[Pool, Pool]] = {}
     fits: dict[str, list[tuple[float, float]]] = {}
     per_image: dict[str, DepthMetrics] = {}

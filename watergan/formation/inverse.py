@@ -31,8 +31,7 @@ def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int,
     """(H,W) the range (metres) of a flat, level seafloor ``altitude_m`` below the camera, along each pixel's ray
     d = K^-1 (x, y, 1): r = a |d| / (d . g), g the unit "down" in the camera frame (``down_cam``; None: a nadir
     camera, g = (0, 0, 1), r = a |d|). Rays at or above the horizon (d . g <= 1 % of |d|) take 100 a."""
-    K = np.asarray(K, np.float64)
-    unit = unit_rays((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), h, w)
+    unit = unit_rays(_intrinsics(np.asarray(K, np.float64)), h, w)
     g = np.array([0.0, 0.0, 1.0]) if down_cam is None else np.asarray(down_cam, np.float64)
     return altitude_m / np.maximum(unit @ (g / np.linalg.norm(g)), 0.01)
 
@@ -175,12 +174,10 @@ def frame_affine(stack: Stack, base: Stack, frame_index: int, K: np.ndarray | No
     (I - t) / s. Measured on a probe of ``PROBE_HW`` pixels of an image of ``height`` x ``width`` with intrinsics K at
     ranges 0.5-6 m, both stacks rendered there; None when the frame's effects do not act so within ``tol`` (relative)
     anywhere on the probe (they vary over the image or with range: then the exact fields)."""
+    from watergan.data import PinholeIntrinsics
+
     rows, cols = PROBE_HW
-    probe_K = None
-    if K is not None:
-        sx, sy = cols / width, rows / height
-        probe_K = np.array([[K[0, 0] * sx, 0.0, (K[0, 2] + 0.5) * sx - 0.5],
-                            [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+    probe_K = None if K is None else PinholeIntrinsics(*_intrinsics(K), width, height).resized(rows, cols).K
     r = np.linspace(0.5, 6.0, rows * cols).reshape(cols, rows).T.copy()  # ranges across rows and columns
     a_f, c_f, _ = inverse_fields(r, stack, probe_K, frame_index)
     a_b, c_b, _ = inverse_fields(r, base, probe_K, 0)
