@@ -3,6 +3,7 @@ cost per frame at the largest size over the smallest.
 
     .venv/bin/python benchmarks/bench_scale.py [--frames 44,176,500] [--out /tmp/bench_scale] [--gan-budget-min 4]
                                               [--restorer-budget-min 2.5] [--site-depth-steps 5000]
+                                              [--stages water,sfm]
 
 Each size is the demo survey (one hidden effect, as ``watergan demo`` ships it) flown longer over a larger site
 (:func:`eval.synth.with_frames`: at least that many frames, lines and frames per line grown alike), simulated, then run
@@ -12,7 +13,9 @@ budget and the site depth net for a fixed number of steps, so their cost does no
 stage should grow linearly. Writes ``benchmarks/results/scale.json``: per size the frames, the simulation's and each
 stage's seconds and peak memory (MiB), the run's wall time and largest peak (written after every stage: ``complete`` is
 false for a size still running or stopped); ``per_frame_ratio``: each stage's seconds per frame at the largest complete
-size over the smallest.
+size over the smallest. Each stage's entry names the commit whose code ran it. ``--stages``: rerun only those stages
+on the sizes' surveys and workspaces already in ``--out`` (after a change to them), the other stages' figures kept
+from scale.json.
 """
 
 from __future__ import annotations
@@ -56,31 +59,45 @@ def main() -> int:
     parser.add_argument("--gan-budget-min", type=float, default=4.0)
     parser.add_argument("--restorer-budget-min", type=float, default=2.5)
     parser.add_argument("--site-depth-steps", type=int, default=5000)
+    parser.add_argument("--stages", default="", help="rerun only these stages on the surveys in --out")
     args = parser.parse_args()
     from pipeline.stages import STAGES
+
+    rerun = [s for s in args.stages.split(",") if s]
+    unknown = sorted(set(rerun) - set(STAGES))
+    if unknown:
+        raise SystemExit(f"unknown stages {unknown}: choose from {', '.join(STAGES)}")
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent,
+                            capture_output=True, text=True).stdout.strip()
 
     args.out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "MPLCONFIGDIR": os.environ.get("MPLCONFIGDIR", str(args.out / "mpl"))}
     os.environ.update(env)
-    sizes = {}
+    sizes = json.loads(RESULTS.read_text())["sizes"] if rerun else {}
     for frames in (int(f) for f in args.frames.split(",")):
         survey, ws, log = args.out / f"survey{frames}", args.out / f"ws{frames}", args.out / f"log{frames}.txt"
-        log.unlink(missing_ok=True)
-        simulate_s, simulate_mb = child([sys.executable, "-m", "pipeline.cli", "simulate", "--frames", str(frames),
-                                         "--hidden", "vignetting_offcentre", "--out", str(survey), "--force"], log)
+        if rerun:
+            count = len(list((survey / "images").iterdir()))
+            before = sizes[str(count)]
+            simulate_s, simulate_mb, stages = before["simulate_s"], before["simulate_peak_mib"], before["stages"]
+        else:
+            log.unlink(missing_ok=True)
+            simulate_s, simulate_mb = child([sys.executable, "-m", "pipeline.cli", "simulate", "--frames", str(frames),
+                                             "--hidden", "vignetting_offcentre", "--out", str(survey), "--force"], log)
         values = {"survey_dir": str(survey), "workspace": str(ws), "progress": False,
                   "gan_budget_min": args.gan_budget_min, "restorer_budget_min": args.restorer_budget_min,
                   "restorer_site_depth_steps": args.site_depth_steps}
         count = len(list((survey / "images").iterdir()))
         print(f"{count} frames: simulated in {simulate_s:.0f} s (peak {simulate_mb:.0f} MiB)", flush=True)
-        stages = {}
-        for stage in STAGES:
+        if not rerun:
+            stages = {}
+        for stage in rerun or STAGES:
             seconds, peak = child([sys.executable, "-c", CHILD, stage, json.dumps(values)], log)
-            stages[stage] = {"s": round(seconds, 1), "peak_mib": round(peak)}
+            stages[stage] = {"s": round(seconds, 1), "peak_mib": round(peak), "commit": commit}
             print(f"  {stage:9} {seconds:8.1f} s  {seconds / count:6.2f} s/frame  peak {peak:6.0f} MiB", flush=True)
             sizes[str(count)] = {"frames": count, "simulate_s": round(simulate_s, 1),
                                  "simulate_peak_mib": round(simulate_mb), "stages": stages,
-                                 "complete": len(stages) == len(STAGES),
+                                 "complete": set(stages) == set(STAGES),
                                  "run_s": round(sum(s["s"] for s in stages.values()), 1),
                                  "peak_mib": max(s["peak_mib"] for s in stages.values())}
             write(args, sizes)  # stage by stage: a long run that is stopped keeps what it measured

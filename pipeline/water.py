@@ -32,8 +32,10 @@ the correction (:func:`correction_normals`: the range map only where the dense r
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -92,13 +94,39 @@ class WaterResult:
     """Surface points in that table."""
 
 
-def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> list[WaterFrame]:
-    """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered)."""
-    return [water_frame(tracks, k, images, depth_dir) for k in range(len(tracks.image_names))]
+#: Frames :class:`SurveyFrames` keeps once read (about 5 MB each at 640x480): a survey of up to this many frames is
+#: read once however many passes the measurement makes; a longer one is read again on each pass, in bounded memory.
+CACHED_FRAMES = 64
+
+
+class SurveyFrames(Sequence[WaterFrame]):
+    """The survey's frames as :func:`water_frame` reads them, read when indexed (the last :data:`CACHED_FRAMES` kept),
+    so that the water stage's memory does not grow with the survey's length."""
+
+    def __init__(self, tracks: Tracks, images: Path, depth_dir: Path | None):
+        self._n = len(tracks.image_names)
+        self._read = functools.lru_cache(maxsize=CACHED_FRAMES)(
+            lambda k: water_frame(tracks, k, images, depth_dir))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(self._n))]
+        if not -self._n <= k < self._n:
+            raise IndexError(k)
+        return self._read(k % self._n)
+
+
+def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> SurveyFrames:
+    """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered), read on
+    demand (:class:`SurveyFrames`)."""
+    return SurveyFrames(tracks, images, depth_dir)
 
 
 def water_frame(tracks: Tracks, k: int, images: Path, depth_dir: Path | None) -> WaterFrame:
-    """The k-th frame of :func:`water_frames`, read alone (for work that streams the frames)."""
+    """The k-th frame of :func:`water_frames`."""
     from watergan.data import read_image
 
     K = np.asarray(tracks.K, float)
@@ -290,7 +318,7 @@ def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, sm
     return normals
 
 
-def write_range_maps(out: Path, frames: list[WaterFrame], K: np.ndarray, mesh_ply: Path | None, agreement: float,
+def write_range_maps(out: Path, frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, agreement: float,
                      progress: bool) -> tuple[float, float]:
     """Each frame's :func:`correction_range` as ``out/<stem>.png`` (16-bit millimetres); returns (share of the
     pixels ranged from the mesh, share with no range)."""

@@ -356,6 +356,41 @@ def test_board_patches_are_bootstrap_units(survey):
     np.testing.assert_array_equal(obs.board_albedo, BOARD_RGB[obs.board_patch])
 
 
+def test_a_long_survey_lifts_a_bounded_number_of_points_from_every_frame(survey):
+    """``max_points`` bounds the points over the survey: each of the 12 frames lifts max_points / 12 (not
+    ``samples_per_frame``), and every frame still takes part."""
+    frames, _ = survey
+    full = measure_frames(frames, K, config=DenseMeasureConfig(samples_per_frame=50, margin_px=4, min_points=20))
+    bounded = measure_frames(frames, K, config=DenseMeasureConfig(samples_per_frame=50, max_points=240, margin_px=4,
+                                                                 min_points=20))
+    assert 200 <= bounded.n_points <= 240 < full.n_points
+    assert len(np.unique(bounded.frame)) == len(frames)
+
+
+def test_the_water_stage_reads_its_frames_on_demand(water_workspace, monkeypatch):
+    """The water stage's frames are read when indexed and only the last CACHED_FRAMES kept: a long survey's frames
+    are never all in memory, and what is read is what water_frame reads."""
+    import pipeline.water as water
+    from eval.tracks import Tracks
+
+    survey, ws, _ = water_workspace
+    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
+    depth = ws.path(ws.result("dense").depth_dir)
+    monkeypatch.setattr(water, "CACHED_FRAMES", 2)
+    frames = water.water_frames(tracks, ws.stage_dir("survey") / "images", depth)
+    assert len(frames) == len(tracks.image_names) > 2
+    first = frames[0]
+    assert frames[0] is first and frames[-1] is frames[len(frames) - 1]
+    for f in frames:
+        assert f.image.shape[:2] == f.range_m.shape
+    assert frames[0] is not first  # pushed out of the cache by the loop, read again
+    alone = water.water_frame(tracks, 0, ws.stage_dir("survey") / "images", depth)
+    np.testing.assert_array_equal(frames[0].image, alone.image)
+    np.testing.assert_array_equal(frames[0].range_m, alone.range_m)
+    with pytest.raises(IndexError):
+        frames[len(frames)]
+
+
 def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disagrees(tmp_path):
     """Dense range kept where the fused mesh agrees within 1 %; the mesh's range where the dense range is missing
     or off (an outlier); a frame without a pose keeps its dense range."""

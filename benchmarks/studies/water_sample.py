@@ -1,0 +1,87 @@
+"""How many surface points the water fit needs: the estimate and its 95 % intervals against the number of points it
+is fitted to, on one workspace's measurement table (issue 31: the fit on a bounded sample whose size is justified).
+
+    PYTHONPATH=. .venv/bin/python benchmarks/studies/water_sample.py WS [--points 5000,10000,20000,40000]
+        [--seeds 0] [--out benchmarks/results/water_sample.json]
+
+Reads ``WS/03_water/observations.npz`` (the water stage's table, every frame's points with all their views, the
+board's rows), ``WS/00_survey/truth/effects.json`` and the SfM stage's scale spread. For each size it draws that many
+points at random (``Observations.take_points``: each point keeps all its views; the board's rows are all kept), fits
+them with the default :class:`eval.water.WaterConfig` (:func:`eval.water.fit_observations`: fit, bootstrap,
+specification alternatives) and records per fitted parameter the estimate, the truth, the relative error, the 95 %
+interval's width and whether it covers the truth, and the fit's seconds. The full table's row is the water stage's
+own ``water.json`` (same code, same table), read rather than refitted. Writes every row to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_water import truth_params  # noqa: E402
+
+from eval.observations import Observations  # noqa: E402
+from eval.water import WaterConfig, fit_observations  # noqa: E402
+
+REPORTED = ("attenuation.eta_per_m", "backscatter.b_inf", "backscatter.beta_per_m", "gain.k")
+
+
+def rows_of(params: dict, truth: dict) -> dict:
+    """Per reported parameter: estimate, truth, relative error, interval width relative to the truth, covered."""
+    out = {}
+    for key in REPORTED:
+        p = params.get(key)
+        if p is None or not p.get("fitted") or key not in truth:
+            continue
+        value, true = np.atleast_1d(p["value"]).astype(float), np.atleast_1d(truth[key]).astype(float)
+        low, high = np.atleast_1d(p["low"]).astype(float), np.atleast_1d(p["high"]).astype(float)
+        out[key] = {"estimate": np.round(value, 5).tolist(), "truth": np.round(true, 5).tolist(),
+                    "rel_error": np.round((value - true) / np.abs(true), 4).tolist(),
+                    "rel_width": np.round((high - low) / np.abs(true), 4).tolist(),
+                    "covered": [bool(lo <= t <= hi) for lo, t, hi in zip(low, true, high, strict=True)]}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("workspace", type=Path)
+    parser.add_argument("--points", default="5000,10000,20000,40000", help="sample sizes, surface points")
+    parser.add_argument("--seeds", default="0", help="seeds of the point draws")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/water_sample.json"))
+    args = parser.parse_args()
+    ws = args.workspace
+    obs = Observations.load(ws / "03_water" / "observations.npz")
+    truth = truth_params(ws / "00_survey")
+    record = json.loads((ws / "01_sfm" / "result.json").read_text())
+    config = WaterConfig(range_scale_sd=float(record.get("result", record)["scale_spread"]))
+    stage = json.loads((ws / "03_water" / "water.json").read_text())
+    rows = [{"points": obs.n_points, "views": obs.n_obs, "seed": None, "seconds": stage["seconds"],
+             "params": rows_of(stage["params"], truth)}]
+    for seed in (int(s) for s in args.seeds.split(",")):
+        for n in (int(s) for s in args.points.split(",")):
+            if n >= obs.n_points:
+                continue
+            rng = np.random.default_rng([seed, n])
+            part = obs.take_points(np.sort(rng.choice(obs.n_points, n, replace=False)))
+            began = time.perf_counter()
+            estimate = fit_observations(part, config, obs.lights)
+            seconds = round(time.perf_counter() - began, 1)
+            rows.append({"points": n, "views": part.n_obs, "seed": seed, "seconds": seconds,
+                         "params": rows_of(estimate.to_json()["params"], truth)})
+            eta = rows[-1]["params"]["attenuation.eta_per_m"]
+            print(f"{n:>7} points {part.n_obs:>8} views {seconds:>7.1f} s  eta error {eta['rel_error']} "
+                  f"width {eta['rel_width']} covered {eta['covered']}", flush=True)
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps({"workspace": str(ws), "command": " ".join(sys.argv),
+                                            "rows": rows}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
