@@ -73,7 +73,9 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "MPLCONFIGDIR": os.environ.get("MPLCONFIGDIR", str(args.out / "mpl"))}
     os.environ.update(env)
-    sizes = json.loads(RESULTS.read_text())["sizes"] if rerun else {}
+    before = json.loads(RESULTS.read_text()) if rerun else {}
+    sizes = before.get("sizes", {})
+    args.history = before.get("command", "")
     for frames in (int(f) for f in args.frames.split(",")):
         survey, ws, log = args.out / f"survey{frames}", args.out / f"ws{frames}", args.out / f"log{frames}.txt"
         if rerun:
@@ -113,7 +115,8 @@ def write(args: argparse.Namespace, sizes: dict) -> None:
     ratio = {stage: round((large["stages"][stage]["s"] / large["frames"])
                           / (small["stages"][stage]["s"] / small["frames"]), 2)
              for stage in small["stages"] if small["stages"][stage]["s"] > 0} if len(counts) > 1 else {}
-    record = {"command": "benchmarks/bench_scale.py " + " ".join(sys.argv[1:]), "cpus": os.cpu_count(),
+    command = "benchmarks/bench_scale.py " + " ".join(sys.argv[1:])
+    record = {"command": f"{args.history}, then {command}" if args.history else command, "cpus": os.cpu_count(),
               "gan_budget_min": args.gan_budget_min, "restorer_budget_min": args.restorer_budget_min,
               "site_depth_steps": args.site_depth_steps, "sizes": sizes, "per_frame_ratio": ratio}
     RESULTS.write_text(json.dumps(record, indent=2) + "\n")
