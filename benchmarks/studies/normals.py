@@ -27,9 +27,10 @@ import numpy as np
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tables import OracleGeometry
 from eval.tracks import Tracks
-from pipeline.water import _write_corrected, correction_normals, correction_range, water_frames
+from pipeline.water import correction_normals, correction_range, water_frames
 from watergan.formation import Stack
 from watergan.formation.inverse import correct_physics, normals_from_range
+from watergan.io import write_srgb_png
 
 
 def angle_deg(normals: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -65,7 +66,8 @@ def main() -> None:
             ways = {"combined": normals_from_range(r, K, smooth_px), "dense": correction_normals(f, r, K, smooth_px)}
             for way, normals in ways.items():
                 corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
-                _write_corrected(out / way, f.name, corrected, valid, 8)
+                write_srgb_png(out / way / "images" / f"{Path(f.name).stem}.png",
+                               np.where(valid[..., None], corrected, 0.0))
             if k % args.every and f.name not in board.quads:
                 continue
             truth = geometry.state(f.name).normals_cam[0].permute(1, 2, 0).numpy().astype(np.float64)
