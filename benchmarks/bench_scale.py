@@ -79,9 +79,8 @@ def main() -> int:
     for frames in (int(f) for f in args.frames.split(",")):
         survey, ws, log = args.out / f"survey{frames}", args.out / f"ws{frames}", args.out / f"log{frames}.txt"
         if rerun:
-            count = len(list((survey / "images").iterdir()))
-            before = sizes[str(count)]
-            simulate_s, simulate_mb, stages = before["simulate_s"], before["simulate_peak_mib"], before["stages"]
+            kept = sizes[str(len(list((survey / "images").iterdir())))]  # the frames the survey was simulated with
+            simulate_s, simulate_mb = kept["simulate_s"], kept["simulate_peak_mib"]
         else:
             log.unlink(missing_ok=True)
             simulate_s, simulate_mb = child([sys.executable, "-m", "pipeline.cli", "simulate", "--frames", str(frames),
@@ -91,8 +90,7 @@ def main() -> int:
                   "restorer_site_depth_steps": args.site_depth_steps}
         count = len(list((survey / "images").iterdir()))
         print(f"{count} frames: simulated in {simulate_s:.0f} s (peak {simulate_mb:.0f} MiB)", flush=True)
-        if not rerun:
-            stages = {}
+        stages = kept["stages"] if rerun else {}
         for stage in rerun or STAGES:
             seconds, peak = child([sys.executable, "-c", CHILD, stage, json.dumps(values)], log)
             stages[stage] = {"s": round(seconds, 1), "peak_mib": round(peak), "commit": commit}

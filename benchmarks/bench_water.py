@@ -145,10 +145,10 @@ def truth_params(survey: Path) -> dict[str, list | float]:
     return {f"{e['name']}.{k}": v for e in full for k, v in e["params"].items()}
 
 
-def compare(estimate, truth: dict) -> dict:
-    """Per parameter: estimate, truth, relative error, interval, covered."""
+def compare(params: dict, truth: dict) -> dict:
+    """Per parameter of an estimate's ``params`` (water.json's): estimate, truth, relative error, interval, covered."""
     rows = {}
-    for key, p in estimate.params.items():
+    for key, p in params.items():
         if key not in truth:
             continue
         value, true = np.atleast_1d(p["value"]).astype(float), np.atleast_1d(truth[key]).astype(float)
@@ -243,7 +243,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
                               lights=survey_lights(ws_root / "00_survey"))
     water_seconds = time.perf_counter() - t
     truth = truth_params(ws_root / "00_survey")
-    params = compare(estimate, truth)
+    params = compare(estimate.params, truth)
     print(f"\n== {name}: {estimate.summary()}")
     print(f"   sfm: reprojection {sfm['mean_reprojection_error_px']:.3f} px, scale spread "
           f"{100 * sfm['scale_spread']:.2f} %, refined k1 {sfm.get('lens_k1')}")

@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_water import truth_params  # noqa: E402
+from bench_water import compare, truth_params  # noqa: E402
 
 from eval.observations import Observations  # noqa: E402
 from eval.water import WaterConfig, fit_observations  # noqa: E402
@@ -34,19 +34,12 @@ REPORTED = ("attenuation.eta_per_m", "backscatter.b_inf", "backscatter.beta_per_
 
 
 def rows_of(params: dict, truth: dict) -> dict:
-    """Per reported parameter: estimate, truth, relative error, interval width relative to the truth, covered."""
-    out = {}
-    for key in REPORTED:
-        p = params.get(key)
-        if p is None or not p.get("fitted") or key not in truth:
-            continue
-        value, true = np.atleast_1d(p["value"]).astype(float), np.atleast_1d(truth[key]).astype(float)
-        low, high = np.atleast_1d(p["low"]).astype(float), np.atleast_1d(p["high"]).astype(float)
-        out[key] = {"estimate": np.round(value, 5).tolist(), "truth": np.round(true, 5).tolist(),
-                    "rel_error": np.round((value - true) / np.abs(true), 4).tolist(),
-                    "rel_width": np.round((high - low) / np.abs(true), 4).tolist(),
-                    "covered": [bool(lo <= t <= hi) for lo, t, hi in zip(low, true, high, strict=True)]}
-    return out
+    """Per reported parameter, :func:`bench_water.compare`'s row with the interval's width relative to the truth."""
+    rows = compare({key: params[key] for key in REPORTED if key in params and params[key].get("fitted")}, truth)
+    for row in rows.values():
+        width = (np.asarray(row["high"]) - np.asarray(row["low"])) / np.abs(np.asarray(row["truth"]))
+        row["rel_width"] = np.round(width, 4).tolist()
+    return rows
 
 
 def main() -> None:
