@@ -49,6 +49,7 @@ from eval.tracks import Tracks
 from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
 from watergan.io import image_files, read_camera_json, read_json, read_survey_json
+from watergan.lens import OPENCV, Lens
 
 
 class Matching(StrEnum):
@@ -207,6 +208,47 @@ def refined_k1(rec) -> float | None:
     with stderr_to_null():  # the adjuster logs its start at INFO whatever glog's level
         pycolmap.bundle_adjustment(copy, options)
     return float(np.median([camera.params[3] for camera in copy.cameras.values()]))
+
+
+#: Consecutive frames from the middle of the survey SfM estimates a lens on (:func:`estimate_lens`).
+LENS_FRAMES = 30
+
+
+def estimate_lens(images_dir: Path, names: list[str], camera: dict, start: Lens | None, work_dir: Path,
+                  seed: int = 0) -> tuple[Lens, dict]:
+    """The lens of distorted frames, refined by SfM: up to ``LENS_FRAMES`` consecutive frames from the middle of
+    ``names``, matched sequentially and mapped incrementally with one camera of ``start``'s model and coefficients
+    (OpenCV's k1, k2, p1, p2 from 0 when None; :meth:`watergan.lens.Lens.to_colmap`), its fx, fy, cx, cy held from
+    ``camera`` and its coefficients refined by every bundle adjustment. The poses and the seafloor's relief seen
+    from several positions pin the coefficients; the focal length, which trades with them, stays as given.
+    Works in ``work_dir`` (removed after). Returns the lens and a summary (frames, registered, reprojection error
+    in pixels, seconds, the start)."""
+    import pycolmap
+
+    started = time.perf_counter()
+    lens = start if start is not None else Lens(OPENCV, ())
+    first = max(0, len(names) // 2 - LENS_FRAMES // 2)
+    subset = names[first:first + LENS_FRAMES]
+    cfg = SfmConfig(matching=Matching.sequential, seed=seed, progress=False)
+    shutil.rmtree(work_dir, ignore_errors=True)
+    (work_dir / "raw").mkdir(parents=True)
+    try:
+        with colmap_errors_only():
+            _extract_features(work_dir / "lens.db", images_dir, subset, camera, cfg, lens)
+            _match_features(work_dir / "lens.db", subset, cfg)
+            options = _incremental_options(camera, cfg)
+            options.ba_refine_extra_params = options.mapper.abs_pose_refine_extra_params = True
+            models = pycolmap.incremental_mapping(work_dir / "lens.db", images_dir, work_dir / "raw", options)
+            rec, n_reg = _largest_model(models, subset, cfg)
+    except UserInputError as exc:
+        raise UserInputError(f"estimating the lens: {exc}; or give the lens in camera.json") from None
+    finally:
+        shutil.rmtree(work_dir, ignore_errors=True)
+    refined = Lens(lens.model, tuple(float(c) for c in rec.cameras[next(iter(rec.cameras))].params[4:]))
+    summary = {"frames": len(subset), "registered": n_reg,
+               "reprojection_px": round(float(rec.compute_mean_reprojection_error()), 4),
+               "seconds": round(time.perf_counter() - started, 1), "start": start.to_json() if start else None}
+    return refined, summary
 
 
 @contextmanager
@@ -477,16 +519,18 @@ def _sfm_inputs(images_dir: Path, cfg: SfmConfig) -> tuple[list[str], dict | Non
     return names, cam
 
 
-def _extract_features(database: Path, images_dir: Path, names: list[str], cam: dict | None, cfg: SfmConfig) -> None:
-    """SIFT features (at most ``max_features`` per image, seeded) into a new ``database``: one PINHOLE camera
-    from ``cam`` (COLMAP's pixel-centre convention), else one SIMPLE_RADIAL camera to estimate."""
+def _extract_features(database: Path, images_dir: Path, names: list[str], cam: dict | None, cfg: SfmConfig,
+                      lens: Lens | None = None) -> None:
+    """SIFT features (at most ``max_features`` per image, seeded) into a new ``database``: one camera from ``cam``
+    (COLMAP's pixel-centre convention), PINHOLE or ``lens``'s model (:meth:`watergan.lens.Lens.to_colmap`), else
+    one SIMPLE_RADIAL camera to estimate."""
     import pycolmap
 
     database.unlink(missing_ok=True)
     if cam is not None:
-        reader = pycolmap.ImageReaderOptions(
-            camera_model="PINHOLE",
-            camera_params=f"{cam['fx']},{cam['fy']},{cam['cx'] + 0.5},{cam['cy'] + 0.5}")
+        model, params = lens.to_colmap(cam) if lens is not None else \
+            ("PINHOLE", [cam["fx"], cam["fy"], cam["cx"] + 0.5, cam["cy"] + 0.5])
+        reader = pycolmap.ImageReaderOptions(camera_model=model, camera_params=",".join(str(float(v)) for v in params))
     else:
         reader = pycolmap.ImageReaderOptions(camera_model="SIMPLE_RADIAL")
     extraction = pycolmap.FeatureExtractionOptions()

@@ -15,8 +15,8 @@ from pathlib import Path
 
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_bytes, atomic_write_json, read_camera_json, read_survey_json
-from watergan.lens import DISTORTION_KEYS, camera_matrix, distortion_of, undistort_image
+from watergan.io import atomic_write_bytes, atomic_write_json, read_camera_json, read_json, read_survey_json
+from watergan.lens import LENS_KEYS, Lens, camera_matrix, distortion_of, undistort_image
 
 from .navigation import NAVIGATION_CSV, navigation_from_log
 from .workspace import Workspace
@@ -109,7 +109,10 @@ class SurveyConfig:
     """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: ``<survey>/rgbd``, else a generic
     seafloor set rendered by the simulator into the workspace."""
     seed: int = 0
-    """Seed of the generic RGB-D set."""
+    """Seed of the generic RGB-D set (and of the lens's estimation)."""
+    estimate_lens: bool = False
+    """SfM estimates the lens's distortion on 30 of the frames, starting from camera.json's lens (its model refined)
+    or, without one, from OpenCV's k1, k2, p1, p2 at 0; the frames are then undistorted with it."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Progress bars (undistorting a lens's frames)."""
 
@@ -141,14 +144,17 @@ class SurveyResult:
     navigation: bool = False
     """Whether survey.json gives each frame's altitude (``nav_altitude_m``)."""
     undistorted: dict = field(default_factory=dict)
-    """The lens distortion camera.json gives (k1, k2, p1, p2, k3), removed from the frames: every stage after this
-    one works in the undistorted pinhole geometry (the workspace's images/, right/ and camera.json); empty: none."""
+    """The lens removed from the frames (``lens_model`` and its coefficients, :mod:`watergan.lens`): every stage
+    after this one works in the undistorted pinhole geometry (the workspace's images/, right/ and camera.json);
+    empty: none."""
+    lens_estimate: dict = field(default_factory=dict)
+    """SfM's estimation of the lens (:func:`pipeline.sfm.estimate_lens`: frames, registered, reprojection error,
+    seconds, the start); empty: the lens is camera.json's."""
 
 
-def undistort_frames(survey: Path, target: Path, camera: dict, distortion, progress: bool = True) -> None:
+def undistort_frames(survey: Path, target: Path, camera: dict, lens: Lens, progress: bool = True) -> None:
     """The survey's frames (images/, right/) undistorted into the workspace's survey folder (same names, format and
-    bit depth; :func:`watergan.lens.undistort_image`) and its camera.json without the distortion (the same
-    intrinsics, a pinhole camera)."""
+    bit depth; :func:`watergan.lens.undistort_image`)."""
     import cv2
     from tqdm import tqdm
 
@@ -160,13 +166,10 @@ def undistort_frames(survey: Path, target: Path, camera: dict, distortion, progr
         for path in tqdm(list_files(survey / folder, IMAGE_SUFFIXES), desc=f"undistort {folder}", unit="frame",
                          disable=not progress):
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            ok, data = cv2.imencode(path.suffix, undistort_image(image, K, distortion))
+            ok, data = cv2.imencode(path.suffix, undistort_image(image, K, lens))
             if not ok:
                 raise DataError(f"cannot encode the undistorted {path}")
             atomic_write_bytes(target / folder / path.name, data.tobytes())
-    pinhole = {k: v for k, v in camera.items() if k not in DISTORTION_KEYS}
-    atomic_write_json(target / "camera.json", {**pinhole, "undistorted": {k: camera.get(k, 0.0)
-                                                                          for k in DISTORTION_KEYS}})
 
 
 def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
@@ -176,13 +179,16 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     summary = check_survey(survey)
     logged = (survey / NAVIGATION_CSV).is_file()
     camera = read_camera_json(survey / "camera.json")
-    distortion = distortion_of(camera)
-    if distortion is not None and survey == target:
-        raise UserInputError(f"{survey} is a workspace's survey folder with a lens distortion in camera.json: run on "
-                             f"the survey folder itself, so that its frames can be undistorted into the workspace")
+    lens = distortion_of(camera)
+    # the workspace's own camera.json: pinhole after undistortion, or COLMAP's form read into named keys
+    own_camera = lens is not None or cfg.estimate_lens or "params" in read_json(survey / "camera.json")
+    if own_camera and survey == target:
+        raise UserInputError(f"{survey} is a workspace's survey folder and its camera.json has a lens or COLMAP's "
+                             f"params: run on the survey folder itself, so that the workspace gets its own frames "
+                             f"and camera.json")
     if survey != target:
-        written = ({"survey.json"} if logged else set()) | \
-            ({"images", "right", "camera.json"} if distortion is not None else set())
+        written = ({"survey.json"} if logged else set()) | ({"camera.json"} if own_camera else set()) | \
+            ({"images", "right"} if lens is not None or cfg.estimate_lens else set())
         for name in ("images", "right", "camera.json", "survey.json", "truth"):
             if name in written:  # the workspace's own version, written below
                 if (target / name).is_symlink():
@@ -205,8 +211,20 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
             shutil.rmtree(rgbd)
         print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
         write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
-    if distortion is not None:
-        undistort_frames(survey, target, camera, distortion, cfg.progress)
+    estimate = {}
+    if cfg.estimate_lens:
+        from .sfm import estimate_lens
+
+        names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
+        lens, estimate = estimate_lens(survey / "images", names, camera, lens, target / "lens_sfm", cfg.seed)
+        print(f"survey: SfM's lens on {estimate['registered']} frames: {lens.model} "
+              + ", ".join(f"{k} {v:+.4f}" for k, v in lens.to_json().items() if k != "lens_model")
+              + f" (reprojection {estimate['reprojection_px']:.3f} px)", file=sys.stderr, flush=True)
+    if lens is not None:
+        undistort_frames(survey, target, camera, lens, cfg.progress)
+    if own_camera:
+        pinhole = {k: v for k, v in camera.items() if k not in LENS_KEYS and k != "model"}
+        atomic_write_json(target / "camera.json", {**pinhole, **({"undistorted": lens.to_json()} if lens else {})})
     declared = survey_navigation(survey, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)])
     if logged:
         if survey == target:
@@ -216,6 +234,5 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     navigation = "nav_altitude_m" in declared
     inside = rgbd.resolve().is_relative_to(ws.root.resolve())
     return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),
-                        navigation=navigation,
-                        undistorted=dict(zip(DISTORTION_KEYS, distortion.tolist(), strict=True))
-                        if distortion is not None else {})
+                        navigation=navigation, undistorted=lens.to_json() if lens is not None else {},
+                        lens_estimate=estimate)

@@ -61,11 +61,15 @@ def test_all_frames_register_with_stereo_scale(sfm):
 
 
 @pytest.mark.slow
-def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named(tmp_path):
-    """The survey seen through a wide lens (OpenCV k1 -0.2, k2 0.05): given in camera.json, the survey stage
+@pytest.mark.parametrize("lens_model, coefficients", [("opencv", (-0.2, 0.05, 0.0, 0.0, 0.0)),
+                                                      ("fisheye", (0.05, -0.02, 0.0, 0.0))])
+def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp_path, lens_model, coefficients):
+    """The survey seen through a wide lens (OpenCV k1 -0.2, k2 0.05, or a fisheye): given in camera.json, the survey stage
     undistorts the frames into the workspace (the user's stay as they are), where they match the pinhole truth;
     withheld, SfM's refined k1 names the distortion and its one-line summary says what to do (undistorted frames:
-    near 0, as the pinhole survey's in ``test_all_frames_register_with_stereo_scale``)."""
+    near 0, as the pinhole survey's in ``test_all_frames_register_with_stereo_scale``); withheld and estimated
+    (``estimate_lens``; the fisheye's camera.json keeps its ``lens_model``), the survey stage finds the lens and SfM
+    then sees undistorted frames."""
     import json
 
     import cv2
@@ -73,18 +77,19 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named(tmp_path):
     from eval.synth import make_config, simulate_survey
     from eval.synth.camera import CameraConfig
     from pipeline.survey import SurveyConfig
-    from watergan.lens import DISTORTION_KEYS
+    from watergan.lens import LENS_KEYS, MODEL_KEYS
 
     base = make_config("tiny")
     config = replace(base, camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0,
-                                               distortion=(-0.2, 0.05, 0.0, 0.0, 0.0)),
+                                               distortion=coefficients, lens_model=lens_model),
                      trajectory=replace(base.trajectory, n_lines=2, frames_per_line=5, forward_overlap=0.75))
     raw = tmp_path / "lens"
     simulate_survey(raw, config, force=True, progress=False)
     before = (raw / "images" / "000000.png").read_bytes()
     ws = Workspace(tmp_path / "ws")
     survey = ws.run("survey", SurveyConfig(survey_dir=str(raw), progress=False))
-    assert survey.undistorted["k1"] == -0.2 and (raw / "images" / "000000.png").read_bytes() == before
+    assert survey.undistorted == {"lens_model": lens_model, **dict(zip(MODEL_KEYS[lens_model], coefficients))}
+    assert (raw / "images" / "000000.png").read_bytes() == before
     assert "k1" not in json.loads((ws.folder("survey") / "camera.json").read_text())
     undistorted = cv2.imread(str(ws.folder("survey") / "images" / "000000.png"), cv2.IMREAD_GRAYSCALE)
     truth = cv2.imread(str(raw / "truth" / "inair" / "000000.png"), cv2.IMREAD_GRAYSCALE)
@@ -96,12 +101,22 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named(tmp_path):
     assert np.corrcoef(edges(undistorted), edges(truth))[0, 1] > np.corrcoef(edges(distorted), edges(truth))[0, 1] + 0.2
 
     camera = json.loads((raw / "camera.json").read_text())
-    (raw / "camera.json").write_text(json.dumps({k: v for k, v in camera.items() if k not in DISTORTION_KEYS}))
+    (raw / "camera.json").write_text(json.dumps({k: v for k, v in camera.items() if k not in LENS_KEYS}))
     withheld = Workspace(tmp_path / "withheld")
     assert not withheld.run("survey", SurveyConfig(survey_dir=str(raw), progress=False)).undistorted
     result = withheld.run("sfm", SfmConfig(progress=False))
     assert result.lens_k1 < -0.05 and result.looks_distorted  # -0.08 measured: one coefficient for k1 and k2
     assert "the frames look distorted (SfM's refined k1 = -0." in result.summary()
+
+    estimated = Workspace(tmp_path / "estimated")
+    if lens_model == "fisheye":  # the model declared, its coefficients left to SfM
+        (raw / "camera.json").write_text(json.dumps({**json.loads((raw / "camera.json").read_text()),
+                                                     "lens_model": "fisheye"}))
+    survey = estimated.run("survey", SurveyConfig(survey_dir=str(raw), estimate_lens=True, progress=False))
+    assert survey.lens_estimate["registered"] == 10 and survey.undistorted["lens_model"] == lens_model
+    assert survey.undistorted["k1"] == pytest.approx(coefficients[0], abs=0.02)
+    assert json.loads((estimated.folder("survey") / "camera.json").read_text())["undistorted"] == survey.undistorted
+    assert abs(estimated.run("sfm", SfmConfig(progress=False)).lens_k1) < 0.02
 
 
 def test_camera_centres_match_truth_after_similarity(sfm):

@@ -421,31 +421,57 @@ def image_files(folder: Path) -> list[str]:
 
 
 def read_camera_json(path: Path) -> dict | None:
-    """camera.json's intrinsics (fx, fy, cx, cy, width, height; optional baseline_m and OpenCV's lens distortion
-    k1, k2, p1, p2, k3, :mod:`watergan.lens`), None when there is no such file; malformed JSON or a missing key is
-    an error naming the file."""
+    """camera.json's intrinsics, None when there is no such file: fx, fy, cx, cy (OpenCV's pixel convention: pixel
+    (i, j)'s centre at (i, j)), width, height, optional ``baseline_m`` and the lens (:mod:`watergan.lens`: OpenCV's
+    ``k1, k2, p1, p2, k3[, k4, k5, k6]``, or ``"lens_model": "fisheye"`` with ``k1..k4``). COLMAP's form, ``model``
+    and ``params`` in its order and pixel convention (cx + 0.5), is read into those names. Malformed JSON, a
+    missing key, a value that is not a number, an unknown model or lens keys that are not the model's are an
+    error naming the file."""
+    from watergan.lens import MODEL_KEYS, camera_from_colmap
+
     path = Path(path)
     if not path.is_file():
         return None
     cam = read_json(path, "camera file")
     if not isinstance(cam, dict):
         raise DataError(f"{path} holds {type(cam).__name__}; expected an object with fx, fy, cx, cy, width, height")
+    if "params" in cam:
+        named = sorted({"fx", "fy", "cx", "cy", "lens_model", *MODEL_KEYS["opencv"]} & set(cam))
+        if named:
+            raise DataError(f"camera file {path} gives COLMAP's params and {', '.join(named)}: give one of them")
+        params = cam["params"]
+        if not (isinstance(params, list) and all(_is_number(v) for v in params)):
+            raise DataError(f"camera file {path}: params = {params!r} is not a list of numbers (COLMAP's order)")
+        try:
+            cam = {**cam, **camera_from_colmap(str(cam.get("model")), params, f"camera file {path}")}
+        except ValueError as exc:
+            raise DataError(str(exc)) from None
+        del cam["params"]
     missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
     if missing:
-        raise DataError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height")
-    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m", "k1", "k2", "p1", "p2", "k3"):
+        raise DataError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height (or "
+                        f"COLMAP's model and params)")
+    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m"):
         value = cam.get(key)
-        if key not in ("fx", "fy", "cx", "cy", "width", "height") and value is None:
-            continue
-        if key in ("k1", "k2", "p1", "p2", "k3"):
-            if not _is_number(value):
-                raise DataError(f"camera file {path}: {key} = {value!r} is not a number (OpenCV's lens distortion)")
+        if key == "baseline_m" and value is None:
             continue
         positive = key not in ("cx", "cy")
         if not _is_number(value) or (positive and not value > 0):
             raise DataError(f"camera file {path}: {key} = {value!r} is not a {'positive ' if positive else ''}number")
         if key in ("width", "height") and value != int(value):
             raise DataError(f"camera file {path}: {key} = {value!r} is not a whole number of pixels")
+    model = cam.get("lens_model", "opencv")
+    if model not in MODEL_KEYS:
+        raise DataError(f"camera file {path}: lens_model = {model!r}: give \"opencv\" (k1, k2, p1, p2, k3[, k4, k5, "
+                        f"k6]) or \"fisheye\" (k1, k2, k3, k4)")
+    for key in MODEL_KEYS["opencv"]:
+        value = cam.get(key)
+        if value is None:
+            continue
+        if key not in MODEL_KEYS[model]:
+            raise DataError(f"camera file {path}: {key} is not a coefficient of the fisheye lens (k1, k2, k3, k4)")
+        if not _is_number(value):
+            raise DataError(f"camera file {path}: {key} = {value!r} is not a number (the {model} lens's distortion)")
     return cam
 
 

@@ -29,8 +29,18 @@ class CameraConfig:
     hfov_deg: float = 70.0
     """Horizontal field of view (in water, i.e. of the housing + lens system), degrees."""
     distortion: tuple[float, ...] = ()
-    """The lens's distortion, OpenCV's (k1, k2, p1, p2, k3) (:mod:`watergan.lens`); empty: a pinhole camera. The
-    images are rendered through it and camera.json gives it; the truth stays in the pinhole geometry."""
+    """The lens's distortion coefficients in OpenCV's order for ``lens_model`` (:mod:`watergan.lens`: k1, k2, p1,
+    p2, k3 or the fisheye's k1..k4); empty: a pinhole camera. The images are rendered through it and camera.json
+    gives it; the truth stays in the pinhole geometry."""
+    lens_model: str = "opencv"
+    """``"opencv"`` or ``"fisheye"``."""
+
+    @property
+    def lens(self):
+        """The :class:`watergan.lens.Lens`, None for a pinhole camera."""
+        from watergan.lens import Lens
+
+        return Lens(self.lens_model, self.distortion) if self.distortion else None
 
 
 def intrinsics_from_fov(width: int, height: int, hfov_deg: float) -> Intrinsics:
@@ -74,14 +84,14 @@ def pixel_rays_cam(intr: Intrinsics) -> np.ndarray:
     return rays
 
 
-def lens_rays_cam(intr: Intrinsics, distortion: tuple[float, ...]) -> np.ndarray:
-    """(H,W,3) unit ray directions in the camera frame through each pixel centre of a camera whose lens distorts
-    by OpenCV's ``distortion`` (:func:`watergan.lens.undistorted_points`)."""
+def lens_rays_cam(intr: Intrinsics, lens) -> np.ndarray:
+    """(H,W,3) unit ray directions in the camera frame through each pixel centre of a camera seeing through
+    ``lens`` (a :class:`watergan.lens.Lens`; :func:`watergan.lens.undistorted_points`)."""
     from watergan.lens import undistorted_points
 
     i, j = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
     K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
-    xy = undistorted_points(np.stack([i.ravel(), j.ravel()], 1), K, np.asarray(distortion, float))
+    xy = undistorted_points(np.stack([i.ravel(), j.ravel()], 1), K, lens)
     n = np.concatenate([xy, np.ones((len(xy), 1))], 1).reshape(intr.height, intr.width, 3)
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 

@@ -35,7 +35,6 @@ from watergan.errors import UserInputError
 from watergan.formation import Counts, Stack
 from watergan.formation.effects.artificial_light import beam_angle_deg
 from watergan.io import quantise, write_depth_png, write_png, write_srgb_png
-from watergan.lens import DISTORTION_KEYS
 
 from .camera import intrinsics_for, lens_rays_cam
 from .config import SimulationConfig, config_to_dict
@@ -209,7 +208,7 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
     board_pixels = []
     names = [frame_name(k) for k in range(len(trajectory))]
     f = config.formation
-    lens = lens_rays_cam(intr, config.camera.distortion) if config.camera.distortion else None
+    lens = lens_rays_cam(intr, config.camera.lens) if config.camera.lens else None
     with _Writer() as writer, single_torch_thread():
         for k in tqdm(range(len(trajectory)), desc="survey", unit="frame",
                       disable=None if progress is None else not progress):
@@ -230,7 +229,7 @@ def _write_survey(root: Path, config: SimulationConfig, stacks, progress: bool |
 
     altitudes = nav_altitudes(caster, trajectory, config.trajectory.nav_altitude_noise_m, config.seed)
     camera_json = intr.to_json()
-    camera_json.update(zip(DISTORTION_KEYS, config.camera.distortion, strict=False))
+    camera_json.update(config.camera.lens.to_json() if config.camera.lens else {})
     if stereo:
         camera_json["baseline_m"] = config.trajectory.baseline_m
     write_json(root / "camera.json", camera_json)
