@@ -67,6 +67,13 @@ SURVEYS = {
     # camera.json (the survey stage undistorts the frames), and the same frames with the distortion withheld
     "lens0": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0)},
     "lens0_withheld": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0), "withhold_lens": True},
+    # the withheld survey's frames with the lens estimated by SfM in the survey stage (``--estimate-lens``), and the
+    # demo through a fisheye (OpenCV's model), given, and with only its model declared and the lens estimated
+    "lens0_estimated": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0), "withhold_lens": True,
+                        "estimate_lens": True, "raw": "lens0_withheld"},
+    "fish0": {"seed": 0, "stereo": True, "lens": (0.05, -0.02, 0.0, 0.0), "lens_model": "fisheye"},
+    "fish0_estimated": {"seed": 0, "stereo": True, "lens": (0.05, -0.02, 0.0, 0.0), "lens_model": "fisheye",
+                        "withhold_lens": True, "estimate_lens": True, "raw": "fish0"},
 }
 #: The plugin holding the robustness surveys' hidden effects (loaded when a survey hides one of them).
 ROBUST_PLUGIN = Path(__file__).parent / "plugins" / "robust_forms.py"
@@ -103,15 +110,22 @@ def prepare(root: Path, name: str) -> Path:
             cfg = replace(cfg, formation=replace(cfg.formation, visible=tuple(visible)))
         if spec.get("lens"):  # simulated beside the workspace, then through the survey stage (it undistorts)
             from pipeline.survey import SurveyConfig
+            from watergan.lens import LENS_KEYS
 
-            cfg = replace(cfg, camera=replace(cfg.camera, distortion=tuple(spec["lens"])))
-            raw = root / f"{name}_raw_survey"
-            simulate_survey(raw, cfg, force=True, progress=False)
-            if spec.get("withhold_lens"):
-                camera = json.loads((raw / "camera.json").read_text())
-                (raw / "camera.json").write_text(json.dumps({k: v for k, v in camera.items()
-                                                             if k not in ("k1", "k2", "p1", "p2", "k3")}))
-            ws.run("survey", SurveyConfig(survey_dir=str(raw), progress=False))
+            model = spec.get("lens_model", "opencv")
+            cfg = replace(cfg, camera=replace(cfg.camera, distortion=tuple(spec["lens"]), lens_model=model))
+            raw = root / f"{spec.get('raw', name)}_raw_survey"
+            if not (raw / "truth" / "config.json").is_file():
+                simulate_survey(raw, cfg, force=True, progress=False)
+            camera = json.loads((raw / "camera.json").read_text())
+            if spec.get("withhold_lens"):  # the coefficients withheld; a fisheye's model stays declared
+                camera = {k: v for k, v in camera.items() if k not in LENS_KEYS}
+                camera.update({"lens_model": model} if model == "fisheye" else {})
+            else:
+                camera.update(cfg.camera.lens.to_json())
+            (raw / "camera.json").write_text(json.dumps(camera))
+            ws.run("survey", SurveyConfig(survey_dir=str(raw), estimate_lens=spec.get("estimate_lens", False),
+                                          progress=False))
         else:
             simulate_survey(survey, cfg, force=True, progress=False)
     if not (ws.stage_dir("sfm") / "tracks.npz").is_file():  # reused when present, whatever made it
@@ -232,6 +246,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     frames, K, sparse, board, tracks = load_inputs(ws_root)
     load_seconds = time.perf_counter() - t
     sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
+    survey = json.loads((ws_root / "00_survey" / "result.json").read_text())["result"]
     config = replace(config, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     add = SURVEYS[name].get("add", ())
     if add:
@@ -247,6 +262,9 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     print(f"\n== {name}: {estimate.summary()}")
     print(f"   sfm: reprojection {sfm['mean_reprojection_error_px']:.3f} px, scale spread "
           f"{100 * sfm['scale_spread']:.2f} %, refined k1 {sfm.get('lens_k1')}")
+    if survey.get("undistorted"):
+        print(f"   lens removed by the survey stage: {survey['undistorted']}"
+              + (f" (estimated: {survey['lens_estimate']})" if survey.get("lens_estimate") else ""))
     print(f"   water estimate {water_seconds:.1f} s (+ {load_seconds:.1f} s reading frames and range; "
           f"{estimate.seconds}; {estimate.iterations} iterations, converged {estimate.converged}); "
           f"{estimate.n_points} points, {estimate.n_observations} views, "
@@ -291,6 +309,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     return {"params": params, "estimate": estimate.to_json(), "correction": metrics,
             "filled_fraction": corr["filled_fraction"], "mesh_fraction": corr["mesh_fraction"], "targets": targets,
             "sfm": {k: sfm.get(k) for k in ("mean_reprojection_error_px", "scale_spread", "lens_k1")},
+            "lens": {k: survey.get(k) for k in ("undistorted", "lens_estimate")},
             "seconds": {"prepare": round(prep_seconds, 1), "load": round(load_seconds, 2),
                         "water": round(water_seconds, 2),
                         "physics_per_frame": round(corr["physics_seconds_per_frame"], 3)}}
