@@ -204,6 +204,9 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         lose = [line for line in verdict_lines if " loses to " in line]
         lines.append(f"Comparisons: {len(verdict_lines) - len(lose)} of {len(verdict_lines)} hold"
                      + (f"; {len(lose)} lose (listed under Verdict)." if lose else "."))
+    if sfm is not None and sfm.looks_distorted:  # the lens first: every stage after SfM carries its error
+        survey = ws.result("survey")
+        command = f"watergan run {survey.survey_dir if survey else 'SURVEY'} --workspace {ws.root} --survey-estimate-lens"
     return lines, command
 
 

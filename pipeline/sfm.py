@@ -185,8 +185,9 @@ DISTORTED_K1 = 0.02
 def distortion_warning(k1: float) -> str:
     """What to do when SfM's refined k1 says the frames are distorted."""
     return (f"sfm: the frames look distorted (SfM's refined k1 = {k1:+.3f}, where an undistorted camera gives "
-            f"about 0): give the lens's k1, k2, p1, p2, k3 (OpenCV's model) in camera.json; until then the water and "
-            f"the corrections carry the distortion's error on image position")
+            f"about 0): give the lens in camera.json (OpenCV's k1, k2, p1, p2, k3, a fisheye's k1..k4, or COLMAP's "
+            f"model and params), or rerun with `watergan run ... --survey-estimate-lens` so that the survey stage "
+            f"estimates it; until then the water and the corrections carry the distortion's error on image position")
 
 
 def refined_k1(rec) -> float | None:

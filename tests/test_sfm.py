@@ -76,6 +76,7 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
 
     from eval.synth import make_config, simulate_survey
     from eval.synth.camera import CameraConfig
+    from pipeline.report import found_lines
     from pipeline.survey import SurveyConfig
     from watergan.lens import LENS_KEYS, MODEL_KEYS
 
@@ -107,6 +108,9 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
     result = withheld.run("sfm", SfmConfig(progress=False))
     assert result.lens_k1 < -0.05 and result.looks_distorted  # -0.08 measured: one coefficient for k1 and k2
     assert "the frames look distorted (SfM's refined k1 = -0." in result.summary()
+    lines, command = found_lines(withheld)  # the report's first screen: the lens, and the run that estimates it
+    assert lines[0].startswith("Lens: the frames look distorted")
+    assert command == f"watergan run {raw.resolve()} --workspace {withheld.root} --survey-estimate-lens"
 
     estimated = Workspace(tmp_path / "estimated")
     if lens_model == "fisheye":  # the model declared, its coefficients left to SfM
