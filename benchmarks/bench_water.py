@@ -68,12 +68,13 @@ SURVEYS = {
     "lens0": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0)},
     "lens0_withheld": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0), "withhold_lens": True},
     # the withheld survey's frames with the lens estimated by SfM in the survey stage (``--estimate-lens``), and the
-    # demo through a fisheye (OpenCV's model), given, and with only its model declared and the lens estimated
+    # demo through a fisheye (OpenCV's model; a 60-degree focal length, since at the pinhole's 70 the fisheye's wider
+    # view sees past the site's edge), given, and with only its model declared and the lens estimated
     "lens0_estimated": {"seed": 0, "stereo": True, "lens": (-0.2, 0.05, 0.0, 0.0, 0.0), "withhold_lens": True,
                         "estimate_lens": True, "raw": "lens0_withheld"},
-    "fish0": {"seed": 0, "stereo": True, "lens": (0.05, -0.02, 0.0, 0.0), "lens_model": "fisheye"},
+    "fish0": {"seed": 0, "stereo": True, "lens": (0.05, -0.02, 0.0, 0.0), "lens_model": "fisheye", "hfov_deg": 60.0},
     "fish0_estimated": {"seed": 0, "stereo": True, "lens": (0.05, -0.02, 0.0, 0.0), "lens_model": "fisheye",
-                        "withhold_lens": True, "estimate_lens": True, "raw": "fish0"},
+                        "hfov_deg": 60.0, "withhold_lens": True, "estimate_lens": True, "raw": "fish0"},
 }
 #: The plugin holding the robustness surveys' hidden effects (loaded when a survey hides one of them).
 ROBUST_PLUGIN = Path(__file__).parent / "plugins" / "robust_forms.py"
@@ -113,7 +114,8 @@ def prepare(root: Path, name: str) -> Path:
             from watergan.lens import LENS_KEYS
 
             model = spec.get("lens_model", "opencv")
-            cfg = replace(cfg, camera=replace(cfg.camera, distortion=tuple(spec["lens"]), lens_model=model))
+            cfg = replace(cfg, camera=replace(cfg.camera, distortion=tuple(spec["lens"]), lens_model=model,
+                                              hfov_deg=spec.get("hfov_deg", cfg.camera.hfov_deg)))
             raw = root / f"{spec.get('raw', name)}_raw_survey"
             if not (raw / "truth" / "config.json").is_file():
                 simulate_survey(raw, cfg, force=True, progress=False)
