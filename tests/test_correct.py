@@ -247,3 +247,15 @@ def test_a_flat_seafloor_s_range_follows_the_camera_s_attitude(tmp_path):
         read_nav_down(survey)
     survey.write_text(json.dumps({"frames": ["a.png", "b.png"], "nav_altitude_m": [2.0, 2.0]}))
     assert read_nav_down(survey) is None
+
+
+def test_the_allocator_keeps_freed_memory_on_glibc():
+    """keep_freed_memory's two mallopt calls are accepted by this machine's C library (glibc on Linux); where there
+    is none the correction runs with the allocator's defaults."""
+    import platform
+
+    from pipeline.correct import keep_freed_memory
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("not glibc")
+    assert keep_freed_memory()

@@ -191,8 +191,24 @@ def srgb_encode(x: torch.Tensor) -> torch.Tensor:
 
 def apply_affine(fields: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     """y = srgb(exp(g) lin(x) + o) per channel: ``fields`` (B,6,H,W) holds the log gains g and offsets
-    o (linear light), ``image`` (B,3,H,W) the sRGB-encoded 0..1 input; zero fields give y = x."""
-    return srgb_encode(srgb_decode(image) * torch.exp(fields[:, :3]) + fields[:, 3:])
+    o (linear light), ``image`` (B,3,H,W) the sRGB-encoded 0..1 input; zero fields give y = x. Without gradients
+    (correcting frames) the same equation in fewer full-resolution passes (:func:`_apply_affine_in_place`)."""
+    if torch.is_grad_enabled() and (fields.requires_grad or image.requires_grad):
+        return srgb_encode(srgb_decode(image) * torch.exp(fields[:, :3]) + fields[:, 3:])
+    return _apply_affine_in_place(fields, image)
+
+
+def _apply_affine_in_place(fields: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """:func:`apply_affine` for inference: the powers as exp(a ln v), each step in place on one of a few buffers
+    (the same values to float rounding; on a CPU each new full-resolution tensor costs more than its arithmetic)."""
+    lin = image.clamp(0.0, 1.0)
+    dark = lin <= 0.04045
+    curve = lin.add(0.055).mul_(1 / 1.055).log_().mul_(2.4).exp_()
+    lin = torch.where(dark, lin.mul_(1 / 12.92), curve)
+    lin.mul_(fields[:, :3].exp()).add_(fields[:, 3:]).clamp_(min=0.0)
+    dark = torch.le(lin, 0.0031308, out=dark)
+    curve = torch.clamp(lin, min=0.0031308, out=curve).log_().mul_(1 / 2.4).exp_().mul_(1.055).sub_(0.055)
+    return torch.where(dark, lin.mul_(12.92), curve)
 
 
 CONTEXT_CHANNELS = 6
