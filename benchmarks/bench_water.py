@@ -248,7 +248,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     frames, K, sparse, board, tracks = load_inputs(ws_root)
     load_seconds = time.perf_counter() - t
     sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
-    survey = json.loads((ws_root / "00_survey" / "result.json").read_text())["result"]
+    survey_record = ws_root / "00_survey" / "result.json"  # none where the survey was simulated in place
+    survey = json.loads(survey_record.read_text())["result"] if survey_record.is_file() else {}
     config = replace(config, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     add = SURVEYS[name].get("add", ())
     if add:
@@ -341,15 +342,15 @@ def main(argv: list[str] | None = None) -> int:
         config = replace(config, field_degree=args.field_degree)
     if args.no_frame_gain:
         config = replace(config, frame_gain=False)
-    results = {}
-    for name in args.surveys.split(","):
-        results[name] = run_survey(args.out, name, config, args.tracks)
     import sys
 
     command = "benchmarks/bench_water.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    report = {"command": command, "config": dict(config.__dict__), "surveys": results}
+    results = {}
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    for name in args.surveys.split(","):
+        results[name] = run_survey(args.out, name, config, args.tracks)
+        report = {"command": command, "config": dict(config.__dict__), "surveys": results}
+        args.json.write_text(json.dumps(report, indent=2, default=str) + "\n")  # after each survey: a crash keeps them
     print(f"\nwrote {args.json}")
     return 0
 
