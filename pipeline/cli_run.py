@@ -82,8 +82,9 @@ def print_survey(ws, r) -> None:
           f"{', simulated' if r.simulated else ''}; in-air RGB-D set {r.rgbd_dir}")
     if r.undistorted:
         lens = ", ".join(f"{k} {v:+.4f}" for k, v in r.undistorted.items() if k != "lens_model" and v)
-        print(f"survey: frames undistorted ({r.undistorted['lens_model']} lens{', estimated by SfM' if r.lens_estimate else ''}: "
-              f"{lens}); every later stage works in the pinhole geometry")
+        source = ", estimated by SfM" if r.lens_estimate else ""
+        print(f"survey: frames undistorted ({r.undistorted.get('lens_model', 'opencv')} lens{source}: {lens}); every "
+              f"later stage works in the pinhole geometry")
 
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:

@@ -206,7 +206,8 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
                      + (f"; {len(lose)} lose (listed under Verdict)." if lose else "."))
     if sfm is not None and sfm.looks_distorted:  # the lens first: every stage after SfM carries its error
         survey = ws.result("survey")
-        command = f"watergan run {survey.survey_dir if survey else 'SURVEY'} --workspace {ws.root} --survey-estimate-lens"
+        folder = survey.survey_dir if survey else "SURVEY"
+        command = f"watergan run {folder} --workspace {ws.root} --survey-estimate-lens"
     return lines, command
 
 

@@ -7,8 +7,17 @@ import pytest
 
 from watergan.data import DataError
 from watergan.io import read_camera_json
-from watergan.lens import (COLMAP_MODELS, FISHEYE, Lens, camera_from_colmap, camera_matrix, distorted_pixels,
-                           distortion_of, undistort_image, undistorted_points)
+from watergan.lens import (
+    COLMAP_MODELS,
+    FISHEYE,
+    Lens,
+    camera_from_colmap,
+    camera_matrix,
+    distorted_pixels,
+    distortion_of,
+    undistort_image,
+    undistorted_points,
+)
 
 #: A moderate wide lens in each of COLMAP's models (its parameter order, pixel centres at +0.5).
 COLMAP_CAMERAS = {
@@ -90,3 +99,32 @@ def test_camera_json_takes_colmap_s_form_and_names_what_is_wrong(tmp_path):
         read({**named, "lens_model": "fisheye", "p1": 0.01})
     with pytest.raises(DataError, match="lens_model = 'kannala'"):
         read({**named, "lens_model": "kannala"})
+
+
+def test_the_survey_stage_reads_colmap_s_form_into_the_workspace(tmp_path):
+    """A survey whose camera.json is COLMAP's OPENCV camera: the workspace gets the frames undistorted and its own
+    camera.json in the named form (OpenCV's pixel convention, no lens left), the user's files unchanged."""
+    import cv2
+
+    from pipeline.survey import SurveyConfig
+    from pipeline.workspace import Workspace
+
+    survey = tmp_path / "survey"
+    (survey / "images").mkdir(parents=True)
+    (tmp_path / "rgbd" / "rgb").mkdir(parents=True)  # an in-air set given, so that none is rendered
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png", "c.png"):
+        cv2.imwrite(str(survey / "images" / name), rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    user_camera = {"model": "OPENCV", "params": [60.0, 61.0, 32.0, 24.0, -0.1, 0.01, 0.0, 0.0], "width": 64,
+                   "height": 48}
+    (survey / "camera.json").write_text(json.dumps(user_camera))
+    before = (survey / "images" / "a.png").read_bytes()
+    ws = Workspace(tmp_path / "ws")
+    result = ws.run("survey", SurveyConfig(survey_dir=str(survey), rgbd_dir=str(tmp_path / "rgbd"), progress=False))
+    assert result.undistorted == {"lens_model": "opencv", "k1": -0.1, "k2": 0.01, "p1": 0.0, "p2": 0.0, "k3": 0.0}
+    camera = json.loads((ws.folder("survey") / "camera.json").read_text())
+    assert {k: camera[k] for k in ("fx", "fy", "cx", "cy")} == {"fx": 60.0, "fy": 61.0, "cx": 31.5, "cy": 23.5}
+    assert not {"model", "params", "k1", "lens_model"} & set(camera)
+    assert not (ws.folder("survey") / "images").is_symlink()
+    assert (survey / "images" / "a.png").read_bytes() == before
+    assert json.loads((survey / "camera.json").read_text()) == user_camera

@@ -64,8 +64,8 @@ def test_all_frames_register_with_stereo_scale(sfm):
 @pytest.mark.parametrize("lens_model, coefficients", [("opencv", (-0.2, 0.05, 0.0, 0.0, 0.0)),
                                                       ("fisheye", (0.05, -0.02, 0.0, 0.0))])
 def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp_path, lens_model, coefficients):
-    """The survey seen through a wide lens (OpenCV k1 -0.2, k2 0.05, or a fisheye): given in camera.json, the survey stage
-    undistorts the frames into the workspace (the user's stay as they are), where they match the pinhole truth;
+    """The survey seen through a wide lens (OpenCV k1 -0.2, k2 0.05, or a fisheye): given in camera.json, the survey
+    stage undistorts the frames into the workspace (the user's stay as they are), where they match the pinhole truth;
     withheld, SfM's refined k1 names the distortion and its one-line summary says what to do (undistorted frames:
     near 0, as the pinhole survey's in ``test_all_frames_register_with_stereo_scale``); withheld and estimated
     (``estimate_lens``; the fisheye's camera.json keeps its ``lens_model``), the survey stage finds the lens and SfM
@@ -78,7 +78,7 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
     from eval.synth.camera import CameraConfig
     from pipeline.report import found_lines
     from pipeline.survey import SurveyConfig
-    from watergan.lens import LENS_KEYS, MODEL_KEYS
+    from watergan.lens import LENS_KEYS, Lens
 
     base = make_config("tiny")
     config = replace(base, camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0,
@@ -89,7 +89,7 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
     before = (raw / "images" / "000000.png").read_bytes()
     ws = Workspace(tmp_path / "ws")
     survey = ws.run("survey", SurveyConfig(survey_dir=str(raw), progress=False))
-    assert survey.undistorted == {"lens_model": lens_model, **dict(zip(MODEL_KEYS[lens_model], coefficients))}
+    assert survey.undistorted == Lens(lens_model, coefficients).to_json()
     assert (raw / "images" / "000000.png").read_bytes() == before
     assert "k1" not in json.loads((ws.folder("survey") / "camera.json").read_text())
     undistorted = cv2.imread(str(ws.folder("survey") / "images" / "000000.png"), cv2.IMREAD_GRAYSCALE)
