@@ -106,6 +106,15 @@ def print_mosaic(ws, r) -> None:
     print(f"png: {ws.path(r.mosaic_png)}\nworld file: {ws.path(r.world_file)}")
     if r.mosaic_tif:
         print(f"GeoTIFF: {ws.path(r.mosaic_tif)}\nDEM: {ws.path(r.dem_tif)}")
+    print(georeference_line(r))
+
+
+def georeference_line(r) -> str:
+    """Where the mesh stage's mosaic and DEM are placed: the CRS and the fit, or the local frame; and any warning."""
+    line = (f"georeferenced in {r.crs}: rotation {r.georef_rotation_deg:+.2f} deg, scale {r.georef_scale:.4f}, "
+            f"RMS residual {r.georef_rms_m:.3f} m over {r.georef_frames} frames" if getattr(r, "crs", "")
+            else "frame: the survey's local metric frame (no crs in survey.json)")
+    return line + (f"\nwarning: {r.georef_warning}" if getattr(r, "georef_warning", "") else "")
 
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:

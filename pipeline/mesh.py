@@ -40,10 +40,18 @@ rotation terms, -texel size, x and y of the upper-left texel's centre), ``mosaic
 GeoTIFF, alpha 0 where no image saw the texel) and ``dem.tif`` (the height field's z at each texel, float32
 metres, NaN off the mesh), both on the mosaic's grid in the survey's local metric frame
 (:func:`write_geotiff`).
+
+Georeferenced (``survey.json`` names a ``crs`` and gives the frames' positions: :mod:`pipeline.georeference`):
+the same grid (rows still along the survey frame's -y, so rotated in the CRS) is placed by the fitted similarity.
+The GeoTIFFs carry a ModelTransformation (pixel (col, row), corner of the upper-left texel at (0, 0), ->
+(easting, northing)) and the CRS's EPSG code, the world file its rotation terms, and ``mosaic.png.aux.xml``
+(GDAL's side file) names the CRS for the PNG; the DEM's heights stay the survey frame's z (up, metres, origin at
+the points' median), not depths or elevations of the CRS.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -125,6 +133,19 @@ class MeshResult:
     dem_tif: str = ""
     """The surface's height at each mosaic texel (float32 metres, NaN off the mesh) as a GeoTIFF on the same
     grid."""
+    crs: str = ""
+    """"EPSG:<code>" the GeoTIFFs and world file are in (:mod:`pipeline.georeference`); empty: the survey's local
+    metric frame."""
+    georef_rotation_deg: float = 0.0
+    """Counter-clockwise angle from the survey frame's x axis to east (georeferenced only)."""
+    georef_scale: float = 1.0
+    """CRS metres per survey-frame unit, fitted (georeferenced only)."""
+    georef_rms_m: float = 0.0
+    """RMS distance between the cameras placed by the fit and the navigation's positions (georeferenced only)."""
+    georef_frames: int = 0
+    """Registered frames with a position, the fit's samples."""
+    georef_warning: str = ""
+    """Why the georeference is doubtful or was not made (then the outputs are in the local frame); empty: none."""
 
 
 @dataclass
@@ -274,15 +295,32 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
 
 #: GeoTIFF tags (GeoTIFF 1.1, OGC 19-008): pixel scale, tie point, geokey directory, ASCII parameters, GDAL's no-data.
 PIXEL_SCALE, TIE_POINT, GEO_KEYS, GEO_ASCII, GDAL_NODATA = 33550, 33922, 34735, 34737, 42113
+#: GeoTIFF's model transformation: 16 doubles, a row-major 4x4 from raster (col, row, 0, 1) to model (E, N, 0, 1).
+MODEL_TRANSFORMATION = 34264
 #: The citation of the user-defined projected CRS of the survey's local frame.
 LOCAL_FRAME = "watergan survey frame: local metric x (columns), y (rows up), metres|"
 
 
-def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_centre_xy: tuple[float, float]) -> None:
+def raster_to_model(texel_m: float, upper_left_centre_xy: tuple[float, float], georef=None) -> np.ndarray:
+    """The 2x3 affine from raster (col, row; pixel-is-area: the upper-left texel's corner at (0, 0), its centre at
+    (0.5, 0.5)) to the survey frame's (x, y), or with ``georef`` (:class:`pipeline.georeference.Georeference`) to
+    (easting, northing)."""
+    x, y = upper_left_centre_xy
+    local = np.array([[texel_m, 0.0, x - texel_m / 2], [0.0, -texel_m, y + texel_m / 2]])
+    if georef is None:
+        return local
+    linear = georef.linear()
+    return np.column_stack([linear @ local[:, :2], linear @ local[:, 2] + np.asarray(georef.translation_m)])
+
+
+def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_centre_xy: tuple[float, float],
+                  georef=None) -> None:
     """``image`` (H,W[,C]; row 0 at the largest y) as a GeoTIFF in the survey's local metric frame, atomically:
     pixel scale ``texel_m``, the upper-left texel's centre at ``upper_left_centre_xy`` (pixel-is-area: its corner
     half a texel up and left), a user-defined projected CRS in metres (GIS opens it as an unknown local frame with
-    true distances). A float image's NaN is declared as no-data."""
+    true distances). With ``georef`` (:class:`pipeline.georeference.Georeference`) the grid is placed in its CRS:
+    a ModelTransformation (:func:`raster_to_model`; pixel scale and tie point when it does not rotate) and the
+    CRS's EPSG code. A float image's NaN is declared as no-data."""
     import io
 
     import tifffile
@@ -290,16 +328,32 @@ def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_cent
     from watergan.io import atomic_write_bytes
 
     x, y = upper_left_centre_xy
-    ascii_params = LOCAL_FRAME
-    keys = [1, 1, 0, 5,
-            1024, 0, 1, 1,                          # GTModelTypeGeoKey: projected
-            1025, 0, 1, 1,                          # GTRasterTypeGeoKey: pixel is area
-            1026, GEO_ASCII, len(ascii_params), 0,  # GTCitationGeoKey
-            3072, 0, 1, 32767,                      # ProjectedCSTypeGeoKey: user-defined
-            3076, 0, 1, 9001]                       # ProjLinearUnitsGeoKey: metre
-    tags = [(PIXEL_SCALE, "d", 3, (texel_m, texel_m, 0.0), False),
-            (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, x - texel_m / 2, y + texel_m / 2, 0.0), False),
-            (GEO_KEYS, "H", len(keys), keys, False), (GEO_ASCII, "s", 0, ascii_params, False)]
+    if georef is None:
+        ascii_params = LOCAL_FRAME
+        keys = [1, 1, 0, 5,
+                1024, 0, 1, 1,                          # GTModelTypeGeoKey: projected
+                1025, 0, 1, 1,                          # GTRasterTypeGeoKey: pixel is area
+                1026, GEO_ASCII, len(ascii_params), 0,  # GTCitationGeoKey
+                3072, 0, 1, 32767,                      # ProjectedCSTypeGeoKey: user-defined
+                3076, 0, 1, 9001]                       # ProjLinearUnitsGeoKey: metre
+        tags = [(PIXEL_SCALE, "d", 3, (texel_m, texel_m, 0.0), False),
+                (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, x - texel_m / 2, y + texel_m / 2, 0.0), False),
+                (GEO_KEYS, "H", len(keys), keys, False), (GEO_ASCII, "s", 0, ascii_params, False)]
+    else:
+        keys = [1, 1, 0, 4,
+                1024, 0, 1, 1,                          # GTModelTypeGeoKey: projected
+                1025, 0, 1, 1,                          # GTRasterTypeGeoKey: pixel is area
+                3072, 0, 1, georef.epsg,                # ProjectedCSTypeGeoKey: the EPSG code
+                3076, 0, 1, 9001]                       # ProjLinearUnitsGeoKey: metre
+        affine = raster_to_model(texel_m, upper_left_centre_xy, georef)
+        if affine[0, 1] == 0.0 and affine[1, 0] == 0.0 and affine[0, 0] > 0 > affine[1, 1]:
+            placement = [(PIXEL_SCALE, "d", 3, (affine[0, 0], -affine[1, 1], 0.0), False),
+                         (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, affine[0, 2], affine[1, 2], 0.0), False)]
+        else:
+            matrix = [*affine[0, :2], 0.0, affine[0, 2], *affine[1, :2], 0.0, affine[1, 2], 0.0, 0.0, 0.0, 0.0,
+                      0.0, 0.0, 0.0, 1.0]
+            placement = [(MODEL_TRANSFORMATION, "d", 16, tuple(float(v) for v in matrix), False)]
+        tags = [*placement, (GEO_KEYS, "H", len(keys), keys, False)]
     if image.dtype.kind == "f":
         tags.append((GDAL_NODATA, "s", 0, "nan", False))
     buffer = io.BytesIO()
@@ -310,12 +364,23 @@ def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_cent
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def write_world_file(path: Path, texel_m: float, upper_left_centre_xy: tuple[float, float]) -> None:
-    """ESRI world file: A (x size), D, B (rotation, 0), E (-y size), C, F (upper-left texel centre)."""
+def write_world_file(path: Path, texel_m: float, upper_left_centre_xy: tuple[float, float], georef=None) -> None:
+    """ESRI world file: A (x size), D, B (rotation, 0), E (-y size), C, F (upper-left texel centre). With ``georef``
+    (:class:`pipeline.georeference.Georeference`) in its CRS: A, D the easting and northing a column adds, B, E
+    those a row adds, C, F the upper-left texel centre's easting and northing; and ``<image>.aux.xml`` beside it
+    (GDAL's side file) names the CRS (removed when there is none)."""
     from watergan.io import atomic_write_text
 
     x, y = upper_left_centre_xy
-    atomic_write_text(path, f"{texel_m:.10f}\n0.0\n0.0\n{-texel_m:.10f}\n{x:.10f}\n{y:.10f}\n")
+    aux = path.with_suffix(".png.aux.xml")
+    if georef is None:
+        atomic_write_text(path, f"{texel_m:.10f}\n0.0\n0.0\n{-texel_m:.10f}\n{x:.10f}\n{y:.10f}\n")
+        aux.unlink(missing_ok=True)
+        return
+    (a, b, _), (d, e, _) = affine = raster_to_model(texel_m, upper_left_centre_xy, georef)
+    c, f = affine @ (0.5, 0.5, 1.0)
+    atomic_write_text(path, "".join(f"{float(v)!r}\n" for v in (a, d, b, e, c, f)))
+    atomic_write_text(aux, f"<PAMDataset>\n  <SRS>{georef.crs}</SRS>\n</PAMDataset>\n")
 
 
 def export_mesh(mesh: HeightMesh, texture: np.ndarray, out_dir: Path) -> tuple[Path, Path, Path]:
@@ -541,13 +606,25 @@ def render_back(mesh: HeightMesh, texture: np.ndarray, world_from_cam: np.ndarra
 
 
 def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: MeshConfig,
-                    dense_points_ply: Path | None = None, dense_mesh_ply: Path | None = None) -> MeshResult:
-    """Mesh, texture, exports and mosaic (see the module docstring)."""
+                    dense_points_ply: Path | None = None, dense_mesh_ply: Path | None = None,
+                    survey_json: Path | None = None) -> MeshResult:
+    """Mesh, texture, exports and mosaic (see the module docstring); georeferenced when the survey file
+    ``survey_json`` names a crs and gives positions (a fit that fails leaves the local frame, with a warning)."""
     import cv2
 
     from watergan.io import atomic_write_bytes
 
+    from .georeference import GeoreferenceError, georeference_tracks
+
     start = time.perf_counter()
+    try:
+        georef, georef_warning = (georeference_tracks(tracks, survey_json) if survey_json else None), ""
+    except GeoreferenceError as exc:
+        georef, georef_warning = None, f"not georeferenced: {exc}"
+    if georef is not None:
+        georef_warning = georef.warning
+    if georef_warning:
+        print(f"mesh: warning: georeference: {georef_warning}", file=sys.stderr, flush=True)
     images_dir, out_dir = Path(images_dir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg.source not in ("auto", "dense", "sparse"):
@@ -590,19 +667,23 @@ def run_mesh_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: Me
     atomic_write_bytes(mosaic_png, png.tobytes())
     world_file = out_dir / "mosaic.pgw"
     upper_left = (float(mesh.bounds[0, 0]), float(mesh.bounds[1, 1]))
-    write_world_file(world_file, texel, upper_left)
+    write_world_file(world_file, texel, upper_left, georef)
     alpha = np.where(covered, 255, 0).astype(np.uint8)[..., None]
-    write_geotiff(out_dir / "mosaic.tif", np.concatenate([mosaic, alpha], -1), texel, upper_left)
-    write_geotiff(out_dir / "dem.tif", heights.astype(np.float32), texel, upper_left)
+    write_geotiff(out_dir / "mosaic.tif", np.concatenate([mosaic, alpha], -1), texel, upper_left, georef)
+    write_geotiff(out_dir / "dem.tif", heights.astype(np.float32), texel, upper_left, georef)
+    placed = {} if georef is None else {
+        "crs": georef.crs, "georef_rotation_deg": georef.rotation_deg, "georef_scale": georef.scale,
+        "georef_rms_m": georef.rms_m, "georef_frames": georef.n_frames}
     return MeshResult(glb=str(glb), obj=str(obj), ply=str(ply), mosaic_png=str(mosaic_png), world_file=str(world_file),
                       mosaic_tif=str(out_dir / "mosaic.tif"), dem_tif=str(out_dir / "dem.tif"),
                       n_vertices=n_vertices, n_faces=n_faces, texel_m=texel, mosaic_coverage=float(covered.mean()),
-                      seconds=time.perf_counter() - start, mesh_kind=kind)
+                      seconds=time.perf_counter() - start, mesh_kind=kind, georef_warning=georef_warning, **placed)
 
 
 def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
     """Workspace stage: tracks from the sfm stage, fused points and mesh from the dense stage when it ran, the
-    frames the correct stage names for the mesh (unless ``images_dir``); outputs in the stage's folder."""
+    frames the correct stage names for the mesh (unless ``images_dir``), the survey file's crs and positions
+    (``00_survey/survey.json``); outputs in the stage's folder."""
     from eval.tracks import Tracks
 
     tracks = Tracks.load(ws.path(ws.require("sfm", "mesh").tracks))
@@ -612,7 +693,8 @@ def run_mesh(ws, cfg: MeshConfig) -> MeshResult:
         images_dir = ws.path(ws.require("correct", "the texture without --images-dir").mesh_images)
     dense = ws.result("dense")
     points, mesh = (ws.path(dense.points_ply), ws.path(dense.mesh_ply)) if dense and dense.points_ply else (None, None)
-    result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, points, mesh)
+    result = run_mesh_folder(tracks, images_dir, ws.stage_dir("mesh"), cfg, points, mesh,
+                             ws.folder("survey") / "survey.json")
     for name in ("glb", "obj", "ply", "mosaic_png", "world_file", "mosaic_tif", "dem_tif"):
         setattr(result, name, ws.relative(getattr(result, name)))
     return result

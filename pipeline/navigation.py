@@ -6,15 +6,17 @@ Columns (a header row; names case-insensitive, other columns ignored):
 - ``frame`` (an image file name) or ``time_s`` (seconds; then ``survey.json``'s ``frame_time_s`` gives each
   frame's time, and the log is interpolated linearly at it, attitude included);
 - ``altitude_m`` (above the seafloor), ``depth_m`` (below the surface): optional, each;
+- ``easting_m``, ``northing_m`` (the frame's position in the projected CRS that ``survey.json``'s ``crs`` names,
+  e.g. a UTM zone; :mod:`pipeline.georeference`): optional, together, and only with that ``crs``;
 - ``roll_deg``, ``pitch_deg`` (the vehicle's attitude; ``heading_deg`` may be there and is not needed): optional,
   together. They give ``nav_down_cam``, "down" in the camera frame, for a camera looking straight down with the
   top of the image towards the bow (camera x to starboard, y aft, z down): with roll phi (starboard down positive)
   and pitch theta (bow up positive), down_body = (-sin theta, sin phi cos theta, cos phi cos theta) in the
   vehicle's (forward, starboard, down) axes, and down_cam = (down_body_y, -down_body_x, down_body_z).
 
-:func:`navigation_from_log` returns the survey file's keys (``nav_altitude_m``, ``nav_depth_m``, ``nav_down_cam``)
-in the order of the frames; a frame the log does not reach (no row of its name, a time outside the log) is an error
-naming it, as is a row that is not numbers.
+:func:`navigation_from_log` returns the survey file's keys (``nav_altitude_m``, ``nav_depth_m``, ``nav_down_cam``,
+``nav_easting_m``, ``nav_northing_m``) in the order of the frames; a frame the log does not reach (no row of its
+name, a time outside the log) is an error naming it, as is a row that is not numbers.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ from watergan.errors import UserInputError
 #: The log's file name in a survey folder.
 NAVIGATION_CSV = "navigation.csv"
 #: Survey-file keys and the log's columns that give them.
-COLUMNS = {"nav_altitude_m": "altitude_m", "nav_depth_m": "depth_m"}
+COLUMNS = {"nav_altitude_m": "altitude_m", "nav_depth_m": "depth_m", "nav_easting_m": "easting_m",
+           "nav_northing_m": "northing_m"}
 
 
 def down_in_camera(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:
@@ -73,6 +76,23 @@ def _is_float(text: str) -> bool:
         return False
 
 
+def _check_positions(path: Path, log: dict[str, list[str]]) -> None:
+    """easting_m and northing_m come together, and with the ``crs`` of the survey file beside the log."""
+    from watergan.io import read_survey_json
+
+    positions = [c for c in ("easting_m", "northing_m") if c in log]
+    if len(positions) == 1:
+        raise UserInputError(f"navigation log {path} has {positions[0]} alone: give easting_m and northing_m")
+    survey = path.with_name("survey.json")
+    declared = read_survey_json(survey) if survey.is_file() else {}
+    if positions and "crs" not in declared:
+        raise UserInputError(f"navigation log {path} gives easting_m and northing_m but {survey} names no crs: add "
+                             f"\"crs\": \"EPSG:<code>\" to it (the projected CRS in metres of the positions)")
+    if "crs" in declared and not positions and "nav_easting_m" not in declared:
+        raise UserInputError(f"{survey} gives crs {declared['crs']} but neither it (nav_easting_m, nav_northing_m) "
+                             f"nor the navigation log {path} (easting_m, northing_m) gives the frames' positions")
+
+
 def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float] | None = None) -> dict:
     """The survey file's navigation keys for ``frames`` (image file names) from the log at ``path`` (see the module
     docstring): rows matched by ``frame``, or interpolated at ``frame_time_s`` by ``time_s``."""
@@ -81,7 +101,8 @@ def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float]
     attitude = "roll_deg" in log and "pitch_deg" in log
     if not given and not attitude:
         raise UserInputError(f"navigation log {path} has none of the columns altitude_m, depth_m, roll_deg + "
-                             f"pitch_deg (its columns: {', '.join(log)})")
+                             f"pitch_deg, easting_m + northing_m (its columns: {', '.join(log)})")
+    _check_positions(path, log)
     columns = [COLUMNS[k] for k in given] + (["roll_deg", "pitch_deg"] if attitude else [])
     values = {c: _numbers(path, log, c) for c in columns}
     if "frame" in log:

@@ -447,7 +447,9 @@ def section_mosaic(ws, out: Path) -> tuple[str, dict]:
             + (f" · {_link(ws, out, r.mosaic_tif, 'GeoTIFF')} · {_link(ws, out, r.dem_tif, 'DEM (GeoTIFF)')}"
                if r.mosaic_tif else "")
             + f" — {mosaic.shape[1]} x {mosaic.shape[0]} texels, "
-            f"{1000 * r.texel_m:.1f} mm per texel, {100 * r.mosaic_coverage:.1f} % covered.</p>"
+            f"{1000 * r.texel_m:.1f} mm per texel, {100 * r.mosaic_coverage:.1f} % covered"
+            + (f"; in {r.crs} (rotation {r.georef_rotation_deg:+.2f} deg, scale {r.georef_scale:.4f}, RMS "
+               f"{r.georef_rms_m:.3f} m)" if getattr(r, "crs", "") else "") + ".</p>"
             f"{_img(data_uri(mosaic, 'jpeg', MOSAIC_PX), 'mosaic', 'wide')}")
     return body, {"mosaic_png": r.mosaic_png, "coverage": r.mosaic_coverage}
 

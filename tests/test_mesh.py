@@ -1,5 +1,7 @@
 """2.5D mesh, texture, exports (GLB/OBJ/PLY) and the orthophoto mosaic."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -62,6 +64,7 @@ def test_mosaic_and_dem_geotiffs_share_the_world_file_s_grid(meshed):
         assert scale[0] == pytest.approx(result.texel_m) and scale[1] == pytest.approx(result.texel_m)
         assert tie[3] == pytest.approx(world[4] - world[0] / 2) and tie[4] == pytest.approx(world[5] + world[0] / 2)
         assert 3072 in keys[4::4] and 9001 in keys[7::4]  # a user-defined CRS in metres
+    assert result.crs == "" and not ws.path(result.world_file).with_suffix(".png.aux.xml").exists()
     with tifffile.TiffFile(ws.path(result.mosaic_tif)) as tif:
         rgba = tif.pages[0].asarray()
     np.testing.assert_array_equal(rgba[..., :3], png)
@@ -177,3 +180,109 @@ def test_tsdf_mesh_with_atlas_uvs(sfm, tmp_path):
     rng = np.random.default_rng(0)
     assert is_height_field(tracks.xyz)
     assert not is_height_field(np.column_stack([rng.uniform(0, 1, 2000), np.zeros(2000), rng.uniform(0, 1, 2000)]))
+
+
+def _rotation(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s], [s, c]])
+
+
+def test_a_georeferenced_mosaic_places_the_cameras_at_their_positions(meshed, tmp_path):
+    """survey.json's crs and positions (the truth camera centres turned by a 37-degree heading and moved to UTM
+    numbers): the GeoTIFFs' ModelTransformation takes each camera centre's mosaic pixel to its given position within
+    a few cm, the fitted rotation is the heading less the survey frame's own (from the cameras' orientations), the
+    GeoKeys name the EPSG code, and the world file carries the same placement."""
+    import json
+
+    import tifffile
+
+    from eval.synth import load_truth
+    from pipeline.cli_3d import georeference_line
+    from pipeline.mesh import run_mesh_folder
+
+    survey, ws, local = meshed
+    truth = load_truth(survey)
+    heading, offset = 37.0, np.array([500000.0, 5000000.0])
+    en = truth.world_from_cam[:, :2, 3] @ _rotation(heading).T + offset
+    survey_json = tmp_path / "survey.json"
+    survey_json.write_text(json.dumps({"frames": truth.frames, "crs": "EPSG:32633", "nav_easting_m": en[:, 0].tolist(),
+                                       "nav_northing_m": en[:, 1].tolist()}))
+    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
+    result = run_mesh_folder(tracks, survey / "images", tmp_path / "out",
+                             MeshConfig(images_dir=str(survey / "images"), source="sparse", progress=False),
+                             survey_json=survey_json)
+    assert result.crs == "EPSG:32633" and result.georef_frames == 10 and not result.georef_warning
+    assert abs(result.georef_scale - 1) < 0.02 and result.georef_rms_m < 0.03
+    # the survey frame's own heading in the truth's world, from the cameras' orientations alone
+    index = {name: k for k, name in enumerate(truth.frames)}
+    names = [str(n) for n in tracks.image_names]
+    reg = np.flatnonzero(tracks.registered)
+    truth_k = [index[names[k]] for k in reg]
+    turn = sum(tracks.world_from_cam[k, :3, :3] @ truth.world_from_cam[t, :3, :3].T
+               for k, t in zip(reg, truth_k, strict=True))
+    frame_deg = np.degrees(np.arctan2(turn[1, 0], turn[0, 0]))
+    assert abs((result.georef_rotation_deg - (heading - frame_deg) + 180) % 360 - 180) < 0.5
+    # each camera centre's pixel in the local mosaic (its world file), through the ModelTransformation
+    a, _, _, e, c, f = (float(v) for v in ws.path(local.world_file).read_text().split())
+    xy = tracks.world_from_cam[reg, :2, 3]
+    pixel = np.column_stack([(xy[:, 0] - c) / a + 0.5, (xy[:, 1] - f) / e + 0.5, np.zeros(len(xy)), np.ones(len(xy))])
+    for name in (result.mosaic_tif, result.dem_tif):
+        with tifffile.TiffFile(name) as tif:
+            tags = tif.pages[0].tags
+            matrix = np.array(tags["ModelTransformationTag"].value).reshape(4, 4)
+            keys = tags["GeoKeyDirectoryTag"].value
+            assert "ModelPixelScaleTag" not in tags and "ModelTiepointTag" not in tags
+        geokeys = {keys[i]: keys[i + 3] for i in range(4, len(keys), 4)}
+        assert geokeys == {1024: 1, 1025: 1, 3072: 32633, 3076: 9001}
+        placed = (pixel @ matrix.T)[:, :2]
+        assert np.abs(placed - en[truth_k]).max() < 0.05
+    world = [float(v) for v in Path(result.world_file).read_text().split()]
+    np.testing.assert_allclose(world[:4], [matrix[0, 0], matrix[1, 0], matrix[0, 1], matrix[1, 1]], rtol=1e-9)
+    np.testing.assert_allclose(world[4:], (matrix @ [0.5, 0.5, 0, 1])[:2], atol=1e-6)
+    assert "<SRS>EPSG:32633</SRS>" in (tmp_path / "out" / "mosaic.png.aux.xml").read_text()
+    assert "georeferenced in EPSG:32633: rotation" in georeference_line(result)
+
+
+def test_georeference_fit_errors_and_warnings():
+    """Fewer than 3 positions or positions that do not spread: an error; a straight line is enough; a scale far
+    from 1, a large residual or positions that fit better mirrored: a warning."""
+    from pipeline.georeference import GeoreferenceError, fit_georeference, survey_positions
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (8, 2))
+    en = xy @ _rotation(-120.0).T + [400000.0, 6000000.0]
+    fit = fit_georeference(xy, en, "epsg:32760")
+    assert fit.crs == "EPSG:32760" and fit.rotation_deg == pytest.approx(-120.0) and fit.scale == pytest.approx(1.0)
+    assert fit.rms_m < 1e-6 and not fit.warning
+    np.testing.assert_allclose(fit.apply(xy), en, atol=1e-6)
+    line = np.column_stack([np.linspace(0, 10, 5), np.zeros(5)])
+    assert fit_georeference(line, line @ _rotation(30.0).T, "EPSG:32633").rotation_deg == pytest.approx(30.0)
+    with pytest.raises(GeoreferenceError, match="at least 3 registered frames with a position; 2 have one"):
+        fit_georeference(xy[:2], en[:2], "EPSG:32633")
+    with pytest.raises(GeoreferenceError, match="cannot fix the survey's rotation"):
+        fit_georeference(xy, np.tile(en[:1], (8, 1)) + rng.normal(0, 0.001, (8, 2)), "EPSG:32633")
+    assert "scale 1.200 is 20 % from 1" in fit_georeference(xy, 1.2 * en, "EPSG:32633").warning
+    assert "RMS residual" in fit_georeference(xy, en + rng.normal(0, 1.0, en.shape), "EPSG:32633").warning
+    assert "easting and northing swapped" in fit_georeference(xy, en[:, ::-1], "EPSG:32633").warning
+    with pytest.raises(GeoreferenceError, match="3 positions for 4 frames"):
+        survey_positions({"crs": "EPSG:32633", "nav_easting_m": [1.0] * 3, "nav_northing_m": [1.0] * 3},
+                         ["a", "b", "c", "d"])
+
+
+def test_a_fit_that_fails_leaves_the_local_frame_with_a_warning(meshed, tmp_path, capsys):
+    """Positions for only 2 of the frames: the mosaic is written in the local frame, the result says why."""
+    import json
+
+    from pipeline.mesh import run_mesh_folder
+
+    survey, ws, _ = meshed
+    tracks = Tracks.load(ws.stage_dir("sfm") / "tracks.npz")
+    names = [str(n) for n in tracks.image_names][:2]
+    survey_json = tmp_path / "survey.json"
+    survey_json.write_text(json.dumps({"frames": names, "crs": "EPSG:32633", "nav_easting_m": [5e5, 5e5 + 1],
+                                       "nav_northing_m": [5e6, 5e6]}))
+    result = run_mesh_folder(tracks, survey / "images", tmp_path / "out",
+                             MeshConfig(images_dir=str(survey / "images"), source="sparse", progress=False),
+                             survey_json=survey_json)
+    assert result.crs == "" and result.georef_warning.startswith("not georeferenced: georeferencing needs at least 3")
+    assert "warning: georeference: not georeferenced" in capsys.readouterr().err

@@ -142,6 +142,13 @@ def test_good_survey_is_accepted(tmp_path):
     ("survey_missing_frame", r"survey file .*survey.json lists 1 frame\(s\) with no image in .*images \(e.g. f9.png\)"),
     ("log_missing_frame", r"navigation log .*navigation.csv has no row for 1 of the 4 frames \(e.g. f3.png\)"),
     ("log_not_a_number", r"navigation log .*navigation.csv: altitude_m holds 'high', not a number"),
+    ("survey_bad_crs", r"survey file .*survey.json: crs = 'UTM 33N' is not \"EPSG:<code>\" of a projected CRS"),
+    ("survey_degrees_crs", r"crs = 'EPSG:4326' \(geographic, in degrees\)"),
+    ("survey_positions_no_crs", r"survey file .*survey.json gives nav_easting_m and nav_northing_m but no crs: add"),
+    ("survey_crs_no_positions", r"survey file .*survey.json gives crs EPSG:32633 but no positions: add nav_easting_m"),
+    ("survey_short_positions", r"survey file .*survey.json: 3 nav_northing_m values for 4 frames"),
+    ("log_positions_no_crs", r"navigation log .*navigation.csv gives easting_m and northing_m but .*survey.json "
+                             r"names no crs"),
 ])
 def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
     survey = tmp_path / "survey"
@@ -169,17 +176,28 @@ def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
                 "camera_bad_value": json.dumps({**camera, "fx": "fifty"}),
                 "camera_other_size": json.dumps({**camera, "width": 320, "height": 240})}[problem]
         (survey / "camera.json").write_text(text)
+    elif problem == "log_positions_no_crs":
+        (survey / "survey.json").write_text(json.dumps({"nav_depth_m": [10.0] * 4}))
+        rows = [f"f{k}.png,2.0,{500000 + k},5000000" for k in range(4)]
+        (survey / "navigation.csv").write_text("frame,altitude_m,easting_m,northing_m\n" + "\n".join(rows) + "\n")
     elif problem.startswith("log_"):
         rows = ["f0.png,2.0", "f1.png,2.1", "f2.png,2.2"] + (["f3.png,high"] if problem == "log_not_a_number" else [])
         (survey / "navigation.csv").write_text("frame,altitude_m\n" + "\n".join(rows) + "\n")
     elif problem.startswith("survey_"):
         frames = sorted(p.name for p in images.iterdir())
         good = {"frames": frames, "nav_altitude_m": [2.0] * 4, "nav_depth_m": [10.0] * 4, "lights": []}
+        placed = {"nav_easting_m": [500000.0 + k for k in range(4)], "nav_northing_m": [5e6] * 4}
         text = {"survey_not_json": json.dumps(good)[:-20],
                 "survey_bad_altitude": json.dumps({**good, "nav_altitude_m": [2.0, -2.0, 2.0, 2.0]}),
                 "survey_short_list": json.dumps({**good, "nav_depth_m": [10.0, 10.0]}),
                 "survey_bad_light": json.dumps({**good, "lights": [{"offset_m": "left"}]}),
-                "survey_missing_frame": json.dumps({**good, "frames": frames[:3] + ["f9.png"]})}[problem]
+                "survey_missing_frame": json.dumps({**good, "frames": frames[:3] + ["f9.png"]}),
+                "survey_bad_crs": json.dumps({**good, **placed, "crs": "UTM 33N"}),
+                "survey_degrees_crs": json.dumps({**good, **placed, "crs": "EPSG:4326"}),
+                "survey_positions_no_crs": json.dumps({**good, **placed}),
+                "survey_crs_no_positions": json.dumps({**good, "crs": "EPSG:32633"}),
+                "survey_short_positions": json.dumps({**good, **placed, "crs": "EPSG:32633",
+                                                      "nav_northing_m": [5e6] * 3})}[problem]
         (survey / "survey.json").write_text(text)
     before = sorted(p.name for p in survey.rglob("*"))
     with pytest.raises(UserInputError, match=message):
@@ -408,3 +426,21 @@ def test_a_navigation_log_gives_the_survey_its_navigation(tmp_path):
                                atol=1e-6)
     np.testing.assert_allclose(down_in_camera(np.array([0.0, 90.0, 0.0]), np.array([0.0, 0.0, 90.0])),
                                [[0, 0, 1], [1, 0, 0], [0, 1, 0]], atol=1e-12)  # starboard down: +x; bow up: +y
+
+
+def test_a_navigation_log_gives_the_frames_positions(tmp_path):
+    """easting_m and northing_m of navigation.csv (interpolated by time like the other columns) become survey.json's
+    nav_easting_m and nav_northing_m, in the crs that survey.json names."""
+    from pipeline.navigation import navigation_from_log
+
+    frames = [f"f{k}.png" for k in range(3)]
+    (tmp_path / "survey.json").write_text(json.dumps({"frames": frames, "frame_time_s": [0.5, 1.0, 2.0],
+                                                      "crs": "EPSG:32633"}))
+    log = tmp_path / "navigation.csv"
+    log.write_text("time_s,easting_m,northing_m\n0,500000.0,5000000.0\n2,500002.0,5000001.0\n")
+    nav = navigation_from_log(log, frames, [0.5, 1.0, 2.0])
+    np.testing.assert_allclose(nav["nav_easting_m"], [500000.5, 500001.0, 500002.0])
+    np.testing.assert_allclose(nav["nav_northing_m"], [5000000.25, 5000000.5, 5000001.0])
+    log.write_text("time_s,easting_m\n0,500000.0\n2,500002.0\n")
+    with pytest.raises(UserInputError, match="has easting_m alone: give easting_m and northing_m"):
+        navigation_from_log(log, frames, [0.5, 1.0, 2.0])

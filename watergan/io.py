@@ -18,6 +18,7 @@ import errno
 import functools
 import json
 import os
+import re
 import tempfile
 import types
 import typing
@@ -481,13 +482,36 @@ def _is_number(value: Any) -> bool:
 
 
 #: survey.json's per-frame lists and what each value must be.
-_PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number", "frame_time_s": "a number"}
+_PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number", "frame_time_s": "a number",
+              "nav_easting_m": "a number", "nav_northing_m": "a number"}
+
+
+def _check_crs(survey: dict, path: Path, where: str) -> None:
+    """``crs`` ("EPSG:<code>" of a projected CRS in metres) and the positions (``nav_easting_m``, ``nav_northing_m``)
+    come together; a navigation log beside the file may give the positions."""
+    crs, given = survey.get("crs"), [k for k in ("nav_easting_m", "nav_northing_m") if k in survey]
+    if len(given) == 1:
+        raise DataError(f"{where} gives {given[0]} alone: give nav_easting_m and nav_northing_m (metres in its crs)")
+    if crs is None:
+        if given:
+            raise DataError(f"{where} gives nav_easting_m and nav_northing_m but no crs: add \"crs\": \"EPSG:<code>\" "
+                            f"(the projected CRS in metres they are in, e.g. EPSG:32633 for UTM zone 33N)")
+        return
+    match = re.fullmatch(r"EPSG:(\d{4,5})", crs.strip(), re.IGNORECASE) if isinstance(crs, str) else None
+    if match is None or not 1024 <= int(match[1]) <= 32766 or 4000 <= int(match[1]) < 5000:
+        why = " (geographic, in degrees)" if match and 4000 <= int(match[1]) < 5000 else ""
+        raise DataError(f"{where}: crs = {crs!r}{why} is not \"EPSG:<code>\" of a projected CRS in metres (e.g. "
+                        f"\"EPSG:32633\", WGS 84 / UTM zone 33N)")
+    if not given and not (path.parent / "navigation.csv").is_file():
+        raise DataError(f"{where} gives crs {crs} but no positions: add nav_easting_m and nav_northing_m (one per "
+                        f"frame), or a navigation.csv beside it with easting_m and northing_m columns")
 
 
 def read_survey_json(path: Path) -> dict:
     """A survey file (``survey.json``: ``frames``, ``nav_altitude_m``, ``nav_depth_m``, ``frame_time_s``,
-    ``site_depth_m``, ``lights``; every key optional), checked: malformed JSON, a value of the wrong type, or per-frame
-    lists whose length differs from ``frames`` are an error naming the file and the key."""
+    ``site_depth_m``, ``lights``, ``crs`` with ``nav_easting_m`` + ``nav_northing_m``; every key optional), checked:
+    malformed JSON, a value of the wrong type, or per-frame lists whose length differs from ``frames`` are an error
+    naming the file and the key."""
     path = Path(path)
     survey = read_json(path, "survey file")
     where = f"survey file {path}"
@@ -508,6 +532,7 @@ def read_survey_json(path: Path) -> dict:
             raise DataError(f"{where}: {key} is not {what} for {len(bad)} frames (e.g. {first}: {values[bad[0]]!r})")
         if frames is not None and len(values) != len(frames):
             raise DataError(f"{where}: {len(values)} {key} values for {len(frames)} frames")
+    _check_crs(survey, path, where)
     if "site_depth_m" in survey and not _is_number(survey["site_depth_m"]):
         raise DataError(f"{where}: site_depth_m = {survey['site_depth_m']!r} is not a number")
     lights = survey.get("lights")
