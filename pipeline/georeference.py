@@ -20,13 +20,13 @@ A single straight line is enough: without a reflection the line's direction fixe
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import EPSG_PATTERN
 
 #: |s - 1| above this is a warning (SfM is metric: the navigation and SfM disagree on the scale).
 MAX_SCALE_ERROR = 0.05
@@ -83,7 +83,7 @@ class Georeference:
 
 def epsg_code(crs: str) -> str:
     """"EPSG:<code>" (upper case, stripped) of a CRS text as :func:`watergan.io.read_survey_json` accepts it."""
-    match = re.fullmatch(r"EPSG:(\d{4,5})", str(crs).strip(), re.IGNORECASE)
+    match = EPSG_PATTERN.fullmatch(str(crs))
     if match is None:
         raise UserInputError(f"crs {crs!r} is not \"EPSG:<code>\"")
     return f"EPSG:{int(match[1])}"

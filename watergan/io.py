@@ -481,6 +481,9 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
 
 
+#: A CRS as survey.json names it: "EPSG:<code>" (case and surrounding spaces aside).
+EPSG_PATTERN = re.compile(r"\s*EPSG:(\d{4,5})\s*", re.IGNORECASE)
+
 #: survey.json's per-frame lists and what each value must be.
 _PER_FRAME = {"nav_altitude_m": "a positive number", "nav_depth_m": "a number", "frame_time_s": "a number",
               "nav_easting_m": "a number", "nav_northing_m": "a number"}
@@ -497,7 +500,7 @@ def _check_crs(survey: dict, path: Path, where: str) -> None:
             raise DataError(f"{where} gives nav_easting_m and nav_northing_m but no crs: add \"crs\": \"EPSG:<code>\" "
                             f"(the projected CRS in metres they are in, e.g. EPSG:32633 for UTM zone 33N)")
         return
-    match = re.fullmatch(r"EPSG:(\d{4,5})", crs.strip(), re.IGNORECASE) if isinstance(crs, str) else None
+    match = EPSG_PATTERN.fullmatch(crs) if isinstance(crs, str) else None
     if match is None or not 1024 <= int(match[1]) <= 32766 or 4000 <= int(match[1]) < 5000:
         why = " (geographic, in degrees)" if match and 4000 <= int(match[1]) < 5000 else ""
         raise DataError(f"{where}: crs = {crs!r}{why} is not \"EPSG:<code>\" of a projected CRS in metres (e.g. "
