@@ -188,9 +188,9 @@ def cpu_lanes() -> int:
 def keep_freed_memory() -> bool:
     """glibc's allocator told to serve blocks of up to 32 MiB from its heap and to keep what is freed (mallopt
     M_MMAP_THRESHOLD and M_TRIM_THRESHOLD), for the rest of the process. By default each frame's full-resolution
-    tensors (3.7 MB a channel group at 640x480) are mapped afresh and unmapped when freed, and every page of every
-    one is faulted in again: on the CPU that, not the arithmetic, is most of the cost of the correction's
-    element-wise steps. The heap then holds what one batch needs. False where the C library is not glibc."""
+    tensors are mapped afresh and unmapped when freed, and every page of every one is faulted in again, which costs
+    the correction's element-wise steps more than their arithmetic; the heap then holds what one batch needs
+    (benchmarks/RESULTS.md). False where the C library is not glibc."""
     import ctypes
 
     try:
