@@ -327,7 +327,14 @@ def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_cent
 
     from watergan.io import atomic_write_bytes
 
-    x, y = upper_left_centre_xy
+    affine = raster_to_model(texel_m, upper_left_centre_xy, georef)
+    if affine[0, 1] == 0.0 and affine[1, 0] == 0.0 and affine[0, 0] > 0 > affine[1, 1]:
+        placement = [(PIXEL_SCALE, "d", 3, (affine[0, 0], -affine[1, 1], 0.0), False),
+                     (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, affine[0, 2], affine[1, 2], 0.0), False)]
+    else:
+        matrix = [*affine[0, :2], 0.0, affine[0, 2], *affine[1, :2], 0.0, affine[1, 2], 0.0, 0.0, 0.0, 0.0,
+                  0.0, 0.0, 0.0, 1.0]
+        placement = [(MODEL_TRANSFORMATION, "d", 16, tuple(float(v) for v in matrix), False)]
     if georef is None:
         ascii_params = LOCAL_FRAME
         keys = [1, 1, 0, 5,
@@ -336,23 +343,13 @@ def write_geotiff(path: Path, image: np.ndarray, texel_m: float, upper_left_cent
                 1026, GEO_ASCII, len(ascii_params), 0,  # GTCitationGeoKey
                 3072, 0, 1, 32767,                      # ProjectedCSTypeGeoKey: user-defined
                 3076, 0, 1, 9001]                       # ProjLinearUnitsGeoKey: metre
-        tags = [(PIXEL_SCALE, "d", 3, (texel_m, texel_m, 0.0), False),
-                (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, x - texel_m / 2, y + texel_m / 2, 0.0), False),
-                (GEO_KEYS, "H", len(keys), keys, False), (GEO_ASCII, "s", 0, ascii_params, False)]
+        tags = [*placement, (GEO_KEYS, "H", len(keys), keys, False), (GEO_ASCII, "s", 0, ascii_params, False)]
     else:
         keys = [1, 1, 0, 4,
                 1024, 0, 1, 1,                          # GTModelTypeGeoKey: projected
                 1025, 0, 1, 1,                          # GTRasterTypeGeoKey: pixel is area
                 3072, 0, 1, georef.epsg,                # ProjectedCSTypeGeoKey: the EPSG code
                 3076, 0, 1, 9001]                       # ProjLinearUnitsGeoKey: metre
-        affine = raster_to_model(texel_m, upper_left_centre_xy, georef)
-        if affine[0, 1] == 0.0 and affine[1, 0] == 0.0 and affine[0, 0] > 0 > affine[1, 1]:
-            placement = [(PIXEL_SCALE, "d", 3, (affine[0, 0], -affine[1, 1], 0.0), False),
-                         (TIE_POINT, "d", 6, (0.0, 0.0, 0.0, affine[0, 2], affine[1, 2], 0.0), False)]
-        else:
-            matrix = [*affine[0, :2], 0.0, affine[0, 2], *affine[1, :2], 0.0, affine[1, 2], 0.0, 0.0, 0.0, 0.0,
-                      0.0, 0.0, 0.0, 1.0]
-            placement = [(MODEL_TRANSFORMATION, "d", 16, tuple(float(v) for v in matrix), False)]
         tags = [*placement, (GEO_KEYS, "H", len(keys), keys, False)]
     if image.dtype.kind == "f":
         tags.append((GDAL_NODATA, "s", 0, "nan", False))

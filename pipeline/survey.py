@@ -211,11 +211,11 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
             shutil.rmtree(rgbd)
         print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
         write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
+    names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
     estimate = {}
     if cfg.estimate_lens:
         from .sfm import estimate_lens
 
-        names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
         lens, estimate = estimate_lens(survey / "images", names, camera, lens, target / "lens_sfm", cfg.seed)
         print(f"survey: SfM's lens on {estimate['registered']} frames: {lens.model} "
               + ", ".join(f"{k} {v:+.4f}" for k, v in lens.to_json().items() if k != "lens_model")
@@ -225,7 +225,7 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     if own_camera:
         pinhole = {k: v for k, v in camera.items() if k not in LENS_KEYS and k != "model"}
         atomic_write_json(target / "camera.json", {**pinhole, **({"undistorted": lens.to_json()} if lens else {})})
-    declared = survey_navigation(survey, [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)])
+    declared = survey_navigation(survey, names)
     if logged:
         if survey == target:
             raise UserInputError(f"{survey} holds a navigation log: run on the survey folder, not on a workspace's "
