@@ -30,7 +30,7 @@ from eval.tables import (
     consistency_table,
     depth_table,
     example_frames,
-    fidelity,
+    fidelities,
     make_table,
     marked_share,
     measure_board,
@@ -239,8 +239,8 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
                                    point_variances(tracks, f.folders, cfg.patch_px, cfg.min_views, colours).items()})
     atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
     board, board_results, board_note = measure_board(cfg, survey, f.folders)
-    fid = {m: fidelity(f.folders[m], f.folders[INAIR], names, f.masks[m][0] if m in f.masks else None)
-           for m in f.methods} if f.reference else {}
+    fid = fidelities({m: f.folders[m] for m in f.methods}, f.folders[INAIR], names,
+                     {m: f.masks[m][0] for m in f.methods if m in f.masks}) if f.reference else {}
     depth_dir, depth_note = _depth_compare(ws, _correct_dirs(ws, cfg)[0])
     if depth_note:
         f.skipped["depth comparison"] = depth_note

@@ -95,7 +95,7 @@ def run_gan_stage(ws: Workspace, cfg: GanStage) -> GanStageResult:
 
 
 def _train_restorer() -> RestorerConfig:
-    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=2.5)
+    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=1.0)
 
 
 @dataclass(frozen=True)
@@ -103,12 +103,12 @@ class RestorerStage:
     """The restorer's training on the gan stage's pairs, into the stage's folder."""
 
     train: RestorerConfig = field(default_factory=_train_restorer, metadata={"flatten": True})
-    """The restorer's training (its options without a prefix; a budget of 2.5 minutes)."""
+    """The restorer's training (its options without a prefix; a budget of 1 minute)."""
     altitude: bool | None = None
     """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
     range_input: bool | None = None
     """RGB-D mode (each pixel's range); auto: when the water stage wrote each frame's range maps."""
-    site_depth_steps: int = 5000
+    site_depth_steps: int = 2000
     """Steps of the site depth net (:mod:`pipeline.site_depth`: monocular depth learned from the survey's dense depth,
     taken by monocular correction where it beats the flat seafloor on held-out frames); 0: none."""
 

@@ -409,3 +409,29 @@ def test_fidelity_is_taken_over_the_pixels_a_method_corrected(tmp_path):
     assert corrected == pytest.approx(10 * np.log10(1 / (3 / 255) ** 2), abs=1e-6)
     assert whole < corrected - 10 and 0.9 < ssim <= 1.0
     assert marked_share(tmp_path / "mask", ["f.png"]) == pytest.approx(0.25)
+
+
+def test_ssim_is_scikit_images(tmp_path):
+    """The evaluation's SSIM (OpenCV's box filter) is scikit-image's structural_similarity, mean and map, on an image
+    and a blurred, shifted, noisy copy of it; every method of a folder set scores as its own folder alone."""
+    import cv2
+    from skimage.metrics import structural_similarity
+
+    from eval.tables import fidelities, fidelity, ssim, ssim_map
+
+    rng = np.random.default_rng(1)
+    truth = cv2.GaussianBlur(rng.random((48, 64, 3)).astype(np.float32), (5, 5), 1.5)
+    other = np.clip(0.8 * cv2.GaussianBlur(truth, (3, 3), 1.0) + 0.1 + 0.02 * rng.standard_normal(truth.shape),
+                    0, 1).astype(np.float32)
+    mean, full = structural_similarity(truth, other, channel_axis=2, data_range=1.0, full=True)
+    assert ssim(truth, other) == pytest.approx(float(mean), abs=1e-5)
+    assert np.abs(ssim_map(truth, other) - full).max() < 1e-4
+    assert ssim(truth, truth) == pytest.approx(1.0, abs=1e-6)
+    for sub, image in (("truth", truth), ("a", other), ("b", truth)):
+        (tmp_path / sub).mkdir()
+        for name in ("f.png", "g.png"):
+            cv2.imwrite(str(tmp_path / sub / name), np.rint(image * 255).astype(np.uint8))
+    names = ["f.png", "g.png"]
+    both = fidelities({"a": tmp_path / "a", "b": tmp_path / "b"}, tmp_path / "truth", names)
+    assert both["a"] == fidelity(tmp_path / "a", tmp_path / "truth", names)
+    assert both["b"][1] == pytest.approx(1.0) and both["a"][1] < 0.99

@@ -329,7 +329,7 @@ def test_train_restorer_end_to_end_and_resume(tmp_path):
     assert set(table["restorer"]) == {"R", "G", "B", "depth"} and table["restorer"]["depth"] is not None
     assert "| raw (uncorrected) |" in (out / "validation.md").read_text()
     model = load_restorer(out)
-    assert model.skip and model.depth_hw == (16, 16)
+    assert not model.skip and model.depth_hw == (16, 16)  # no full-resolution skip layers by default
 
     resumed = train_restorer(_config(tmp_path, stage2_iterations=3, resume=True))
     assert resumed.steps == (2, 3)
@@ -337,11 +337,11 @@ def test_train_restorer_end_to_end_and_resume(tmp_path):
     assert [(r["stage"], r["step"]) for r in lines] == [(1, 1), (1, 2), (2, 1), (2, 2), (2, 3)]
 
 
-def test_no_skip_ablation_and_bad_config(tmp_path):
+def test_skip_layers_on_request_and_bad_config(tmp_path):
     write_generate_folder(tmp_path / "gen", count=3, hw=(40, 40))
-    result = train_restorer(_config(tmp_path, skip=False, stage1_iterations=1, stage2_iterations=1))
-    assert "no skip" in (result.out_dir / "validation.md").read_text()
-    assert not load_restorer(result.out_dir).skip
+    result = train_restorer(_config(tmp_path, skip=True, stage1_iterations=1, stage2_iterations=1))
+    assert "restorer (skip layers)" in (result.out_dir / "validation.md").read_text()
+    assert load_restorer(result.out_dir).skip
     with pytest.raises(UserInputError, match="widths"):
         train_restorer(_config(tmp_path, widths="huge"))
     with pytest.raises(UserInputError, match="generate"):
