@@ -17,7 +17,9 @@ millimetres, 0 where a ray leaves the scene) and ``camera.json`` (intrinsics of 
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -127,19 +129,31 @@ def write_rgbd_set(out_dir: Path, config: RGBDConfig, seed: int, progress: bool 
     rng = np.random.default_rng([seed, 31])
     render = RenderConfig()
     total = config.n_scenes * config.views_per_scene
-    with tqdm(total=total, desc="rgb-d set", unit="view", disable=None if progress is None else not progress) as bar:
+    with tqdm(total=total, desc="rgb-d set", unit="view", disable=None if progress is None else not progress) as bar, \
+            ThreadPoolExecutor(RENDER_THREADS) as pool:
         for s in range(config.n_scenes):
             scene = build_scene(random_scene_config(rng, config.scene_size_m, config.grid_spacing_m, site),
                                 seed=int(rng.integers(2**31)))
             caster = make_raycaster(scene)
-            for v in range(config.views_per_scene):
-                view = render_view(caster, scene, fine, random_view_pose(rng, config), render)
-                name = f"{s * config.views_per_scene + v:06d}.png"
-                rgb, depth_m = downsample_view(view.inair, view.depth_m, view.valid, factor)
-                write_srgb_png(out_dir / "rgb" / name, rgb)
-                write_depth_png(out_dir / "depth" / name, depth_m)
+            poses = [random_view_pose(rng, config) for _ in range(config.views_per_scene)]
+            names = [f"{s * config.views_per_scene + v:06d}.png" for v in range(config.views_per_scene)]
+            for _ in pool.map(partial(_write_view, out_dir, caster, scene, fine, render, factor), names, poses):
                 bar.update()
     return total
+
+
+def _write_view(out_dir: Path, caster, scene, intr, render: RenderConfig, factor: int, name: str,
+                world_from_cam: np.ndarray) -> None:
+    """One view of the set, rendered at ``factor`` times its size and area-averaged, into ``out_dir``."""
+    view = render_view(caster, scene, intr, world_from_cam, render)
+    rgb, depth_m = downsample_view(view.inair, view.depth_m, view.valid, factor)
+    write_srgb_png(out_dir / "rgb" / name, rgb)
+    write_depth_png(out_dir / "depth" / name, depth_m)
+
+
+RENDER_THREADS = 2
+"""Views of the RGB-D set rendered at once (NumPy's array work and OpenCV's encoding release the GIL); each view
+is the same whatever the number."""
 
 
 def downsample_view(rgb: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, factor: int
