@@ -118,8 +118,10 @@ class FitConfig:
     Each of its evaluations costs that fraction of one on all views, and it starts the full fit near its optimum."""
     seed: int = 0
     """Seed of the held-out split and of the bootstrap."""
-    threads: int = field(default=1, metadata={"hash": False})
-    """Torch threads of the fit (not hashed: the fit does not depend on it)."""
+    threads: int = field(default=0, metadata={"hash": False})
+    """Torch threads of the water's fit (0: torch's own setting, a thread per core unless ``OMP_NUM_THREADS`` or
+    ``torch.set_num_threads`` says otherwise; not hashed: the estimate moves only by float rounding). The
+    diagnosis's fits run on one thread."""
 
 
 #: The water estimate's fit: the dense table's views and the board, albedos >= 0 (dark points pin the backscatter),

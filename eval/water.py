@@ -534,7 +534,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             *config.correction_grid))
     t0 = time.perf_counter()
     threads = torch.get_num_threads()
-    torch.set_num_threads(max(1, config.fit.threads))
+    torch.set_num_threads(config.fit.threads or threads)
     try:
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
         stack = build_stack(config, obs.n_frames or int(frames.max()) + 1, lights)
