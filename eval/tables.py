@@ -277,7 +277,8 @@ def point_variances(tracks, folders: dict[str, Path], patch_px: int, min_views: 
 
 
 SSIM_WINDOW_PX = 7
-"""Side of SSIM's uniform window (scikit-image's default, the measure Wang et al. 2004 define with it)."""
+"""Side of SSIM's uniform window: scikit-image's default, which these tables have always used (Wang et al. 2004 weigh
+an 11x11 window by a Gaussian instead)."""
 
 
 def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> np.ndarray:
