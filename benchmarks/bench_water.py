@@ -223,15 +223,16 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
 
 def measure_corrections(ws_root: Path, tracks, board, folders: dict[str, Path], names: list[str]) -> dict:
     from eval.colour import board_accuracy, consistency
-    from eval.tables import fidelity
+    from eval.tables import fidelities
 
     survey = ws_root / "00_survey"
     all_folders = {"raw": survey / "images", **folders}
     cons = consistency(tracks, all_folders)
+    fid = fidelities(all_folders, survey / "truth" / "inair", names)
     rows = {}
     for label, folder in all_folders.items():
         b = board_accuracy(folder, board)
-        psnr, ssim = fidelity(folder, survey / "truth" / "inair", names)
+        psnr, ssim = fid[label]
         rows[label] = {"board_ciede2000": b.mean_ciede2000, "board_distance": b.mean_distance,
                        "consistency": cons.scores[label].variance, "psnr_db": psnr, "ssim": ssim}
     rows["consistency_points"] = cons.n_points
