@@ -20,10 +20,11 @@ from pathlib import Path
 
 from eval.synth import PRESETS, make_config, simulate_survey
 from eval.synth.camera import intrinsics_for
-from eval.synth.imaging import build_stacks, linear_image, single_torch_thread
+from eval.synth.imaging import build_stacks, linear_image
 from eval.synth.render import frame_state, make_raycaster, render_view
 from eval.synth.scene import build_scene
 from eval.synth.trajectory import lawnmower
+from watergan.device import single_torch_thread
 
 HIDDEN = ["vignetting_offcentre"]
 

@@ -656,7 +656,7 @@ def diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig =
     per frame (water.json's; the verdict reads them). Torch runs on one
     thread: the tensors are small (observations x 3), and a thread pool competing with other processes for the
     cores slows a fit many times."""
-    from eval.synth.imaging import single_torch_thread
+    from watergan.device import single_torch_thread
 
     with single_torch_thread():
         return _diagnose(survey, out, ledger_dir, config, tracks, scale, colour or {}, model, measurements, described,

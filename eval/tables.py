@@ -627,7 +627,7 @@ def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False) ->
     ``geometry``: the oracle's, when already built (local runs); else built here from ``oracle_survey``."""
     from tqdm import tqdm
 
-    from eval.synth.imaging import single_torch_thread
+    from watergan.device import single_torch_thread
 
     seconds = dict.fromkeys(job.methods, 0.0)
     if "oracle" in job.methods and geometry is None:

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import sys
 import time
 from collections import deque
@@ -173,8 +174,14 @@ class ChunkResult:
 
 
 IO_THREADS = 2
-"""Threads that read the next images while the nets run (OpenCV's PNG codecs and file I/O release the GIL, so they
-overlap the nets)."""
+"""Threads that read the next images while the nets run on a CPU (OpenCV's PNG codecs and file I/O release the GIL,
+so they overlap the nets)."""
+
+
+def io_threads(dev: torch.device) -> int:
+    """Threads that read the next images: ``IO_THREADS`` on a CPU, where the lanes take the cores; on CUDA, where
+    the nets leave the cores to decoding and encoding, :func:`cuda_lanes` of them."""
+    return IO_THREADS if dev.type == "cpu" else cuda_lanes()
 
 
 def cpu_lanes() -> int:
@@ -202,9 +209,14 @@ def keep_freed_memory() -> bool:
 
 
 CUDA_LANES = 4
-"""Batches in flight on a GPU: one on the GPU while the others' outputs are encoded and written (PNG encoding, not the
-nets, bounds a GPU's frames per second). On an H100 with 16 cores, the demo's 44 RGB-D frames: 1 lane 25-26 frames/s,
-2 lanes 41-47, 3 53-55, 4 55-56, 6 56."""
+"""The fewest batches in flight on a GPU (:func:`cuda_lanes`)."""
+
+
+def cuda_lanes() -> int:
+    """Batches in flight on a GPU: one on the GPU while the others' outputs are encoded and written (PNG encoding,
+    not the nets, bounds a GPU's frames per second), half the machine's cores and at least ``CUDA_LANES``
+    (benchmarks/bench_gpu.py sweeps the lanes and readers)."""
+    return max(CUDA_LANES, (os.cpu_count() or 1) // 2)
 
 
 def monocular_range(image: np.ndarray, altitude_m: float, K: np.ndarray, down_cam: np.ndarray | None = None,
@@ -252,19 +264,19 @@ Item = tuple[str, np.ndarray, int, float, np.ndarray | None]
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
     """Correct ``chunk.paths`` into ``chunk.out_dir`` (every file written atomically), consecutive images of one
     size ``batch_size`` at a time; the model is loaded here unless given. On a CPU, :func:`cpu_lanes` batches run
-    side by side, each on one thread, and write their own outputs; on CUDA ``CUDA_LANES``. ``IO_THREADS`` threads
-    read the next batches' images meanwhile. ``bar`` (local runs): advanced per image, and unreadable images are
+    side by side, each on one thread, and write their own outputs; on CUDA :func:`cuda_lanes`. :func:`io_threads`
+    threads read the next batches' images meanwhile. ``bar`` (local runs): advanced per image, and unreadable images are
     reported as they come."""
     dev = pick_device(chunk.device)
     keep_freed_memory()
     model = (model if model is not None else load_restorer(chunk.model_dir)).for_inference().to(dev)
     fields = WaterFields(model.water) if model.water is not None else None
-    site = load_site_depth(chunk.model_dir)[0] if chunk.site_depth else None
+    site = load_site_depth(chunk.model_dir)[0].to(dev) if chunk.site_depth else None  # read by the readers
     out = chunk.out_dir
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
-    lanes = cpu_lanes() if dev.type == "cpu" else CUDA_LANES
+    lanes = cpu_lanes() if dev.type == "cpu" else cuda_lanes()
 
     def correct_batch(batch: list[Item]) -> int:
         x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).to(dev)
@@ -293,10 +305,10 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                 bar.update(done)
 
     threads = torch.get_num_threads()
-    if dev.type == "cpu" and lanes > 1:
-        torch.set_num_threads(1)  # each lane runs its batch on one thread
+    if dev.type != "cpu" or lanes > 1:
+        torch.set_num_threads(1)  # each lane runs its batch on one thread; on CUDA the readers' small work
     try:
-        with ThreadPoolExecutor(IO_THREADS) as reader, ThreadPoolExecutor(lanes) as nets:
+        with ThreadPoolExecutor(io_threads(dev)) as reader, ThreadPoolExecutor(lanes) as nets:
             batch: list[Item] = []
 
             def submit() -> None:
@@ -563,8 +575,8 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
     of its effects without a value per frame, each frame's image first freed of the others by the affine map they
     apply to it (:func:`watergan.formation.inverse.frame_affine`: a gain or exposure per frame); otherwise each frame's
     exact fields (:func:`watergan.formation.inverse.correct_physics`, float64)."""
-    from eval.synth.imaging import single_torch_thread
     from eval.tracks import Tracks
+    from watergan.device import single_torch_thread
     from watergan.formation.inverse import correct_physics
     from watergan.io import write_png, write_srgb_image
 

@@ -14,6 +14,7 @@ import json
 import re
 import shutil
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -204,6 +205,21 @@ def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_n
     shutil.copytree(survey / "images", images)
     with pytest.raises(DataError, match="no navigation file"):
         correct_physics_folder(ws, images, tmp_path / "none", False, mode="monocular")
+
+
+def test_the_physics_correction_needs_no_open3d(evaluated, tmp_path):
+    """A machine without open3d (a GPU server's image) corrects too: the physics correction loads nothing of the
+    simulator's ray caster, and gives the frames the stage gave."""
+    survey, ws, _, _ = evaluated
+    code = (f"import sys; sys.modules['open3d'] = None\n"
+            f"from pathlib import Path\n"
+            f"from pipeline.correct import correct_physics_folder\n"
+            f"from pipeline.workspace import Workspace\n"
+            f"correct_physics_folder(Workspace(Path({str(ws.root)!r})), Path({str(survey / 'images')!r}), "
+            f"Path({str(tmp_path)!r}), False)\n")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
+    for path in sorted((ws.root / "06_correct" / "physics" / "images").glob("*.png")):
+        assert path.read_bytes() == (tmp_path / "images" / path.name).read_bytes(), path.name
 
 
 def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_path):

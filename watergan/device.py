@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from enum import StrEnum
 
 import torch
@@ -29,3 +31,16 @@ def pick_device(name: str) -> torch.device:
     if name not in DEVICE_NAMES:
         raise UserInputError(f"device must be auto, cpu or cuda, got {name!r}")
     return torch.device(name)
+
+
+@contextmanager
+def single_torch_thread() -> Iterator[None]:
+    """Run torch on one thread inside the block (restored after). The stack's element-wise work on
+    one frame is short on one thread, while torch's thread pool can take far longer when the ray caster
+    and PNG writers (or other processes) hold the cores."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)

@@ -9,9 +9,6 @@ and quantised.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import numpy as np
 import torch
 
@@ -66,19 +63,6 @@ def per_frame_tiled(entry: dict, frames: int | None) -> dict:
             if len(rows) < frames:
                 params[p.name] = np.resize(rows, (frames, *rows.shape[1:])).tolist()
     return {**entry, "params": params}
-
-
-@contextmanager
-def single_torch_thread() -> Iterator[None]:
-    """Run torch on one thread inside the block (restored after). The stack's element-wise work on
-    one frame is short on one thread, while torch's thread pool can take far longer when the ray caster
-    and PNG writers (or other processes) hold the cores."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 @torch.no_grad()

@@ -31,6 +31,7 @@ import numpy as np
 import open3d as o3d
 from tqdm import tqdm
 
+from watergan.device import single_torch_thread
 from watergan.errors import UserInputError
 from watergan.formation import Counts, Stack
 from watergan.formation.effects.artificial_light import beam_angle_deg
@@ -38,7 +39,7 @@ from watergan.io import quantise, write_depth_png, write_png, write_srgb_png
 
 from .camera import intrinsics_for, lens_rays_cam
 from .config import SimulationConfig, config_to_dict
-from .imaging import add_sensor_noise, build_stacks, encode, linear_image, rig_camera_config, single_torch_thread
+from .imaging import add_sensor_noise, build_stacks, encode, linear_image, rig_camera_config
 from .io import write_json
 from .render import View, frame_state, make_raycaster, render_view
 from .rgbd import write_rgbd_set
