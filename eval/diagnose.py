@@ -483,11 +483,14 @@ def frames_line(frames: dict | None) -> str:
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
                     split, names: list[str], progress: bool | None = None,
                     fields: dict | None = None, fitted_fields: Effect | None = None) -> list[CandidateResult]:
-    """Refit with each candidate added; sorted by held-out change (best first). ``fields``: the water's fields over
-    the image; an image-position candidate of another form (:func:`form_conflict`) is not accepted.
-    ``fitted_fields``: the fields themselves (:func:`water_field`; ``stack`` is then the water's without them): each
-    image-position candidate says how much of them its fit reproduces (:func:`fields_explained`)."""
+    """Refit with each candidate added; sorted by held-out change (best first), the image-position candidates among
+    their places by how much of the water's fields they reproduce (:func:`order_by_fields`). ``fields``: the water's
+    fields over the image; an image-position candidate of another form (:func:`form_conflict`), or one that
+    reproduces less than ``FIELDS_EXPLAINED_MIN`` of structured fields, is not accepted. ``fitted_fields``: the
+    fields themselves (:func:`water_field`; ``stack`` is then the water's without them): each image-position
+    candidate says how much of them its fit reproduces (:func:`fields_explained`)."""
     results = []
+    structured = bool(fields) and fields.get("form") in ("multiplicative", "additive")
     probe = observation_state(meas, np.arange(min(meas.n_obs, 2000)))
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
         trial = insert_by_rank(stack, make_effect(name, meas))
@@ -505,13 +508,34 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
         explained = (fields_explained(fit.stack, stack, fitted_fields, probe)
                      if fitted_fields is not None and get(name).axis == "image_position" else None)
+        if not implausible and structured and explained is not None and explained < FIELDS_EXPLAINED_MIN:
+            implausible = (f"it flattens too little of them (under {FIELDS_EXPLAINED_MIN:.0%}): the structure on "
+                           f"image position has another form than {name}'s")
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
             significant=p < config.alpha and change <= -config.min_improvement and not implausible,
             flattened=flattened, flattened_drop=round(drops[flattened], 3), params=fit.params[name],
             scores=cand_scores, structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
             implausible=implausible, fields_explained=explained))
-    return sorted(results, key=lambda r: r.change)
+    return order_by_fields(sorted(results, key=lambda r: r.change))
+
+
+#: The least share of the water's fields over the image (when they carry structure) that an image-position
+#: candidate must reproduce to be accepted: its fit has to flatten them, not only lower the held-out error.
+FIELDS_EXPLAINED_MIN = 0.5
+
+
+def order_by_fields(ranked: list[CandidateResult]) -> list[CandidateResult]:
+    """``ranked`` (by held-out change) with the candidates that say how much of the water's fields they reproduce
+    (``fields_explained``: the image-position ones) reordered among their own places, most reproduced first (ties
+    by held-out change): on image position the candidate that flattens the fields is the better answer, whatever
+    else lowers the held-out error."""
+    places = [i for i, r in enumerate(ranked) if r.fields_explained is not None]
+    by_share = sorted((ranked[i] for i in places), key=lambda r: (-r.fields_explained, r.change))
+    ordered = list(ranked)
+    for i, r in zip(places, by_share, strict=True):
+        ordered[i] = r
+    return ordered
 
 
 #: A fitted value within this fraction of its parameter's span from a bound sits on the bound.

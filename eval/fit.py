@@ -459,8 +459,14 @@ class Problem:
         return done, config.max_iterations <= config.iterations
 
     def refine(self, evaluations: int) -> None:
-        """The trust-region least squares on :meth:`residuals` (:func:`least_squares_fit`)."""
-        least_squares_fit(self.theta, self.residuals, evaluations)
+        """The trust-region least squares on :meth:`residuals` (:func:`least_squares_fit`), its finite-difference
+        Jacobian taken a group of :meth:`channel_groups` at a time when the residuals are per channel (no penalty
+        rows)."""
+        groups = None
+        if len(self.penalty()) == 0:
+            groups, channel = self.channel_groups()
+            groups = [(g, channel[g]) for g in groups]
+        least_squares_fit(self.theta, self.residuals, evaluations, groups)
 
 
 def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> None:
@@ -480,10 +486,14 @@ def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> 
     opt.step(closure)
 
 
-def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int) -> None:
+def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
+                      groups: list[tuple[np.ndarray, np.ndarray]] | None = None) -> None:
     """Minimise the sum of squares of ``residual_fn()`` over the tensors ``theta`` (in place) by scipy's trust-region
-    reflective least squares, at most ``evaluations`` residual evaluations (a 2-point finite-difference Jacobian
-    costs one per parameter on top), Jacobian-scaled variables; the start is kept unless the fit lowers the cost."""
+    reflective least squares, at most ``evaluations`` residual evaluations, Jacobian-scaled variables; the start is
+    kept unless the fit lowers the cost. The Jacobian is scipy's forward differences (step sqrt(eps) max(1, |x|)),
+    one residual evaluation per parameter on top, or, with ``groups`` (flat parameter indices and each one's colour
+    channel, -1: none; the residuals channel-last, entry k of channel k mod 3), one per group
+    (:func:`grouped_jacobian`)."""
     if evaluations <= 0 or not theta:
         return
     from scipy.optimize import least_squares
@@ -497,16 +507,42 @@ def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int) 
             for t, part, shape in zip(theta, np.split(x, np.cumsum(sizes)[:-1]), shapes, strict=True):
                 t.copy_(torch.from_numpy(part.reshape(shape)))
 
+    last: list = [None, None]
+
     def fun(x: np.ndarray) -> np.ndarray:
         assign(x)
         with torch.no_grad():
-            return residual_fn().reshape(-1).numpy()
+            f = residual_fn().reshape(-1).numpy()
+        last[:] = x.copy(), f
+        return f
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        f0 = last[1] if last[0] is not None and np.array_equal(last[0], x) else fun(x)
+        return grouped_jacobian(fun, x, f0, groups)
 
     cost0 = float((fun(x0) ** 2).sum())
     with np.errstate(all="ignore"):
-        result = least_squares(fun, x0, jac="2-point", method="trf", x_scale="jac", ftol=1e-12, xtol=1e-10,
-                               gtol=1e-12, max_nfev=evaluations)
+        result = least_squares(fun, x0, jac="2-point" if groups is None else jac, method="trf", x_scale="jac",
+                               ftol=1e-12, xtol=1e-10, gtol=1e-12, max_nfev=evaluations)
     assign(result.x if np.isfinite(result.x).all() and 2.0 * result.cost <= cost0 else x0)
+
+
+def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Forward differences of ``fun`` at ``x`` (``f0`` = fun(x)) with scipy's steps, h_i = sqrt(eps) max(1, |x_i|)
+    signed like x_i, a group's entries moved together: where the residuals of channel c depend on the channel-c
+    entries (and the shared ones) alone, the column of a channel-c entry is the change of the channel-c residuals
+    (zero elsewhere), as moving it alone would give. An entry of channel -1 must be a group of its own."""
+    h = np.sqrt(np.finfo(float).eps) * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+    h = (x + h) - x
+    res_channel = np.arange(len(f0)) % 3
+    jacobian = np.zeros((len(f0), len(x)))
+    for index, channel in groups:
+        moved = x.copy()
+        moved[index] += h[index]
+        change = fun(moved) - f0
+        for i, c in zip(index, channel, strict=True):
+            jacobian[:, i] = change / h[i] if c < 0 else np.where(res_channel == c, change / h[i], 0.0)
+    return jacobian
 
 
 # ---------------------------------------------------------------------------------- bootstrap

@@ -720,3 +720,48 @@ def test_a_candidate_says_how_much_of_the_water_fields_it_reproduces():
     fitted = {"name": "image_field", "params": {"multiplicative": coefficients.tolist()}}
     share = fields_explained(with_falloff, without, water_field([fitted]), state)
     assert 0.8 < share < 1.0
+
+
+def test_image_position_candidates_rank_by_how_much_of_the_fields_they_flatten():
+    """Among their own places in the ranking (held-out change), the candidates that reproduce the water's fields over
+    the image come most-reproduced first; the others keep their places."""
+    from eval.diagnose import CandidateResult, order_by_fields
+
+    def candidate(name: str, change: float, share: float | None) -> CandidateResult:
+        return CandidateResult(name=name, heldout_rmse=0.01, change=change, ci95=(change - 0.01, change + 0.01),
+                               p=0.0, significant=True, flattened="image_position", flattened_drop=1.0, params={},
+                               scores={}, structure={}, seconds=0.0, fields_explained=share)
+
+    ranked = [candidate("wide_falloff", -0.40, 0.55), candidate("frame_thing", -0.30, None),
+              candidate("right_falloff", -0.20, 0.93), candidate("other", -0.10, None),
+              candidate("tie_b", -0.05, 0.55)]
+    ordered = order_by_fields(ranked)
+    assert [r.name for r in ordered] == ["right_falloff", "frame_thing", "wide_falloff", "other", "tie_b"]
+    assert order_by_fields([]) == []
+
+
+def test_the_grouped_jacobian_is_scipys_forward_differences(clean):
+    """The bootstrap's least squares moves a per-channel parameter's three channels together (the residuals of one
+    channel depend on that channel's entries alone): the Jacobian equals scipy's one-entry-at-a-time forward
+    differences, for fewer residual evaluations."""
+    from scipy.optimize._numdiff import approx_derivative
+
+    from eval.diagnose import DEFAULT_EFFECTS
+    from eval.fit import Problem, fitted_names, grouped_jacobian
+
+    meas = measure_survey(clean, MeasureConfig(n_points=150))
+    stack = Stack.ordered([{"name": n} for n in DEFAULT_EFFECTS]).to(torch.float64)
+    problem = Problem(stack, meas, FitConfig(), fitted_names(stack, ("gain",), {}))
+    groups, channel = problem.channel_groups()
+    x = problem.flat().numpy() + 0.05  # off the effects' start values
+
+    def fun(v: np.ndarray) -> np.ndarray:
+        problem.set_flat(torch.from_numpy(v))
+        with torch.no_grad():
+            return problem.residuals().numpy()
+
+    f0 = fun(x)
+    grouped = grouped_jacobian(fun, x, f0, [(g, channel[g]) for g in groups])
+    scipy_jacobian = approx_derivative(fun, x, method="2-point", f0=f0)
+    assert len(groups) <= len(x) / 2 and np.abs(scipy_jacobian).max() > 0
+    np.testing.assert_allclose(grouped, scipy_jacobian, rtol=0, atol=1e-12 * np.abs(scipy_jacobian).max())
