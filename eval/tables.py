@@ -29,8 +29,9 @@ Tables (as in the paper; lower is better unless said):
   truth (higher is better), averaged over frames.
 - Depth: monocular (the restorer's relative depth, the correct stage's ``depth/``) against stereo/MVS depth
   (``depth/metrics.json`` in the eval stage's folder; computed here when both inputs exist and it is missing).
-- Speed: seconds per frame of each method's correction alone (files excluded; the oracle's excludes
-  rendering the true geometry; ours from the correct stage's ``summary.json``, which includes file I/O).
+- Speed: seconds per frame of each method's correction alone, over the first ``TIMED_FRAMES`` frames run one at
+  a time (files excluded; the oracle's excludes rendering the true geometry; ours from the correct stage's
+  ``summary.json``, which includes file I/O).
 
 With ``EvaluateConfig.scheduler`` (a Dask scheduler address) the baselines (chunks of frames, every
 method) and the colour sampling at the SfM observations run on the cluster's workers
@@ -621,10 +622,23 @@ class BaselineChunk:
     """The simulated survey whose true geometry the oracle re-renders (built once per chunk)."""
 
 
-def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False) -> tuple[dict[str, float], list[str]]:
+#: Frames of a local run that every baseline corrects one at a time, timed, before the rest run two at a time: the
+#: speed table's seconds per frame are theirs, each method alone on the machine.
+TIMED_FRAMES = 8
+#: Frames corrected at once after the timed ones in a local run (the methods and the file I/O release the GIL in
+#: OpenCV, NumPy and torch; each lane on one torch thread).
+BASELINE_LANES = 2
+
+
+def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False, timed: int | None = None
+                   ) -> tuple[dict[str, float], int, list[str]]:
     """Every frame of ``job`` through every method into ``out_dir/<method>/<name>`` (8-bit sRGB, atomically).
-    Returns each method's correction seconds (summed over the frames) and the frames without a usable range.
-    ``geometry``: the oracle's, when already built (local runs); else built here from ``oracle_survey``."""
+    Returns each method's correction seconds summed over the first ``timed`` frames (None: all), which run one at a
+    time, the number of those frames, and the frames without a usable range (in ``job.names`` order); the frames
+    after them run ``BASELINE_LANES`` at a time, untimed. ``geometry``: the oracle's, when already built (local
+    runs); else built here from ``oracle_survey``."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from tqdm import tqdm
 
     from watergan.device import single_torch_thread
@@ -633,11 +647,21 @@ def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False) ->
     if "oracle" in job.methods and geometry is None:
         geometry = OracleGeometry(job.oracle_survey)
     before = len(job.ranges.fallback) if job.ranges is not None else 0
-    with single_torch_thread():  # the oracle's few element-wise renders: torch's pool only adds contention
-        for name in tqdm(job.names, desc="baselines", unit="frame", disable=not progress):
-            _correct_frame(name, job.images, list(job.methods), job.out_dir, seconds, job.ranges, job.coefficients,
-                           geometry)
-    return seconds, (job.ranges.fallback[before:] if job.ranges is not None else [])
+    timed = len(job.names) if timed is None else min(timed, len(job.names))
+
+    def correct(name: str, spent: dict[str, float]) -> None:
+        _correct_frame(name, job.images, list(job.methods), job.out_dir, spent, job.ranges, job.coefficients,
+                       geometry)
+        bar.update(1)
+
+    with single_torch_thread(), tqdm(total=len(job.names), desc="baselines", unit="frame",
+                                     disable=not progress) as bar:  # the oracle's renders: torch's pool contends
+        for name in job.names[:timed]:
+            correct(name, seconds)
+        with ThreadPoolExecutor(BASELINE_LANES) as pool:
+            list(pool.map(lambda name: correct(name, dict.fromkeys(job.methods, 0.0)), job.names[timed:]))
+    fallback = set(job.ranges.fallback[before:]) if job.ranges is not None else set()
+    return seconds, timed, [n for n in job.names if n in fallback]
 
 
 def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: Path, ranges=None,
@@ -646,26 +670,28 @@ def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: P
     """Correct every frame with every method into ``out_dir/<method>/<name>`` (8-bit sRGB); returns
     the seconds per frame of each method's correction alone.
 
-    ``scheduler``: empty or None runs here, frame by frame; a Dask scheduler address or
-    ``distributed.Client`` sends ``chunk_size`` frames per task to the cluster (:mod:`watergan.parallel`;
-    folders on a file system the workers share; the oracle's geometry is rebuilt once per chunk). The
-    files are the same either way. ``ranges.fallback`` lists the frames that had no usable range."""
+    ``scheduler``: empty or None runs here: the first ``TIMED_FRAMES`` frames one at a time (the seconds per frame
+    are theirs), the rest ``BASELINE_LANES`` at a time; a Dask scheduler address or ``distributed.Client`` sends
+    ``chunk_size`` frames per task to the cluster (:mod:`watergan.parallel`; folders on a file system the workers
+    share; the oracle's geometry is rebuilt once per chunk; every frame timed). The files are the same either way.
+    ``ranges.fallback`` lists the frames that had no usable range."""
     from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     needs_range = any(BASELINES[m].needs_range for m in methods)
     frame_ranges = ranges if needs_range else None
-    if not is_distributed(scheduler):  # one pass here, frame by frame
+    if not is_distributed(scheduler):
         results = [baseline_chunk(BaselineChunk(tuple(names), images, tuple(methods), out_dir, frame_ranges,
-                                                coefficients, None), geometry, progress=progress)]
+                                                coefficients, None), geometry, progress, TIMED_FRAMES)]
     else:
         survey = shared_path(geometry.survey) if geometry is not None else None
         jobs = [BaselineChunk(tuple(part), shared_path(images), tuple(methods), shared_path(out_dir), frame_ranges,
                               coefficients, survey) for part in chunks(names, chunk_size)]
         results = map_tasks(baseline_chunk, jobs, scheduler, desc="baselines", unit="chunk", progress=progress)
     if frame_ranges is not None:
-        frame_ranges.fallback = [n for _, fell_back in results for n in fell_back]
-    seconds = {m: sum(part[m] for part, _ in results) for m in methods}
-    return {m: s / max(len(names), 1) for m, s in seconds.items()}
+        frame_ranges.fallback = [n for *_, fell_back in results for n in fell_back]
+    seconds = {m: sum(part[m] for part, *_ in results) for m in methods}
+    timed = sum(count for _, count, _ in results)
+    return {m: s / max(timed, 1) for m, s in seconds.items()}
 
 
 def _correct_frame(name: str, images: Path, methods: list[str], out_dir: Path, seconds: dict[str, float], ranges,

@@ -24,6 +24,7 @@ from eval.tables import (
     LABELS,
     OURS,
     PHYSICS,
+    TIMED_FRAMES,
     EvaluateConfig,
     EvaluateResult,
     board_table,
@@ -169,7 +170,8 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
     tables.append(depth_table(ws.stage_dir("eval") / "depth", site_depth_metrics(ws)))
     tables.append(make_table("speed", "Seconds per frame (lower is better)", methods, [
         {"label": "seconds per frame", "values": [f.per_frame_s.get(m) for m in methods], "better": "lower"}], "row",
-        note="The correction alone, files excluded; the oracle's excludes rendering the true geometry; ours is "
+        note=f"The correction alone, files excluded, over the first {TIMED_FRAMES} frames corrected one at a time "
+             f"(on a cluster: every frame); the oracle's excludes rendering the true geometry; ours is "
              "the restorer's wall time per corrected frame, model loading and files included; physics is the "
              "correct stage's physics inverse per frame (files included, the estimate and the range maps excluded)."))
     return tables
