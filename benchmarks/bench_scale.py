@@ -2,7 +2,7 @@
 cost per frame at the largest size over the smallest.
 
     .venv/bin/python benchmarks/bench_scale.py [--frames 44,176,500] [--out /tmp/bench_scale] [--gan-budget-min 4]
-                                              [--restorer-budget-min 1] [--site-depth-steps 2000]
+                                              [--restorer-budget-min 0.5] [--site-depth-steps 2000]
                                               [--stages water,sfm]
 
 Each size is the demo survey (one hidden effect, as ``watergan demo`` ships it) flown longer over a larger site
@@ -57,7 +57,7 @@ def main() -> int:
     parser.add_argument("--frames", default="44,176,500", help="survey lengths, comma-separated")
     parser.add_argument("--out", type=Path, default=Path("/tmp/bench_scale"))
     parser.add_argument("--gan-budget-min", type=float, default=4.0)
-    parser.add_argument("--restorer-budget-min", type=float, default=1.0)
+    parser.add_argument("--restorer-budget-min", type=float, default=0.5)
     parser.add_argument("--site-depth-steps", type=int, default=2000)
     parser.add_argument("--stages", default="", help="rerun only these stages on the surveys in --out")
     args = parser.parse_args()

@@ -95,7 +95,7 @@ def run_gan_stage(ws: Workspace, cfg: GanStage) -> GanStageResult:
 
 
 def _train_restorer() -> RestorerConfig:
-    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=1.0)
+    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=0.5)
 
 
 @dataclass(frozen=True)
@@ -103,7 +103,7 @@ class RestorerStage:
     """The restorer's training on the gan stage's pairs, into the stage's folder."""
 
     train: RestorerConfig = field(default_factory=_train_restorer, metadata={"flatten": True})
-    """The restorer's training (its options without a prefix; a budget of 1 minute)."""
+    """The restorer's training (its options without a prefix; a budget of half a minute)."""
     altitude: bool | None = None
     """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
     range_input: bool | None = None
