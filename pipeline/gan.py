@@ -95,7 +95,8 @@ def run_gan_stage(ws: Workspace, cfg: GanStage) -> GanStageResult:
 
 
 def _train_restorer() -> RestorerConfig:
-    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=0.5)
+    return RestorerConfig(data_dir=Path(), out_dir=Path(), budget_min=0.5, stage1_min_iterations=60,
+                          stage2_min_iterations=120)
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,8 @@ class RestorerStage:
     """The restorer's training on the gan stage's pairs, into the stage's folder."""
 
     train: RestorerConfig = field(default_factory=_train_restorer, metadata={"flatten": True})
-    """The restorer's training (its options without a prefix; a budget of half a minute)."""
+    """The restorer's training (its options without a prefix; a budget of half a minute, and at least 60 and
+    120 iterations of its two stages)."""
     altitude: bool | None = None
     """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
     range_input: bool | None = None

@@ -372,6 +372,20 @@ def test_the_learning_rate_warms_up_then_decays_over_each_stage(tmp_path):
     assert stage_lr(config, 100, 100, 0.0, None) == pytest.approx(0.0, abs=1e-12)
     flat = _config(tmp_path, lr=1e-3, warmup_iterations=0, lr_decay=False)
     assert stage_lr(flat, 0, 100, 0.0, None) == stage_lr(flat, 99, 100, 50.0, 60.0) == 1e-3
+    # past the budget with fewer iterations than the stage's least, the rate decays over those iterations
+    assert stage_lr(config, 10, 1000, 90.0, 60.0) == pytest.approx(0.0, abs=1e-12)
+    assert stage_lr(config, 10, 1000, 90.0, 60.0, 20) == pytest.approx(5e-4)
+    assert stage_lr(config, 10, 1000, 30.0, 60.0, 5) == pytest.approx(5e-4)  # ahead of the least: the budget
+
+
+def test_a_budget_too_short_still_runs_each_stage_s_least_iterations(tmp_path):
+    """A budget that ends before a single step (a busy machine) still trains each stage its least iterations."""
+    write_generate_folder(tmp_path / "gen")
+    result = train_restorer(_config(tmp_path, stage1_iterations=50, stage2_iterations=50, budget_min=1e-6,
+                                    stage1_min_iterations=3, stage2_min_iterations=2))
+    assert result.steps == (3, 2)
+    with pytest.raises(UserInputError, match=">= 0"):
+        train_restorer(_config(tmp_path, stage1_min_iterations=-1))
 
 
 @pytest.mark.parametrize("with_intrinsics", [False, True])

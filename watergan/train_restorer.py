@@ -125,6 +125,11 @@ class RestorerConfig:
     """Iterations of stage 2 (full-resolution crops)."""
     budget_min: float | None = None
     """Wall-clock budget of this run, minutes (None: none); stage 1 may use ``stage1_budget_share`` of it."""
+    stage1_min_iterations: int = 0
+    """Iterations stage 1 runs at least, past its share of the budget if need be (a machine busy with other work
+    must not cut a budgeted training to a handful of steps); its learning rate's decay then follows them."""
+    stage2_min_iterations: int = 0
+    """The same for stage 2."""
     stage1_budget_share: float = 0.5
     """Fraction of the budget for stage 1 (stage 2 gets the rest)."""
     val_fraction: float = 0.2
@@ -198,7 +203,7 @@ def _check_config(c: RestorerConfig) -> None:
     for name in ("batch_size", "checkpoint_every"):
         if getattr(c, name) < 1:
             raise UserInputError(f"RestorerConfig.{name} must be at least 1, got {getattr(c, name)}")
-    if c.stage1_iterations < 0 or c.stage2_iterations < 0:
+    if min(c.stage1_iterations, c.stage2_iterations, c.stage1_min_iterations, c.stage2_min_iterations) < 0:
         raise UserInputError("stage iterations must be >= 0")
     if c.factor < 2 or c.factor % 2:
         raise UserInputError(f"RestorerConfig.factor must be even and >= 2, got {c.factor}")
@@ -519,12 +524,13 @@ def train_stage(run: RestorerRun, current: int, target: int, log: TrainingLog, c
     stage_start_s = clock.elapsed()
     bar = TrainingBar(f"restorer stage {current}", target, step, stage_end_s, config.progress, clock.elapsed())
     loss_value = None
+    least = min(config.stage1_min_iterations if current == 1 else config.stage2_min_iterations, target)
     while step < target:
-        if clock.reached(stage_end_s):
+        if clock.reached(stage_end_s) and step >= least:
             break
         for group in opt.param_groups:  # from the step (and budget): a resume by iterations keeps the rates
             group["lr"] = stage_lr(config, step, target, clock.elapsed() - stage_start_s,
-                                   None if stage_end_s is None else stage_end_s - stage_start_s)
+                                   None if stage_end_s is None else stage_end_s - stage_start_s, least)
         loss, colour_loss, depth_loss = restorer_step(run, current, opt)
         step += 1
         loss_value = loss.item()
@@ -543,13 +549,16 @@ def train_stage(run: RestorerRun, current: int, target: int, log: TrainingLog, c
     return step, loss_value
 
 
-def stage_lr(config: RestorerConfig, step: int, target: int, elapsed_s: float, stage_s: float | None) -> float:
+def stage_lr(config: RestorerConfig, step: int, target: int, elapsed_s: float, stage_s: float | None,
+             least: int = 0) -> float:
     """The learning rate of a stage's iteration ``step`` (0-based): ``lr`` times a linear warm-up over
     ``warmup_iterations`` and, with ``lr_decay``, (1 + cos(pi f)) / 2 with f the stage's progress, the larger of
-    step / target and elapsed_s / stage_s (its share of the budget)."""
+    step / target and elapsed_s / stage_s (its share of the budget), the latter no more than step / ``least`` (the
+    iterations the stage runs at least: past its budget it decays over them)."""
     rate = config.lr * min(1.0, (step + 1) / max(config.warmup_iterations, 1))
     if config.lr_decay:
-        progress = max(step / max(target, 1), elapsed_s / stage_s if stage_s else 0.0)
+        budget = elapsed_s / stage_s if stage_s else 0.0
+        progress = max(step / max(target, 1), min(budget, step / least) if least else budget)
         rate *= 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0)))
     return rate
 
