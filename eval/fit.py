@@ -534,14 +534,16 @@ def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.n
     (zero elsewhere), as moving it alone would give. An entry of channel -1 must be a group of its own."""
     h = np.sqrt(np.finfo(float).eps) * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
     h = (x + h) - x
-    res_channel = np.arange(len(f0)) % 3
     jacobian = np.zeros((len(f0), len(x)))
     for index, channel in groups:
         moved = x.copy()
         moved[index] += h[index]
         change = fun(moved) - f0
         for i, c in zip(index, channel, strict=True):
-            jacobian[:, i] = change / h[i] if c < 0 else np.where(res_channel == c, change / h[i], 0.0)
+            if c < 0:
+                jacobian[:, i] = change / h[i]
+            else:  # channel c's residuals are every third entry from c
+                jacobian[c::3, i] = change[c::3] / h[i]
     return jacobian
 
 
