@@ -442,3 +442,12 @@ def test_per_light_parameters_take_one_row_per_declared_light():
     assert get("artificial_light")().param("offset_m").shape == (1, 3)  # no count: one light
     stack = Stack.from_names(["artificial_light"], Counts(frames=7, lights=3))
     assert stack["artificial_light"].param("beam_deg").shape == (3,)
+
+
+def test_vector_length_is_torch_s_norm():
+    """The lengths of 3-vectors along a leading dimension equal torch's norm to rounding."""
+    from watergan.formation.state import vector_length
+
+    t = torch.randn(2, 3, 5, 7, dtype=torch.float64)
+    torch.testing.assert_close(vector_length(t, 1), t.norm(dim=1, keepdim=True), rtol=1e-15, atol=1e-15)
+    torch.testing.assert_close(vector_length(t[0], 0), t[0].norm(dim=0, keepdim=True), rtol=1e-15, atol=1e-15)

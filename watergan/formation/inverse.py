@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .stack import Stack
-from .state import FormationState, MissingInputError, pixel_grid, state_from_rgbd
+from .state import FormationState, MissingInputError, pixel_grid, state_from_rgbd, vector_length
 
 
 def rays_cam(K: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -259,7 +259,7 @@ class FieldTable:
         if K is not None:
             K = np.asarray(K, np.float64)
             ray = torch.stack([(x_grid - K[0, 2]) / K[0, 0], (y_grid - K[1, 2]) / K[1, 1], torch.ones_like(x_grid)])
-            points = ray / ray.norm(dim=0, keepdim=True) * r_grid
+            points = ray / vector_length(ray, 0) * r_grid
             fields = {"points_cam": points.reshape(1, 3, len(rs) * rows, cols), "depth_m": points[2].reshape(shape)}
         state = FormationState(direct=torch.zeros(1, 3, len(rs) * rows, cols, dtype=torch.float64),
                                range_m=r_grid.reshape(shape), pixel_uv=uv, image_wh=(w, h),

@@ -131,6 +131,14 @@ def normalised_radius(pixel_uv: torch.Tensor, image_wh: tuple[int, int],
     return torch.sqrt(dx * dx + dy * dy + 1e-12) / (0.5 * math.hypot(w, h))
 
 
+def vector_length(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """The length sqrt(x^2 + y^2 + z^2) of the 3-vectors along ``dim`` (kept, of size 1). The same as
+    ``t.norm(dim=dim, keepdim=True)`` to rounding; torch's norm over a dimension that is not the last is many times
+    slower on a CPU (benchmarks/RESULTS.md)."""
+    x, y, z = t.unbind(dim)
+    return torch.sqrt(x * x + y * y + z * z).unsqueeze(dim)
+
+
 def state_from_rgbd(rgb_linear: torch.Tensor, depth_m: torch.Tensor, fx: float, fy: float,
                     cx: float, cy: float, image_wh: tuple[int, int] | None = None) -> FormationState:
     """A state from in-air linear RGB (B,3,H,W) and z-depth (B,1,H,W) with pinhole intrinsics in
@@ -146,12 +154,12 @@ def state_from_rgbd(rgb_linear: torch.Tensor, depth_m: torch.Tensor, fx: float, 
     du = torch.nn.functional.pad(points[..., :, 2:] - points[..., :, :-2], (1, 1, 0, 0), mode="replicate")
     dv = torch.nn.functional.pad(points[..., 2:, :] - points[..., :-2, :], (0, 0, 1, 1), mode="replicate")
     normals = torch.linalg.cross(dv, du, dim=1)
-    normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    normals = normals / vector_length(normals, 1).clamp_min(1e-12)
     # face the camera: a visible surface's normal points against the ray (z < 0 in camera frame)
     normals = torch.where(normals[:, 2:3] > 0, -normals, normals)
     return FormationState(
         direct=rgb_linear,
-        range_m=points.norm(dim=1, keepdim=True),
+        range_m=vector_length(points, 1),
         depth_m=depth_m,
         pixel_uv=pixel_grid(h, w, b, rgb_linear.dtype),
         image_wh=image_wh or (w, h),
