@@ -168,14 +168,11 @@ def images_only(timed) -> float:
     """``timed``'s RGB-D run on CUDA with correct's depth outputs (a 16-bit PNG and a .npy per frame) left out: what
     the depth files cost."""
     import pipeline.correct as correct
-    from watergan.io import atomic_write_bytes, encode_image, output_bits
 
     own = correct._write
 
     def write_image(out, name, image_format, rgb, depth, bits):
-        path = correct._outputs(out, name, image_format)[0]
-        top, dtype = (65535.0, np.uint16) if output_bits(path, bits) == 16 else (255.0, np.uint8)
-        atomic_write_bytes(path, encode_image(path.suffix, np.rint(rgb * top).astype(dtype)))
+        correct._write_image(correct._outputs(out, name, image_format)[0], rgb, bits)
 
     correct._write = write_image
     try:

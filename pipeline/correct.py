@@ -128,11 +128,17 @@ def _outputs(out: Path, name: str, image_format: str) -> tuple[Path, Path, Path]
             out / "depth" / f"{stem}.npy")
 
 
+def _write_image(image_path: Path, rgb: np.ndarray, bits: int) -> None:
+    """An (H,W,3) 0..1 array as the corrected frame ``image_path`` (the input's ``bits`` where its format keeps
+    them), atomically."""
+    top, dtype = (65535.0, np.uint16) if output_bits(image_path, bits) == 16 else (255.0, np.uint8)
+    atomic_write_bytes(image_path, encode_image(image_path.suffix, np.rint(rgb * top).astype(dtype)))
+
+
 def _write(out: Path, name: str, image_format: str, rgb: np.ndarray, depth: np.ndarray, bits: int) -> None:
     """(H,W,3) and (H,W) 0..1 arrays to the three output files of input ``name``, atomically."""
     image_path, depth_png, depth_npy = _outputs(out, name, image_format)
-    top, dtype = (65535.0, np.uint16) if output_bits(image_path, bits) == 16 else (255.0, np.uint8)
-    atomic_write_bytes(image_path, encode_image(image_path.suffix, np.rint(rgb * top).astype(dtype)))
+    _write_image(image_path, rgb, bits)
     atomic_write_bytes(depth_png, encode_png(np.rint(depth * 65535.0).astype(np.uint16)))
     buffer = io.BytesIO()
     np.save(buffer, depth.astype(np.float32))
