@@ -17,7 +17,7 @@ work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's rang
 (``mode``; ``auto``: RGB-D when ``range_dir`` is given, else monocular):
 
 - ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take
-  the image's median range, :func:`watergan.nets.restorer.fill_range_holes`); an image without a range map is an
+  the image's median range, :func:`watergan.nets.restorer.fill_holes`); an image without a range map is an
   error before any work;
 - ``monocular``, for frames without range (a live camera, a survey without stereo overlap): the range of a flat,
   level seafloor at the frame's altitude (:func:`watergan.formation.inverse.flat_floor_range`), from the navigation's
@@ -52,6 +52,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -64,7 +65,6 @@ from watergan.data import (
     atomic_write_bytes,
     index_by_stem,
     list_files,
-    read_image,
     read_intrinsics,
     read_nav_altitudes,
     read_nav_down,
@@ -73,8 +73,19 @@ from watergan.device import Device, pick_device
 from watergan.formation import Stack
 from watergan.formation import get as get_effect
 from watergan.formation.inverse import flat_floor_depth, flat_floor_range, frame_affine, needs_normals
-from watergan.io import bit_depth, depth_or_zero, encode_image, encode_png, is_jpeg, output_bits, read_depth
-from watergan.nets.restorer import WaterFields, fill_range_holes, restore
+from watergan.io import (
+    bit_depth,
+    encode_image,
+    encode_png,
+    is_jpeg,
+    levels_bits,
+    output_bits,
+    read_depth,
+    read_millimetres,
+    read_stored,
+    stored_as,
+)
+from watergan.nets.restorer import WaterFields, fill_holes, restore
 from watergan.nets.site_depth import SiteDepthNet
 from watergan.train_restorer import load_restorer
 from watergan.train_site_depth import load_site_depth
@@ -239,32 +250,44 @@ def monocular_range(image: np.ndarray, altitude_m: float, K: np.ndarray, down_ca
     return range_m.astype(np.float32)
 
 
-def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None
-              ) -> tuple[np.ndarray, int, np.ndarray | None]:
-    """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth and, for an RGB-D restorer,
-    its range (float32 metres): its range map, holes filled (:func:`watergan.nets.restorer.fill_range_holes`), or a
-    flat seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site``; a DataError names
-    what is wrong. Runs in the I/O threads, off the nets' thread."""
-    image = read_image(path, "linear", np.float32)
-    bits = bit_depth(path)
+def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None, linear: bool = False
+              ) -> tuple[np.ndarray, int, np.ndarray | None, np.ndarray | None]:
+    """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth, for an RGB-D restorer its
+    range (float32 metres: its range map, holes filled (:func:`watergan.nets.restorer.fill_holes`), or a flat
+    seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site``), and with ``linear``
+    its colours decoded to linear light (float32, from the same decoded levels); a DataError names what is wrong.
+    Runs in the I/O threads, off the nets' thread."""
+    levels = read_stored(path)
+    image, bits = stored_as(levels, "linear", np.float32), levels_bits(levels)
+    decoded = stored_as(levels, "srgb", np.float32) if linear else None
     range_m = None
     if chunk.flat_floor:
         range_m = monocular_range(image, chunk.altitude_m[k], chunk.camera.resized(*image.shape[:2]).K,
                                   chunk.down_cam[k] if chunk.down_cam is not None else None, site)
     elif chunk.range_dir is not None:
         range_path = chunk.range_dir / f"{path.stem}.png"
-        range_m = depth_or_zero(read_depth(range_path))
+        range_m = (read_millimetres(range_path) / 1000.0).astype(np.float32)
         if range_m.shape != image.shape[:2]:
             raise DataError(f"range map {range_path} is {range_m.shape[1]}x{range_m.shape[0]}, the image "
                             f"{image.shape[1]}x{image.shape[0]}")
         if not (range_m > 0).any():
             raise DataError(f"range map {range_path} holds no range")
-        range_m = fill_range_holes(torch.from_numpy(range_m).float()[None, None])[0][0, 0].numpy()
-    return image, bits, range_m
+        range_m = fill_holes(range_m)[0]
+    return image, bits, range_m, decoded
 
 
-Item = tuple[str, np.ndarray, int, float, np.ndarray | None]
-"""One image to correct: file name, image (H,W,3), bit depth, altitude (metres; 0 when not used), range map or None."""
+class Item(NamedTuple):
+    """One image to correct."""
+
+    name: str
+    image: np.ndarray
+    """(H,W,3) stored values 0..1."""
+    bits: int
+    altitude_m: float
+    """0 when not used."""
+    range_m: np.ndarray | None
+    linear: np.ndarray | None
+    """(H,W,3) the colours decoded to linear light, for a restorer that takes them (:func:`restore`)."""
 
 
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
@@ -283,21 +306,27 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
     lanes = cpu_lanes() if dev.type == "cpu" else cuda_lanes()
+    # a restorer without skip layers applies its fields to the decoded colours: the readers decode them by table
+    linear = not model.colour_net.skip and model.colour_net.head == "affine"
+
+    def stacked(arrays: list[np.ndarray]) -> torch.Tensor:
+        return torch.from_numpy(np.stack(arrays).transpose(0, 3, 1, 2)).to(dev)
 
     def correct_batch(batch: list[Item]) -> int:
-        x = torch.from_numpy(np.stack([b[1] for b in batch]).transpose(0, 3, 1, 2)).to(dev)
-        altitude = torch.tensor([b[3] for b in batch], device=dev) if model.altitude else None
+        x = stacked([b.image for b in batch])
+        altitude = torch.tensor([b.altitude_m for b in batch], device=dev) if model.altitude else None
         range_m = None
-        if batch[0][4] is not None:
-            range_m = torch.from_numpy(np.stack([b[4] for b in batch])[:, None]).to(dev)
+        if batch[0].range_m is not None:
+            range_m = torch.from_numpy(np.stack([b.range_m for b in batch])[:, None]).to(dev)
         intrinsics = None if chunk.camera is None else chunk.camera.resized(*x.shape[-2:]).as_tuple()
         with torch.no_grad():
             water = fields(range_m, intrinsics) if fields is not None else None
-            rgb, depth = restore(model, x, altitude, range_m, intrinsics, water)
+            rgb, depth = restore(model, x, altitude, range_m, intrinsics, water,
+                                 stacked([b.linear for b in batch]) if linear else None)
         rgb_np = rgb.cpu().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().numpy()
-        for k, (name, _, bits, _, _) in enumerate(batch):
-            _write(out, name, chunk.image_format, rgb_np[k], depth_np[k], bits)
+        for k, b in enumerate(batch):
+            _write(out, b.name, chunk.image_format, rgb_np[k], depth_np[k], b.bits)
         return len(batch)
 
     running: deque[Future] = deque()
@@ -322,19 +351,19 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                 running.append(nets.submit(correct_batch, list(batch)))
                 batch.clear()
 
-            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * chunk.batch_size, site):
+            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * chunk.batch_size, site, linear):
                 try:
-                    image, bits, range_m = read.result()
+                    image, bits, range_m, decoded = read.result()
                 except DataError as exc:
                     result.failed.append(str(exc))
                     if bar is not None:
                         tqdm.write(f"correct: skipped {exc}", file=sys.stderr)
                         bar.update(1)
                     continue
-                if batch and batch[0][1].shape != image.shape:
+                if batch and batch[0].image.shape != image.shape:
                     submit()
-                batch.append((path.name, image, bits,
-                              chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m))
+                batch.append(Item(path.name, image, bits,
+                                  chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m, decoded))
                 if len(batch) == chunk.batch_size:
                     submit()
             if batch:
@@ -345,13 +374,13 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     return result
 
 
-def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int, site: SiteDepthNet | None = None
-                ) -> Iterator[tuple[int, Path, Future]]:
+def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int, site: SiteDepthNet | None = None,
+                linear: bool = False) -> Iterator[tuple[int, Path, Future]]:
     """(index, path, the future of :func:`_read_one`) of each path in order, with up to ``ahead`` reads
     submitted before the one yielded."""
     reads: deque[tuple[int, Path, Future]] = deque()
     for k, path in enumerate(chunk.paths):
-        reads.append((k, path, pool.submit(_read_one, chunk, k, path, site)))
+        reads.append((k, path, pool.submit(_read_one, chunk, k, path, site, linear)))
         if len(reads) > ahead:
             yield reads.popleft()
     yield from reads
@@ -621,9 +650,11 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
         site = load_site_depth(ws.folder("restorer"))[0] if ws.result("restorer") is not None else None
         source = "site depth net" if site is not None else "flat seafloor"
 
-    def frame_range(name: str, size_hw: tuple[int, int]) -> np.ndarray:
-        if monocular:  # the site depth net reads the stored values; the flat seafloor only the frame's size
-            stored = read_image(images / name, "linear", np.float32) if site is not None else \
+    def frame_range(name: str, size_hw: tuple[int, int], levels: np.ndarray | None = None) -> np.ndarray:
+        if monocular:  # the site depth net reads the stored values (levels: the frame's, decoded once)
+            if site is not None and levels is None:
+                levels = read_stored(images / name)
+            stored = stored_as(levels, "linear", np.float32) if site is not None else \
                 np.empty((*size_hw, 3), np.float32)
             return monocular_range(stored, altitudes[name], K, downs[name] if downs else None, site)
         path = range_dir / f"{Path(name).stem}.png"
@@ -634,15 +665,16 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
 
     def correct_frame(k: int) -> float:
         name = names[k]
-        affine = image = None
+        affine = image = levels = None
         if fields is not None:
-            image = read_image(images / name, dtype=np.float32)
+            levels = read_stored(images / name)
+            image = stored_as(levels, "srgb", np.float32)
             affine = (np.ones(3), np.zeros(3)) if per_frame is None else \
                 frame_affine(stack, per_frame, k, K, *image.shape[:2])
         if affine is not None:
             s, t = affine
             corrected, valid = invert_with_fields((image - t.astype(np.float32)) / s.astype(np.float32),
-                                                  frame_range(name, image.shape[:2]), fields, K)
+                                                  frame_range(name, image.shape[:2], levels), fields, K)
         else:
             f = water_frame(tracks, k, images, depth_dir)
             r = frame_range(name, f.image.shape[:2])
@@ -650,7 +682,8 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
         rgb = np.clip(np.nan_to_num(corrected, copy=False), 0.0, 1.0, out=corrected)
         rgb[~valid] = 0.0
-        write_srgb_image(out / "images" / corrected_name(name, image_format), rgb, bit_depth(images / name))
+        write_srgb_image(out / "images" / corrected_name(name, image_format), rgb,
+                         bit_depth(images / name) if levels is None else levels_bits(levels))
         write_png(out / "mask" / f"{Path(name).stem}.png", np.where(valid, 255, 0).astype(np.uint8))
         return float(np.mean(~valid))
 

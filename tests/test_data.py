@@ -115,6 +115,33 @@ def test_srgb_round_trip_and_writers(tmp_path):
         write_depth_png(tmp_path / "far.png", np.full((2, 2), 70.0))
 
 
+def test_decoding_and_encoding_by_table_and_fast_codecs(tmp_path):
+    """The stored levels' decoding by table (8 and 16 bits), sRGB encoding in torch, and 8-bit PNGs through fpng give
+    the values of the plain NumPy and OpenCV routes."""
+    from watergan.io import encode_png, quantise, read_stored, srgb_levels, stored_as
+
+    rng = np.random.default_rng(3)
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535)):
+        levels = rng.integers(0, top + 1, (9, 11, 3)).astype(dtype)
+        cv2.imwrite(str(tmp_path / "f.png"), levels)  # OpenCV's BGR order: RGB is levels reversed
+        stored = read_stored(tmp_path / "f.png")
+        np.testing.assert_array_equal(stored, levels)
+        rgb = levels[..., ::-1].astype(np.float64) / top
+        np.testing.assert_array_equal(stored_as(stored, "linear", np.float32), rgb.astype(np.float32))
+        np.testing.assert_allclose(stored_as(stored, "srgb"), srgb_to_linear(rgb), rtol=1e-12, atol=1e-15)
+    linear = np.concatenate([np.linspace(-0.1, 1.2, 200_001), rng.random(100_000)]).astype(np.float32)
+    for bits in (8, 16):  # against float64 NumPy: exact from float64, as close as NumPy's own from float32
+        truth = quantise(linear_to_srgb(linear.astype(np.float64)), bits).astype(int)
+        np.testing.assert_array_equal(srgb_levels(linear.astype(np.float64), bits), truth)
+        fast, plain = srgb_levels(linear, bits).astype(int), quantise(linear_to_srgb(linear), bits).astype(int)
+        assert np.abs(fast - truth).max() <= 1  # float32 rounding at a level's edge
+        assert np.mean(fast != truth) <= max(2 * np.mean(plain != truth), 5e-5)
+    image = rng.integers(0, 256, (13, 17, 3)).astype(np.uint8)
+    for array in (image, image[..., 0], image.astype(np.uint16) * 257):  # fpng (8-bit RGB) and OpenCV (the rest)
+        decoded = cv2.imdecode(np.frombuffer(encode_png(array), np.uint8), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(decoded[..., ::-1] if array.ndim == 3 else decoded, array)
+
+
 def test_resize_depth_ignores_holes():
     depth = np.full((4, 4), 2.0)
     depth[:2, :2] = 0.0

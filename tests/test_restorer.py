@@ -113,7 +113,25 @@ def test_affine_fields_invert_the_formation_model_for_any_colour():
     assert torch.allclose(srgb_decode(srgb_encode(j)), j, atol=1e-6)
     with torch.no_grad():  # inference's in-place passes give training's values to float rounding
         fast = apply_affine(fields, recorded)
+        given = apply_affine(fields, recorded, srgb_decode(recorded))  # the colours decoded by the caller
     assert torch.allclose(fast, apply_affine(fields.clone().requires_grad_(), recorded), atol=1e-6)
+    assert torch.allclose(given, fast, atol=1e-6)
+
+
+def test_a_restorer_without_skip_layers_pools_its_input_by_parts():
+    """Restorer.forward pools the image, depth, position and range apart (and takes decoded colours): the same
+    colours as the colour net on the whole full-resolution input."""
+    model = Restorer(TINY, skip=False, range_input=True).eval()
+    g = torch.Generator().manual_seed(1)
+    image, range_m = torch.rand(2, 3, 64, 96, generator=g), 1.0 + torch.rand(2, 1, 64, 96, generator=g)
+    with torch.no_grad():
+        torch.nn.init.normal_(model.colour_net.core.head.weight, std=0.1)
+        rgb, depth = model(image, None, None, range_m)
+        whole = model.colour_net(torch.cat([image, depth, position_maps(64, 96).expand(2, -1, -1, -1), range_m], 1))
+        decoded, _ = model(image, None, None, range_m, None, srgb_decode(image))
+    assert torch.allclose(rgb, whole, atol=1e-6)
+    assert torch.allclose(decoded, rgb, atol=1e-5)
+    assert not torch.allclose(rgb, image, atol=1e-3)
 
 
 def test_the_colour_net_sees_the_whole_image_context():
@@ -192,6 +210,14 @@ def test_the_range_enters_the_colour_net():
     assert filled.flatten().tolist() == [1.0, 1.0, 1.0, 3.0] and share == 0.5  # torch's median: the lower middle
     with pytest.raises(ValueError, match="no range"):
         fill_range_holes(torch.zeros(1, 1, 2, 2))
+    maps = torch.rand(3, 1, 30, 41, generator=torch.Generator().manual_seed(2)) * 4.0
+    maps[maps < 1.0] = 0.0  # about a quarter holes, a different count in each map
+    filled, share = fill_range_holes(maps)
+    for b in range(3):
+        valid = maps[b] > 0
+        assert torch.equal(filled[b][~valid], torch.full_like(filled[b][~valid], float(maps[b][valid].median())))
+        assert torch.equal(filled[b][valid], maps[b][valid])
+    assert share == pytest.approx(float((maps == 0).float().mean()))
 
 
 def test_an_rgbd_restorer_trains_on_the_paired_range(tmp_path):

@@ -31,6 +31,11 @@ import numpy as np
 
 from .errors import UserInputError
 
+try:  # a fast encoder of 8-bit RGB PNGs (a dependency; OpenCV's encoder where its wheel is missing)
+    import fpng_py as _fpng
+except ImportError:  # pragma: no cover
+    _fpng = None
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DEPTH_SUFFIXES = (".png", ".npy", ".mat")
 class Encoding(StrEnum):
@@ -180,28 +185,61 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
 def read_image(path: Path, encoding: str = "srgb", dtype: type = np.float64) -> np.ndarray:
     """An RGB image file (8- or 16-bit PNG, JPEG or TIFF) as (H,W,3) linear radiance 0..1 of ``dtype`` (float64 or
     float32; ``encoding`` linear: the stored values scaled to 0..1)."""
-    if encoding not in ENCODINGS:
-        raise DataError(f"image encoding must be one of {ENCODINGS}, got {encoding!r}")
+    return stored_as(read_stored(path), encoding, dtype)
+
+
+def _decode(path: Path, kind: str, formats: str) -> np.ndarray:
+    """OpenCV's array of a whole image file as stored (its channels and bit depth); DataErrors name the ``kind`` of
+    file (image, depth) and the ``formats`` it should be in."""
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise DataError(f"cannot read image {path}: {exc}") from exc
+        raise DataError(f"cannot read {kind} {path}: {exc}") from exc
     if not is_complete(path, data):
-        raise DataError(f"image {path} is truncated (no end marker); re-export or remove it")
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DataError(f"image {path} is not a readable PNG, JPEG or TIFF file")
+        raise DataError(f"{kind} {path} is truncated (no end marker); re-export or remove it")
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise DataError(f"{kind} {path} is not a readable {formats} file")
+    return decoded
+
+
+def read_stored(path: Path) -> np.ndarray:
+    """An RGB image file's stored levels, (H,W,3) uint8 or uint16 in OpenCV's BGR order (an alpha channel dropped),
+    decoded once for :func:`stored_as`; a DataError says what is wrong with the file."""
+    image = _decode(path, "image", "PNG, JPEG or TIFF")
     if image.ndim != 3 or image.shape[2] not in (3, 4):
         raise DataError(f"image {path} has shape {image.shape}; expected a colour (RGB) image")
-    if image.dtype == np.uint8:
-        scale = 255.0
-    elif image.dtype == np.uint16:
-        scale = 65535.0
-    else:
+    if image.dtype not in (np.uint8, np.uint16):
         raise DataError(f"image {path} has sample type {image.dtype}; expected 8- or 16-bit integers")
-    if encoding == "srgb":  # BGR(A) -> RGB, each stored level through its decoded value
-        return np.take(srgb_decode_table(int(scale) + 1, np.dtype(dtype).name), image[..., 2::-1])
-    return image[..., 2::-1].astype(dtype) / np.array(scale, dtype)
+    return image[..., :3]
+
+
+def levels_bits(levels: np.ndarray) -> int:
+    """8 or 16: the bit depth of :func:`read_stored`'s levels."""
+    return 16 if levels.dtype == np.uint16 else 8
+
+
+def stored_as(levels: np.ndarray, encoding: str = "srgb", dtype: type = np.float64) -> np.ndarray:
+    """(H,W,3) RGB 0..1 of ``dtype`` from :func:`read_stored`'s BGR levels: ``encoding`` srgb, each level through its
+    decoded (linear) value; linear, the stored values scaled to 0..1."""
+    if encoding not in ENCODINGS:
+        raise DataError(f"image encoding must be one of {ENCODINGS}, got {encoding!r}")
+    scale = 255.0 if levels.dtype == np.uint8 else 65535.0
+    if encoding == "srgb":  # BGR -> RGB, each stored level through its decoded value
+        table = srgb_decode_table(int(scale) + 1, np.dtype(dtype).name)
+    else:
+        table = _level_table(int(scale) + 1, np.dtype(dtype).name)
+    if levels.dtype == np.uint8:  # OpenCV's swap and table lookup: several times faster than NumPy's
+        return cv2.LUT(cv2.cvtColor(np.ascontiguousarray(levels), cv2.COLOR_BGR2RGB), table)
+    return np.take(table, levels[..., ::-1])
+
+
+@functools.lru_cache(maxsize=4)
+def _level_table(levels: int, dtype: str) -> np.ndarray:
+    """(levels,) of ``dtype``: each stored level v / (levels - 1), as dividing the level in ``dtype`` gives it."""
+    table = np.arange(levels).astype(dtype) / np.array(levels - 1, dtype)
+    table.flags.writeable = False
+    return table
 
 
 @functools.cache
@@ -234,10 +272,17 @@ def is_complete(path: Path, data: bytes) -> bool:
 
 
 def encode_png(image: np.ndarray) -> bytes:
-    """PNG bytes of an (H,W) or (H,W,3) RGB uint8/uint16 array (cv2 stores BGR: swapped here)."""
+    """PNG bytes of an (H,W) or (H,W,3) RGB uint8/uint16 array: 8-bit RGB through fpng (Geldreich's encoder, about
+    six times faster than OpenCV's at about 10 % larger files; any PNG reader decodes them) where it is installed,
+    the rest through OpenCV (which stores BGR: swapped here)."""
     if image.dtype not in (np.uint8, np.uint16):
         raise TypeError(f"PNG images must be uint8 or uint16, got {image.dtype}")
-    data = image[..., ::-1] if image.ndim == 3 else image
+    if _fpng is not None and image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.size:
+        h, w = image.shape[:2]
+        encoded = _fpng.fpng_encode_image_to_memory(np.ascontiguousarray(image).tobytes(), w, h, 3)
+        if encoded:
+            return bytes(encoded)
+    data = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
     ok, buffer = cv2.imencode(".png", np.ascontiguousarray(data))
     if not ok:
         raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as PNG")
@@ -294,17 +339,33 @@ def encode_image(suffix: str, image: np.ndarray) -> bytes:
     if is_jpeg(suffix) and image.dtype != np.uint8:
         raise TypeError("JPEG images are 8-bit: quantise to 8 bits first")
     params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if is_jpeg(suffix) else []
-    ok, buffer = cv2.imencode(suffix, np.ascontiguousarray(image[..., ::-1]), params)
+    ok, buffer = cv2.imencode(suffix, cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise OSError(f"could not encode a {image.dtype} image of shape {image.shape} as {suffix}")
     return buffer.tobytes()
 
 
+def srgb_levels(linear_rgb: np.ndarray, bit_depth: int) -> np.ndarray:
+    """quantise(linear_to_srgb(linear_rgb), bit_depth) for a float32 or float64 array, computed in torch in its
+    dtype with the power as exp(ln(x) / 2.4), each step in place (three times faster than NumPy's power on a CPU;
+    the same levels on the frames measured)."""
+    import torch
+
+    if bit_depth not in (8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth}")
+    top = 2.0**bit_depth - 1.0
+    x = torch.from_numpy(np.ascontiguousarray(linear_rgb)).clamp(0.0, 1.0)
+    dark = x <= 0.0031308
+    curve = torch.clamp(x, min=0.0031308).log_().mul_(1 / 2.4).exp_().mul_(1.055 * top).sub_(0.055 * top)
+    levels = torch.where(dark, x.mul_(12.92 * top), curve).round_()
+    return levels.to(torch.uint8).numpy() if bit_depth == 8 else levels.to(torch.int32).numpy().astype(np.uint16)
+
+
 def write_srgb_image(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 8) -> None:
-    """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16; JPEG: 8) bits, in the format of
-    the path's suffix (PNG, TIFF or JPEG), atomically."""
+    """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16; JPEG: 8) bits
+    (:func:`srgb_levels`), in the format of the path's suffix (PNG, TIFF or JPEG), atomically."""
     path = Path(path)
-    rgb = quantise(linear_to_srgb(linear_rgb), output_bits(path, bit_depth))
+    rgb = srgb_levels(linear_rgb, output_bits(path, bit_depth))
     atomic_write_bytes(path, encode_image(path.suffix, rgb))
 
 
@@ -322,7 +383,7 @@ def frame_file(folder: Path, name: str) -> Path:
 
 def write_srgb_png(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 8) -> None:
     """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16) bits as a PNG, atomically."""
-    write_png(path, quantise(linear_to_srgb(linear_rgb), bit_depth))
+    write_png(path, srgb_levels(linear_rgb, bit_depth))
 
 
 def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
@@ -342,18 +403,20 @@ def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
     write_png(path, mm.astype(np.uint16))
 
 
+def read_millimetres(path: Path) -> np.ndarray:
+    """(H,W) uint16 of a single-channel 16-bit PNG in millimetres (0 = no value), as the water stage writes range
+    maps; a DataError says what is wrong with the file."""
+    raw = _decode(path, "depth", "PNG")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise DataError(f"depth {path} is a {raw.dtype} PNG of shape {raw.shape}; expected a "
+                        f"single-channel 16-bit PNG in millimetres")
+    return raw
+
+
 def _load_depth_array(path: Path) -> np.ndarray:
     suffix = path.suffix.lower()
     if suffix == ".png":
-        data = path.read_bytes()
-        if not is_complete(path, data):
-            raise DataError(f"depth {path} is truncated (no PNG end chunk)")
-        raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise DataError(f"depth {path} is not a readable PNG")
-        if raw.dtype != np.uint16 or raw.ndim != 2:
-            raise DataError(f"depth {path} is a {raw.dtype} PNG of shape {raw.shape}; expected a "
-                            f"single-channel 16-bit PNG in millimetres")
+        raw = read_millimetres(path)
         depth = raw.astype(np.float64) / 1000.0
         depth[raw == 0] = np.nan
         return depth

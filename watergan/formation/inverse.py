@@ -51,8 +51,8 @@ def flat_floor_depth(altitude_m: float, K: np.ndarray, h: int, w: int,
                      down_cam: np.ndarray | None = None) -> np.ndarray:
     """(H,W) camera-z depth (metres) of the same seafloor: :func:`flat_floor_range` over each ray's length
     |K^-1 (x, y, 1)|."""
-    rays = np.linalg.norm(rays_cam(np.asarray(K, np.float64), h, w), axis=-1)
-    return flat_floor_range(altitude_m, K, h, w, down_cam) / rays
+    unit_z = unit_rays(_intrinsics(np.asarray(K, np.float64)), h, w)[..., 2]  # 1 / |K^-1 (x, y, 1)|
+    return flat_floor_range(altitude_m, K, h, w, down_cam) * unit_z
 
 
 def clean_range(r: np.ndarray) -> np.ndarray:
@@ -305,12 +305,13 @@ class FieldTable:
                                                             align_corners=True)[0]
         maps, curves = self._maps_hw.reshape(-1, h * w).to(device, dtype), self.curves.to(device, dtype)
         terms = len(curves) // 6
-        index = ((range_m.reshape(b, h * w) - self.r_lo_m) / CURVE_STEP_M).round_().clamp_(0, curves.shape[1] - 1)
-        index = index.long()
-        out = torch.zeros(b, 6, h * w, device=device, dtype=dtype)
-        for j in range(len(curves)):
-            out[:, j // terms].addcmul_(curves[j][index], maps[j])
-        return out.reshape(b, 6, h, w)
+        index = ((range_m.reshape(-1) - self.r_lo_m) / CURVE_STEP_M).round_().clamp_(0, curves.shape[1] - 1).int()
+        values = torch.index_select(curves, 1, index).view(6, terms, b, h * w)  # every curve in one gather
+        maps = maps.view(6, terms, 1, h * w)
+        out = values[:, 0] * maps[:, 0]
+        for k in range(1, terms):
+            out.addcmul_(values[:, k], maps[:, k])
+        return out.transpose(0, 1).reshape(b, 6, h, w)
 
 
 #: Largest number of range-by-position products :func:`factorised` takes per channel.

@@ -190,25 +190,30 @@ def srgb_encode(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
 
 
-def apply_affine(fields: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+def apply_affine(fields: torch.Tensor, image: torch.Tensor, linear: torch.Tensor | None = None) -> torch.Tensor:
     """y = srgb(exp(g) lin(x) + o) per channel: ``fields`` (B,6,H,W) holds the log gains g and offsets
     o (linear light), ``image`` (B,3,H,W) the sRGB-encoded 0..1 input; zero fields give y = x. Without gradients
-    (correcting frames) the same equation in fewer full-resolution passes (:func:`_apply_affine_in_place`)."""
+    (correcting frames) the same equation in fewer full-resolution passes (:func:`_apply_affine_in_place`), with
+    lin(x) taken from ``linear`` (B,3,H,W) where the caller decoded it already (a table lookup when reading)."""
     if torch.is_grad_enabled() and (fields.requires_grad or image.requires_grad):
         return srgb_encode(srgb_decode(image) * torch.exp(fields[:, :3]) + fields[:, 3:])
-    return _apply_affine_in_place(fields, image)
+    return _apply_affine_in_place(fields, image, linear)
 
 
-def _apply_affine_in_place(fields: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+def _apply_affine_in_place(fields: torch.Tensor, image: torch.Tensor,
+                           linear: torch.Tensor | None = None) -> torch.Tensor:
     """:func:`apply_affine` for inference: the powers as exp(a ln v), each step in place on one of a few buffers
     (the same values to float rounding; on a CPU each new full-resolution tensor costs more than its arithmetic)."""
-    lin = image.clamp(0.0, 1.0)
-    dark = lin <= 0.04045
-    curve = lin.add(0.055).mul_(1 / 1.055).log_().mul_(2.4).exp_()
-    lin = torch.where(dark, lin.mul_(1 / 12.92), curve)
-    lin.mul_(fields[:, :3].exp()).add_(fields[:, 3:]).clamp_(min=0.0)
-    dark = torch.le(lin, 0.0031308, out=dark)
-    curve = torch.clamp(lin, min=0.0031308, out=curve).log_().mul_(1 / 2.4).exp_().mul_(1.055).sub_(0.055)
+    if linear is None:
+        lin = image.clamp(0.0, 1.0)
+        dark = lin <= 0.04045
+        curve = lin.add(0.055).mul_(1 / 1.055).log_().mul_(2.4).exp_()
+        lin = torch.where(dark, lin.mul_(1 / 12.92), curve).mul_(fields[:, :3].exp())
+    else:
+        lin = fields[:, :3].exp().mul_(linear)
+    lin.add_(fields[:, 3:]).clamp_(min=0.0)
+    dark = lin <= 0.0031308
+    curve = torch.clamp(lin, min=0.0031308).log_().mul_(1 / 2.4).exp_().mul_(1.055).sub_(0.055)
     return torch.where(dark, lin.mul_(12.92), curve)
 
 
@@ -228,18 +233,34 @@ GEOMETRY_WIDTH = 32
 
 def fill_range_holes(range_m: torch.Tensor) -> tuple[torch.Tensor, float]:
     """(B,1,H,W) range in metres with holes (0 or NaN) -> the same with each image's holes set to the median of
-    its valid pixels, and the share of pixels filled. An image without any range is an error."""
+    its valid pixels (:func:`fill_holes`), and the share of pixels filled. An image without any range is an error."""
+    if range_m.device.type == "cpu":
+        filled = [fill_holes(r[0].numpy()) for r in range_m]
+        out = torch.stack([torch.from_numpy(f[0]) for f in filled])[:, None].to(range_m.dtype)
+        return out, float(np.mean([f[1] for f in filled]))
     valid = torch.isfinite(range_m) & (range_m > 0)
     out = range_m.clone()
     for b in range(range_m.shape[0]):
         values = range_m[b][valid[b]]
         if not len(values):
-            raise ValueError("an image has no range at any pixel: the RGB-D restorer needs range (use the monocular "
-                             "restorer, range_input=False)")
-        k = (len(values) - 1) // 2  # torch's median: the lower middle value; NumPy's partition finds it faster
-        median = np.partition(values.cpu().numpy(), k)[k] if values.device.type == "cpu" else values.median()
-        out[b][~valid[b]] = float(median)
+            raise ValueError(NO_RANGE)
+        out[b][~valid[b]] = float(values.median())
     return out, float((~valid).float().mean())
+
+
+NO_RANGE = "an image has no range at any pixel: the RGB-D restorer needs range (use the monocular restorer, " \
+           "range_input=False)"
+
+
+def fill_holes(range_m: np.ndarray) -> tuple[np.ndarray, float]:
+    """(H,W) range in metres with holes (0 or NaN) -> the same with its holes set to the median of its valid pixels
+    (the lower middle value, as torch's median), and the share of pixels filled; no range at all is an error."""
+    valid = np.isfinite(range_m) & (range_m > 0)
+    values = range_m[valid]
+    if not len(values):
+        raise ValueError(NO_RANGE)
+    k = (len(values) - 1) // 2
+    return np.where(valid, range_m, np.partition(values, k)[k]), 1.0 - len(values) / range_m.size
 
 
 def invertible_water(stack: list[dict]) -> list[dict]:
@@ -381,10 +402,10 @@ class ColourNet(nn.Module):
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
 
-    def colours(self, core_out: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    def colours(self, core_out: torch.Tensor, x: torch.Tensor, linear: torch.Tensor | None = None) -> torch.Tensor:
         """The colours of a core output at the size of the input x (B,C,H,W): the output itself
-        (``head="direct"``) or its fields applied to x (:func:`apply_affine`)."""
-        return core_out if self.head == "direct" else apply_affine(core_out, x[:, :3])
+        (``head="direct"``) or its fields applied to x (:func:`apply_affine`; ``linear``: x's colours decoded)."""
+        return core_out if self.head == "direct" else apply_affine(core_out, x[:, :3], linear)
 
     def run_core(self, x_small: torch.Tensor, context: torch.Tensor | None = None,
                  altitude_m: torch.Tensor | None = None) -> torch.Tensor:
@@ -409,13 +430,23 @@ class ColourNet(nn.Module):
         out = self.run_core(x_small, None, altitude_m)
         return self.colours(out if water is None else out + water, x_small)
 
+    def coarse(self, x_small: torch.Tensor, image: torch.Tensor, context: torch.Tensor | None = None,
+               altitude_m: torch.Tensor | None = None, water: torch.Tensor | None = None,
+               linear: torch.Tensor | None = None) -> torch.Tensor:
+        """(B,3,H,W) y = colours(U(C(x_small)) [+ water], image): the net without its skip layers, from the input
+        average-pooled by ``factor`` (``x_small``) and the full-resolution image (B,3,H,W) (``linear``: its colours
+        decoded, :meth:`colours`); the other arguments as :meth:`forward`'s."""
+        fields = self.up(self.run_core(x_small, context, altitude_m))
+        if water is not None:  # in place when correcting: one full-resolution tensor fewer
+            fields = fields + water if torch.is_grad_enabled() else fields.add_(water)
+        return self.colours(fields, image, linear)
+
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None,
                 altitude_m: torch.Tensor | None = None, water: torch.Tensor | None = None) -> torch.Tensor:
         """(B,C,H,W) image, depth, position [and range], sides multiples of factor * 8 -> (B,3,H,W); ``context``:
         that of the whole image when x is a crop of it (None: x's own); ``altitude_m`` (B,): see :meth:`run_core`;
         ``water`` (B,6,H,W): the water's fields (:func:`water_fields`), added to the upsampled core's."""
-        fields = self.up(self.run_core(F.avg_pool2d(x, self.factor), context, altitude_m))
-        coarse = self.colours(fields if water is None else fields + water, x)
+        coarse = self.coarse(F.avg_pool2d(x, self.factor), x[:, :3], context, altitude_m, water)
         if not self.skip:
             return coarse
         h = self.fuse(torch.cat([coarse, self.skip1(x)], dim=1))
@@ -483,12 +514,15 @@ class Restorer(nn.Module):
 
     def forward(self, image: torch.Tensor, position: torch.Tensor | None = None,
                 altitude_m: torch.Tensor | None = None, range_m: torch.Tensor | None = None,
-                water: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                water: torch.Tensor | None = None,
+                linear: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B,3,H,W), H and W multiples of ``multiple`` -> RGB (B,3,H,W) and relative depth (B,1,H,W):
         depth d = bilinear(DepthNet(x)) and rgb = ColourNet([x, d, p(, r)]) with p the position maps (1,3,H,W)
         (None: :func:`position_maps` of the image itself), r each pixel's range (B,1,H,W) in metres without holes
         when the net takes it (RGB-D mode) and, when it takes it, each image's altitude (B,) in metres; ``water``
-        (B,6,H,W): the fields of :func:`water_fields` at r, for a restorer that starts from a water."""
+        (B,6,H,W): the fields of :func:`water_fields` at r, for a restorer that starts from a water; ``linear``: the
+        image's colours decoded to linear light, where the caller has them (a restorer without skip layers then skips
+        decoding them, :func:`apply_affine`)."""
         h, w = image.shape[-2:]
         depth = F.interpolate(self.depth_net(image), size=(h, w), mode="bilinear", align_corners=False)
         position = position_maps(h, w, image.device) if position is None else position
@@ -499,17 +533,22 @@ class Restorer(nn.Module):
             maps.append(range_m.to(image))
         if self.water is not None and water is None:
             raise ValueError("this restorer starts from a water's inverse: give its fields (water_fields)")
-        return self.colour_net(torch.cat(maps, dim=1), None, altitude_m, water), depth
+        if self.colour_net.skip:
+            return self.colour_net(torch.cat(maps, dim=1), None, altitude_m, water), depth
+        # without skip layers the full-resolution input is only pooled: pool its parts (the position maps once)
+        maps[2] = F.avg_pool2d(position, self.factor).expand(image.shape[0], -1, -1, -1)
+        small = torch.cat([m if k == 2 else F.avg_pool2d(m, self.factor) for k, m in enumerate(maps)], dim=1)
+        return self.colour_net.coarse(small, image, None, altitude_m, water, linear), depth
 
 
 def restore(model: Restorer, image: torch.Tensor, altitude_m: torch.Tensor | None = None,
             range_m: torch.Tensor | None = None, intrinsics: tuple[float, float, float, float] | None = None,
-            water: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+            water: torch.Tensor | None = None, linear: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Correct (B,3,H,W) images of any size (``altitude_m`` (B,) metres when the model takes it; ``range_m``
     (B,1,H,W) metres without holes in RGB-D mode; for a model that starts from a water, its fields ``water``
     (:func:`water_fields`), computed here from ``range_m`` and the images' ``intrinsics`` (fx, fy, cx, cy) when not
-    given): replicate-pad the bottom and right to multiples of ``model.multiple``, run the model, crop back; both
-    outputs clamped to 0..1."""
+    given; ``linear``, optional: the images decoded to linear light, :meth:`Restorer.forward`): replicate-pad the
+    bottom and right to multiples of ``model.multiple``, run the model, crop back; both outputs clamped to 0..1."""
     h, w = image.shape[-2:]
     m = model.multiple
 
@@ -522,5 +561,5 @@ def restore(model: Restorer, image: torch.Tensor, altitude_m: torch.Tensor | Non
             raise ValueError("this restorer takes each pixel's range (metres): give range_m")
         water = water_fields(model.water, range_m, intrinsics)
     rgb, depth = model(pad(image), position, altitude_m, pad(range_m) if range_m is not None else None,
-                       pad(water) if water is not None else None)
+                       pad(water) if water is not None else None, pad(linear) if linear is not None else None)
     return rgb[..., :h, :w].clamp(0.0, 1.0), depth[..., :h, :w].clamp(0.0, 1.0)

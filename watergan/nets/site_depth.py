@@ -75,9 +75,9 @@ class SiteDepthNet(nn.Module):
         import cv2
 
         h, w = image.shape[0] // self.scale, image.shape[1] // self.scale
-        both = np.concatenate([np.asarray(image[..., :3], np.float32), np.asarray(floor_z, np.float32)[..., None]], -1)
-        small = cv2.resize(both, (w, h), interpolation=cv2.INTER_AREA)
-        return torch.from_numpy(small).permute(2, 0, 1)[None]
+        rgb, z = (cv2.resize(np.ascontiguousarray(a, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+                  for a in (image[..., :3], floor_z))  # each averaged alone: no full-resolution copy of both
+        return torch.from_numpy(np.concatenate([rgb, z[..., None]], -1)).permute(2, 0, 1)[None]
 
     @torch.no_grad()
     def factor(self, image: np.ndarray, floor_z: np.ndarray) -> np.ndarray:
