@@ -18,7 +18,7 @@ pass's figure is kept under ``runs``), in both modes (``frames_per_s``, keyed by
 It also times the parts of one batch of 4 as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
 thread): the water's inverse fields (:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the
 lookup per frame) and the restorer's nets given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference`
-copy). Writes ``benchmarks/results/restorer.json``.
+copy). Writes ``benchmarks/results/restorer.json`` (``--result``); ``--image-format`` as correct's.
 
 Peak memory: the process's maximum resident set (``resource.getrusage``, CPU) and
 ``torch.cuda.max_memory_allocated`` (CUDA).
@@ -55,7 +55,7 @@ def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int
     return batch / best
 
 
-def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
+def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input") -> dict:
     """Both corrections in both modes on the workspace's frames (best of the passes), and one batch of 4 of the
     restorer split into its parts."""
     from pipeline.correct import correct_folder, correct_physics_folder, cpu_lanes
@@ -82,11 +82,11 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
             for _ in range(passes):
                 if correction == "physics":
                     done = correct_physics_folder(workspace, images, out / correction / mode, progress=False,
-                                                  mode=mode)
+                                                  mode=mode, image_format=image_format)
                     seconds.append(done.seconds)
                 else:
                     done = correct_folder(ws / "05_restorer", images, out / correction / mode, force=True,
-                                          progress=False, range_dir=ranges, mode=mode)
+                                          progress=False, range_dir=ranges, mode=mode, image_format=image_format)
                     seconds.append(done.seconds)
             sources[correction][mode] = done.range_source
             runs[correction][mode] = [round(frames / t, 2) for t in seconds]
@@ -122,7 +122,8 @@ def correct_speed(ws: Path, repeats: int, out: Path) -> dict:
         restore(model, x, altitude, range_m, intrinsics, water)
         parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
     torch.set_num_threads(threads)
-    return {"lanes": lanes, "workspace": str(ws), "frames": frames, "frames_per_s": fps, "runs": runs,
+    return {"lanes": lanes, "workspace": str(ws), "frames": frames, "image_format": image_format,
+            "frames_per_s": fps, "runs": runs,
             "range_source": sources, **parts}
 
 
@@ -134,6 +135,10 @@ def main() -> None:
     parser.add_argument("--workspace", type=Path, default=None, help="also time `correct` on this workspace")
     parser.add_argument("--out", type=Path, default=Path("/tmp/bench_restorer_correct"),
                         help="where --workspace's corrected frames go")
+    parser.add_argument("--image-format", default="input", choices=["input", "png", "tiff", "jpeg"],
+                        help="the corrected frames' format (correct's --image-format)")
+    parser.add_argument("--result", type=Path, default=Path(__file__).resolve().parent / "results" / "restorer.json",
+                        help="where the figures go")
     args = parser.parse_args()
     torch.set_num_threads(2)
     model = Restorer(WIDTH_PRESETS[args.widths]).eval()
@@ -151,13 +156,14 @@ def main() -> None:
         print(f"cuda ({torch.cuda.get_device_name()}), widths {args.widths}, batch {args.batch}: "
               f"{fps:.1f} frames/s at 640x480; peak allocated {peak:.0f} MiB")
     if args.workspace is not None:
-        record = {"untrained_nets_cpu_frames_per_s": cpu_fps, **correct_speed(args.workspace, args.repeats, args.out)}
+        record = {"untrained_nets_cpu_frames_per_s": cpu_fps,
+                  **correct_speed(args.workspace, args.repeats, args.out, args.image_format)}
         print(f"one batch of 4 of the restorer on one thread: fields "
               f"{1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
               f"{1000 * record['nets_s_per_frame']:.0f} ms/frame ({record['lanes']} lanes side by side)")
-        path = Path(__file__).resolve().parent / "results" / "restorer.json"
-        path.write_text(json.dumps({"command": "benchmarks/bench_restorer.py --workspace " + str(args.workspace),
-                                    "threads": torch.get_num_threads(), **record}, indent=2) + "\n")
+        command = f"benchmarks/bench_restorer.py --workspace {args.workspace} --image-format {args.image_format}"
+        args.result.write_text(json.dumps({"command": command, "threads": torch.get_num_threads(), **record},
+                                          indent=2) + "\n")
 
 if __name__ == "__main__":
     main()

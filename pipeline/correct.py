@@ -661,30 +661,30 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
         if not path.is_file():
             raise DataError(f"the water stage wrote no range map for {name} ({path}): rerun it "
                             f"(`watergan water --workspace WS --force`)")
+        if fields is not None:  # float32 metres, 0 = none, as invert_with_fields takes them
+            return (read_millimetres(path) / 1000.0).astype(np.float32)
         return read_depth(path)
 
     def correct_frame(k: int) -> float:
         name = names[k]
-        affine = image = levels = None
+        levels = None
         if fields is not None:
             levels = read_stored(images / name)
             image = stored_as(levels, "srgb", np.float32)
-            affine = (np.ones(3), np.zeros(3)) if per_frame is None else \
-                frame_affine(stack, per_frame, k, K, *image.shape[:2])
-        if affine is not None:
-            s, t = affine
-            corrected, valid = invert_with_fields((image - t.astype(np.float32)) / s.astype(np.float32),
-                                                  frame_range(name, image.shape[:2], levels), fields, K)
+            if per_frame is not None:  # the frame's own gain or exposure taken off first
+                s, t = frame_affine(stack, per_frame, k, K, *image.shape[:2])
+                image = (image - t.astype(np.float32)) / s.astype(np.float32)
+            corrected, valid = invert_with_fields(image, frame_range(name, image.shape[:2], levels), fields, K)
         else:
             f = water_frame(tracks, k, images, depth_dir)
             r = frame_range(name, f.image.shape[:2])
             normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
+        # both inverses give NaN where the frame has no range: black there
         rgb = np.clip(np.nan_to_num(corrected, copy=False), 0.0, 1.0, out=corrected)
-        rgb[~valid] = 0.0
         write_srgb_image(out / "images" / corrected_name(name, image_format), rgb,
                          bit_depth(images / name) if levels is None else levels_bits(levels))
-        write_png(out / "mask" / f"{Path(name).stem}.png", np.where(valid, 255, 0).astype(np.uint8))
+        write_png(out / "mask" / f"{Path(name).stem}.png", valid.astype(np.uint8) * np.uint8(255))
         return float(np.mean(~valid))
 
     lanes = cpu_lanes()
@@ -706,8 +706,7 @@ def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFiel
     valid = np.isfinite(r) & (r > 0)
     if not valid.any():
         return np.full(image.shape, np.nan, np.float32), valid
-    filled = np.where(valid, r, 0.0)
-    filled = np.where(valid, filled, filled.max())  # any range the frame holds: the table need not grow for holes
+    filled = np.where(valid, r, r[valid].max())  # any range the frame holds: the table need not grow for holes
     intrinsics = None if K is None else (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     with torch.no_grad():
         g_o = fields(torch.from_numpy(filled)[None, None], intrinsics)[0]
