@@ -23,6 +23,7 @@ from pipeline.survey import SurveyConfig, SurveyResult, check_survey
 from watergan.errors import UserInputError
 
 FAST = ["--gan-budget-min", "0.1", "--restorer-budget-min", "0.1", "--restorer-site-depth-steps", "20",
+        "--restorer-stage1-min-iterations", "0", "--restorer-stage2-min-iterations", "0", "--water-fit-bootstrap", "5",
         "--diagnose-measure-n-points", "200",
         "--diagnose-candidates", "vignetting_offcentre,sensor_response", "--no-progress"]
 
@@ -90,7 +91,8 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert "registered 10 of 10" in capsys.readouterr().out
     assert (out / "01_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
     correct_mtime = (out / "06_correct" / "result.json").stat().st_mtime_ns
-    for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1", "--site-depth-steps", "20"],
+    for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1", "--site-depth-steps", "20",
+                                                        "--stage1-min-iterations", "0", "--stage2-min-iterations", "0"],
                     ["correct"]):
         assert main([*command, "--workspace", str(out), "--no-progress"]) == 0, command  # as run did them: skipped
     assert (out / "06_correct" / "result.json").stat().st_mtime_ns == correct_mtime
