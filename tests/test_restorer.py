@@ -129,7 +129,7 @@ def test_a_restorer_without_skip_layers_pools_its_input_by_parts():
         rgb, depth = model(image, None, None, range_m)
         whole = model.colour_net(torch.cat([image, depth, position_maps(64, 96).expand(2, -1, -1, -1), range_m], 1))
         decoded, _ = model(image, None, None, range_m, None, srgb_decode(image))
-    assert torch.allclose(rgb, whole, atol=1e-6)
+    assert torch.allclose(rgb, whole, atol=1e-5)  # float rounding of the pooled means (OpenCV's on the CPU)
     assert torch.allclose(decoded, rgb, atol=1e-5)
     assert not torch.allclose(rgb, image, atol=1e-3)
 

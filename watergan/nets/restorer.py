@@ -536,9 +536,25 @@ class Restorer(nn.Module):
         if self.colour_net.skip:
             return self.colour_net(torch.cat(maps, dim=1), None, altitude_m, water), depth
         # without skip layers the full-resolution input is only pooled: pool its parts (the position maps once)
-        maps[2] = F.avg_pool2d(position, self.factor).expand(image.shape[0], -1, -1, -1)
-        small = torch.cat([m if k == 2 else F.avg_pool2d(m, self.factor) for k, m in enumerate(maps)], dim=1)
+        maps[2] = area_pool(position, self.factor).expand(image.shape[0], -1, -1, -1)
+        small = torch.cat([m if k == 2 else area_pool(m, self.factor) for k, m in enumerate(maps)], dim=1)
         return self.colour_net.coarse(small, image, None, altitude_m, water, linear), depth
+
+
+def area_pool(t: torch.Tensor, factor: int) -> torch.Tensor:
+    """``F.avg_pool2d(t, factor)`` of (B,C,H,W) with sides divisible by ``factor``; on a CPU, in float32, without
+    gradients, for channels-last or single-channel maps, OpenCV's area resize of each image instead: the same means to
+    float rounding, two to five times faster (torch pools the channels-last frames that NumPy hands over slowly)."""
+    b, c, h, w = t.shape
+    if t.device.type != "cpu" or t.dtype != torch.float32 or (torch.is_grad_enabled() and t.requires_grad) \
+            or h % factor or w % factor or c > 4 or (c > 1 and t.is_contiguous()):  # torch's own layout: its pooling
+        return F.avg_pool2d(t, factor)
+    import cv2
+
+    size = (w // factor, h // factor)
+    pooled = [cv2.resize(np.ascontiguousarray(x), size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], c)
+              for x in t.detach().permute(0, 2, 3, 1).numpy()]
+    return torch.from_numpy(np.stack(pooled)).permute(0, 3, 1, 2)
 
 
 def restore(model: Restorer, image: torch.Tensor, altitude_m: torch.Tensor | None = None,
