@@ -545,8 +545,8 @@ def test_a_declared_strobe_rig_is_modelled_and_the_water_recovered(lit_survey):
     # the rig's power is held at the truth's (the effect's initial value, 4): the gain is then the truth's too
     np.testing.assert_allclose(_value(est, "gain.k"), [1.5] * 3, rtol=0.05)
 
-    blind = estimate_water(frames, K, board=board, config=water_config(config, light_rig=False, bootstrap=0),
-                           lights=LIGHTS)
+    blind = estimate_water(frames, K, board=board, lights=LIGHTS,  # a gross error: fewer samples show it
+                           config=water_config(config, light_rig=False, bootstrap=0, samples_per_frame=80))
     assert "artificial_light" not in blind.stack.names
     assert (_value(blind, "attenuation.eta_per_m") > 1.5 * np.array(LIT_ETA)).all()
 
