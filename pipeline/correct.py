@@ -80,7 +80,6 @@ from watergan.io import (
     is_jpeg,
     levels_bits,
     output_bits,
-    read_depth,
     read_millimetres,
     read_stored,
     stored_as,
@@ -661,9 +660,7 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
         if not path.is_file():
             raise DataError(f"the water stage wrote no range map for {name} ({path}): rerun it "
                             f"(`watergan water --workspace WS --force`)")
-        if fields is not None:  # float32 metres, 0 = none, as invert_with_fields takes them
-            return (read_millimetres(path) / 1000.0).astype(np.float32)
-        return read_depth(path)
+        return read_millimetres(path) / 1000.0  # metres, 0 = none: both inverses and the normals take that
 
     def correct_frame(k: int) -> float:
         name = names[k]

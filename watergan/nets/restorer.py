@@ -536,8 +536,9 @@ class Restorer(nn.Module):
         if self.colour_net.skip:
             return self.colour_net(torch.cat(maps, dim=1), None, altitude_m, water), depth
         # without skip layers the full-resolution input is only pooled: pool its parts (the position maps once)
-        maps[2] = area_pool(position, self.factor).expand(image.shape[0], -1, -1, -1)
-        small = torch.cat([m if k == 2 else area_pool(m, self.factor) for k, m in enumerate(maps)], dim=1)
+        f = self.factor
+        parts = [area_pool(image, f), area_pool(depth, f), area_pool(position, f).expand(image.shape[0], -1, -1, -1)]
+        small = torch.cat(parts + [area_pool(m, f) for m in maps[3:]], dim=1)
         return self.colour_net.coarse(small, image, None, altitude_m, water, linear), depth
 
 
