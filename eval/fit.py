@@ -52,7 +52,7 @@ import torch
 from torch.func import functional_call
 
 from watergan.formation import Effect, FormationState, Stack
-from watergan.formation.inverse import affine_images
+from watergan.formation.inverse import affine_images, affine_state
 from watergan.formation.params import to_json_value
 
 from .bootstrap import normal_interval, replicate_weights
@@ -262,6 +262,8 @@ class Problem:
         self.theta = [by_name[n] for n in names]
         self.take_gradients()
         self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
+        self.doubled = affine_state(self.state) if self.affine else None
+        self.board_doubled = affine_state(self.board_state) if self.has_board else None
         self.separate: bool | None = None
         """Whether the stack keeps the colour channels apart (:func:`channels_separate`); None: not asked yet."""
         self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
@@ -289,7 +291,7 @@ class Problem:
         w = self.view_weight() if w is None else w
         n, lo, hi = len(self.points), self.config.albedo_min, self.config.albedo_max
         if self.affine:
-            a, c = affine_images(self.stack, self.state)
+            a, c = affine_images(self.stack, self.state, self.doubled)
             a, c = a[:, :, 0, 0], c[:, :, 0, 0]
             num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * (self.y - c))
             den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * a)
@@ -317,7 +319,7 @@ class Problem:
             wb = wb * self.frame_weight.to(wb.dtype)[self.board_frame]
         if self.patch_weight is not None:
             wb = wb * self.patch_weight.to(wb.dtype)[self.board_patch]
-        ab, cb = affine_images(self.stack, self.board_state)
+        ab, cb = affine_images(self.stack, self.board_state, self.board_doubled)
         ab, cb = ab[:, :, 0, 0], cb[:, :, 0, 0]
         return wb, self.board_y - (ab * self.board_j + cb)
 

@@ -11,7 +11,7 @@ applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`)
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -104,16 +104,26 @@ def needs_normals(stack: Stack) -> bool:
     return False
 
 
-def affine_images(stack: Stack, state: FormationState) -> tuple[torch.Tensor, torch.Tensor]:
-    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0 (for one image, in one render of a
-    batch of two: the fields of one image broadcast over it, so range and position terms are computed once)."""
-    if state.direct.shape[0] == 1:
-        both = stack.render(state.replace(direct=torch.cat([torch.zeros_like(state.direct),
-                                                            torch.ones_like(state.direct)]), backscatter=None))
-        return both[1:] - both[:1], both[:1]
-    c = stack.render(state.replace(direct=torch.zeros_like(state.direct), backscatter=None))
-    a = stack.render(state.replace(direct=torch.ones_like(state.direct), backscatter=None)) - c
-    return a, c
+def affine_state(state: FormationState) -> FormationState:
+    """``state`` as :func:`affine_images` renders it: J = 0 then J = 1 in one batch of twice its size (the fields of
+    one image are left to broadcast over both, so its range and position terms are computed once; a batch of
+    several has each field repeated)."""
+    direct = torch.cat([torch.zeros_like(state.direct), torch.ones_like(state.direct)])
+    b = state.direct.shape[0]
+    doubled = {} if b == 1 else {
+        f.name: torch.cat([t, t]) for f in fields(state)
+        if f.name not in ("direct", "backscatter") and isinstance(t := getattr(state, f.name), torch.Tensor)
+        and t.ndim > 0 and t.shape[0] == b}
+    return state.replace(direct=direct, backscatter=None, **doubled)
+
+
+def affine_images(stack: Stack, state: FormationState,
+                  doubled: FormationState | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0, in one render of
+    :func:`affine_state` (``doubled``: that state, made once by a caller that renders the same views again)."""
+    both = stack.render(affine_state(state) if doubled is None else doubled)
+    b = both.shape[0] // 2
+    return both[b:] - both[:b], both[:b]
 
 
 def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray | None = None,

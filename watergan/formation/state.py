@@ -13,6 +13,7 @@ pixel's ray, ``depth_m`` its z in the camera frame.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -66,6 +67,11 @@ class FormationState:
     valid: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
+        self._check_shapes()
+        if not torch.isfinite(self.range_m).all():
+            raise ValueError("state.range_m contains NaN or infinite values: mask or fill them first")
+
+    def _check_shapes(self) -> None:
         if self.direct.ndim != 4 or self.direct.shape[1] != 3:
             raise ValueError(f"direct must be (B,3,H,W), got {tuple(self.direct.shape)}")
         b, _, h, w = self.direct.shape
@@ -78,8 +84,6 @@ class FormationState:
                 raise ValueError(
                     f"state.{name} has shape {tuple(t.shape)}; expected (B,C,{h},{w}) to match direct"
                 )
-        if not torch.isfinite(self.range_m).all():
-            raise ValueError("state.range_m contains NaN or infinite values: mask or fill them first")
 
     @property
     def image(self) -> torch.Tensor:
@@ -87,8 +91,18 @@ class FormationState:
         return self.direct + self.backscatter
 
     def replace(self, **changes) -> FormationState:
-        """A copy with some fields replaced (effects never modify a state in place)."""
-        return dataclasses.replace(self, **changes)
+        """A copy with some fields replaced (effects never modify a state in place), checked as a new state is; the
+        range is checked for NaN only when it is replaced (a stack replaces the state once per effect)."""
+        if "range_m" in changes:
+            return dataclasses.replace(self, **changes)
+        unknown = changes.keys() - self.__dataclass_fields__.keys()
+        if unknown:
+            raise TypeError(f"FormationState has no field {sorted(unknown)}")
+        new = copy.copy(self)
+        for name, value in changes.items():
+            object.__setattr__(new, name, value)
+        new._check_shapes()
+        return new
 
     def need(self, field: str, effect: str) -> torch.Tensor:
         """The named field, or a clear error saying which effect needs it."""
@@ -137,6 +151,14 @@ def vector_length(t: torch.Tensor, dim: int) -> torch.Tensor:
     slower on a CPU (benchmarks/RESULTS.md)."""
     x, y, z = t.unbind(dim)
     return torch.sqrt(x * x + y * y + z * z).unsqueeze(dim)
+
+
+def dot3(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """a . b of the 3-vectors along ``dim`` (kept, of size 1; ``a`` and ``b`` broadcast): ``(a * b).sum(dim,
+    keepdim=True)`` to rounding, without torch's slow reduction over a dimension of three on a CPU."""
+    a0, a1, a2 = a.unbind(dim)
+    b0, b1, b2 = b.unbind(dim)
+    return (a0 * b0 + a1 * b1 + a2 * b2).unsqueeze(dim)
 
 
 def state_from_rgbd(rgb_linear: torch.Tensor, depth_m: torch.Tensor, fx: float, fy: float,

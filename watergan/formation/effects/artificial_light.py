@@ -9,6 +9,7 @@ import torch
 from ..effect import RANK_ILLUMINATION, Effect
 from ..params import Param
 from ..registry import register
+from ..state import dot3
 
 #: Full width at half maximum of a Gaussian beam per unit sigma: 2 sqrt(2 ln 2).
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -70,12 +71,13 @@ def light_irradiance(points_cam: torch.Tensor, normals_cam: torch.Tensor, offset
     total = ambient.reshape(1, 1, 1, 1).expand(points_cam.shape[0], 3, *points_cam.shape[2:])
     for l in range(offset_m.shape[0]):
         to_light = offset_m[l].view(1, 3, 1, 1) - points_cam
-        d2 = (to_light * to_light).sum(1, keepdim=True).clamp_min(1e-6)
+        s2 = dot3(to_light, to_light)
+        d2 = s2.clamp_min(1e-6)
         d = torch.sqrt(d2)
-        cos_incidence = ((normals_cam * to_light).sum(1, keepdim=True) / d).clamp_min(0.0)
-        along = -(axes[l].view(1, 3, 1, 1) * to_light).sum(1, keepdim=True)
-        across = torch.sqrt((torch.linalg.cross(-to_light, axes[l].view(1, 3, 1, 1).expand_as(to_light), dim=1)
-                             ** 2).sum(1, keepdim=True) + 1e-12)
+        cos_incidence = (dot3(normals_cam, to_light) / d).clamp_min(0.0)
+        along = -dot3(axes[l].view(1, 3, 1, 1), to_light)
+        # |(X - L_l) x a_l| for the unit axis a_l: sqrt(d^2 - along^2)
+        across = torch.sqrt((s2 - along * along).clamp_min(0.0) + 1e-12)
         theta = torch.atan2(across, along)
         sigma = torch.deg2rad(beam_deg[l])
         beam = torch.exp(-0.5 * (theta / sigma) ** 2)
