@@ -23,7 +23,9 @@ no gradient through the sigmoid); rounds of L-BFGS (``iterations`` each, strong-
 lowers L by less than ``convergence_rtol`` or ``max_iterations`` are spent; then optionally a trust-region least
 squares on the same residuals (``refine_evaluations``: L-BFGS stops where the loss changes little per step, which
 in a flat direction can be far from the optimum); then optionally a joint polish of theta and the log albedos
-(``polish_iterations``).
+(``polish_iterations``). A coarse start (``coarse_fraction``) fits a fraction of the points first, in float32, and
+with ``coarse_refine_evaluations`` follows one round of its L-BFGS with the trust region on those points in float64:
+the full fit then starts at the floor of the flat directions instead of crawling along them.
 
 Bootstrap (``bootstrap`` replicates; :func:`bootstrap`): frames drawn with replacement (the frames that see the
 board apart from the others, so every replicate keeps the board), each point's views weighted Poisson(1) and each
@@ -116,6 +118,11 @@ class FitConfig:
     coarse_fraction: float = 0.0
     """Fraction of the points a first fit runs on, to convergence, before the fit on all of them (0: none).
     Each of its evaluations costs that fraction of one on all views, and it starts the full fit near its optimum."""
+    coarse_refine_evaluations: int = 0
+    """Residual evaluations of a trust-region least squares (as ``refine_evaluations``) on the coarse fit's points,
+    in float64, after one round of L-BFGS there (0: none; the coarse fit then runs its rounds to convergence): it
+    follows a flat direction (red B_inf against beta) to its floor, where L-BFGS crawls, at the coarse fraction of
+    the cost on all points."""
     seed: int = 0
     """Seed of the held-out split and of the bootstrap."""
     threads: int = field(default=0, metadata={"hash": False})
@@ -128,7 +135,8 @@ class FitConfig:
 #: a coarse start on a quarter of the points, rounds to convergence, Newton-step replicates in float32.
 WATER_FIT = FitConfig(loss_scale=0.01, iterations=100, max_iterations=600, step_rtol=1e-9, polish_iterations=0,
                       albedo_min=0.0, albedo_max=math.inf, holdout_fraction=0.0, fixed_effects=(), bootstrap=30,
-                      bootstrap_refit=Refit.newton, bootstrap_iterations=5, float32=True, coarse_fraction=0.25)
+                      bootstrap_refit=Refit.newton, bootstrap_iterations=5, float32=True, coarse_fraction=0.25,
+                      coarse_refine_evaluations=20)
 
 
 def soft_l1(e: torch.Tensor, scale: float) -> torch.Tensor:
@@ -443,10 +451,20 @@ class Problem:
                        self.has_board, float32=True)
 
     def coarse_start(self) -> int:
-        """A first fit (:meth:`converge`) on :meth:`coarse`, whose parameters start the full fit; returns its
-        iterations (0: none)."""
+        """A first fit on :meth:`coarse` (:meth:`converge`; with ``coarse_refine_evaluations``, one round of it and
+        then :meth:`refine` in float64), whose parameters start the full fit; returns its L-BFGS iterations
+        (0: none)."""
         coarse = self.coarse() if self.theta else None
-        return coarse.converge()[0] if coarse is not None else 0
+        if coarse is None:
+            return 0
+        refine = self.config.coarse_refine_evaluations
+        if refine > 0:  # one round of L-BFGS, then the trust region, which follows the flat directions
+            coarse.config = replace(coarse.config, max_iterations=coarse.config.iterations)
+        iterations = coarse.converge()[0]
+        if refine > 0:
+            Problem(self.stack, self.obs, coarse.config, coarse.names, coarse.rows,
+                    coarse.has_board).refine(refine)
+        return iterations
 
     def converge(self) -> tuple[int, bool]:
         """Rounds of :meth:`minimise` (see ``FitConfig.max_iterations``); returns (iterations, converged)."""

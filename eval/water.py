@@ -66,10 +66,10 @@ is tied to ``attenuation.eta_per_m`` (one water); the power P_l is exactly degen
 gain and B_inf's level are then in units of it); ambient is the brightness that does not fall with the distance
 from the lights. Normals come from each frame's range map smoothed by ``measure.normal_smooth_px``.
 
-Known limits: in a flat direction (red B_inf against beta, the two vignettings) a fit stops where a round of L-BFGS
-stops gaining, so what lies further along it is only as pinned as ``fit.convergence_rtol`` says; the vignetting
-polynomial's b and c trade with each other (the falloff as a function is pinned, not its coefficients).
-The fit starts on ``fit.coarse_fraction`` of the points (:meth:`eval.fit.Problem.coarse_start`), then runs on all.
+Known limits: the vignetting polynomial's b and c trade with each other (the falloff as a function is pinned, not
+its coefficients). The fit starts on ``fit.coarse_fraction`` of the points (:meth:`eval.fit.Problem.coarse_start`):
+a round of L-BFGS, then a trust-region least squares there, which follows the flat directions (red B_inf against
+beta, the two vignettings) to their floor where L-BFGS crawls along them; then it runs on all the points.
 Measured accuracy and coverage: benchmarks/RESULTS.md ("Site water").
 
 Bad input: fewer than ``min_frames`` frames with a pose and range, range on too small a part of the frames, or too
