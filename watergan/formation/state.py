@@ -149,8 +149,7 @@ def vector_length(t: torch.Tensor, dim: int) -> torch.Tensor:
     """The length sqrt(x^2 + y^2 + z^2) of the 3-vectors along ``dim`` (kept, of size 1). The same as
     ``t.norm(dim=dim, keepdim=True)`` to rounding; torch's norm over a dimension that is not the last is many times
     slower on a CPU (benchmarks/RESULTS.md)."""
-    x, y, z = t.unbind(dim)
-    return torch.sqrt(x * x + y * y + z * z).unsqueeze(dim)
+    return torch.sqrt(dot3(t, t, dim))
 
 
 def dot3(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
