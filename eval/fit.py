@@ -480,13 +480,11 @@ class Problem:
 
     def refine(self, evaluations: int) -> None:
         """The trust-region least squares on :meth:`residuals` (:func:`least_squares_fit`), its finite-difference
-        Jacobian taken a group of :meth:`channel_groups` at a time when the residuals are per channel (no penalty
-        rows)."""
-        groups = None
-        if len(self.penalty()) == 0:
-            groups, channel = self.channel_groups()
-            groups = [(g, channel[g]) for g in groups]
-        least_squares_fit(self.theta, self.residuals, evaluations, groups)
+        Jacobian taken a group of :meth:`channel_groups` at a time for the per-channel rows and a parameter at a time
+        for the penalty rows (which need no render)."""
+        groups, channel = self.channel_groups()
+        least_squares_fit(self.theta, self.residuals, evaluations, [(g, channel[g]) for g in groups],
+                          lambda: self.penalty().detach())
 
 
 def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> None:
@@ -507,13 +505,13 @@ def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> 
 
 
 def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
-                      groups: list[tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+                      groups: list[tuple[np.ndarray, np.ndarray]] | None = None, penalty_fn=None) -> None:
     """Minimise the sum of squares of ``residual_fn()`` over the tensors ``theta`` (in place) by scipy's trust-region
     reflective least squares, at most ``evaluations`` residual evaluations, Jacobian-scaled variables; the start is
     kept unless the fit lowers the cost. The Jacobian is scipy's forward differences (step sqrt(eps) max(1, |x|)),
     one residual evaluation per parameter on top, or, with ``groups`` (flat parameter indices and each one's colour
-    channel, -1: none; the residuals channel-last, entry k of channel k mod 3), one per group
-    (:func:`grouped_jacobian`)."""
+    channel, -1: none; the residuals channel-last, entry k of channel k mod 3, then ``penalty_fn()``'s rows), one
+    per group (:func:`grouped_jacobian`)."""
     if evaluations <= 0 or not theta:
         return
     from scipy.optimize import least_squares
@@ -536,9 +534,14 @@ def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
         last[:] = x.copy(), f
         return f
 
+    def penalty(x: np.ndarray) -> np.ndarray:
+        assign(x)
+        with torch.no_grad():
+            return np.zeros(0) if penalty_fn is None else penalty_fn().reshape(-1).numpy()
+
     def jac(x: np.ndarray) -> np.ndarray:
         f0 = last[1] if last[0] is not None and np.array_equal(last[0], x) else fun(x)
-        return grouped_jacobian(fun, x, f0, groups)
+        return grouped_jacobian(fun, x, f0, groups, penalty)
 
     cost0 = float((fun(x0) ** 2).sum())
     with np.errstate(all="ignore"):
@@ -547,23 +550,32 @@ def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
     assign(result.x if np.isfinite(result.x).all() and 2.0 * result.cost <= cost0 else x0)
 
 
-def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.ndarray, np.ndarray]],
+                     penalty=None) -> np.ndarray:
     """Forward differences of ``fun`` at ``x`` (``f0`` = fun(x)) with scipy's steps, h_i = sqrt(eps) max(1, |x_i|)
     signed like x_i, a group's entries moved together: where the residuals of channel c depend on the channel-c
     entries (and the shared ones) alone, the column of a channel-c entry is the change of the channel-c residuals
-    (zero elsewhere), as moving it alone would give. An entry of channel -1 must be a group of its own."""
+    (zero elsewhere), as moving it alone would give. An entry of channel -1 must be a group of its own. ``penalty``:
+    a function of x giving fun's last rows (which need not keep the channels apart), differenced an entry at a time
+    (None: no such rows)."""
     h = np.sqrt(np.finfo(float).eps) * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
     h = (x + h) - x
     jacobian = np.zeros((len(f0), len(x)))
+    head = len(f0) - (0 if penalty is None else len(penalty(x)))
     for index, channel in groups:
         moved = x.copy()
         moved[index] += h[index]
-        change = fun(moved) - f0
+        change = fun(moved)[:head] - f0[:head]
         for i, c in zip(index, channel, strict=True):
             if c < 0:
-                jacobian[:, i] = change / h[i]
+                jacobian[:head, i] = change / h[i]
             else:  # channel c's residuals are every third entry from c
-                jacobian[c::3, i] = change[c::3] / h[i]
+                jacobian[c:head:3, i] = change[c::3] / h[i]
+    if head < len(f0):
+        for i in range(len(x)):
+            moved = x.copy()
+            moved[i] += h[i]
+            jacobian[head:, i] = (penalty(moved) - f0[head:]) / h[i]
     return jacobian
 
 

@@ -743,25 +743,34 @@ def test_image_position_candidates_rank_by_how_much_of_the_fields_they_flatten()
 def test_the_grouped_jacobian_is_scipys_forward_differences(clean):
     """The bootstrap's least squares moves a per-channel parameter's three channels together (the residuals of one
     channel depend on that channel's entries alone): the Jacobian equals scipy's one-entry-at-a-time forward
-    differences, for fewer residual evaluations."""
+    differences, for fewer residual evaluations; with the fields over the image in the stack, their penalty rows
+    (which need no render) are differenced an entry at a time."""
     from scipy.optimize._numdiff import approx_derivative
 
     from eval.diagnose import DEFAULT_EFFECTS
     from eval.fit import Problem, fitted_names, grouped_jacobian
 
     meas = measure_survey(clean, MeasureConfig(n_points=150))
-    stack = Stack.ordered([{"name": n} for n in DEFAULT_EFFECTS]).to(torch.float64)
-    problem = Problem(stack, meas, FitConfig(), fitted_names(stack, ("gain",), {}))
-    groups, channel = problem.channel_groups()
-    x = problem.flat().numpy() + 0.05  # off the effects' start values
+    q = np.array([0.3, -0.2, 0.5, 0.1, 0.4])
+    field = {"name": "image_field", "params": {"orthogonal_to": (q / np.linalg.norm(q)).tolist()}}
+    for effects in ([{"name": n} for n in DEFAULT_EFFECTS], [*({"name": n} for n in DEFAULT_EFFECTS), field]):
+        stack = Stack.ordered(effects).to(torch.float64)
+        problem = Problem(stack, meas, FitConfig(), fitted_names(stack, ("gain",), {}))
+        groups, channel = problem.channel_groups()
+        x = problem.flat().numpy() + 0.05  # off the effects' start values
 
-    def fun(v: np.ndarray) -> np.ndarray:
-        problem.set_flat(torch.from_numpy(v))
-        with torch.no_grad():
-            return problem.residuals().numpy()
+        def fun(v: np.ndarray, problem=problem) -> np.ndarray:
+            problem.set_flat(torch.from_numpy(v))
+            with torch.no_grad():
+                return problem.residuals().numpy()
 
-    f0 = fun(x)
-    grouped = grouped_jacobian(fun, x, f0, [(g, channel[g]) for g in groups])
-    scipy_jacobian = approx_derivative(fun, x, method="2-point", f0=f0)
-    assert len(groups) <= len(x) / 2 and np.abs(scipy_jacobian).max() > 0
-    np.testing.assert_allclose(grouped, scipy_jacobian, rtol=0, atol=1e-12 * np.abs(scipy_jacobian).max())
+        def penalty(v: np.ndarray, problem=problem) -> np.ndarray:
+            problem.set_flat(torch.from_numpy(v))
+            return problem.penalty().detach().numpy()
+
+        f0 = fun(x)
+        grouped = grouped_jacobian(fun, x, f0, [(g, channel[g]) for g in groups], penalty)
+        scipy_jacobian = approx_derivative(fun, x, method="2-point", f0=f0)
+        assert len(groups) <= len(x) / 2 and np.abs(scipy_jacobian).max() > 0
+        assert len(problem.penalty()) == (2 * 3 * 5 if effects[-1] is field else 0)  # F and G, 3 channels, 5 terms
+        np.testing.assert_allclose(grouped, scipy_jacobian, rtol=0, atol=1e-12 * np.abs(scipy_jacobian).max())
