@@ -65,6 +65,8 @@ from .observations import Observations
 DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 #: Fraction of a parameter's span kept from its bounds at the start of a fit (see start_inside_bounds).
 START_MARGIN = 0.01
+#: Least eigenvalue of the Hessian a Newton step inverts, as a fraction of the largest (:func:`inverse_hessian`).
+HESSIAN_FLOOR = 1e-8
 
 
 class Refit(StrEnum):
@@ -581,9 +583,13 @@ def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.n
 
 # ---------------------------------------------------------------------------------- bootstrap
 def inverse_hessian(problem: Problem) -> torch.Tensor:
-    """H^-1 of ``problem``'s loss at its parameters (eigenvalues clamped at 1e-6 of the largest)."""
+    """H^-1 of ``problem``'s loss at its parameters, each eigenvalue taken by its magnitude (a negative one is the
+    finite differences' noise along a flat direction, or a saddle: the step goes downhill either way) and at least
+    ``HESSIAN_FLOOR`` of the largest. The floor must stay below the flattest valley the data pin: a Newton step is
+    damped along any direction whose eigenvalue it lifts, and the bootstrap's replicates then do not spread along it
+    (see benchmarks/RESULTS.md, "The bootstrap along the valley")."""
     evals, evecs = torch.linalg.eigh(problem.hessian())
-    return (evecs / evals.clamp_min(evals.abs().max() * 1e-6 + 1e-300)) @ evecs.T
+    return (evecs / evals.abs().clamp_min(evals.abs().max() * HESSIAN_FLOOR + 1e-300)) @ evecs.T
 
 
 def newton_refit(problem: Problem, x0: torch.Tensor, inv: torch.Tensor, iterations: int) -> None:

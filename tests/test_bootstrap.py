@@ -6,6 +6,7 @@ surveys (eval.diagnose.small_survey_config, 600 points) of three seeds; each fit
 interval is checked against the value the survey was rendered with."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ import torch
 from eval.bootstrap import normal_interval, replicate_weights
 from eval.diagnose import DEFAULT_EFFECTS, small_survey_config
 from eval.diagnose_measure import MeasureConfig, measure_survey
-from eval.fit import FitConfig, fit_stack, make_split
+from eval.fit import HESSIAN_FLOOR, FitConfig, fit_stack, inverse_hessian, make_split
 from eval.synth import simulate_survey
 from watergan.formation import Stack
 
@@ -88,3 +89,16 @@ def test_bootstrap_intervals_cover_90_percent_of_the_parameters(coverage):
     which were held out while the causes of the earlier 30 of 36 were found (benchmarks/RESULTS.md)."""
     boot, _, misses = coverage
     assert boot >= 0.9, misses
+
+
+def test_the_newton_step_keeps_a_flat_valley_and_steps_downhill_across_a_saddle():
+    """The inverse Hessian of the water's Newton replicates: a valley 1e-7 of the largest curvature (red B_inf against
+    beta on a survey measured at 1.5e-7) keeps its own curvature, so a replicate moves along it as far as its data
+    say; a negative eigenvalue counts by its magnitude; only what lies below the floor is lifted to it."""
+    rotation = torch.linalg.qr(torch.randn(4, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))[0]
+    curvature = torch.tensor([30.0, 30.0 * 1.5e-7, -1e-5, 30.0 * HESSIAN_FLOOR / 100], dtype=torch.float64)
+    hessian = rotation @ torch.diag(curvature) @ rotation.T
+    inverse = inverse_hessian(SimpleNamespace(hessian=lambda: hessian))
+    along = torch.diag(rotation.T @ inverse @ rotation)
+    expected = 1 / torch.tensor([30.0, 30.0 * 1.5e-7, 1e-5, 30.0 * HESSIAN_FLOOR], dtype=torch.float64)
+    torch.testing.assert_close(along, expected, rtol=1e-6, atol=0)
