@@ -75,8 +75,8 @@ from watergan.formation import get as get_effect
 from watergan.formation.inverse import flat_floor_depth, flat_floor_range, frame_affine, needs_normals
 from watergan.io import (
     bit_depth,
+    encode_grey16_png,
     encode_image,
-    encode_png,
     is_jpeg,
     levels_bits,
     output_bits,
@@ -149,7 +149,7 @@ def _write(out: Path, name: str, image_format: str, rgb: np.ndarray, depth: np.n
     """(H,W,3) and (H,W) 0..1 arrays to the three output files of input ``name``, atomically."""
     image_path, depth_png, depth_npy = _outputs(out, name, image_format)
     _write_image(image_path, rgb, bits)
-    atomic_write_bytes(depth_png, encode_png(np.rint(depth * 65535.0).astype(np.uint16)))
+    atomic_write_bytes(depth_png, encode_grey16_png(np.rint(depth * 65535.0).astype(np.uint16)))
     buffer = io.BytesIO()
     np.save(buffer, depth.astype(np.float32))
     atomic_write_bytes(depth_npy, buffer.getvalue())

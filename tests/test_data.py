@@ -116,8 +116,8 @@ def test_srgb_round_trip_and_writers(tmp_path):
 
 
 def test_decoding_and_encoding_by_table_and_fast_codecs(tmp_path):
-    """The stored levels' decoding by table (8 and 16 bits), sRGB encoding in torch, and 8-bit PNGs through fpng give
-    the values of the plain NumPy and OpenCV routes."""
+    """The stored levels' decoding by table (8 and 16 bits), sRGB encoding in torch, 8-bit PNGs through fpng and
+    16-bit grey ones through our writer give the values of the plain NumPy and OpenCV routes."""
     from watergan.io import encode_png, quantise, read_stored, srgb_levels, stored_as
 
     rng = np.random.default_rng(3)
@@ -137,7 +137,10 @@ def test_decoding_and_encoding_by_table_and_fast_codecs(tmp_path):
         assert np.abs(fast - truth).max() <= 1  # float32 rounding at a level's edge
         assert np.mean(fast != truth) <= max(2 * np.mean(plain != truth), 5e-5)
     image = rng.integers(0, 256, (13, 17, 3)).astype(np.uint8)
-    for array in (image, image[..., 0], image.astype(np.uint16) * 257):  # fpng (8-bit RGB) and OpenCV (the rest)
+    grey16 = rng.integers(0, 65536, (13, 17)).astype(np.uint16)  # every byte difference, wrapping modulo 256
+    ramp16 = np.rint(np.linspace(0, 65535, 13)[:, None] * np.linspace(0.2, 1, 17)).astype(np.uint16)
+    # fpng (8-bit RGB), our own writer (16-bit grey) and OpenCV (the rest)
+    for array in (image, image[..., 0], image.astype(np.uint16) * 257, grey16, ramp16, grey16[:1, :1]):
         decoded = cv2.imdecode(np.frombuffer(encode_png(array), np.uint8), cv2.IMREAD_UNCHANGED)
         np.testing.assert_array_equal(decoded[..., ::-1] if array.ndim == 3 else decoded, array)
 

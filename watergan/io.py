@@ -19,9 +19,11 @@ import functools
 import json
 import os
 import re
+import struct
 import tempfile
 import types
 import typing
+import zlib
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -46,6 +48,11 @@ class Encoding(StrEnum):
 
 
 ENCODINGS = tuple(Encoding)
+#: The eight bytes every PNG file starts with.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: zlib's level of :func:`encode_grey16_png` by default: stored (the fastest; benchmarks/RESULTS.md, "A 16-bit PNG
+#: writer for the corrected frames' depth").
+GREY16_ZLIB_LEVEL = 0
 #: Largest distance a 16-bit millimetre PNG holds, metres.
 MAX_DEPTH_PNG_M = 65.535
 
@@ -269,6 +276,25 @@ def is_complete(path: Path, data: bytes) -> bool:
     if is_jpeg(path):
         return data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9")
     return True
+
+
+def _png_chunk(tag: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+
+def encode_grey16_png(image: np.ndarray, level: int = GREY16_ZLIB_LEVEL) -> bytes:
+    """PNG bytes of an (H,W) uint16 array (greyscale, 16 bits): every row filtered by PNG's "Up" filter (each byte less
+    the byte above it, modulo 256), then deflated by zlib at ``level`` (0: stored, no compression; the fastest
+    writer of a per-frame output, e.g. the corrected frames' relative depth). Any PNG reader decodes it."""
+    h, w = image.shape
+    raw = np.ascontiguousarray(image, ">u2").view(np.uint8).reshape(h, 2 * w)
+    rows = np.empty((h, 2 * w + 1), np.uint8)
+    rows[:, 0] = 2  # filter type: Up
+    rows[0, 1:] = raw[0]
+    np.subtract(raw[1:], raw[:-1], out=rows[1:, 1:])  # uint8 arithmetic wraps modulo 256, as the filter does
+    header = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0)  # 16-bit grey, deflate, adaptive filters, no interlace
+    return (PNG_SIGNATURE + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), level))
+            + _png_chunk(b"IEND", b""))
 
 
 def encode_png(image: np.ndarray) -> bytes:
