@@ -45,6 +45,7 @@ import io
 import json
 import os
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Iterator
@@ -72,7 +73,7 @@ from watergan.data import (
 from watergan.device import Device, pick_device
 from watergan.formation import Stack
 from watergan.formation import get as get_effect
-from watergan.formation.inverse import flat_floor_depth, flat_floor_range, frame_affine, needs_normals
+from watergan.formation.inverse import flat_floor_depth, flat_floor_range, frame_affines, needs_normals
 from watergan.io import (
     bit_depth,
     encode_grey16_png,
@@ -607,8 +608,9 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
     one torch thread, so memory does not grow with the survey. A stack that does not read surface normals is inverted
     with the interpolated fields of :class:`watergan.nets.restorer.WaterFields` in float32 (:func:`invert_with_fields`)
     of its effects without a value per frame, each frame's image first freed of the others by the affine map they
-    apply to it (:func:`watergan.formation.inverse.frame_affine`: a gain or exposure per frame); otherwise each frame's
-    exact fields (:func:`watergan.formation.inverse.correct_physics`, float64)."""
+    apply to it (:func:`watergan.formation.inverse.frame_affines`: a gain or exposure per frame); otherwise (or for a
+    frame whose effects are no such map) each frame's exact fields (:func:`watergan.formation.inverse.correct_physics`,
+    float64)."""
     from eval.tracks import Tracks
     from watergan.device import single_torch_thread
     from watergan.formation.inverse import correct_physics
@@ -625,7 +627,7 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
     stack = Stack.from_config(water.stack)
     with_normals = needs_normals(stack)
     # effects with a value per frame (a gain, an exposure) are taken as an affine map of each frame's image, measured
-    # on a probe (frame_affine), and the rest of the stack from one table of fields for every frame
+    # on a probe (frame_affines), and the rest of the stack from one table of fields for every frame
     base = [e for e in water.stack if not get_effect(e["name"]).varies_by_frame()]
     per_frame = Stack.from_config(base) if len(base) < len(water.stack) else None
     fields = None if with_normals else WaterFields(base)
@@ -662,17 +664,28 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
                             f"(`watergan water --workspace WS --force`)")
         return read_millimetres(path) / 1000.0  # metres, 0 = none: both inverses and the normals take that
 
+    affines: dict[tuple[int, int], list] = {}  # per image size, every frame's affine map (frame_affines)
+    affines_lock = threading.Lock()
+
+    def frame_map(k: int, size_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+        with affines_lock:
+            if size_hw not in affines:
+                affines[size_hw] = frame_affines(stack, per_frame, range(len(names)), K, *size_hw)
+        return affines[size_hw][k]
+
     def correct_frame(k: int) -> float:
         name = names[k]
-        levels = None
+        levels, corrected = None, None
         if fields is not None:
             levels = read_stored(images / name)
             image = stored_as(levels, "srgb", np.float32)
-            if per_frame is not None:  # the frame's own gain or exposure taken off first
-                s, t = frame_affine(stack, per_frame, k, K, *image.shape[:2])
-                image = (image - t.astype(np.float32)) / s.astype(np.float32)
-            corrected, valid = invert_with_fields(image, frame_range(name, image.shape[:2], levels), fields, K)
-        else:
+            affine = None if per_frame is None else frame_map(k, image.shape[:2])
+            if per_frame is None or affine is not None:
+                if affine is not None:  # the frame's own gain or exposure taken off first
+                    s, t = affine
+                    image = (image - t.astype(np.float32)) / s.astype(np.float32)
+                corrected, valid = invert_with_fields(image, frame_range(name, image.shape[:2], levels), fields, K)
+        if corrected is None:  # the stack reads normals, or the frame's effects are no affine map of its image
             f = water_frame(tracks, k, images, depth_dir)
             r = frame_range(name, f.image.shape[:2])
             normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None

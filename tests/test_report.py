@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from conftest import SCRATCH
 from test_sfm import survey_and_sfm
 
@@ -254,6 +255,50 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     assert result.range_source == "range maps"
     assert np.abs(written - expected)[valid].max() < 2 / 255  # the 8-bit file's rounding, in linear light
     assert np.abs(written - read_image(ws.root / "06_correct" / "physics" / "images" / frame.name))[valid].mean() > 0.01
+
+
+def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(evaluated, tmp_path):
+    """A water whose frames differ by more than a gain (here the attenuation changes from frame to frame, so the
+    difference grows with range): the probe finds no affine map of the image for those frames, and the physics
+    correction takes their exact inverse instead of the shared table of fields."""
+    from test_water import water_config
+
+    from eval.tracks import Tracks
+    from pipeline.correct import correct_physics_folder
+    from pipeline.water import water_frame
+    from watergan.formation import RANK_WATER, Effect, Param, register
+    from watergan.formation.inverse import correct_physics
+    from watergan.io import read_depth, read_image
+
+    @register
+    class ReportTestDrift(Effect):
+        name = "report_test_drift"
+        summary = "the direct path attenuated by exp(-delta_f r) more in frame f"
+        signature = "frame: the fall with range steeper in some frames"
+        axis = "frame"
+        rank = RANK_WATER + 2
+        params = (Param("delta_per_m", 0.0, -0.5, 0.5, "1/m", "the frame's change of attenuation", per="frame"),)
+
+        def forward(self, state):
+            delta = self.per_frame("delta_per_m", state).view(-1, 1, 1, 1).to(state.direct.dtype)
+            return state.replace(direct=state.direct * torch.exp(-delta * state.range_m))
+
+    survey, ws, _, _ = evaluated
+    shutil.copytree(ws.root, tmp_path / "ws", symlinks=True)
+    drifting = Workspace(tmp_path / "ws")
+    water = drifting.result("water")
+    tracks = Tracks.load(drifting.path(drifting.result("sfm").tracks))
+    deltas = [0.0 if k % 2 else 0.08 for k in range(len(tracks.image_names))]  # odd frames: the base water
+    stack = [*water.stack, {"name": "report_test_drift", "params": {"delta_per_m": deltas}}]
+    drifting.save("water", water_config(bootstrap=4, progress=False), dataclasses.replace(water, stack=stack))
+    correct_physics_folder(drifting, survey / "images", tmp_path / "drift", False)
+    K = np.asarray(tracks.K, float)
+    for k in (2, 3):
+        frame = water_frame(tracks, k, survey / "images", None)
+        r = read_depth(drifting.path(water.range_dir) / f"{Path(frame.name).stem}.png")
+        exact, valid = correct_physics(frame.image, r, stack, K, frame_index=k)
+        written = read_image(tmp_path / "drift" / "images" / frame.name)
+        assert np.abs(written - np.clip(np.nan_to_num(exact), 0.0, 1.0))[valid].max() < 3 / 255, k
 
 
 def test_missing_inputs_are_skipped_with_reasons(tmp_path):

@@ -214,7 +214,7 @@ def test_the_fields_inverse_with_a_gain_per_frame_matches_the_exact_one(survey):
     ``frame_gain`` within 5e-4 of the in-air colour (an eighth of an 8-bit level: the table's interpolation; a gain
     left in place would be off by up to 20 %); the probe refuses a difference that varies over the image."""
     from pipeline.correct import invert_with_fields
-    from watergan.formation.inverse import frame_affine
+    from watergan.formation.inverse import frame_affines
     from watergan.nets.restorer import WaterFields
 
     gains = [[0.1, -0.05, 0.02], [-0.2, 0.15, 0.0], [0.0, 0.0, 0.0]]
@@ -222,15 +222,15 @@ def test_the_fields_inverse_with_a_gain_per_frame_matches_the_exact_one(survey):
                                                                         "orthogonal_to": [[0.0, 0.0]] * 3}}])
     base = Stack.from_config(TRUE)
     fields = WaterFields(TRUE)
-    for k in range(3):
+    affines = frame_affines(full, base, [2, 0, 1], K, H, W)  # every frame in one batch, in any order
+    for k, (s, t) in zip([2, 0, 1], affines, strict=True):
         image, r, j = render(pose(0.1 * k, -0.2, 2.2 + 0.4 * k), full, frame_index=k)
-        s, t = frame_affine(full, base, k, K, H, W)
         np.testing.assert_allclose(s, np.exp(gains[k]), rtol=1e-9)
         np.testing.assert_allclose(t, 0.0, atol=1e-12)
         corrected, valid = invert_with_fields((image - t) / s, r, fields, K)
         assert valid.all() and np.abs(corrected - j).max() < 5e-4
     no_falloff = Stack.from_config([e for e in TRUE if e["name"] != "vignetting"])
-    assert frame_affine(base, no_falloff, 0, K, H, W) is None  # a falloff is no gain of the whole frame
+    assert frame_affines(base, no_falloff, [0], K, H, W) == [None]  # a falloff is no gain of the whole frame
 
 
 def test_too_little_input_is_refused_with_what_to_give(survey):

@@ -11,6 +11,7 @@ applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`)
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -127,7 +128,7 @@ def affine_images(stack: Stack, state: FormationState,
 
 
 def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray | None = None,
-                   frame_index: int = 0, normals_cam: np.ndarray | None = None,
+                   frame_index: int | Sequence[int] = 0, normals_cam: np.ndarray | None = None,
                    normal_smooth_px: float = 24.0,
                    dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
     """(A, C, valid): the fields of y = A J + C at every pixel of a range map, A and C (1,3,H,W) tensors of ``dtype``
@@ -141,7 +142,8 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
              and no points (an effect that needs them raises :class:`MissingInputError`).
     normals_cam: (H,W,3) unit normals in the camera frame (e.g. of a fused mesh); None with K:
              :func:`normals_from_range` of ``range_m`` smoothed by ``normal_smooth_px``, when the stack reads normals.
-    frame_index: the frame's index in the survey: the row that parameters held per frame take."""
+    frame_index: the frame's index in the survey: the row that parameters held per frame take; several: the
+             fields of the same pixels in each of those frames, a batch of them (B,3,H,W)."""
     if not isinstance(stack, Stack):
         stack = Stack.from_config(stack)
     r = clean_range(range_m)
@@ -161,43 +163,50 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
             fields["normals_cam"] = torch.from_numpy(n.transpose(2, 0, 1)[None].copy())
     else:
         fields["depth_m"] = torch.from_numpy(r_filled[None, None].copy())
-    state = FormationState(direct=torch.zeros(1, 3, h, w, dtype=dtype),
-                           range_m=torch.from_numpy(r_filled[None, None].copy()).to(dtype),
-                           pixel_uv=pixel_grid(h, w, 1, dtype), image_wh=(w, h),
-                           valid=torch.from_numpy(valid)[None, None], frame_index=torch.tensor([frame_index]),
-                           **{k: v.to(dtype) for k, v in fields.items()})
+    frames = torch.as_tensor(np.atleast_1d(np.asarray(frame_index, np.int64)))
+    b = len(frames)
+    state = FormationState(direct=torch.zeros(b, 3, h, w, dtype=dtype),
+                           range_m=torch.from_numpy(r_filled[None, None].copy()).to(dtype).expand(b, 1, h, w),
+                           pixel_uv=pixel_grid(h, w, b, dtype), image_wh=(w, h),
+                           valid=torch.from_numpy(valid)[None, None].expand(b, 1, h, w), frame_index=frames,
+                           **{k: v.to(dtype).expand(b, *v.shape[1:]) for k, v in fields.items()})
     stack = stack.to(dtype)
     with torch.no_grad():
         a, c = affine_images(stack, state)
     return a, c, valid
 
 
-#: The probe :func:`frame_affine` evaluates both stacks on: (rows, columns) of pixels, ranges spread over 0.5-6 m.
+#: The probe :func:`frame_affines` evaluates both stacks on: (rows, columns) of pixels, ranges spread over 0.5-6 m.
 PROBE_HW = (6, 8)
 
 
-def frame_affine(stack: Stack, base: Stack, frame_index: int, K: np.ndarray | None, height: int, width: int,
-                 tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray] | None:
-    """(s, t), each (3,): a stack's fields at one survey frame as those of ``base`` (the same stack without its
-    effects that hold a value per frame) mapped by y -> s y + t per channel, A_f = s A and C_f = s C + t, as a gain or
-    exposure per frame acts (``frame_gain``: s = exp(g'_f), t = 0). The inverse is then the base's applied to
-    (I - t) / s. Measured on a probe of ``PROBE_HW`` pixels of an image of ``height`` x ``width`` with intrinsics K at
-    ranges 0.5-6 m, both stacks rendered there; None when the frame's effects do not act so within ``tol`` (relative)
-    anywhere on the probe (they vary over the image or with range: then the exact fields)."""
+def frame_affines(stack: Stack, base: Stack, frames: Sequence[int], K: np.ndarray | None, height: int, width: int,
+                  tol: float = 1e-6) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Per frame of ``frames``, (s, t), each (3,): a stack's fields at that survey frame as those of ``base`` (the
+    same stack without its effects that hold a value per frame) mapped by y -> s y + t per channel, A_f = s A and
+    C_f = s C + t, as a gain or exposure per frame acts (``frame_gain``: s = exp(g'_f), t = 0). The inverse is then
+    the base's applied to (I - t) / s. Measured on a probe of ``PROBE_HW`` pixels of an image of ``height`` x
+    ``width`` with intrinsics K at ranges 0.5-6 m, the stack rendered there for every frame in one batch, the base
+    once; None for a frame whose effects do not act so within ``tol`` (relative) anywhere on the probe (they vary over
+    the image or with range: then the exact fields)."""
     from watergan.data import PinholeIntrinsics
 
     rows, cols = PROBE_HW
     probe_K = None if K is None else PinholeIntrinsics(*_intrinsics(K), width, height).resized(rows, cols).K
     r = np.linspace(0.5, 6.0, rows * cols).reshape(cols, rows).T.copy()  # ranges across rows and columns
-    a_f, c_f, _ = inverse_fields(r, stack, probe_K, frame_index)
+    a_f, c_f, _ = inverse_fields(r, stack, probe_K, list(frames))
     a_b, c_b, _ = inverse_fields(r, base, probe_K, 0)
-    s = (a_f / a_b).flatten(2)[0]
-    t = (c_f - s.view(1, 3, rows, cols) * c_b).flatten(2)[0]
-    scale = float(c_f.abs().max()) + 1e-12
-    if float((s - s.mean(1, keepdim=True)).abs().max()) > tol * float(s.abs().max()) or \
-            float((t - t.mean(1, keepdim=True)).abs().max()) > tol * scale:
-        return None
-    return s.mean(1).numpy(), t.mean(1).numpy()
+    s = (a_f / a_b).flatten(2)  # (B,3,P)
+    t = (c_f - s.view_as(c_f) * c_b).flatten(2)
+    out = []
+    for s_k, t_k, c_k in zip(s, t, c_f, strict=True):
+        scale = float(c_k.abs().max()) + 1e-12
+        if float((s_k - s_k.mean(1, keepdim=True)).abs().max()) > tol * float(s_k.abs().max()) or \
+                float((t_k - t_k.mean(1, keepdim=True)).abs().max()) > tol * scale:
+            out.append(None)
+        else:
+            out.append((s_k.mean(1).numpy(), t_k.mean(1).numpy()))
+    return out
 
 
 #: The grid of :class:`FieldTable`: (rows, columns) of pixel positions, corner to corner.
