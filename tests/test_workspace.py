@@ -206,6 +206,25 @@ def test_written_files_follow_the_umask(tmp_path, umask, mode):
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == mode
 
 
+def test_writes_from_many_threads_keep_the_umask(tmp_path):
+    """correct's lanes write at once: each file gets the umask's mode and the process's umask is left as it was
+    (reading it means setting it to 0 for a moment)."""
+    import os
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+
+    before, interval = os.umask(0o022), sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # threads switch as often as they can: between the umask's two calls too
+    try:
+        with ThreadPoolExecutor(8) as pool:
+            list(pool.map(lambda k: atomic_write_text(tmp_path / f"{k}.txt", "x"), range(3000)))
+        assert os.umask(0o022) == 0o022
+    finally:
+        os.umask(before)
+        sys.setswitchinterval(interval)
+    assert {f.stat().st_mode & 0o777 for f in tmp_path.iterdir()} == {0o644}
+
+
 def test_a_full_disk_is_one_clear_error_and_a_rerun_completes(tmp_path, monkeypatch):
     import errno
     import os

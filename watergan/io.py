@@ -21,6 +21,7 @@ import os
 import re
 import struct
 import tempfile
+import threading
 import types
 import typing
 import zlib
@@ -66,10 +67,16 @@ class WriteError(UserInputError):
     """An output that could not be written (a full disk, no permission): the message names the path."""
 
 
+_UMASK_LOCK = threading.Lock()
+
+
 def file_mode() -> int:
-    """The mode a new file gets under the process's umask (0644 under umask 022), as ``open`` would give it."""
-    mask = os.umask(0)
-    os.umask(mask)
+    """The mode a new file gets under the process's umask (0644 under umask 022), as ``open`` would give it. The
+    umask is read by setting it and setting it back, under a lock: two threads writing at once (correct's lanes)
+    must not read each other's momentary 0, nor leave it set."""
+    with _UMASK_LOCK:
+        mask = os.umask(0)
+        os.umask(mask)
     return 0o666 & ~mask
 
 
