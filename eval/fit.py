@@ -539,11 +539,11 @@ def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
     def penalty(x: np.ndarray) -> np.ndarray:
         assign(x)
         with torch.no_grad():
-            return np.zeros(0) if penalty_fn is None else penalty_fn().reshape(-1).numpy()
+            return penalty_fn().reshape(-1).numpy()
 
     def jac(x: np.ndarray) -> np.ndarray:
         f0 = last[1] if last[0] is not None and np.array_equal(last[0], x) else fun(x)
-        return grouped_jacobian(fun, x, f0, groups, penalty)
+        return grouped_jacobian(fun, x, f0, groups, None if penalty_fn is None else penalty)
 
     cost0 = float((fun(x0) ** 2).sum())
     with np.errstate(all="ignore"):

@@ -680,10 +680,10 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
             levels = read_stored(images / name)
             image = stored_as(levels, "srgb", np.float32)
             affine = None if per_frame is None else frame_map(k, image.shape[:2])
+            if affine is not None:  # the frame's own gain or exposure taken off first
+                s, t = affine
+                image = (image - t.astype(np.float32)) / s.astype(np.float32)
             if per_frame is None or affine is not None:
-                if affine is not None:  # the frame's own gain or exposure taken off first
-                    s, t = affine
-                    image = (image - t.astype(np.float32)) / s.astype(np.float32)
                 corrected, valid = invert_with_fields(image, frame_range(name, image.shape[:2], levels), fields, K)
         if corrected is None:  # the stack reads normals, or the frame's effects are no affine map of its image
             f = water_frame(tracks, k, images, depth_dir)
