@@ -7,12 +7,12 @@ dense stage's patch-match stereo (pycolmap built with CUDA).
   with ``camera.json`` and ``survey.json``, and ``03_water/range``): its frames corrected on CUDA and on the CPU
   (best of 2 passes, file I/O and model load included), and the CUDA colours against the CPU's (levels of 8 bits);
   then in monocular mode on CUDA.
-- ``--copies N`` (``correct_rate``): the workspace's frames N times over (linked, with their range maps and
-  navigation), corrected by the restorer on CUDA as ``watergan correct`` runs it (model load and file I/O included,
-  best of 2 passes): the readers and lanes of :func:`pipeline.correct.correct_chunk` swept, then the defaults in
-  both modes with PNG and JPEG output; the same frames on the machine's CPU cores; the physics correction (a CPU
-  path) on the workspace's own frames, best of 3 passes; the codecs alone on the same frames (OpenCV on the CPU's
-  threads, torchvision's nvJPEG on the GPU) and the restorer's nets alone on CUDA.
+- ``--copies N`` (``correct_rate``): the workspace's frames N times over (:func:`bench_restorer.replicate_workspace`),
+  corrected by the restorer on CUDA as ``watergan correct`` runs it (model load and file I/O included, best of 2
+  passes): the readers and lanes of :func:`pipeline.correct.correct_chunk` swept, then the defaults in both modes with
+  PNG and JPEG output; the same frames on the machine's CPU cores; the physics correction (a CPU path) on the
+  workspace's own frames, best of 3 passes; the codecs alone on the same frames (OpenCV on the CPU's threads,
+  torchvision's nvJPEG on the GPU) and the restorer's nets alone on CUDA.
 - ``--pairs``: a ``generate`` folder: an RGB-D restorer trained on it on CUDA for 20 + 20 iterations (time, peak
   memory, held-out RMSE).
 - ``--small`` / ``--small-sfm``: a simulated survey and its sfm output (``tracks.npz``, ``sparse/``): patch-match depth
@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_restorer import replicate_workspace  # this folder: the script's own
 
 
 def correct_check(ws: Path, out: Path) -> dict:
@@ -62,28 +63,6 @@ def correct_check(ws: Path, out: Path) -> dict:
     return record
 
 
-def replicate(ws: Path, folder: Path, copies: int) -> tuple[Path, Path]:
-    """The workspace's survey frames ``copies`` times over under ``folder`` (links named ``<copy>_<name>``, with their
-    range maps, camera.json and survey.json's navigation repeated): (images folder, range folder)."""
-    survey, images, ranges = ws / "00_survey", folder / "survey" / "images", folder / "range"
-    for d in (images, ranges):
-        d.mkdir(parents=True, exist_ok=True)
-    nav = json.loads((survey / "survey.json").read_text())
-    frames = [str(f) for f in nav["frames"]]
-    for c in range(copies):
-        for name in frames:
-            stem = Path(name).stem
-            (images / f"{c:03d}_{name}").symlink_to((survey / "images" / name).resolve())
-            (ranges / f"{c:03d}_{stem}.png").symlink_to((ws / "03_water" / "range" / f"{stem}.png").resolve())
-    repeated = {"frames": [f"{c:03d}_{f}" for c in range(copies) for f in frames]}
-    for key in ("nav_altitude_m", "nav_down_cam", "nav_depth_m"):
-        if key in nav:
-            repeated[key] = nav[key] * copies
-    (images.parent / "survey.json").write_text(json.dumps({**nav, **repeated}))
-    (images.parent / "camera.json").write_text((survey / "camera.json").read_text())
-    return images, ranges
-
-
 def rate_check(ws: Path, out: Path, copies: int) -> dict:
     """Frames per second of ``correct`` on CUDA over the workspace's frames repeated ``copies`` times (see the module
     docstring), and the parts that bound it."""
@@ -96,7 +75,8 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
     from watergan.nets.restorer import WaterFields, restore
     from watergan.train_restorer import load_restorer
 
-    images, ranges = replicate(ws, out / "frames", copies)
+    replica = replicate_workspace(ws, out / "frames", copies)
+    images, ranges = replica / "00_survey" / "images", replica / "03_water" / "range"
     frames = len(list(images.iterdir()))
 
     def timed(passes: int = 2, **kwargs) -> float:

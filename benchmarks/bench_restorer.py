@@ -2,6 +2,7 @@
 with peak memory.
 
     .venv/bin/python benchmarks/bench_restorer.py [--widths cpu|paper] [--batch 4] [--repeats 5] [--workspace WS]
+        [--copies N]
 
 Without ``--workspace``: the restorer's nets alone (depth + colour, pad/un-pad included, untrained weights: the speed
 does not depend on them) on random 640x480 batches.
@@ -14,6 +15,9 @@ pass's figure is kept under ``runs``), in both modes (``frames_per_s``, keyed by
   (``rgb-d``) or with a flat seafloor at the navigation's altitude (``monocular``; times the site depth net's factor
   where the restorer stage trained one that won);
 - ``restorer``: :func:`pipeline.correct.correct_folder` with the workspace's restorer, the same two ranges.
+
+``--copies N``: on the survey's frames N times over (:func:`replicate_workspace`), as a dive of N times the survey's
+length, where the start of each pass (model load, the fields' grid, the first frames in flight) counts once.
 
 It also times the parts of one batch of 4 as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
 thread): the water's inverse fields (:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the
@@ -55,9 +59,56 @@ def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int
     return batch / best
 
 
-def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input") -> dict:
-    """Both corrections in both modes on the workspace's frames (best of the passes), and one batch of 4 of the
-    restorer split into its parts."""
+def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
+    """A workspace ``folder/workspace`` (made afresh) whose survey is ``ws``'s frames ``copies`` times over, for
+    timing the corrections on a dive's length: the frames and range maps linked as ``<copy>_<name>``, the navigation,
+    the sfm stage's frame list and poses and the water's values per frame repeated (each copy of a frame keeps its
+    gain), the restorer's folder linked, the survey's and dense stage's records copied. For the corrections to read
+    (a stack that reads surface normals needs the dense depth maps, which are not linked)."""
+    import shutil
+
+    from eval.tracks import Tracks
+    from watergan.formation import get
+
+    new = folder / "workspace"
+    if new.exists():
+        shutil.rmtree(new)
+    survey, images, ranges = new / "00_survey", new / "00_survey" / "images", new / "03_water" / "range"
+    for d in (images, ranges, new / "01_sfm", new / "02_dense"):
+        d.mkdir(parents=True)
+    nav = json.loads((ws / "00_survey" / "survey.json").read_text())
+    frames = [str(f) for f in nav["frames"]]
+    for c in range(copies):
+        for name in frames:
+            stem = Path(name).stem
+            (images / f"{c:03d}_{name}").symlink_to((ws / "00_survey" / "images" / name).resolve())
+            (ranges / f"{c:03d}_{stem}.png").symlink_to((ws / "03_water" / "range" / f"{stem}.png").resolve())
+    repeated = {"frames": [f"{c:03d}_{f}" for c in range(copies) for f in frames]}
+    repeated.update({key: nav[key] * copies for key in ("nav_altitude_m", "nav_down_cam", "nav_depth_m")
+                     if key in nav})
+    (survey / "survey.json").write_text(json.dumps({**nav, **repeated}))
+    for name in ("camera.json", "result.json"):
+        shutil.copy(ws / "00_survey" / name, survey / name)
+    shutil.copy(ws / "02_dense" / "result.json", new / "02_dense" / "result.json")
+    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
+    tracks.image_names = np.array([f"{c:03d}_{n}" for c in range(copies) for n in tracks.image_names])
+    tracks.registered = np.tile(tracks.registered, copies)
+    tracks.world_from_cam = np.tile(tracks.world_from_cam, (copies, 1, 1))
+    tracks.save(new / "01_sfm" / "tracks.npz")
+    shutil.copy(ws / "01_sfm" / "result.json", new / "01_sfm" / "result.json")
+    record = json.loads((ws / "03_water" / "result.json").read_text())
+    for effect in record["result"]["stack"]:
+        if get(effect["name"]).varies_by_frame():
+            effect["params"] = {k: v * copies if isinstance(v, list) and len(v) == len(frames) else v
+                                for k, v in effect["params"].items()}
+    (new / "03_water" / "result.json").write_text(json.dumps(record))
+    (new / "05_restorer").symlink_to((ws / "05_restorer").resolve())
+    return new
+
+
+def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input", copies: int = 1) -> dict:
+    """Both corrections in both modes on the workspace's frames, ``copies`` times over (:func:`replicate_workspace`;
+    best of the passes), and one batch of 4 of the restorer split into its parts."""
     from pipeline.correct import correct_folder, correct_physics_folder, cpu_lanes
     from pipeline.workspace import Workspace
     from watergan.data import read_intrinsics
@@ -65,6 +116,9 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
     from watergan.nets.restorer import WaterFields, fill_range_holes
     from watergan.train_restorer import load_restorer
 
+    own = ws
+    if copies > 1:
+        ws = replicate_workspace(own, out / "replica", copies)
     workspace = Workspace(ws)
     images = ws / "00_survey" / "images"
     ranges = ws / "03_water" / "range"
@@ -122,7 +176,7 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
         restore(model, x, altitude, range_m, intrinsics, water)
         parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
     torch.set_num_threads(threads)
-    return {"lanes": lanes, "workspace": str(ws), "frames": frames, "image_format": image_format,
+    return {"lanes": lanes, "workspace": str(own), "copies": copies, "frames": frames, "image_format": image_format,
             "frames_per_s": fps, "runs": runs,
             "range_source": sources, **parts}
 
@@ -137,6 +191,8 @@ def main() -> None:
                         help="where --workspace's corrected frames go")
     parser.add_argument("--image-format", default="input", choices=["input", "png", "tiff", "jpeg"],
                         help="the corrected frames' format (correct's --image-format)")
+    parser.add_argument("--copies", type=int, default=1,
+                        help="time the corrections on the workspace's frames this many times over (a longer dive)")
     parser.add_argument("--result", type=Path, default=Path(__file__).resolve().parent / "results" / "restorer.json",
                         help="where the figures go")
     args = parser.parse_args()
@@ -157,11 +213,12 @@ def main() -> None:
               f"{fps:.1f} frames/s at 640x480; peak allocated {peak:.0f} MiB")
     if args.workspace is not None:
         record = {"untrained_nets_cpu_frames_per_s": cpu_fps,
-                  **correct_speed(args.workspace, args.repeats, args.out, args.image_format)}
+                  **correct_speed(args.workspace, args.repeats, args.out, args.image_format, args.copies)}
         print(f"one batch of 4 of the restorer on one thread: fields "
               f"{1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
               f"{1000 * record['nets_s_per_frame']:.0f} ms/frame ({record['lanes']} lanes side by side)")
-        command = f"benchmarks/bench_restorer.py --workspace {args.workspace} --image-format {args.image_format}"
+        command = (f"benchmarks/bench_restorer.py --workspace {args.workspace} --image-format {args.image_format}"
+                   f" --copies {args.copies}")
         args.result.write_text(json.dumps({"command": command, "threads": torch.get_num_threads(), **record},
                                           indent=2) + "\n")
 

@@ -246,7 +246,7 @@ def monocular_range(image: np.ndarray, altitude_m: float, K: np.ndarray, down_ca
     h, w = image.shape[:2]
     range_m = flat_floor_range(altitude_m, K, h, w, down_cam)
     if site is not None:
-        range_m = range_m * site.factor(image, flat_floor_depth(altitude_m, K, h, w, down_cam))
+        range_m = range_m * site.factor(image, flat_floor_depth(altitude_m, K, h, w, down_cam, range_m))
     return range_m.astype(np.float32)
 
 
@@ -690,9 +690,8 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
             r = frame_range(name, f.image.shape[:2])
             normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None
             corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
-        # both inverses give NaN where the frame has no range: black there
-        rgb = np.clip(np.nan_to_num(corrected, copy=False), 0.0, 1.0, out=corrected)
-        write_srgb_image(out / "images" / corrected_name(name, image_format), rgb,
+        # both inverses give NaN where the frame has no range: black there (the writer clips and takes NaN as 0)
+        write_srgb_image(out / "images" / corrected_name(name, image_format), corrected,
                          bit_depth(images / name) if levels is None else levels_bits(levels))
         write_png(out / "mask" / f"{Path(name).stem}.png", valid.astype(np.uint8) * np.uint8(255))
         return float(np.mean(~valid))

@@ -378,24 +378,52 @@ def encode_image(suffix: str, image: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
+SRGB8_BINS = 4096
+"""Bins of linear light 0..1 in :func:`srgb_levels`'s 8-bit table: narrower than the closest two of the 8-bit levels'
+edges (1 / (255 x 12.92) apart, at the dark end), so that each bin holds at most one edge."""
+
+
+@functools.lru_cache(maxsize=2)
+def _srgb8_table(dtype: str) -> tuple:
+    """Per bin of ``SRGB8_BINS`` over linear 0..1: the 8-bit level at the bin's lower end (uint8) and the edge of the
+    next level (the linear value whose sRGB code is that level + 1/2, rounded up to ``dtype``; inf past level 255)."""
+    import torch
+
+    edges = srgb_to_linear((np.arange(1, 256) - 0.5) / 255.0)  # level k from edges[k - 1] up
+    low = np.searchsorted(edges, np.arange(SRGB8_BINS) / SRGB8_BINS, side="right")
+    above = np.append(edges, np.inf)[low]
+    rounded = above.astype(dtype)
+    rounded = np.where(rounded < above, np.nextafter(rounded, np.inf, dtype=dtype), rounded)  # x >= it iff x >= edge
+    return torch.from_numpy(low.astype(np.uint8)), torch.from_numpy(rounded)
+
+
 def srgb_levels(linear_rgb: np.ndarray, bit_depth: int) -> np.ndarray:
-    """quantise(linear_to_srgb(linear_rgb), bit_depth) for a float32 or float64 array, computed in torch in its
-    dtype with the power as exp(ln(x) / 2.4), each step in place (three times faster than NumPy's power on a CPU;
-    the same levels on the frames measured)."""
+    """quantise(linear_to_srgb(linear_rgb), bit_depth) for a float32 or float64 array (NaN: 0). At 8 bits by table:
+    each value's bin of ``SRGB8_BINS`` gives the level at its lower end, plus one where the value reaches the next
+    level's edge (the same levels as float64 NumPy, for float32 input too, in about half the time of the curve). At
+    16 bits the curve, computed in torch in the input's dtype with the power as exp(ln(x) / 2.4), each step in place
+    (three times faster than NumPy's power on a CPU; from float32, one level off about as often as NumPy's float32
+    route)."""
     import torch
 
     if bit_depth not in (8, 16):
         raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth}")
+    x = torch.from_numpy(np.ascontiguousarray(linear_rgb))
+    if bit_depth == 8:
+        low, above = _srgb8_table(str(linear_rgb.dtype))
+        flat = x.reshape(-1)
+        bins = flat.mul(SRGB8_BINS).nan_to_num_(0.0).clamp_(0, SRGB8_BINS - 1).to(torch.int32)
+        levels = torch.index_select(low, 0, bins).add_(flat >= torch.index_select(above, 0, bins))
+        return levels.reshape(x.shape).numpy()
     top = 2.0**bit_depth - 1.0
-    x = torch.from_numpy(np.ascontiguousarray(linear_rgb)).clamp(0.0, 1.0)
+    x = x.nan_to_num(0.0).clamp_(0.0, 1.0)
     dark = x <= 0.0031308
     curve = torch.clamp(x, min=0.0031308).log_().mul_(1 / 2.4).exp_().mul_(1.055 * top).sub_(0.055 * top)
-    levels = torch.where(dark, x.mul_(12.92 * top), curve).round_()
-    return levels.to(torch.uint8).numpy() if bit_depth == 8 else levels.to(torch.int32).numpy().astype(np.uint16)
+    return torch.where(dark, x.mul_(12.92 * top), curve).round_().to(torch.int32).numpy().astype(np.uint16)
 
 
 def write_srgb_image(path: str | Path, linear_rgb: np.ndarray, bit_depth: int = 8) -> None:
-    """Linear (H,W,3) 0..1 sRGB-encoded and quantised to ``bit_depth`` (8 or 16; JPEG: 8) bits
+    """Linear (H,W,3) 0..1 (clipped; NaN: 0) sRGB-encoded and quantised to ``bit_depth`` (8 or 16; JPEG: 8) bits
     (:func:`srgb_levels`), in the format of the path's suffix (PNG, TIFF or JPEG), atomically."""
     path = Path(path)
     rgb = srgb_levels(linear_rgb, output_bits(path, bit_depth))

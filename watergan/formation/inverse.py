@@ -49,11 +49,11 @@ def unit_rays(intrinsics: tuple[float, float, float, float], h: int, w: int) -> 
 
 
 def flat_floor_depth(altitude_m: float, K: np.ndarray, h: int, w: int,
-                     down_cam: np.ndarray | None = None) -> np.ndarray:
-    """(H,W) camera-z depth (metres) of the same seafloor: :func:`flat_floor_range` over each ray's length
-    |K^-1 (x, y, 1)|."""
+                     down_cam: np.ndarray | None = None, range_m: np.ndarray | None = None) -> np.ndarray:
+    """(H,W) camera-z depth (metres) of the same seafloor: :func:`flat_floor_range` (or ``range_m``, where the caller
+    holds it) over each ray's length |K^-1 (x, y, 1)|."""
     unit_z = unit_rays(_intrinsics(np.asarray(K, np.float64)), h, w)[..., 2]  # 1 / |K^-1 (x, y, 1)|
-    return flat_floor_range(altitude_m, K, h, w, down_cam) * unit_z
+    return (flat_floor_range(altitude_m, K, h, w, down_cam) if range_m is None else range_m) * unit_z
 
 
 def clean_range(r: np.ndarray) -> np.ndarray:
