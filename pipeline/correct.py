@@ -164,6 +164,7 @@ class CorrectChunk:
     paths: tuple[Path, ...]
     out_dir: Path
     batch_size: int
+    """Images per batch (0: :func:`batch_for` the device)."""
     device: str
     altitude_m: tuple[float, ...] | None = None
     """Per path, the altitude above the seafloor in metres (None: the model does not take it)."""
@@ -223,6 +224,18 @@ def keep_freed_memory() -> bool:
         return False
     m_trim_threshold, m_mmap_threshold = -1, -3
     return bool(mallopt(m_mmap_threshold, 32 * 2**20)) and bool(mallopt(m_trim_threshold, 2**30))
+
+
+CPU_BATCH = 1
+"""Images per batch of the restorer on a CPU (``batch_size`` 0): each lane's full-resolution passes over one frame stay
+in the cache, where a batch of 4 streams through memory (measurements: benchmarks/RESULTS.md)."""
+CUDA_BATCH = 4
+"""Images per batch on CUDA (``batch_size`` 0)."""
+
+
+def batch_for(dev: torch.device) -> int:
+    """The restorer's images per batch when none is given: ``CPU_BATCH`` on a CPU, ``CUDA_BATCH`` on CUDA."""
+    return CPU_BATCH if dev.type == "cpu" else CUDA_BATCH
 
 
 CUDA_LANES = 4
@@ -306,6 +319,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     (out / "depth").mkdir(parents=True, exist_ok=True)
     result = ChunkResult(0, [])
     lanes = cpu_lanes() if dev.type == "cpu" else cuda_lanes()
+    batch_size = chunk.batch_size or batch_for(dev)
     # a restorer without skip layers applies its fields to the decoded colours: the readers decode them by table
     linear = not model.colour_net.skip and model.colour_net.head == "affine"
 
@@ -351,7 +365,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                 running.append(nets.submit(correct_batch, list(batch)))
                 batch.clear()
 
-            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * chunk.batch_size, site, linear):
+            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * batch_size, site, linear):
                 try:
                     image, bits, range_m, decoded = read.result()
                 except DataError as exc:
@@ -364,7 +378,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                     submit()
                 batch.append(Item(path.name, image, bits,
                                   chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m, decoded))
-                if len(batch) == chunk.batch_size:
+                if len(batch) == batch_size:
                     submit()
             if batch:
                 submit()
@@ -395,16 +409,16 @@ class CorrectMode(StrEnum):
 
 
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
-                   batch_size: int = 4, device: str = "auto", progress: bool = True, scheduler=None,
+                   batch_size: int = 0, device: str = "auto", progress: bool = True, scheduler=None,
                    chunk_size: int = 64, navigation: str | Path | None = None,
                    range_dir: str | Path | None = None, mode: str = "auto",
                    image_format: str = "input") -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
-    images of the same size are corrected together, ``batch_size`` at a time.
+    images of the same size are corrected together, ``batch_size`` at a time (0: :func:`batch_for` the device).
 
     ``scheduler``: empty or None corrects here, in one pass with the model loaded once; a Dask scheduler
     address (``tcp://HOST:8786``) or ``distributed.Client`` sends chunks of ``chunk_size`` images (rounded up
-    to a multiple of ``batch_size``) to the cluster's workers, each loading the model once per chunk and
+    to a multiple of the batch) to the cluster's workers, each loading the model once per chunk and
     writing to ``out_dir`` on the shared file system (:mod:`watergan.parallel`). Same files either way.
 
     ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
@@ -417,8 +431,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     images_dir, out = Path(images_dir), Path(out_dir)
     if not images_dir.is_dir():
         raise DataError(f"image folder {images_dir} does not exist")
-    if batch_size < 1:
-        raise DataError(f"batch_size must be at least 1, got {batch_size}")
+    if batch_size < 0:
+        raise DataError(f"batch_size must be at least 1 (or 0: by device), got {batch_size}")
     if mode not in tuple(CorrectMode):
         raise DataError(f"mode must be one of {', '.join(CorrectMode)}, not '{mode}'")
     if image_format not in tuple(ImageFormat):
@@ -498,7 +512,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                                               str(image_format), site_depth), bar, model)
         parts = [done]
     else:
-        size = -(-max(chunk_size, 1) // batch_size) * batch_size
+        step = batch_size or CUDA_BATCH  # a whole number of batches on either device
+        size = -(-max(chunk_size, 1) // step) * step
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
                              batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera,
                              flat_floor, down_of(part), str(image_format), site_depth)
@@ -524,8 +539,8 @@ class CorrectStage:
 
     images_dir: str = ""
     """Frames to correct (SfM's names); empty: the survey's images."""
-    batch_size: int = 4
-    """Images per batch of the restorer."""
+    batch_size: int = 0
+    """Images per batch of the restorer; 0: one on a CPU, four on CUDA (:func:`batch_for`)."""
     mode: CorrectMode = CorrectMode.auto
     """How the physics correction and an RGB-D restorer get each pixel's range: auto (the water stage's range maps
     when it wrote them, else monocular), rgb-d, or monocular (a flat seafloor at each frame's altitude, times the site
@@ -785,8 +800,8 @@ class CorrectConfig:
     jpeg (8 bits, quality 95)."""
     force: bool = False
     """Redo images already corrected."""
-    batch_size: int = 4
-    """Images per batch."""
+    batch_size: int = 0
+    """Images per batch; 0: one on a CPU, four on CUDA."""
     device: Device = Device.auto
     """auto: CUDA when available, else CPU; or cpu, cuda."""
     scheduler: str = ""
