@@ -3,8 +3,9 @@ dense stage's patch-match stereo (pycolmap built with CUDA).
 
     python3 benchmarks/bench_gpu.py --workspace WS [--copies N] [--pairs DIR] [--small SURVEY --small-sfm SFM_DIR]
 
-- ``--workspace``: a finished ``watergan run`` workspace (or a folder holding its ``05_restorer``, ``00_survey/images``
-  with ``camera.json`` and ``survey.json``, and ``03_water/range``): its frames corrected on CUDA and on the CPU
+- ``--workspace``: a finished ``watergan run`` workspace (without ``--copies``, a folder holding its ``05_restorer``,
+  ``00_survey/images`` with ``camera.json`` and ``survey.json``, and ``03_water/range`` is enough): its frames
+  corrected on CUDA and on the CPU
   (best of 2 passes, file I/O and model load included), and the CUDA colours against the CPU's (levels of 8 bits);
   then in monocular mode on CUDA.
 - ``--copies N`` (``correct_rate``): the workspace's frames N times over (:func:`bench_restorer.replicate_workspace`),
