@@ -19,9 +19,10 @@ pass's figure is kept under ``runs``), in both modes (``frames_per_s``, keyed by
 ``--copies N``: on the survey's frames N times over (:func:`replicate_workspace`), as a dive of N times the survey's
 length, where the start of each pass (model load, the fields' grid, the first frames in flight) counts once.
 
-It also times the parts of one batch of 4 as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
-thread): the water's inverse fields (:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the
-lookup per frame) and the restorer's nets given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference`
+It also times the parts of one batch as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
+thread; :func:`pipeline.correct.batch_for`: one frame on a CPU), best of three: the water's inverse fields
+(:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the lookup per frame) and the restorer's nets
+given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference`
 copy). Writes ``benchmarks/results/restorer.json`` (``--result``); ``--image-format`` as correct's.
 
 Peak memory: the process's maximum resident set (``resource.getrusage``, CPU) and
@@ -57,6 +58,16 @@ def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int
             if i:
                 best = min(best, time.perf_counter() - began)
     return batch / best
+
+
+def best_s(call, times: int = 3) -> float:
+    """The shortest of ``times`` runs of ``call()``, seconds."""
+    best = float("inf")
+    for _ in range(times):
+        began = time.perf_counter()
+        call()
+        best = min(best, time.perf_counter() - began)
+    return best
 
 
 def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
@@ -108,8 +119,8 @@ def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
 
 def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input", copies: int = 1) -> dict:
     """Both corrections in both modes on the workspace's frames, ``copies`` times over (:func:`replicate_workspace`;
-    best of the passes), and one batch of 4 of the restorer split into its parts."""
-    from pipeline.correct import correct_folder, correct_physics_folder, cpu_lanes
+    best of the passes), and one of the restorer's batches split into its parts."""
+    from pipeline.correct import batch_for, correct_folder, correct_physics_folder, cpu_lanes
     from pipeline.workspace import Workspace
     from watergan.data import read_intrinsics
     from watergan.io import depth_or_zero, read_depth, read_image
@@ -150,7 +161,8 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
                   f"{', '.join(f'{v:.1f}' for v in runs[correction][mode])})")
     lanes = cpu_lanes()
     model = load_restorer(ws / "05_restorer").for_inference()
-    paths = sorted(images.glob("*.png"))[:4]
+    batch = batch_for(torch.device("cpu"))
+    paths = sorted(images.glob("*.png"))[:batch]
     x = torch.from_numpy(np.stack([read_image(p, "linear") for p in paths]).transpose(0, 3, 1, 2)).float()
     parts = {}
     threads = torch.get_num_threads()
@@ -167,17 +179,14 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
             began = time.perf_counter()
             fields(range_m, intrinsics)
             parts["water_grid_build_s"] = time.perf_counter() - began
-            began = time.perf_counter()
+            parts["water_fields_s_per_frame"] = best_s(lambda: fields(range_m, intrinsics)) / len(paths)
             water = fields(range_m, intrinsics)
-            parts["water_fields_s_per_frame"] = (time.perf_counter() - began) / len(paths)
         altitude = torch.full((len(paths),), 2.5) if model.altitude else None
         restore(model, x, altitude, range_m, intrinsics, water)  # warm-up
-        began = time.perf_counter()
-        restore(model, x, altitude, range_m, intrinsics, water)
-        parts["nets_s_per_frame"] = (time.perf_counter() - began) / len(paths)
+        parts["nets_s_per_frame"] = best_s(lambda: restore(model, x, altitude, range_m, intrinsics, water)) / len(paths)
     torch.set_num_threads(threads)
-    return {"lanes": lanes, "workspace": str(own), "copies": copies, "frames": frames, "image_format": image_format,
-            "frames_per_s": fps, "runs": runs,
+    return {"lanes": lanes, "batch": batch, "workspace": str(own), "copies": copies, "frames": frames,
+            "image_format": image_format, "frames_per_s": fps, "runs": runs,
             "range_source": sources, **parts}
 
 
@@ -214,7 +223,7 @@ def main() -> None:
     if args.workspace is not None:
         record = {"untrained_nets_cpu_frames_per_s": cpu_fps,
                   **correct_speed(args.workspace, args.repeats, args.out, args.image_format, args.copies)}
-        print(f"one batch of 4 of the restorer on one thread: fields "
+        print(f"one batch of {record['batch']} of the restorer on one thread: fields "
               f"{1000 * record.get('water_fields_s_per_frame', 0):.0f} ms/frame, nets "
               f"{1000 * record['nets_s_per_frame']:.0f} ms/frame ({record['lanes']} lanes side by side)")
         command = (f"benchmarks/bench_restorer.py --workspace {args.workspace} --image-format {args.image_format}"
