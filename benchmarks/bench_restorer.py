@@ -43,23 +43,6 @@ import torch
 from watergan.nets.restorer import WIDTH_PRESETS, Restorer, restore
 
 
-def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int) -> float:
-    """Best of ``repeats`` timed batches (after one warm-up): batch / seconds."""
-    x = torch.rand(batch, 3, 480, 640, device=device)
-    best = float("inf")
-    with torch.no_grad():
-        for i in range(repeats + 1):
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            began = time.perf_counter()
-            restore(model, x)
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            if i:
-                best = min(best, time.perf_counter() - began)
-    return batch / best
-
-
 def best_s(call, times: int = 3) -> float:
     """The shortest of ``times`` runs of ``call()``, seconds."""
     best = float("inf")
@@ -68,6 +51,20 @@ def best_s(call, times: int = 3) -> float:
         call()
         best = min(best, time.perf_counter() - began)
     return best
+
+
+def frames_per_s(model: Restorer, device: torch.device, batch: int, repeats: int) -> float:
+    """Best of ``repeats`` timed batches (after one warm-up): batch / seconds."""
+    x = torch.rand(batch, 3, 480, 640, device=device)
+
+    def run() -> None:
+        restore(model, x)
+        if device.type == "cuda":
+            torch.cuda.synchronize()  # each run ends with the GPU's queue empty, so the next is timed alone
+
+    with torch.no_grad():
+        run()
+        return batch / best_s(run, repeats)
 
 
 def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
