@@ -9,8 +9,9 @@ with ``vignetting_offcentre`` hidden, estimated with it added, as after ``--add 
 the auv preset, strobes declared in survey.json, the off-centre vignetting hidden; ``auv0_add``: it estimated with
 that effect added; ``--no-light-rig``: the declared lights left out of the stack) it simulates the
 survey, runs the pipeline's SfM and dense stages on it (reused when present), estimates the water with
-:func:`eval.water.estimate_water` from the raw frames, the SfM poses, the dense range and the board (pixel
-quads from the SfM poses) and prints per parameter the estimate, the truth (``truth/effects.json``), the
+:func:`eval.water.estimate_water` from the raw frames, the SfM poses, the dense range (its fine grid, as the water
+stage's, on the fused mesh's range where the dense has none: :class:`pipeline.water.MeshFilledFrames`) and the board
+(pixel quads from the SfM poses) and prints per parameter the estimate, the truth (``truth/effects.json``), the
 relative error and whether the 95 % interval covers the truth. Then it corrects every frame with
 :func:`watergan.formation.inverse.correct_physics` with the water stage's range (dense, the fused mesh where the
 dense range has none or disagrees; pixels with neither take the nearest valid pixel's range, as the evaluation does
@@ -240,7 +241,7 @@ def measure_corrections(ws_root: Path, tracks, board, folders: dict[str, Path], 
 
 
 def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
-    from eval.water import estimate_water
+    from eval.water import estimate_water, reads_normals
 
     t = time.perf_counter()
     ws_root = prepare(root, name)
@@ -256,10 +257,12 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if add:
         config = replace(config, effects=tuple(config.effects) + tuple(add))
     t = time.perf_counter()
-    from pipeline.water import survey_lights
+    from pipeline.water import MeshFilledFrames, survey_lights
 
-    estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config,
-                              lights=survey_lights(ws_root / "00_survey"))
+    mesh, lights = ws_root / "02_dense" / "fused_mesh.ply", survey_lights(ws_root / "00_survey")
+    smooth_px = config.measure.normal_smooth_px if reads_normals(config, len(frames), lights) else None
+    estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config, lights=lights,
+                              grid_frames=MeshFilledFrames(frames, K, mesh if mesh.is_file() else None, smooth_px))
     water_seconds = time.perf_counter() - t
     truth = truth_params(ws_root / "00_survey")
     params = compare(estimate.params, truth)

@@ -53,7 +53,8 @@ parameter's largest change is added in quadrature: interval = estimate +- sqrt((
 (:func:`on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not pin it. Pairs of
 parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs. Where B_inf and beta
 trade (a short range span), what the survey pins is the veil over its ranges: ``veil`` gives B_inf (1 - exp(-beta
-r)) at the views' median range with its interval (:func:`veil_at_median_range`).
+r)) at the views' median range with its interval, bootstrap and specification change alike
+(:func:`veil_at_median_range`).
 
 A declared light rig (``lights``: survey.json's strobes, per light offset_m, tilt_deg, beam_deg): the stack gets
 ``artificial_light`` (:func:`build_stack`), so each view's in-air colour is lit by
@@ -204,6 +205,12 @@ def build_stack(config: WaterConfig, n_frames: int | None = None, lights: list[d
     stack = Stack.ordered(entries, counts=Counts(frames=n_frames, lights=len(lights) or None)).to(torch.float64)
     tie_parameters(stack, config.tied_params)
     return stack
+
+
+def reads_normals(config: WaterConfig, n_frames: int, lights: list[dict] | None = None) -> bool:
+    """Whether the stack :func:`build_stack` makes reads each view's surface normal (a declared light rig, an effect
+    added that reads them): its tables then measure them."""
+    return needs_normals(build_stack(config, n_frames, lights))
 
 
 def tie_parameters(stack: Stack, tied: tuple[tuple[str, str], ...]) -> list[str]:
@@ -381,11 +388,14 @@ def decorrelate_frames(stack: Stack, obs: Observations) -> None:
     effect.set_values(orthogonal_to=q)
 
 
-def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float) -> dict | None:
+def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
+                         alternatives: tuple[dict, ...] = ()) -> dict | None:
     """The veil B(r) = B_inf (1 - exp(-beta r)) at the views' median range ``range_m`` per channel, with a 95 %
     interval from the bootstrap replicates ``samples`` ({"effect.param": value}) of B_inf and beta jointly (what a
-    survey pins when its range span leaves B_inf and beta trading: the veil over its ranges); None without the
-    ``backscatter`` effect. Without replicates the interval is None."""
+    survey pins when its range span leaves B_inf and beta trading: the veil over its ranges) and, as every
+    parameter's, the largest change under the specification ``alternatives`` (their fits, {"effect.param": value})
+    added in quadrature (no range-scale term: the veil at a measured range is a level of colour, whatever the
+    range's scale); None without the ``backscatter`` effect. Without replicates the interval is None."""
     if "backscatter" not in stack.names:
         return None
     effect = stack["backscatter"]
@@ -398,7 +408,9 @@ def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float) -> d
     keys = ("backscatter.b_inf", "backscatter.beta_per_m")
     if len(samples) > 1 and all(k in samples[0] for k in keys):
         values = np.stack([veil(s[keys[0]], s[keys[1]]) for s in samples])
-        half = 1.96 * values.std(0, ddof=1)
+        shifts = [np.abs(veil(a[keys[0]], a[keys[1]]) - value) for a in alternatives if all(k in a for k in keys)]
+        shift = np.max(shifts, 0) if shifts else np.zeros_like(value)
+        half = np.sqrt((1.96 * values.std(0, ddof=1)) ** 2 + shift ** 2)
         entry.update(low=np.round(np.clip(value - half, 0, None), 6).tolist(), high=np.round(value + half, 6).tolist())
     return entry
 
@@ -526,9 +538,10 @@ def _key(stack: Stack, raw_name: str) -> str:
 
 
 def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
-                     lights: list[dict] | None = None) -> WaterEstimate:
+                     lights: list[dict] | None = None, grid_obs: Observations | None = None) -> WaterEstimate:
     """Fit the stack to a measurement table, bootstrap it and repeat it under the specification alternatives (see
-    the module docstring). ``lights``: the light rig survey.json declares (see :func:`build_stack`)."""
+    the module docstring). ``lights``: the light rig survey.json declares (see :func:`build_stack`); ``grid_obs``:
+    the table the fine grid is fitted to (:func:`fit_correction_grid`; None: ``obs``)."""
     if config.correction_grid is not None and min(config.correction_grid) < 3:
         raise UserInputError("correction_grid {}x{}: the fine fields need at least 3 x 3 nodes (or none)".format(
             *config.correction_grid))
@@ -585,11 +598,13 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         if alternatives is None:
             alternatives = ({"board_weight": config.fit.board_weight / 10},) if problem.has_board else \
                 ({"loss_scale": config.fit.loss_scale * 3},)
-        spec = {}
+        spec, spec_fits = {}, []
         for change in alternatives:  # each refitted from the full fit as a bootstrap replicate is, in float64
             problem.config = replace(config.fit, **change)
             newton_refit(problem, x_best, inv, SPEC_ITERATIONS)
-            for key, value in problem.physical().items():
+            fit = problem.physical()
+            spec_fits.append({_key(stack, k): v for k, v in fit.items()})
+            for key, value in fit.items():
                 spec[key] = np.maximum(spec.get(key, 0.0), np.abs(value - best[key]))
         problem.config = config.fit
         problem.set_flat(x_best)
@@ -599,7 +614,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         for p in stack.parameters():
             p.requires_grad_(False)
         t_spec = time.perf_counter() - t0 - t_fit - t_boot
-        corrected, grid = fit_correction_grid(stack, obs, config)
+        corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config)
         named = {_key(stack, k): v for k, v in best.items()}
         named_samples = [{_key(stack, k): v for k, v in s.items()} for s in samples]
         params, tradeoffs = _describe(stack, named, named_samples, fixed, {_key(stack, k): v for k, v in spec.items()},
@@ -615,7 +630,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
                              converged=converged, fields=field_summary(stack, range_r2, obs.colour.mean(0)),
                              frames=frame_gains, grid=grid,
-                             veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m))))
+                             veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m)),
+                                                       tuple(spec_fits)))
     finally:
         torch.set_num_threads(threads)
 
@@ -688,7 +704,7 @@ def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: 
 
 def estimate_water(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
                    config: WaterConfig = WaterConfig(), lights: list[dict] | None = None,
-                   normals: bool = False) -> WaterEstimate:
+                   normals: bool = False, grid_frames: Sequence[WaterFrame] | None = None) -> WaterEstimate:
     """The site's water (see the module docstring).
 
     frames:  the survey's frames (raw linear image, range map in metres, pose; see :class:`WaterFrame`).
@@ -699,14 +715,20 @@ def estimate_water(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTr
              ``artificial_light`` with the rig held (:func:`build_stack`, ``WaterConfig.light_rig``).
     normals: measure each view's surface normal even when the stack reads none (the water stage does, so that
              the diagnosis's candidates that read normals can be fitted to the same table; the fit is unchanged).
+    grid_frames: the same frames with the range the fine grid's table is measured on (the water stage's: the fused
+             mesh's where the dense range has none, so that the grid has views at the image's edges); None: the
+             water's table. Measured only when the configuration has a grid; its time counts in ``measure``.
     The measurement table is kept in ``estimate.observations``.
     Raises :class:`WaterInputError` when the frames cannot pin the water (too few registered frames, too
     little range, too few points seen at different ranges)."""
     t0 = time.perf_counter()
-    obs = measure_frames(frames, K, tracks, board, config.measure,
-                         normals=normals or needs_normals(build_stack(config, len(frames), lights)))
+    lit = reads_normals(config, len(frames), lights)
+    obs = measure_frames(frames, K, tracks, board, config.measure, normals=normals or lit)
+    grid_obs = None
+    if grid_frames is not None and config.correction_grid is not None:
+        grid_obs = measure_frames(grid_frames, K, tracks, board, config.measure, normals=lit)
     t_measure = time.perf_counter() - t0
-    estimate = fit_observations(obs, config, lights)
+    estimate = fit_observations(obs, config, lights, grid_obs)
     estimate.observations = obs
     estimate.seconds = {"measure": round(t_measure, 2), **estimate.seconds,
                         "total": round(time.perf_counter() - t0, 2)}

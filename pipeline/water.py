@@ -18,7 +18,10 @@ the estimate with them (the physics correction) and the RGB-D restorer takes the
 Range per pixel (:func:`correction_range`): the dense stage's depth map where it agrees with the dense
 stage's fused mesh rendered into the view (open3d ray casting from the SfM pose) within ``range_agreement``;
 the mesh's range where the depth map has none or disagrees (the mesh fuses every view, so a depth map's
-outliers at relief edges do not survive it); a pixel with neither has none (0 in the map).
+outliers at relief edges do not survive it); a pixel with neither has none (0 in the map). The water is fitted to
+a table measured on the dense range alone; the fine grid after it (which serves the corrections) to one measured with
+the mesh's range where the dense range has none (:class:`MeshFilledFrames`), so that its views reach the image's
+edges, which the correction corrects.
 
 A light rig: when the survey's ``survey.json`` declares ``lights`` (an AUV's strobes: offset_m, tilt_deg,
 beam_deg per light), the stack models them with ``artificial_light``, the rig held as declared, its power held
@@ -43,7 +46,15 @@ import numpy as np
 
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
-from eval.water import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT, WaterConfig, WaterEstimate, on_bound
+from eval.water import (
+    FIELD_EFFECT,
+    FRAME_CARRY_PCT,
+    GRID_EFFECT,
+    WaterConfig,
+    WaterEstimate,
+    on_bound,
+    reads_normals,
+)
 from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
 from watergan.io import (
@@ -94,19 +105,18 @@ class WaterResult:
     """Surface points in that table."""
 
 
-#: Frames :class:`SurveyFrames` keeps once read (about 5 MB each at 640x480): a survey of up to this many frames is
+#: Frames :class:`LazyFrames` keeps once made (about 5 MB each at 640x480): a survey of up to this many frames is
 #: read once however many passes the measurement makes; a longer one is read again on each pass, in bounded memory.
 CACHED_FRAMES = 64
 
 
-class SurveyFrames(Sequence[WaterFrame]):
-    """The survey's frames as :func:`water_frame` reads them, read when indexed (the last :data:`CACHED_FRAMES` kept),
-    so that the water stage's memory does not grow with the survey's length."""
+class LazyFrames(Sequence[WaterFrame]):
+    """``n`` frames made by ``make(k)`` when indexed, the last :data:`CACHED_FRAMES` kept, so that the water stage's
+    memory does not grow with the survey's length."""
 
-    def __init__(self, tracks: Tracks, images: Path, depth_dir: Path | None):
-        self._n = len(tracks.image_names)
-        self._read = functools.lru_cache(maxsize=CACHED_FRAMES)(
-            lambda k: water_frame(tracks, k, images, depth_dir))
+    def __init__(self, n: int, make):
+        self._n = n
+        self._read = functools.lru_cache(maxsize=CACHED_FRAMES)(make)
 
     def __len__(self) -> int:
         return self._n
@@ -117,6 +127,13 @@ class SurveyFrames(Sequence[WaterFrame]):
         if not -self._n <= k < self._n:
             raise IndexError(k)
         return self._read(k % self._n)
+
+
+class SurveyFrames(LazyFrames):
+    """The survey's frames as :func:`water_frame` reads them, read when indexed (:class:`LazyFrames`)."""
+
+    def __init__(self, tracks: Tracks, images: Path, depth_dir: Path | None):
+        super().__init__(len(tracks.image_names), lambda k: water_frame(tracks, k, images, depth_dir))
 
 
 def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> SurveyFrames:
@@ -139,6 +156,32 @@ def water_frame(tracks: Tracks, k: int, images: Path, depth_dir: Path | None) ->
         range_m = np.full(image.shape[:2], np.nan, np.float32)
     return WaterFrame(name=name, image=image, range_m=range_m,
                       world_from_cam=tracks.world_from_cam[k] if tracks.registered[k] else None)
+
+
+class MeshFilledFrames(LazyFrames):
+    """The frames the fine grid's table is measured on: each frame's dense range, and the fused mesh's range
+    (:func:`mesh_range`) where the dense range has none; with ``smooth_px``, normals as the correction takes them
+    (:func:`correction_normals`; None: none of their own, for a stack that reads none). A stereo pair's dense range
+    stops short of the image's edges (the left edge the right camera does not see, a margin on the right) where the
+    correction still corrects (from the mesh): without the mesh the table has no views there, and the grid is
+    extrapolated into them. Made when indexed (:class:`LazyFrames`); frames without a pose, or ``mesh_ply`` None,
+    as they are."""
+
+    def __init__(self, frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, smooth_px: float | None):
+        self._frames, self._K, self._mesh, self._smooth = frames, np.asarray(K, float), mesh_ply, smooth_px
+        self._scene = None
+        super().__init__(len(frames), self._fill)
+
+    def _fill(self, k: int) -> WaterFrame:
+        frame = self._frames[k]
+        missing = ~np.isfinite(frame.range_m) | (frame.range_m <= 0)
+        if self._mesh is None or frame.world_from_cam is None or not missing.any():
+            return frame
+        meshed, self._scene = mesh_range(self._mesh, frame, self._K, self._scene)
+        range_m = np.where(missing, meshed, frame.range_m).astype(np.float32)
+        if self._smooth is None:
+            return replace(frame, range_m=range_m)
+        return replace(frame, range_m=range_m, normals_cam=correction_normals(frame, range_m, self._K, self._smooth))
 
 
 def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None):
@@ -366,7 +409,10 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
         print("water: the SfM model has no metric scale: attenuation and backscatter coefficients are per SfM "
               "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
     lights = survey_lights(survey)
-    estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights, normals=True)
+    mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
+    smooth_px = cfg.measure.normal_smooth_px if reads_normals(cfg, len(frames), lights) else None
+    estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights, normals=True,
+                              grid_frames=MeshFilledFrames(frames, K, mesh_ply, smooth_px))
     estimate_s = time.perf_counter() - began
     out = ws.stage_dir("water")
     atomic_write_json(out / "water.json", estimate.to_json())
@@ -375,7 +421,6 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     _plot_residuals(estimate, out / "residuals.png")
     _plot_fields(estimate, out / "fields.png")
     _plot_frames(estimate, out / "frames.png")
-    mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
     mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress)
     print(estimate.summary(), flush=True)
     if not estimate.converged:

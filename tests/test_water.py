@@ -324,6 +324,28 @@ def test_the_evaluation_measures_the_physics_correction(water_workspace):
     assert result.mean_board_distance["physics"] < 0.5 * result.mean_board_distance["raw"]
 
 
+def test_the_veils_interval_holds_its_bootstrap_spread_and_the_specification_change():
+    """The veil at the median range: B_inf (1 - exp(-beta r)); its interval's half width is the bootstrap's 1.96 sd
+    and the largest change under the specification alternatives in quadrature (as every parameter's)."""
+    from eval.water import veil_at_median_range
+
+    stack = Stack.from_config(TRUE)
+    b_inf, beta, r = np.array(TRUE[1]["params"]["b_inf"]), np.array(TRUE[1]["params"]["beta_per_m"]), 3.0
+    veil = b_inf * -np.expm1(-beta * r)
+    rng = np.random.default_rng(0)
+    samples = [{"backscatter.b_inf": b_inf * (1 + 0.01 * rng.normal(size=3)), "backscatter.beta_per_m": beta}
+               for _ in range(30)]
+    spread = 1.96 * np.std([s["backscatter.b_inf"] * -np.expm1(-beta * r) for s in samples], 0, ddof=1)
+    alone = veil_at_median_range(stack, samples, r)
+    np.testing.assert_allclose(alone["value"], veil, rtol=1e-5)
+    np.testing.assert_allclose(np.array(alone["high"]) - veil, spread, rtol=1e-3, atol=2e-6)
+    shifted = [{"backscatter.b_inf": b_inf * 1.05, "backscatter.beta_per_m": beta},
+               {"backscatter.b_inf": b_inf, "backscatter.beta_per_m": beta * 0.9}]
+    change = np.maximum(0.05 * veil, np.abs(b_inf * -np.expm1(-0.9 * beta * r) - veil))
+    wider = veil_at_median_range(stack, samples, r, tuple(shifted))
+    np.testing.assert_allclose(np.array(wider["high"]) - veil, np.hypot(spread, change), rtol=1e-3, atol=2e-6)
+
+
 def test_a_parameter_at_a_bound_is_reported(survey):
     """A stack without attenuation on frames whose colour falls with range: the backscatter's beta runs to the
     top of its range (5 /m, measured), and at_bounds names it; its interval is the parameter's whole range, never the
@@ -401,10 +423,11 @@ def test_the_water_stage_reads_its_frames_on_demand(water_workspace, monkeypatch
 
 def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disagrees(tmp_path):
     """Dense range kept where the fused mesh agrees within 1 %; the mesh's range where the dense range is missing
-    or off (an outlier); a frame without a pose keeps its dense range."""
+    or off (an outlier); a frame without a pose keeps its dense range. The fine grid's frames take the mesh's range
+    only where the dense range is missing."""
     import open3d as o3d
 
-    from pipeline.water import correction_range
+    from pipeline.water import MeshFilledFrames, correction_range
 
     plane = o3d.geometry.TriangleMesh()  # the seafloor z = 0 under the camera, 4 m x 4 m
     plane.vertices = o3d.utility.Vector3dVector(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], float))
@@ -428,6 +451,14 @@ def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disag
     no_pose = WaterFrame(name="b.png", image=frame.image, range_m=frame.range_m, world_from_cam=None)
     r, from_mesh, _ = correction_range(no_pose, K, mesh_ply, agreement=0.01)
     assert not from_mesh.any() and np.isnan(r[:10]).all()
+
+    # the fine grid's frames: the mesh only where the dense range has none (the outlier patch stays), with normals
+    filled = MeshFilledFrames([frame, no_pose], K, mesh_ply, smooth_px=4.0)
+    assert MeshFilledFrames([frame], K, mesh_ply, None)[0].normals_cam is None  # a stack that reads none
+    np.testing.assert_allclose(filled[0].range_m[10:], dense[10:], rtol=1e-6)
+    np.testing.assert_allclose(filled[0].range_m[:10], true_range[:10], rtol=1e-4)
+    assert filled[0].normals_cam.shape == (H, W, 3) and np.isfinite(filled[0].normals_cam).all()
+    assert filled[1] is no_pose and MeshFilledFrames([frame], K, None, 4.0)[0] is frame
 
 
 def test_the_correction_takes_its_normals_from_the_dense_range_not_across_the_mesh_seams():

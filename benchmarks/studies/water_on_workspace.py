@@ -5,7 +5,8 @@ two versions of the code (or two settings) can be compared on the same geometry.
         [--field-degree N] [--max-points N] [--sample-seed S] [--out water.json] [--table table.npz]
 
 Reads ``WS/00_survey`` (images, the simulator's board truth, survey.json's lights), the SfM stage's tracks.npz and
-result.json (its scale spread) and the dense stage's depth maps; estimates the water with the default
+result.json (its scale spread) and the dense stage's depth maps and fused mesh (the fine grid's table, as the water
+stage's); estimates the water with the default
 :class:`eval.water.WaterConfig` (``--field-degree``: the fields over the image, ``image_field``, of that degree; 0
 none; ``--max-points``/``--sample-seed``: the measurement's bound on the points and the seed of their draw) and the
 truth's board, measuring normals as the water stage does; prints the one-line summary (and, on a simulated survey,
@@ -31,8 +32,8 @@ from bench_water import compare, truth_params  # noqa: E402
 from eval.colour import truth_board
 from eval.observations import DenseMeasureConfig
 from eval.tracks import Tracks
-from eval.water import WaterConfig, estimate_water
-from pipeline.water import survey_lights, water_frames
+from eval.water import WaterConfig, estimate_water, reads_normals
+from pipeline.water import MeshFilledFrames, survey_lights, water_frames
 
 
 def main() -> None:
@@ -56,8 +57,11 @@ def main() -> None:
     frames = water_frames(tracks, survey / "images", ws / args.dense / "depth")
     config = replace(WaterConfig(), range_scale_sd=float(sfm["scale_spread"]), field_degree=args.field_degree)
     config = replace(config, measure=replace(config.measure, max_points=args.max_points, seed=args.sample_seed))
-    estimate = estimate_water(frames, np.asarray(tracks.K, float), board=truth_board(survey), config=config,
-                              lights=survey_lights(survey), normals=True)
+    K, lights = np.asarray(tracks.K, float), survey_lights(survey)
+    mesh = ws / args.dense / "fused_mesh.ply"
+    smooth_px = config.measure.normal_smooth_px if reads_normals(config, len(frames), lights) else None
+    estimate = estimate_water(frames, K, board=truth_board(survey), config=config, lights=lights, normals=True,
+                              grid_frames=MeshFilledFrames(frames, K, mesh if mesh.is_file() else None, smooth_px))
     print(estimate.summary())
     if (survey / "truth" / "effects.json").is_file():
         for key, row in compare(estimate.params, truth_params(survey)).items():
