@@ -172,21 +172,26 @@ class MeshFilledFrames(LazyFrames):
         self._scene = None
         super().__init__(len(frames), self._fill)
 
+    @property
+    def scene(self):
+        """The mesh's ray-casting scene (:func:`mesh_range`) once a frame was filled; None before."""
+        return self._scene
+
     def _fill(self, k: int) -> WaterFrame:
         frame = self._frames[k]
         missing = ~np.isfinite(frame.range_m) | (frame.range_m <= 0)
         if self._mesh is None or frame.world_from_cam is None or not missing.any():
             return frame
-        meshed, self._scene = mesh_range(self._mesh, frame, self._K, self._scene)
+        meshed, self._scene = mesh_range(self._mesh, frame, self._K, self._scene, where=missing)
         range_m = np.where(missing, meshed, frame.range_m).astype(np.float32)
         if self._smooth is None:
             return replace(frame, range_m=range_m)
         return replace(frame, range_m=range_m, normals_cam=correction_normals(frame, range_m, self._K, self._smooth))
 
 
-def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None):
-    """(range (H,W) metres along each pixel's ray to the fused mesh, NaN where it misses; the ray-casting
-    scene for the next frame)."""
+def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None, where: np.ndarray | None = None):
+    """(range (H,W) metres along each pixel's ray to the fused mesh, NaN where it misses and outside ``where`` (an
+    (H,W) mask of the pixels to cast; None: all); the ray-casting scene for the next frame)."""
     import open3d as o3d
 
     if scene is None:
@@ -194,13 +199,18 @@ def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     h, w = frame.range_m.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64) if where is None else np.nonzero(where)
+    rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones(np.shape(xs))], -1)
     rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True) @ frame.world_from_cam[:3, :3].T
     origin = np.broadcast_to(frame.world_from_cam[:3, 3], rays.shape)
     hits = scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, rays], -1).astype(np.float32)))
     t = hits["t_hit"].numpy().astype(np.float64)
-    return np.where(np.isfinite(t), t, np.nan), scene
+    t = np.where(np.isfinite(t), t, np.nan)
+    if where is None:
+        return t, scene
+    out = np.full((h, w), np.nan)
+    out[where] = t
+    return out, scene
 
 
 def survey_lights(survey: Path) -> list[dict]:
@@ -362,12 +372,12 @@ def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, sm
 
 
 def write_range_maps(out: Path, frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, agreement: float,
-                     progress: bool) -> tuple[float, float]:
+                     progress: bool, scene=None) -> tuple[float, float]:
     """Each frame's :func:`correction_range` as ``out/<stem>.png`` (16-bit millimetres); returns (share of the
-    pixels ranged from the mesh, share with no range)."""
+    pixels ranged from the mesh, share with no range). ``scene``: the mesh's ray-casting scene when already made."""
     from tqdm import tqdm
 
-    from_mesh, missing, scene = [], [], None
+    from_mesh, missing = [], []
     for f in tqdm(frames, desc="range maps", unit="frame", disable=not progress):
         r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
         from_mesh.append(float(np.mean(meshed)))
@@ -411,8 +421,9 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     lights = survey_lights(survey)
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
     smooth_px = cfg.measure.normal_smooth_px if reads_normals(cfg, len(frames), lights) else None
+    grid_frames = MeshFilledFrames(frames, K, mesh_ply, smooth_px)
     estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights, normals=True,
-                              grid_frames=MeshFilledFrames(frames, K, mesh_ply, smooth_px))
+                              grid_frames=grid_frames)
     estimate_s = time.perf_counter() - began
     out = ws.stage_dir("water")
     atomic_write_json(out / "water.json", estimate.to_json())
@@ -421,7 +432,8 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
     _plot_residuals(estimate, out / "residuals.png")
     _plot_fields(estimate, out / "fields.png")
     _plot_frames(estimate, out / "frames.png")
-    mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress)
+    mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress,
+                                           grid_frames.scene)
     print(estimate.summary(), flush=True)
     if not estimate.converged:
         print(f"water: the fit had not converged after {estimate.iterations} iterations (raise "

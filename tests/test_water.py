@@ -427,7 +427,7 @@ def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disag
     only where the dense range is missing."""
     import open3d as o3d
 
-    from pipeline.water import MeshFilledFrames, correction_range
+    from pipeline.water import MeshFilledFrames, correction_range, mesh_range
 
     plane = o3d.geometry.TriangleMesh()  # the seafloor z = 0 under the camera, 4 m x 4 m
     plane.vertices = o3d.utility.Vector3dVector(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], float))
@@ -459,6 +459,11 @@ def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disag
     np.testing.assert_allclose(filled[0].range_m[:10], true_range[:10], rtol=1e-4)
     assert filled[0].normals_cam.shape == (H, W, 3) and np.isfinite(filled[0].normals_cam).all()
     assert filled[1] is no_pose and MeshFilledFrames([frame], K, None, 4.0)[0] is frame
+    some = np.zeros((H, W), bool)
+    some[5, 7] = some[40, 3] = True  # rays cast for these pixels only
+    cast, _ = mesh_range(mesh_ply, frame, K, filled.scene, where=some)
+    np.testing.assert_allclose(cast[some], true_range[some], rtol=1e-4)
+    assert np.isnan(cast[~some]).all()
 
 
 def test_the_correction_takes_its_normals_from_the_dense_range_not_across_the_mesh_seams():
