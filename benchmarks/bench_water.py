@@ -241,7 +241,7 @@ def measure_corrections(ws_root: Path, tracks, board, folders: dict[str, Path], 
 
 
 def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
-    from eval.water import estimate_water, reads_normals
+    from eval.water import estimate_water
 
     t = time.perf_counter()
     ws_root = prepare(root, name)
@@ -257,12 +257,12 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if add:
         config = replace(config, effects=tuple(config.effects) + tuple(add))
     t = time.perf_counter()
-    from pipeline.water import MeshFilledFrames, survey_lights
+    from pipeline.water import fine_grid_frames, survey_lights
 
-    mesh, lights = ws_root / "02_dense" / "fused_mesh.ply", survey_lights(ws_root / "00_survey")
-    smooth_px = config.measure.normal_smooth_px if reads_normals(config, len(frames), lights) else None
+    lights = survey_lights(ws_root / "00_survey")
     estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config, lights=lights,
-                              grid_frames=MeshFilledFrames(frames, K, mesh if mesh.is_file() else None, smooth_px))
+                              grid_frames=fine_grid_frames(frames, K, ws_root / "02_dense" / "fused_mesh.ply", config,
+                                                           lights))
     water_seconds = time.perf_counter() - t
     truth = truth_params(ws_root / "00_survey")
     params = compare(estimate.params, truth)

@@ -598,14 +598,11 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         if alternatives is None:
             alternatives = ({"board_weight": config.fit.board_weight / 10},) if problem.has_board else \
                 ({"loss_scale": config.fit.loss_scale * 3},)
-        spec, spec_fits = {}, []
+        spec_fits = []
         for change in alternatives:  # each refitted from the full fit as a bootstrap replicate is, in float64
             problem.config = replace(config.fit, **change)
             newton_refit(problem, x_best, inv, SPEC_ITERATIONS)
-            fit = problem.physical()
-            spec_fits.append({_key(stack, k): v for k, v in fit.items()})
-            for key, value in fit.items():
-                spec[key] = np.maximum(spec.get(key, 0.0), np.abs(value - best[key]))
+            spec_fits.append({_key(stack, k): v for k, v in problem.physical().items()})
         problem.config = config.fit
         problem.set_flat(x_best)
         with torch.no_grad():
@@ -617,8 +614,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config)
         named = {_key(stack, k): v for k, v in best.items()}
         named_samples = [{_key(stack, k): v for k, v in s.items()} for s in samples]
-        params, tradeoffs = _describe(stack, named, named_samples, fixed, {_key(stack, k): v for k, v in spec.items()},
-                                      config.range_scale_sd)
+        spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits], 0) for key, value in named.items()} \
+            if spec_fits else {}
+        params, tradeoffs = _describe(stack, named, named_samples, fixed, spec, config.range_scale_sd)
         return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
                              n_points=obs.n_points,
                              n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),

@@ -57,6 +57,7 @@ from eval.water import (
 )
 from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
+from watergan.formation.inverse import clean_range
 from watergan.io import (
     atomic_write_json,
     atomic_write_text,
@@ -179,7 +180,7 @@ class MeshFilledFrames(LazyFrames):
 
     def _fill(self, k: int) -> WaterFrame:
         frame = self._frames[k]
-        missing = ~np.isfinite(frame.range_m) | (frame.range_m <= 0)
+        missing = np.isnan(clean_range(frame.range_m))
         if self._mesh is None or frame.world_from_cam is None or not missing.any():
             return frame
         meshed, self._scene = mesh_range(self._mesh, frame, self._K, self._scene, where=missing)
@@ -187,6 +188,16 @@ class MeshFilledFrames(LazyFrames):
         if self._smooth is None:
             return replace(frame, range_m=range_m)
         return replace(frame, range_m=range_m, normals_cam=correction_normals(frame, range_m, self._K, self._smooth))
+
+
+def fine_grid_frames(frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, config: WaterConfig,
+                     lights: list[dict] | None = None) -> MeshFilledFrames:
+    """The frames the water stage measures the fine grid's table on (:class:`MeshFilledFrames`): the fused mesh's
+    range where ``mesh_ply`` is a file, their own normals only when the stack reads them
+    (:func:`eval.water.reads_normals`)."""
+    smooth_px = config.measure.normal_smooth_px if reads_normals(config, len(frames), lights) else None
+    return MeshFilledFrames(frames, K, mesh_ply if mesh_ply is not None and Path(mesh_ply).is_file() else None,
+                            smooth_px)
 
 
 def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None, where: np.ndarray | None = None):
@@ -420,8 +431,7 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
               "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
     lights = survey_lights(survey)
     mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
-    smooth_px = cfg.measure.normal_smooth_px if reads_normals(cfg, len(frames), lights) else None
-    grid_frames = MeshFilledFrames(frames, K, mesh_ply, smooth_px)
+    grid_frames = fine_grid_frames(frames, K, mesh_ply, cfg, lights)
     estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights, normals=True,
                               grid_frames=grid_frames)
     estimate_s = time.perf_counter() - began

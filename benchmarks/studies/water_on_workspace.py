@@ -32,8 +32,8 @@ from bench_water import compare, truth_params  # noqa: E402
 from eval.colour import truth_board
 from eval.observations import DenseMeasureConfig
 from eval.tracks import Tracks
-from eval.water import WaterConfig, estimate_water, reads_normals
-from pipeline.water import MeshFilledFrames, survey_lights, water_frames
+from eval.water import WaterConfig, estimate_water
+from pipeline.water import fine_grid_frames, survey_lights, water_frames
 
 
 def main() -> None:
@@ -58,10 +58,9 @@ def main() -> None:
     config = replace(WaterConfig(), range_scale_sd=float(sfm["scale_spread"]), field_degree=args.field_degree)
     config = replace(config, measure=replace(config.measure, max_points=args.max_points, seed=args.sample_seed))
     K, lights = np.asarray(tracks.K, float), survey_lights(survey)
-    mesh = ws / args.dense / "fused_mesh.ply"
-    smooth_px = config.measure.normal_smooth_px if reads_normals(config, len(frames), lights) else None
+    grid_frames = fine_grid_frames(frames, K, ws / args.dense / "fused_mesh.ply", config, lights)
     estimate = estimate_water(frames, K, board=truth_board(survey), config=config, lights=lights, normals=True,
-                              grid_frames=MeshFilledFrames(frames, K, mesh if mesh.is_file() else None, smooth_px))
+                              grid_frames=grid_frames)
     print(estimate.summary())
     if (survey / "truth" / "effects.json").is_file():
         for key, row in compare(estimate.params, truth_params(survey)).items():
