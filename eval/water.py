@@ -333,7 +333,7 @@ class WaterEstimate:
                 **({"veil": self.veil} if self.veil is not None else {}),
                 "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
                             "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
-                            "largest change of the estimate under the alternative weightings "
+                            "largest change of the estimate under the specification alternatives "
                             + json.dumps(self.alternatives)}
 
     def summary(self) -> str:
@@ -389,23 +389,26 @@ def decorrelate_frames(stack: Stack, obs: Observations) -> None:
 
 
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
-                         alternatives: tuple[dict, ...] = ()) -> dict | None:
+                         alternatives: tuple[dict, ...] = (), light_at_centre: dict | None = None) -> dict | None:
     """The veil B(r) = B_inf (1 - exp(-beta r)) at the views' median range ``range_m`` per channel, with a 95 %
     interval from the bootstrap replicates ``samples`` ({"effect.param": value}) of B_inf and beta jointly (what a
     survey pins when its range span leaves B_inf and beta trading: the veil over its ranges) and, as every
     parameter's, the largest change under the specification ``alternatives`` (their fits, {"effect.param": value})
     added in quadrature (no range-scale term: the veil at a measured range is a level of colour, whatever the
-    range's scale); None without the ``backscatter`` effect. Without replicates the interval is None."""
+    range's scale); with ``light_at_centre`` (the fit before :func:`set_light_level`) also the veil it had. None
+    without the ``backscatter`` effect. Without replicates the interval is None."""
     if "backscatter" not in stack.names:
         return None
     effect = stack["backscatter"]
+    keys = ("backscatter.b_inf", "backscatter.beta_per_m")
 
     def veil(b_inf, beta):
         return np.asarray(b_inf) * (1.0 - np.exp(-np.asarray(beta) * range_m))
 
     value = veil(effect.param("b_inf").detach().numpy(), effect.param("beta_per_m").detach().numpy())
     entry = {"range_m": round(range_m, 3), "value": np.round(value, 6).tolist(), "low": None, "high": None}
-    keys = ("backscatter.b_inf", "backscatter.beta_per_m")
+    if light_at_centre is not None and all(k in light_at_centre for k in keys):
+        entry["light_at_centre"] = np.round(veil(*(light_at_centre[k] for k in keys)), 6).tolist()
     if len(samples) > 1 and all(k in samples[0] for k in keys):
         values = np.stack([veil(s[keys[0]], s[keys[1]]) for s in samples])
         shifts = [np.abs(veil(a[keys[0]], a[keys[1]]) - value) for a in alternatives if all(k in a for k in keys)]
@@ -413,6 +416,27 @@ def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
         half = np.sqrt((1.96 * values.std(0, ddof=1)) ** 2 + shift ** 2)
         entry.update(low=np.round(np.clip(value - half, 0, None), 6).tolist(), high=np.round(value + half, 6).tolist())
     return entry
+
+
+def cover_the_valley(params: dict, veil: dict | None) -> None:
+    """Widen B_inf's interval (``params``' entry, in place) to the valley the survey leaves it in: where its range
+    span pins the veil V at the median range r but hardly beta, B_inf = V / (1 - exp(-beta r)) runs along the
+    valley; over the veil's interval and beta's (each 95 %), B_inf spans [V_low / (1 - exp(-beta_high r)),
+    V_high / (1 - exp(-beta_low r))] (beta_low at 0: up to B_inf's bound). The interval becomes its union with
+    that span (``valley``: True where that widened it); nothing without the veil's or beta's interval."""
+    b_inf, beta = params.get("backscatter.b_inf"), params.get("backscatter.beta_per_m")
+    if not veil or veil.get("low") is None or not b_inf or not beta or b_inf.get("low") is None \
+            or beta.get("low") is None:
+        return
+    r = veil["range_m"]
+    with np.errstate(divide="ignore"):
+        low = np.asarray(veil["low"]) / -np.expm1(-np.asarray(beta["high"]) * r)
+        high = np.asarray(veil["high"]) / -np.expm1(-np.asarray(beta["low"]) * r)
+    upper = next(p.upper for p in get("backscatter").params if p.name == "b_inf")
+    widened = (low < b_inf["low"]) | (np.minimum(high, upper) > b_inf["high"])
+    b_inf.update(low=np.round(np.minimum(low, b_inf["low"]), 6).tolist(),
+                 high=np.round(np.minimum(np.maximum(high, b_inf["high"]), upper), 6).tolist(),
+                 valley=widened.tolist())
 
 
 def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str]) -> int:
@@ -475,6 +499,38 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
     field_effect = stack[FIELD_EFFECT]
     return {"degree": field_effect.degree, **field_extent(*field_effect.on_grid(grid, grid), mean_signal),
             "range_r2": round(range_r2, 3), "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0)}
+
+
+#: :func:`set_light_level` refits until the additive field's least value over the views is within this of 0
+#: (linear colour; under the veil's bootstrap spread on the benchmark's surveys), at most ``LIGHT_LEVEL_PASSES`` times.
+LIGHT_LEVEL_TOL = 5e-4
+LIGHT_LEVEL_PASSES = 5
+
+
+def set_light_level(problem: Problem, form: str) -> dict | None:
+    """When the fields over the image carry additive structure alone (``form``, :func:`field_form`: a light fixed
+    in the image, a reflection in the port, a flare), set ``image_field.additive_level`` so that the additive field
+    G is least, 0, at one of the table's views and refit (``problem``, in place; again from the fields each refit
+    leaves, until G's least value is within ``LIGHT_LEVEL_TOL`` of 0). Why: a constant G is the backscatter's level
+    (over a survey's range span a constant light and a larger B_inf differ by little), so a fit that holds G at 0 at
+    the image's centre leaves the light's level there in the veil. A light is non-negative, and a spot or a
+    reflection fades away from where it falls: the least level that keeps G >= 0 where the survey looks is the
+    light's, the rest of the veil the water's. Returns the fit before ({"effect.param": value}, G zero at the image's
+    centre), the specification alternative whose change every interval takes (the level is an assumption); None
+    when the form is another (nothing changed)."""
+    if form != "additive":
+        return None
+    stack = problem.stack
+    centred = {_key(stack, k): v for k, v in problem.physical().items()}
+    effect = stack[FIELD_EFFECT]
+    views = torch.from_numpy(problem.obs.pixel_uv[problem.rows])
+    for _ in range(LIGHT_LEVEL_PASSES):
+        least = effect.at(views)[1].numpy().min(0)
+        if np.abs(least).max() < LIGHT_LEVEL_TOL:
+            break
+        effect.set_values(additive_level=np.clip(effect.param("additive_level").numpy() - least, 0.0, None))
+        problem.converge()
+    return centred
 
 
 def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) -> tuple[Stack, dict | None]:
@@ -587,6 +643,11 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         if frame_gains is not None and frame_gains["carried"]:
             frame_gains = frame_summary(stack, frames, carried=True)
         problem.refine(config.fit.refine_evaluations)
+        mean_signal = obs.colour.mean(0)
+        fields = field_summary(stack, range_r2, mean_signal)
+        centred = set_light_level(problem, fields["form"] if fields else "")
+        if centred is not None:
+            fields = field_summary(stack, range_r2, mean_signal)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
 
@@ -603,6 +664,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             problem.config = replace(config.fit, **change)
             newton_refit(problem, x_best, inv, SPEC_ITERATIONS)
             spec_fits.append({_key(stack, k): v for k, v in problem.physical().items()})
+        if centred is not None:
+            spec_fits.append(centred)
+            alternatives = (*alternatives, {"image_field.additive_level": 0.0})
         problem.config = config.fit
         problem.set_flat(x_best)
         with torch.no_grad():
@@ -617,6 +681,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits], 0) for key, value in named.items()} \
             if spec_fits else {}
         params, tradeoffs = _describe(stack, named, named_samples, fixed, spec, config.range_scale_sd)
+        veil = veil_at_median_range(stack, named_samples, float(np.median(obs.range_m)), tuple(spec_fits), centred)
+        cover_the_valley(params, veil)
         return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
                              n_points=obs.n_points,
                              n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(frames),
@@ -626,10 +692,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                                                  "specification": round(t_spec, 2),
                                                  **({"grid": grid["seconds"]} if grid else {})},
                              alternatives=[dict(a) for a in alternatives], iterations=iterations,
-                             converged=converged, fields=field_summary(stack, range_r2, obs.colour.mean(0)),
+                             converged=converged, fields=fields,
                              frames=frame_gains, grid=grid,
-                             veil=veil_at_median_range(stack, named_samples, float(np.median(obs.range_m)),
-                                                       tuple(spec_fits)))
+                             veil=veil)
     finally:
         torch.set_num_threads(threads)
 

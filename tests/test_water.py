@@ -346,6 +346,24 @@ def test_the_veils_interval_holds_its_bootstrap_spread_and_the_specification_cha
     np.testing.assert_allclose(np.array(wider["high"]) - veil, np.hypot(spread, change), rtol=1e-3, atol=2e-6)
 
 
+def test_b_infs_interval_covers_the_valley_the_veil_and_beta_leave_it_in():
+    """B_inf's interval widens to B_inf = V / (1 - exp(-beta r)) over the veil V's interval and beta's: a narrow
+    bootstrap interval of B_inf in a wide valley of beta becomes the valley's span; with beta's interval reaching 0
+    it reaches B_inf's upper bound; where the valley is narrower than B_inf's own interval nothing changes."""
+    from eval.water import cover_the_valley
+
+    r = 3.0
+    veil = {"range_m": r, "low": [0.02, 0.09, 0.115], "high": [0.024, 0.1, 0.118]}
+    params = {"backscatter.b_inf": {"low": [0.028, 0.15, 0.18], "high": [0.032, 0.17, 0.2]},
+              "backscatter.beta_per_m": {"low": [0.2, 0.0, 0.31], "high": [0.6, 0.4, 0.33]}}
+    cover_the_valley(params, veil)
+    b_inf = params["backscatter.b_inf"]
+    np.testing.assert_allclose(b_inf["low"], [0.02 / -np.expm1(-0.6 * r), 0.09 / -np.expm1(-0.4 * r), 0.18],
+                               rtol=1e-4)
+    np.testing.assert_allclose(b_inf["high"], [0.024 / -np.expm1(-0.2 * r), 1.0, 0.2], rtol=1e-4)
+    assert b_inf["valley"] == [True, True, False]
+
+
 def test_a_parameter_at_a_bound_is_reported(survey):
     """A stack without attenuation on frames whose colour falls with range: the backscatter's beta runs to the
     top of its range (5 /m, measured), and at_bounds names it; its interval is the parameter's whole range, never the
@@ -659,6 +677,36 @@ def test_a_fine_grid_after_the_water_takes_a_veil_the_fields_cannot_follow(surve
     errors = [np.abs(correct_physics(veiled[0].image, r, s, K)[0] - j)[in_spot].mean()
               for s in (fields_only, estimate.stack)]
     assert errors[1] < 0.5 * errors[0]
+
+
+def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
+    """A broad light fixed in the image (a reflection in the port, a Gaussian glow off-centre) reads as additive
+    fields; its level is set where the field is least over the views (:func:`eval.water.set_light_level`), so the
+    veil at the views' median range is the water's: within 10 % of the truth in every channel where the fit that
+    holds the light at 0 at the image's centre (the estimate's ``light_at_centre``) leaves its level in the veil
+    (over 10 % too large in some channel). Every interval takes the change between the two, so the veil's covers
+    the truth."""
+    from dataclasses import replace
+
+    from eval.water import LIGHT_LEVEL_TOL
+
+    frames, board = survey
+    ys, xs = np.mgrid[0:H, 0:W]
+    glow = np.exp(-((xs - 0.8 * W) ** 2 + (ys - 0.25 * H) ** 2) / (2 * (0.35 * W) ** 2))
+    lit = [replace(f, image=(f.image + glow[..., None] * np.array([0.02, 0.04, 0.05])).astype(np.float32))
+           for f in frames]
+    estimate = estimate_water(lit, K, board=board,
+                              config=water_config(samples_per_frame=80, bootstrap=4, margin_px=4, min_points=100))
+    truth = np.array([0.03, 0.16, 0.19]) * (1 - np.exp(-np.array([0.45, 0.32, 0.32]) * estimate.veil["range_m"]))
+    veil, low, high, centred = (np.array(estimate.veil[k]) for k in ("value", "low", "high", "light_at_centre"))
+    assert estimate.fields["form"] == "additive"
+    field = estimate.stack["image_field"]
+    assert (field.param("additive_level").numpy() > 0.005).all()
+    least = field.at(torch.from_numpy(estimate.observations.pixel_uv))[1].numpy().min(0)
+    assert np.abs(least).max() < LIGHT_LEVEL_TOL
+    np.testing.assert_allclose(veil, truth, rtol=0.1)
+    assert ((low <= truth) & (truth <= high)).all()
+    assert (centred / truth - 1).max() > 0.1
 
 
 @pytest.mark.slow

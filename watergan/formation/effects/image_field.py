@@ -3,14 +3,15 @@
 A stack that lacks an effect leaves structure that a fit otherwise bends the water to explain. This nuisance
 effect takes what depends on image position alone, fixed to the camera, per channel c:
 
-    y_c = F_c(x) S_c + (F_c(x) B_c + G_c(x)),   F_c(x) = exp(sum_k f_ck m_k(x)),   G_c(x) = sum_k g_ck m_k(x),
+    y_c = F_c(x) S_c + (F_c(x) B_c + G_c(x)),   F_c(x) = exp(sum_k f_ck m_k(x)),   G_c(x) = l_c + sum_k g_ck m_k(x),
 
 S the direct signal and B the backscatter reaching it; m_k the monomials x^i y^j with 1 <= i + j <= d of
 x = 2u - 1, y = ASPECT (2v - 1) (u, v the pixel's image fractions), without a constant: a constant F is the gain
-(degenerate with the albedos' scale), a constant G a veil that the backscatter's asymptote already has. The degree d
-follows from the coefficients' shape (3, M), M = (d + 1)(d + 2)/2 - 1 (5 for d = 2). F is what any falloff becomes
-(off-centre, colour-dependent, of another form than the vignetting polynomial); G is an additive veil fixed in the
-image (a light reflected in the port).
+(degenerate with the albedos' scale), a constant G a veil that the backscatter's asymptote already has, so G's
+level l_c (``additive_level``) is held, not fitted (0: G vanishes at the image's centre; a fit may set it from the
+fitted shape, :func:`eval.water.set_light_level`). The degree d follows from the coefficients' shape (3, M),
+M = (d + 1)(d + 2)/2 - 1 (5 for d = 2). F is what any falloff becomes (off-centre, colour-dependent, of another form
+than the vignetting polynomial); G is an additive veil fixed in the image (a light reflected in the port).
 
 What pins what: the same surface point seen at several image positions and ranges. Its views differ by the water's
 exp(-eta dr) along range and by F and G along image position. Where the survey's range is itself a function of image
@@ -72,10 +73,12 @@ def field_basis(pixel_uv: torch.Tensor, degree: int) -> torch.Tensor:
 
 
 def apply_image_field(direct: torch.Tensor, backscatter: torch.Tensor, basis: torch.Tensor, f: torch.Tensor,
-                      g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(F S, F B + G) with F = exp(f . m), G = g . m per channel: f, g (3,M), basis m (B,M,H,W)."""
+                      g: torch.Tensor, level: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F S, F B + G) with F = exp(f . m), G = l + g . m per channel: f, g (3,M), level l (3,), basis m
+    (B,M,H,W)."""
     log_f = torch.einsum("cm,bmhw->bchw", f, basis)
-    return direct * torch.exp(log_f), backscatter * torch.exp(log_f) + torch.einsum("cm,bmhw->bchw", g, basis)
+    additive = torch.einsum("cm,bmhw->bchw", g, basis) + level.view(1, 3, 1, 1)
+    return direct * torch.exp(log_f), backscatter * torch.exp(log_f) + additive
 
 
 @register
@@ -92,12 +95,14 @@ class ImageField(Effect):
               shapes=((3, -1),)),
         Param("additive", ((0.0,) * 5,) * 3, -0.5, 0.5, "", "G's coefficients per channel (3, M), linear colour",
               shapes=((3, -1),)),
+        Param("additive_level", (0.0, 0.0, 0.0), -0.5, 0.5, "linear", "G's level l per channel, held (a constant G is "
+              "the backscatter's veil)", learnable=False),
         Param("smoothness", 1e-4, 0.0, 1.0, "", "penalty weight lambda of the fit", learnable=False),
         Param("orthogonal_to", (0.0,) * 5, -1.0, 1.0, "", "unit direction q of the coefficients the fields are kept "
               "off (0: none; a fit sets it to the monomials' covariance with range)", learnable=False,
               shapes=((-1,),)),
     )
-    neutral = {"multiplicative": ((0.0,) * 5,) * 3, "additive": ((0.0,) * 5,) * 3}
+    neutral = {"multiplicative": ((0.0,) * 5,) * 3, "additive": ((0.0,) * 5,) * 3, "additive_level": (0.0, 0.0, 0.0)}
 
     def coefficients(self, like: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(f, g) (3,M) as applied: the parameters projected off ``orthogonal_to``."""
@@ -112,7 +117,8 @@ class ImageField(Effect):
     def forward(self, state):
         like = state.direct
         basis = field_basis(state.pixel_uv.to(like.dtype), self.degree)
-        direct, back = apply_image_field(state.direct, state.backscatter, basis, *self.coefficients(like))
+        direct, back = apply_image_field(state.direct, state.backscatter, basis, *self.coefficients(like),
+                                         self.param("additive_level", like))
         return state.replace(direct=direct, backscatter=back)
 
     def penalty(self) -> torch.Tensor:
@@ -127,7 +133,7 @@ class ImageField(Effect):
         basis = field_basis(pixel_uv.to(torch.float64).reshape(-1, 2, 1, 1), self.degree)
         with torch.no_grad():
             f, g = (torch.einsum("cm,bmhw->bc", c, basis) for c in self.coefficients())
-        return torch.exp(f), g
+            return torch.exp(f), g + self.param("additive_level")
 
     def on_grid(self, cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
         """(F, G) (rows, cols, 3) on a grid of the image, corner to corner."""
