@@ -181,6 +181,18 @@ def compare(params: dict, truth: dict) -> dict:
     return rows
 
 
+def compare_veil(veil: dict | None, truth: dict) -> dict:
+    """{"veil": row} as :func:`compare`'s for the estimate's veil at the views' median range r (water.json's
+    ``veil``), its truth B_inf (1 - exp(-beta r)) from the true backscatter; {} without either."""
+    if not veil or "backscatter.b_inf" not in truth:
+        return {}
+    true = np.asarray(truth["backscatter.b_inf"]) * -np.expm1(-np.asarray(truth["backscatter.beta_per_m"])
+                                                               * veil["range_m"])
+    entry = {"value": veil["value"], "fitted": True, **({"low": veil["low"], "high": veil["high"]}
+                                                        if veil.get("low") is not None else {})}
+    return {"veil": compare({"veil": entry}, {"veil": true.tolist()})["veil"]}
+
+
 def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float) -> dict:
     """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the water stage's range
     (:func:`pipeline.water.correction_range`: dense, the fused mesh where the dense range has none or disagrees;
@@ -266,6 +278,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     water_seconds = time.perf_counter() - t
     truth = truth_params(ws_root / "00_survey")
     params = compare(estimate.params, truth)
+    params.update(compare_veil(estimate.veil, truth))
     print(f"\n== {name}: {estimate.summary()}")
     print(f"   sfm: reprojection {sfm['mean_reprojection_error_px']:.3f} px, scale spread "
           f"{100 * sfm['scale_spread']:.2f} %, refined k1 {sfm.get('lens_k1')}")
@@ -304,6 +317,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     targets = {
         "eta_within_10pct": all(abs(v) <= 0.10 for v in params["attenuation.eta_per_m"]["rel_error"]),
         "b_inf_within_20pct": all(abs(v) <= 0.20 for v in params["backscatter.b_inf"]["rel_error"]),
+        "veil_within_20pct": "veil" in params and all(abs(v) <= 0.20 for v in params["veil"]["rel_error"]),
+        "veil_covered": "veil" in params and all(params["veil"].get("covered", [False])),
         "eta_b_inf_covered": all(params[k].get("covered", [False]) and all(params[k]["covered"])
                                  for k in ("attenuation.eta_per_m", "backscatter.b_inf")),
         "board_ciede_le_2x_oracle": p["board_ciede2000"] <= 2 * o["board_ciede2000"],

@@ -501,36 +501,28 @@ def field_summary(stack: Stack, range_r2: float, mean_signal: np.ndarray, grid: 
             "range_r2": round(range_r2, 3), "off_range": bool(field_effect.param("orthogonal_to").abs().max() > 0)}
 
 
-#: :func:`set_light_level` refits until the additive field's least value over the views is within this of 0
-#: (linear colour; under the veil's bootstrap spread on the benchmark's surveys), at most ``LIGHT_LEVEL_PASSES`` times.
-LIGHT_LEVEL_TOL = 5e-4
-LIGHT_LEVEL_PASSES = 5
-
-
-def set_light_level(problem: Problem, form: str) -> dict | None:
+def set_light_level(stack: Stack, obs: Observations, form: str, range_m: float) -> np.ndarray | None:
     """When the fields over the image carry additive structure alone (``form``, :func:`field_form`: a light fixed
-    in the image, a reflection in the port, a flare), set ``image_field.additive_level`` so that the additive field
-    G is least, 0, at one of the table's views and refit (``problem``, in place; again from the fields each refit
-    leaves, until G's least value is within ``LIGHT_LEVEL_TOL`` of 0). Why: a constant G is the backscatter's level
-    (over a survey's range span a constant light and a larger B_inf differ by little), so a fit that holds G at 0 at
-    the image's centre leaves the light's level there in the veil. A light is non-negative, and a spot or a
-    reflection fades away from where it falls: the least level that keeps G >= 0 where the survey looks is the
-    light's, the rest of the veil the water's. Returns the fit before ({"effect.param": value}, G zero at the image's
-    centre), the specification alternative whose change every interval takes (the level is an assumption); None
-    when the form is another (nothing changed)."""
-    if form != "additive":
+    in the image, a reflection in the port, a flare), split the veil between the water and the light (``stack``, in
+    place): the light's level l (``image_field.additive_level``) is set so that the additive field G is least, 0,
+    at one of the table's views ``obs``, and B_inf is scaled so that the veil at the views' median range
+    ``range_m`` drops by l (beta kept). Why: a constant G is the backscatter's level (over a survey's range span a
+    constant light and a larger B_inf differ by little), so the fit, which holds G at 0 at the image's centre, leaves
+    the light's level there in the veil. A light is non-negative, and a spot or a reflection fades away from where it
+    falls: the least level that keeps G >= 0 where the survey looks is the light's, the rest of the veil the water's.
+    Not refitted: the split is an assumption the data cannot check, and the stack's prediction changes by
+    l (1 - B(r) / B(range_m)) over the views' ranges. Returns B_inf's factor per channel (None, nothing changed,
+    when the form is another)."""
+    if form != "additive" or "backscatter" not in stack.names:
         return None
-    stack = problem.stack
-    centred = {_key(stack, k): v for k, v in problem.physical().items()}
-    effect = stack[FIELD_EFFECT]
-    views = torch.from_numpy(problem.obs.pixel_uv[problem.rows])
-    for _ in range(LIGHT_LEVEL_PASSES):
-        least = effect.at(views)[1].numpy().min(0)
-        if np.abs(least).max() < LIGHT_LEVEL_TOL:
-            break
-        effect.set_values(additive_level=np.clip(effect.param("additive_level").numpy() - least, 0.0, None))
-        problem.converge()
-    return centred
+    field, back = stack[FIELD_EFFECT], stack["backscatter"]
+    level = np.clip(-field.at(torch.from_numpy(obs.pixel_uv))[1].numpy().min(0), 0.0, None)
+    b_inf, beta = (back.param(k).detach().numpy() for k in ("b_inf", "beta_per_m"))
+    veil = b_inf * -np.expm1(-beta * range_m)
+    factor = np.clip(1.0 - level / np.maximum(veil, 1e-12), 0.0, 1.0)
+    field.set_values(additive_level=level)
+    back.set_values(b_inf=b_inf * factor)
+    return factor
 
 
 def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) -> tuple[Stack, dict | None]:
@@ -643,11 +635,6 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         if frame_gains is not None and frame_gains["carried"]:
             frame_gains = frame_summary(stack, frames, carried=True)
         problem.refine(config.fit.refine_evaluations)
-        mean_signal = obs.colour.mean(0)
-        fields = field_summary(stack, range_r2, mean_signal)
-        centred = set_light_level(problem, fields["form"] if fields else "")
-        if centred is not None:
-            fields = field_summary(stack, range_r2, mean_signal)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
 
@@ -664,9 +651,6 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             problem.config = replace(config.fit, **change)
             newton_refit(problem, x_best, inv, SPEC_ITERATIONS)
             spec_fits.append({_key(stack, k): v for k, v in problem.physical().items()})
-        if centred is not None:
-            spec_fits.append(centred)
-            alternatives = (*alternatives, {"image_field.additive_level": 0.0})
         problem.config = config.fit
         problem.set_flat(x_best)
         with torch.no_grad():
@@ -675,13 +659,26 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         for p in stack.parameters():
             p.requires_grad_(False)
         t_spec = time.perf_counter() - t0 - t_fit - t_boot
-        corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config)
+        mean_signal = obs.colour.mean(0)
         named = {_key(stack, k): v for k, v in best.items()}
         named_samples = [{_key(stack, k): v for k, v in s.items()} for s in samples]
+        range_m = float(np.median(obs.range_m))
+        fields = field_summary(stack, range_r2, mean_signal)
+        form = fields["form"] if fields and "backscatter.b_inf" in named else ""
+        factor = set_light_level(stack, obs, form, range_m)
+        centred = None
+        if factor is not None:  # the split applied to every fit; the fit without it is an alternative
+            centred = dict(named)
+            for fit in (named, *named_samples, *spec_fits):
+                fit["backscatter.b_inf"] = fit["backscatter.b_inf"] * factor
+            spec_fits.append(centred)
+            alternatives = (*alternatives, {"image_field.additive_level": 0.0})
+            fields = field_summary(stack, range_r2, mean_signal)
+        corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config)
         spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits], 0) for key, value in named.items()} \
             if spec_fits else {}
         params, tradeoffs = _describe(stack, named, named_samples, fixed, spec, config.range_scale_sd)
-        veil = veil_at_median_range(stack, named_samples, float(np.median(obs.range_m)), tuple(spec_fits), centred)
+        veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred)
         cover_the_valley(params, veil)
         return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
                              n_points=obs.n_points,

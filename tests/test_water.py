@@ -681,14 +681,12 @@ def test_a_fine_grid_after_the_water_takes_a_veil_the_fields_cannot_follow(surve
 
 def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     """A broad light fixed in the image (a reflection in the port, a Gaussian glow off-centre) reads as additive
-    fields; its level is set where the field is least over the views (:func:`eval.water.set_light_level`), so the
-    veil at the views' median range is the water's: within 10 % of the truth in every channel where the fit that
-    holds the light at 0 at the image's centre (the estimate's ``light_at_centre``) leaves its level in the veil
-    (over 10 % too large in some channel). Every interval takes the change between the two, so the veil's covers
-    the truth."""
+    fields; its level is set where the field is least over the views, 0 there, and taken from the veil
+    (:func:`eval.water.set_light_level`), so the veil at the views' median range is the water's: within 10 % of the
+    truth in every channel where the fit, which holds the light at 0 at the image's centre (the estimate's
+    ``light_at_centre``), leaves its level in the veil (over 10 % too large in some channel). Every interval takes
+    the change between the two, so the veil's covers the truth."""
     from dataclasses import replace
-
-    from eval.water import LIGHT_LEVEL_TOL
 
     frames, board = survey
     ys, xs = np.mgrid[0:H, 0:W]
@@ -703,7 +701,10 @@ def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     field = estimate.stack["image_field"]
     assert (field.param("additive_level").numpy() > 0.005).all()
     least = field.at(torch.from_numpy(estimate.observations.pixel_uv))[1].numpy().min(0)
-    assert np.abs(least).max() < LIGHT_LEVEL_TOL
+    np.testing.assert_allclose(least, 0.0, atol=1e-6)
+    veil_of_b_inf = _value(estimate, "backscatter.b_inf") * -np.expm1(
+        -_value(estimate, "backscatter.beta_per_m") * estimate.veil["range_m"])
+    np.testing.assert_allclose(veil_of_b_inf, veil, rtol=1e-4)
     np.testing.assert_allclose(veil, truth, rtol=0.1)
     assert ((low <= truth) & (truth <= high)).all()
     assert (centred / truth - 1).max() > 0.1
