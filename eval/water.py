@@ -337,13 +337,22 @@ class WaterEstimate:
                             + json.dumps(self.alternatives)}
 
     def summary(self) -> str:
-        """One line: eta and B_inf with their intervals."""
+        """One line: eta, B_inf and the veil at the median range (what a short range span pins) with their
+        intervals, and the level of a light fixed in the image taken out of the veil (:func:`set_light_level`)."""
         parts = []
+
+        def with_intervals(label: str, p: dict) -> str:
+            return f"{label} " + "/".join(
+                f"{v:.3f}[{lo:.3f},{hi:.3f}]" for v, lo, hi in zip(p["value"], p["low"], p["high"], strict=True))
+
         for key in ("attenuation.eta_per_m", "backscatter.b_inf"):
             if key in self.params and self.params[key].get("low") is not None:
-                p = self.params[key]
-                parts.append(f"{key.split('.')[1]} " + "/".join(
-                    f"{v:.3f}[{lo:.3f},{hi:.3f}]" for v, lo, hi in zip(p["value"], p["low"], p["high"], strict=True)))
+                parts.append(with_intervals(key.split(".")[1], self.params[key]))
+        if self.veil is not None and self.veil.get("low") is not None:
+            parts.append(with_intervals(f"veil at {self.veil['range_m']:.1f} m", self.veil))
+        level = self.params.get(f"{FIELD_EFFECT}.additive_level", {}).get("value")
+        if level is not None and max(level) > 0:
+            parts.append("a light fixed in the image, " + "/".join(f"{v:.3f}" for v in level) + ", taken out of it")
         unconverged = "" if self.converged else f", not converged in {self.iterations} iterations"
         return "water: " + "; ".join(parts) + f" (rmse {self.rmse:.4f}, {self.n_points} points{unconverged})"
 

@@ -708,6 +708,7 @@ def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     np.testing.assert_allclose(veil, truth, rtol=0.1)
     assert ((low <= truth) & (truth <= high)).all()
     assert (centred / truth - 1).max() > 0.1
+    assert "a light fixed in the image, " in estimate.summary() and "veil at " in estimate.summary()
 
 
 @pytest.mark.slow
