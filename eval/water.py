@@ -38,7 +38,10 @@ What pins what (and what does not):
   lacks on image position, multiplicative F and additive G per channel, pinned by the same point at different image
   positions; where image position explains most of the range (one altitude over a flat floor) they are kept
   uncorrelated with range, which is then the water's. An effect on image position added to the stack is fitted
-  before them (:func:`stack_first`): the fields take only what its form leaves.
+  before them (:func:`stack_first`): the fields take only what its form leaves. G's level is not pinned (a constant
+  light is B_inf's level over the survey's ranges): the fit holds G at 0 at the image's centre, and where the fields
+  are additive alone (a light fixed in the image) :func:`set_light_level` moves the light's least level over the
+  views out of the veil.
 - the gains per frame (``frame_gain``, ``frame_gain=True``; :func:`decorrelate_frames`): what the stack lacks from
   frame to frame (exposure, white balance, a drifting water), per frame and channel, pinned by the same points seen
   in several frames; kept off the constant (the survey's gain) and off the frames' mean ranges (the water's), so
@@ -54,7 +57,8 @@ parameter's largest change is added in quadrature: interval = estimate +- sqrt((
 parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs. Where B_inf and beta
 trade (a short range span), what the survey pins is the veil over its ranges: ``veil`` gives B_inf (1 - exp(-beta
 r)) at the views' median range with its interval, bootstrap and specification change alike
-(:func:`veil_at_median_range`).
+(:func:`veil_at_median_range`), and B_inf's interval covers the valley along which the veil's and beta's intervals
+leave it (:func:`cover_the_valley`).
 
 A declared light rig (``lights``: survey.json's strobes, per light offset_m, tilt_deg, beam_deg): the stack gets
 ``artificial_light`` (:func:`build_stack`), so each view's in-air colour is lit by
