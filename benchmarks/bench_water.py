@@ -184,10 +184,11 @@ def compare(params: dict, truth: dict) -> dict:
 def compare_veil(veil: dict | None, truth: dict) -> dict:
     """{"veil": row} as :func:`compare`'s for the estimate's veil at the views' median range r (water.json's
     ``veil``), its truth B_inf (1 - exp(-beta r)) from the true backscatter; {} without either."""
+    from eval.water import veil_at
+
     if not veil or "backscatter.b_inf" not in truth:
         return {}
-    true = np.asarray(truth["backscatter.b_inf"]) * -np.expm1(-np.asarray(truth["backscatter.beta_per_m"])
-                                                               * veil["range_m"])
+    true = veil_at(truth["backscatter.b_inf"], truth["backscatter.beta_per_m"], veil["range_m"])
     entry = {"value": veil["value"], "fitted": True, **({"low": veil["low"], "high": veil["high"]}
                                                         if veil.get("low") is not None else {})}
     return {"veil": compare({"veil": entry}, {"veil": true.tolist()})["veil"]}

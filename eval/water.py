@@ -401,6 +401,11 @@ def decorrelate_frames(stack: Stack, obs: Observations) -> None:
     effect.set_values(orthogonal_to=q)
 
 
+def veil_at(b_inf, beta_per_m, range_m: float) -> np.ndarray:
+    """The veil B_inf (1 - exp(-beta r)) at range ``range_m`` (per channel, numpy)."""
+    return np.asarray(b_inf) * -np.expm1(-np.asarray(beta_per_m) * range_m)
+
+
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
                          alternatives: tuple[dict, ...] = (), light_at_centre: dict | None = None) -> dict | None:
     """The veil B(r) = B_inf (1 - exp(-beta r)) at the views' median range ``range_m`` per channel, with a 95 %
@@ -416,7 +421,7 @@ def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
     keys = ("backscatter.b_inf", "backscatter.beta_per_m")
 
     def veil(b_inf, beta):
-        return np.asarray(b_inf) * (1.0 - np.exp(-np.asarray(beta) * range_m))
+        return veil_at(b_inf, beta, range_m)
 
     value = veil(effect.param("b_inf").detach().numpy(), effect.param("beta_per_m").detach().numpy())
     entry = {"range_m": round(range_m, 3), "value": np.round(value, 6).tolist(), "low": None, "high": None}
@@ -530,8 +535,8 @@ def set_light_level(stack: Stack, obs: Observations, form: str, range_m: float) 
         return None
     field, back = stack[FIELD_EFFECT], stack["backscatter"]
     level = np.clip(-field.at(torch.from_numpy(obs.pixel_uv))[1].numpy().min(0), 0.0, None)
-    b_inf, beta = (back.param(k).detach().numpy() for k in ("b_inf", "beta_per_m"))
-    veil = b_inf * -np.expm1(-beta * range_m)
+    b_inf = back.param("b_inf").detach().numpy()
+    veil = veil_at(b_inf, back.param("beta_per_m").detach().numpy(), range_m)
     factor = np.clip(1.0 - level / np.maximum(veil, 1e-12), 0.0, 1.0)
     field.set_values(additive_level=level)
     back.set_values(b_inf=b_inf * factor)
