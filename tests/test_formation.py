@@ -451,3 +451,24 @@ def test_vector_length_is_torch_s_norm():
     t = torch.randn(2, 3, 5, 7, dtype=torch.float64)
     torch.testing.assert_close(vector_length(t, 1), t.norm(dim=1, keepdim=True), rtol=1e-15, atol=1e-15)
     torch.testing.assert_close(vector_length(t[0], 0), t[0].norm(dim=0, keepdim=True), rtol=1e-15, atol=1e-15)
+
+
+@pytest.mark.parametrize("smooth_px", [4.0, 24.0])
+def test_normals_from_range_give_a_tilted_planes_normal_and_no_range_stays_none(smooth_px):
+    """A plane z = z0 + a x (camera frame) seen through a pinhole: its normal (a, 0, -1) / |.| within 0.3 degrees
+    away from the image's border, whether smoothed at full resolution (4 px) or on the coarser grid (24 px); a hole
+    in the range stays NaN."""
+    import numpy as np
+
+    from watergan.formation.inverse import normals_from_range, rays_cam
+
+    h, w, f, z0, a = 240, 320, 300.0, 2.0, 0.4
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
+    rays = rays_cam(K, h, w)
+    range_m = z0 / (1 - a * rays[..., 0] / rays[..., 2]) * np.linalg.norm(rays / rays[..., 2:], axis=-1)
+    truth = np.array([a, 0.0, -1.0]) / math.hypot(a, 1.0)
+    inner = normals_from_range(range_m, K, smooth_px)[60:-60, 60:-60]
+    assert np.degrees(np.arccos(np.clip(inner @ truth, -1.0, 1.0))).max() < 0.3
+    range_m[100:120, 150:170] = np.nan
+    normals = normals_from_range(range_m, K, smooth_px)
+    assert np.isnan(normals[100:120, 150:170]).all() and np.isfinite(normals[:100]).all()
