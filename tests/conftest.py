@@ -3,17 +3,22 @@ import shutil
 import tempfile
 import zlib  # noqa: F401  load before pycolmap (pycolmap first makes zlib corrupt the heap)
 
-import pytest
-import torch
+WORKER = bool(os.environ.get("PYTEST_XDIST_WORKER"))
+if WORKER:
+    # `make test` runs two workers on two cores: one thread each (and in the commands the tests start), as two
+    # jobs on two threads each slow each other many times over; set before numpy's BLAS reads them
+    os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+
+import cv2  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 # One scratch folder for the whole session (shared surveys, matplotlib's cache), removed when it ends.
 SCRATCH = tempfile.mkdtemp(prefix="watergan-tests-")
 os.environ.setdefault("MPLCONFIGDIR", os.path.join(SCRATCH, "mpl"))
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    # `make test` runs two workers on two cores: one thread each (and in the commands the tests start), as two
-    # torch jobs on two threads each slow each other many times over
-    os.environ["OMP_NUM_THREADS"] = "1"
+if WORKER:
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)
 
 from watergan.formation import FormationState, pixel_grid  # noqa: E402
 
