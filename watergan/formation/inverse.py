@@ -63,7 +63,8 @@ def clean_range(r: np.ndarray) -> np.ndarray:
 
 
 #: Pixels per sigma of the grid :func:`normals_from_range` smooths on: a Gaussian of sigma s px is computed on a grid
-#: s // 8 times coarser than the image (an 8-pixel sigma there), since the smoothed surface has no finer detail.
+#: s // 8 times coarser than the image (a sigma of at least 8 of its cells), since the smoothed surface has no finer
+#: detail.
 NORMAL_GRID_PX_PER_SIGMA = 8.0
 
 
@@ -74,9 +75,9 @@ def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24
     the lifted points' central differences, turned to face the camera). NaN where the pixel has no range.
 
     With ``smooth_px`` >= 16 the smoothing and the normals are computed on a grid ``step`` =
-    ``smooth_px // NORMAL_GRID_PX_PER_SIGMA`` times coarser (z and the valid mask area-averaged onto it, the
-    intrinsics scaled with it, sigma ``smooth_px / step`` there) and the normals resampled bilinearly to the image:
-    a smooth surface's normals, at a ninth or less of the cost."""
+    ``smooth_px // NORMAL_GRID_PX_PER_SIGMA`` times coarser (at most an eighth of the image's sides; z and the valid
+    mask area-averaged onto it, the intrinsics scaled with it, sigma ``smooth_px / step`` there) and the normals
+    resampled bilinearly to the image."""
     import cv2
 
     K = np.asarray(K, np.float64)
@@ -87,7 +88,7 @@ def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24
     if not valid.any():
         return np.full((h, w, 3), np.nan)
     z_filled, weight = np.where(valid, z, 0.0), valid.astype(np.float64)
-    step = max(1, int(smooth_px // NORMAL_GRID_PX_PER_SIGMA))
+    step = max(1, min(int(smooth_px // NORMAL_GRID_PX_PER_SIGMA), h // 8, w // 8))
     hs, ws = -(-h // step), -(-w // step)
     scale = np.array([ws / w, hs / h])
     if step > 1:
