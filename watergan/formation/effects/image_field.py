@@ -76,9 +76,9 @@ def apply_image_field(direct: torch.Tensor, backscatter: torch.Tensor, basis: to
                       g: torch.Tensor, level: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(F S, F B + G) with F = exp(f . m), G = l + g . m per channel: f, g (3,M), level l (3,), basis m
     (B,M,H,W)."""
-    log_f = torch.einsum("cm,bmhw->bchw", f, basis)
+    field = torch.exp(torch.einsum("cm,bmhw->bchw", f, basis))
     additive = torch.einsum("cm,bmhw->bchw", g, basis) + level.view(1, 3, 1, 1)
-    return direct * torch.exp(log_f), backscatter * torch.exp(log_f) + additive
+    return direct * field, backscatter * field + additive
 
 
 @register
