@@ -106,7 +106,8 @@ def normals_from_range(range_m: np.ndarray, K: np.ndarray, smooth_px: float = 24
     if step > 1:
         normals = cv2.resize(normals, (w, h), interpolation=cv2.INTER_LINEAR)
         normals = normals / np.linalg.norm(normals, axis=-1, keepdims=True)
-    normals = normals.copy()
+    else:
+        normals = normals.copy()  # the state's tensor is not the caller's array
     normals[~valid] = np.nan
     return normals
 
