@@ -476,6 +476,10 @@ FIELD_FLAT_PCT = 5.0
 #: held at 1: a stack that lacks an effect on image position leaves gains of up to 6 % where nothing changes from
 #: frame to frame (a clipped falloff, benchmarks/RESULTS.md), and carrying them bent eta by 8 %.
 FRAME_CARRY_PCT = 10.0
+#: The fine grid fitted on the coarse fraction of the points (``FitConfig.coarse_fraction``) is taken as flat, without
+#: the fit on all points, when its size stays under this (per cent; the flat of ``FIELD_FLAT_PCT`` with a margin for
+#: the sampling of a quarter of the points): :func:`fit_correction_grid`.
+GRID_COARSE_FLAT_PCT = 3.0
 
 
 def field_form(multiplicative_pct: list[float], additive_pct: list[float]) -> str:
@@ -547,9 +551,12 @@ def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) ->
     """The fine fields over the image (``image_grid`` on ``config.correction_grid`` nodes) fitted to the table with
     every parameter of the fitted ``stack`` held, for the corrections: what the water's smooth fields leave on image
     position (a falloff clipped into a ring, a veil in a spot). Fitted after the water and its intervals, they cannot
-    move them. Returns (a copy of ``stack`` with them when they exceed ``FIELD_FLAT_PCT`` (carried), else ``stack``;
-    their size, :func:`field_extent`, with ``nodes``, ``carried`` and ``seconds``), or (``stack``, None) when the
-    configuration has none. Where nothing is missing they stay flat and the corrections are those of the water."""
+    move them. They are fitted on ``config.fit.coarse_fraction`` of the points first; where they stay under
+    ``GRID_COARSE_FLAT_PCT`` there, that fit decides (flat), else the fit on all points starts from it. Returns (a
+    copy of ``stack`` with them when they exceed ``FIELD_FLAT_PCT`` (carried), else ``stack``; their size,
+    :func:`field_extent`, with ``nodes``, ``points_fraction`` (of the fit that decided), ``carried`` and
+    ``seconds``), or (``stack``, None) when the configuration has none. Where nothing is missing they stay flat and
+    the corrections are those of the water."""
     if config.correction_grid is None:
         return stack, None
     rows, cols = config.correction_grid
@@ -557,11 +564,27 @@ def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) ->
     zeros = np.zeros((3, rows, cols)).tolist()
     refined = insert_by_rank(stack, get(GRID_EFFECT)(multiplicative=zeros, additive=zeros)).to(torch.float64)
     index = refined.names.index(GRID_EFFECT)
-    Problem(refined, obs, config.fit, [f"effects.{index}.raw.multiplicative", f"effects.{index}.raw.additive"],
-            float32=True).converge()
+    names = [f"effects.{index}.raw.multiplicative", f"effects.{index}.raw.additive"]
+    problem = Problem(refined, obs, config.fit, names, float32=True)
+
+    def extent(fraction: float) -> dict:
+        with torch.no_grad():
+            size = field_extent(*refined[GRID_EFFECT].on_grid(65, 49), obs.colour.mean(0))
+        return {"nodes": [rows, cols], **size, "points_fraction": fraction}
+
+    coarse = problem.coarse()
+    summary = None
+    if coarse is not None:  # the grid on the coarse fraction of the points decides alone where it is clearly flat
+        coarse.converge()
+        summary = extent(config.fit.coarse_fraction)
+        if max(summary["multiplicative_pct"] + summary["additive_pct"]) >= GRID_COARSE_FLAT_PCT:
+            summary = None
+            problem.take_gradients()
+    if summary is None:  # on all points, from the coarse fit's grid where there was one
+        problem.converge()
+        summary = extent(1.0)
     for p in refined.parameters():
         p.requires_grad_(False)
-    summary = {"nodes": [rows, cols], **field_extent(*refined[GRID_EFFECT].on_grid(65, 49), obs.colour.mean(0))}
     summary.update(carried=summary["form"] != "flat", seconds=round(time.perf_counter() - t0, 2))
     return (refined if summary["carried"] else stack), summary
 

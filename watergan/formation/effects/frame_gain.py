@@ -63,8 +63,10 @@ class FrameGain(Effect):
         return g - q @ (q.T @ g)
 
     def forward(self, state):
-        direct, back = apply_frame_gain(state.direct, state.backscatter,
-                                        self.per_frame("log_gain", state, self.gains(state.direct)))
+        g = self.gains(state.direct)
+        if not g.requires_grad and not bool(g.any()):  # every gain exactly 1: held, as where the water carries none
+            return state
+        direct, back = apply_frame_gain(state.direct, state.backscatter, self.per_frame("log_gain", state, g))
         return state.replace(direct=direct, backscatter=back)
 
     def penalty(self) -> torch.Tensor:
