@@ -32,7 +32,9 @@ board apart from the others, so every replicate keeps the board), each point's v
 board patch's too (the views of one point, or of one patch, share its errors). Each replicate is refitted from the
 full fit: ``newton`` (one Newton step with the full fit's Hessian, halved until it lowers the replicate's loss, then
 ``bootstrap_iterations`` L-BFGS iterations) or ``least_squares`` (``bootstrap_iterations`` evaluations of the
-trust-region least squares). The intervals' coverage on simulated surveys: benchmarks/RESULTS.md.
+trust-region least squares). The replicates' weights are drawn in order and the replicates refitted side by side
+(:func:`side_by_side`: the same replicates, to float rounding). The intervals' coverage on simulated surveys:
+benchmarks/RESULTS.md.
 
 Held-out error (:func:`fit_stack`, ``holdout_fraction``): those points take no part in the fit; with theta frozen
 each one's albedo is fitted from half of its views and the error measured on the other half.
@@ -43,9 +45,11 @@ Degeneracy: a per-channel gain and the albedos' scale are exactly degenerate (k 
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -67,6 +71,9 @@ DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 START_MARGIN = 0.01
 #: Least eigenvalue of the Hessian a Newton step inverts, as a fraction of the largest (:func:`inverse_hessian`).
 HESSIAN_FLOOR = 1e-8
+#: At most this many threads refit bootstrap replicates, or take the Hessian's columns, side by side
+#: (:func:`side_by_side`).
+SIDE_BY_SIDE_THREADS = 4
 
 
 class Refit(StrEnum):
@@ -278,6 +285,16 @@ class Problem:
         """Whether the stack keeps the colour channels apart (:func:`channels_separate`); None: not asked yet."""
         self.start = torch.full((len(points), 3), 0.3, dtype=self.y.dtype)  # secant start (non-affine stacks)
 
+    def on_copy(self) -> Problem:
+        """This problem on a deep copy of its stack (its own parameters, at their values now; the table's tensors and
+        the weights shared, read only): a refit on another thread leaves this one's parameters alone."""
+        twin = copy.copy(self)
+        twin.stack = copy.deepcopy(self.stack)
+        by_name = dict(twin.stack.named_parameters(remove_duplicate=False))
+        twin.theta = [by_name[n] for n in self.names]
+        twin.take_gradients()
+        return twin
+
     def take_gradients(self) -> None:
         """Make this problem's parameters the stack's only ones with gradients (another problem on the same stack
         made after this one changes them)."""
@@ -405,13 +422,16 @@ class Problem:
         x0 = self.flat()
         groups, channel = self.channel_groups()
         hess = torch.zeros(len(x0), len(x0), dtype=torch.float64)
-        for group in groups:
+
+        def column(fit: Problem, group: np.ndarray) -> torch.Tensor:
             d = torch.zeros_like(x0)
             d[group] = step
-            self.set_flat(x0 + d)
-            gp = self.gradient()
-            self.set_flat(x0 - d)
-            change = (gp - self.gradient()) / (2 * step)
+            fit.set_flat(x0 + d)
+            gp = fit.gradient()
+            fit.set_flat(x0 - d)
+            return (gp - fit.gradient()) / (2 * step)
+
+        for group, change in zip(groups, side_by_side(self, column, groups), strict=True):
             if len(group) == 1:
                 hess[group[0]] = change
                 continue
@@ -582,6 +602,27 @@ def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.n
 
 
 # ---------------------------------------------------------------------------------- bootstrap
+def side_by_side(problem: Problem, work, items: list) -> list:
+    """[work(fit, item) for item in items], the items shared out over up to ``SIDE_BY_SIDE_THREADS`` threads (as many
+    as torch's), each with its own copy of ``problem`` (:meth:`Problem.on_copy`, ``problem`` itself the first) and
+    one torch thread: renders of ~10^5 views gain little from a second torch thread, two of them on two cores nearly
+    twice. ``work`` sets the parameters it needs; the copies are discarded."""
+    threads = torch.get_num_threads()
+    workers = min(threads, SIDE_BY_SIDE_THREADS, len(items))
+    if workers <= 1:
+        return [work(problem, item) for item in items]
+    torch.set_num_threads(1)
+    try:
+        fits = [problem] + [problem.on_copy() for _ in range(workers - 1)]
+        with ThreadPoolExecutor(workers) as pool:
+            parts = list(pool.map(lambda fit, share: [work(fit, item) for item in share], fits,
+                                  [items[i::workers] for i in range(workers)]))
+    finally:
+        torch.set_num_threads(threads)
+        problem.take_gradients()
+    return [parts[i % workers][i // workers] for i in range(len(items))]
+
+
 def inverse_hessian(problem: Problem) -> torch.Tensor:
     """H^-1 of ``problem``'s loss at its parameters, each eigenvalue taken by its magnitude (a negative one is the
     finite differences' noise along a flat direction, or a saddle: the step goes downhill either way) and at least
@@ -627,23 +668,27 @@ def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = No
     x0 = fast.flat()
     if config.bootstrap_refit == Refit.newton and inv is None:
         inv = inverse_hessian(fast)
-    samples = []
-    for _ in range(config.bootstrap):
-        counts, points, patches = replicate_weights(rng, groups, len(fast.points) if config.bootstrap_points else 0,
-                                                    n_patches if config.bootstrap_points else 0)
-        fast.frame_weight = torch.from_numpy(counts)
+    weights = [replicate_weights(rng, groups, len(fast.points) if config.bootstrap_points else 0,
+                                 n_patches if config.bootstrap_points else 0) for _ in range(config.bootstrap)]
+
+    def refit(fit: Problem, replicate: tuple) -> dict[str, np.ndarray]:
+        counts, points, patches = replicate
+        fit.frame_weight = torch.from_numpy(counts)
         if config.bootstrap_points:
-            fast.point_weight = torch.from_numpy(points)
-            fast.patch_weight = torch.from_numpy(patches) if n_patches else None
+            fit.point_weight = torch.from_numpy(points)
+            fit.patch_weight = torch.from_numpy(patches) if n_patches else None
         if config.bootstrap_refit == Refit.newton:
-            newton_refit(fast, x0, inv, config.bootstrap_iterations)
+            newton_refit(fit, x0, inv, config.bootstrap_iterations)
         else:
-            fast.set_flat(x0)
-            fast.refine(config.bootstrap_iterations)
-        samples.append(fast.physical())
-    fast.frame_weight = fast.point_weight = fast.patch_weight = None
-    fast.set_flat(x0)
-    return samples
+            fit.set_flat(x0)
+            fit.refine(config.bootstrap_iterations)
+        return fit.physical()
+
+    try:
+        return side_by_side(fast, refit, weights)
+    finally:
+        fast.frame_weight = fast.point_weight = fast.patch_weight = None
+        fast.set_flat(x0)
 
 
 # ------------------------------------------------------------------------- fit with held-out points

@@ -15,7 +15,18 @@ import torch
 from eval.bootstrap import normal_interval, replicate_weights
 from eval.diagnose import DEFAULT_EFFECTS, small_survey_config
 from eval.diagnose_measure import MeasureConfig, measure_survey
-from eval.fit import HESSIAN_FLOOR, FitConfig, fit_stack, inverse_hessian, make_split
+from eval.fit import (
+    HESSIAN_FLOOR,
+    FitConfig,
+    Problem,
+    Refit,
+    bootstrap,
+    fit_stack,
+    fitted_names,
+    inverse_hessian,
+    make_split,
+    side_by_side,
+)
 from eval.synth import simulate_survey
 from watergan.formation import Stack
 
@@ -102,3 +113,36 @@ def test_the_newton_step_keeps_a_flat_valley_and_steps_downhill_across_a_saddle(
     along = torch.diag(rotation.T @ inverse @ rotation)
     expected = 1 / torch.tensor([30.0, 30.0 * 1.5e-7, 1e-5, 30.0 * HESSIAN_FLOOR], dtype=torch.float64)
     torch.testing.assert_close(along, expected, rtol=1e-6, atol=0)
+
+
+def test_replicates_and_hessian_side_by_side_are_the_serial_ones(tmp_path):
+    """On two torch threads the bootstrap's replicates and the Hessian's columns are computed on two threads side by
+    side (``side_by_side``, each on its own copy of the stack): the same values as one after the other, to float
+    rounding, and the problem's parameters are left where they were."""
+    survey = tmp_path / "survey"
+    simulate_survey(survey, small_survey_config([], seed=1), progress=False)
+    meas = measure_survey(survey, MeasureConfig(n_points=300, seed=1))
+    config = FitConfig(bootstrap=4, bootstrap_refit=Refit.newton, bootstrap_iterations=3, seed=1)
+    stack = Stack.from_names(list(DEFAULT_EFFECTS)).to(torch.float64)
+    problem = Problem(stack, meas, config, fitted_names(stack, (), {}))
+    problem.minimise(20)
+    x0 = problem.flat()
+    previous = torch.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            hessian = problem.hessian()
+            runs.append((hessian, bootstrap(problem, config, inv=torch.linalg.pinv(hessian))))
+            torch.testing.assert_close(problem.flat(), x0, rtol=0, atol=0)
+            assert torch.get_num_threads() == threads
+        torch.set_num_threads(2)
+        stacks = side_by_side(problem, lambda fit, item: id(fit.stack), list(range(4)))
+    finally:
+        torch.set_num_threads(previous)
+    assert stacks[0] == stacks[2] == id(stack) and stacks[1] == stacks[3] != id(stack)  # shared out over two copies
+    torch.testing.assert_close(runs[1][0], runs[0][0], rtol=1e-6, atol=1e-9)
+    for serial, threaded in zip(runs[0][1], runs[1][1], strict=True):
+        for name in serial:
+            np.testing.assert_allclose(threaded[name], serial[name], rtol=1e-6)
+    assert not all(np.allclose(runs[0][1][0][n], runs[0][1][1][n]) for n in runs[0][1][0])  # replicates differ
