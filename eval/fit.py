@@ -605,8 +605,8 @@ def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.n
 def side_by_side(problem: Problem, work, items: list) -> list:
     """[work(fit, item) for item in items], the items shared out over up to ``SIDE_BY_SIDE_THREADS`` threads (as many
     as torch's), each with its own copy of ``problem`` (:meth:`Problem.on_copy`, ``problem`` itself the first) and
-    one torch thread: renders of ~10^5 views gain little from a second torch thread, two of them on two cores nearly
-    twice. ``work`` sets the parameters it needs; the copies are discarded."""
+    one torch thread (a render of some 10^5 views uses a second torch thread poorly). ``work`` sets the parameters
+    it needs; the copies are discarded."""
     threads = torch.get_num_threads()
     workers = min(threads, SIDE_BY_SIDE_THREADS, len(items))
     if workers <= 1:
