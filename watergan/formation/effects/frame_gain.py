@@ -18,7 +18,7 @@ the survey's gain ``gain.k``) and no covariance with the frames' ranges (that is
 changes from frame to frame apart from range: exposure, white balance, a drifting water's change at the frame's
 ranges. An exposure that happens to follow altitude is taken by the water, as without this effect. A penalty
 ``smoothness`` sum_fc g_fc^2 (:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect)
-at 0. The water measures the gains first and fits them only where a frame's exceeds ``FRAME_CARRY_PCT``
+at 0. The water measures the gains first and fits them only where a frame's exceeds ``eval.water.FRAME_CARRY_PCT``
 (:func:`eval.water.measure_frame_gains`); held at 0, they are not applied.
 """
 
