@@ -605,13 +605,13 @@ def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.n
 def side_by_side(problem: Problem, work, items: list) -> list:
     """[work(fit, item) for item in items], the items shared out over up to ``SIDE_BY_SIDE_THREADS`` threads (as many
     as torch's), each with its own copy of ``problem`` (:meth:`Problem.on_copy`, ``problem`` itself the first) and
-    one torch thread (a render of some 10^5 views uses a second torch thread poorly). ``work`` sets the parameters
-    it needs; the copies are discarded."""
+    an equal share of torch's threads (one each on two cores: a render of some 10^5 views uses a second torch
+    thread poorly). ``work`` sets the parameters it needs; the copies are discarded."""
     threads = torch.get_num_threads()
     workers = min(threads, SIDE_BY_SIDE_THREADS, len(items))
     if workers <= 1:
         return [work(problem, item) for item in items]
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads // workers)  # the threads the pool starts take this count
     try:
         fits = [problem] + [problem.on_copy() for _ in range(workers - 1)]
         with ThreadPoolExecutor(workers) as pool:
