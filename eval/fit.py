@@ -619,7 +619,6 @@ def side_by_side(problem: Problem, work, items: list) -> list:
                                   [items[i::workers] for i in range(workers)]))
     finally:
         torch.set_num_threads(threads)
-        problem.take_gradients()
     return [parts[i % workers][i // workers] for i in range(len(items))]
 
 
