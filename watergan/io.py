@@ -535,6 +535,49 @@ def depth_or_zero(depth_m: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------- survey files
+# ---------------------------------------------------------------------------------------- scene mask
+#: The survey folder's mask image: nonzero where a pixel is the scene, 0 where it is not (a burned-in timestamp, the
+#: vehicle's frame, a port's edge); one image for every frame.
+SCENE_MASK_PNG = "mask.png"
+
+
+def scene_mask_from(width: int, height: int, mask_png: Path | None = None,
+                    rects_px: list | None = None) -> np.ndarray | None:
+    """(H,W) bool, True where a pixel is the scene: the mask image's nonzero pixels (any channel), less every
+    rectangle ``[x0, y0, x1, y1]`` (pixels, x1 and y1 excluded, clipped to the image). None when neither is given.
+    A mask of another size, an unreadable one or a rectangle that is not four numbers is a DataError naming it."""
+    if mask_png is None and not rects_px:
+        return None
+    mask = np.ones((height, width), bool)
+    if mask_png is not None:
+        image = _decode(Path(mask_png), "mask", "PNG")
+        if image.shape[:2] != (height, width):
+            raise DataError(f"mask {mask_png} is {image.shape[1]}x{image.shape[0]}; the frames are {width}x{height}")
+        mask &= (image.reshape(height, width, -1) > 0).any(axis=2)
+    for rect in rects_px or []:
+        if not (isinstance(rect, list | tuple) and len(rect) == 4 and all(_is_number(v) for v in rect)):
+            raise DataError(f"mask rectangle {rect!r} is not [x0, y0, x1, y1] in pixels")
+        x0, y0, x1, y1 = (int(round(v)) for v in rect)
+        mask[max(0, y0):max(0, y1), max(0, x0):max(0, x1)] = False
+    if not mask.any():
+        raise DataError("the scene mask leaves no pixel of the scene: white (nonzero) marks the scene in mask.png")
+    return mask
+
+
+def write_scene_mask(path: str | Path, mask: np.ndarray) -> None:
+    """(H,W) bool scene mask as an 8-bit PNG (255 scene, 0 not the scene), atomically."""
+    write_png(path, np.where(mask, 255, 0).astype(np.uint8))
+
+
+def read_scene_mask(path: str | Path | None) -> np.ndarray | None:
+    """The workspace's scene mask (:func:`write_scene_mask`) as (H,W) bool, True where a pixel is the scene; None
+    for an empty path (every pixel is the scene)."""
+    if not path:
+        return None
+    image = _decode(Path(path), "scene mask", "PNG")
+    return image.reshape(*image.shape[:2], -1).max(axis=2) > 0
+
+
 def image_files(folder: Path) -> list[str]:
     """Sorted image file names in a folder (clear error when there are none)."""
     if not folder.is_dir():
