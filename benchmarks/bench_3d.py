@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     from eval.synth import load_truth, make_config, simulate_survey
     from pipeline.dense import DenseConfig
     from pipeline.mesh import MeshConfig, height_mesh, render_back
-    from pipeline.sfm import SfmConfig, Tracks, similarity_align
+    from pipeline.scale import similarity_align
+    from pipeline.sfm import SfmConfig, Tracks
     from pipeline.workspace import Workspace
 
     ws = Workspace(args.out)

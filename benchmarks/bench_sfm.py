@@ -5,7 +5,7 @@
 Each mapper runs :func:`pipeline.sfm.run_sfm_folder` on the survey's images (features, matching and mapping, the
 survey frame and scale: the whole stage) into ``--out/<mapper>``, one after the other on a quiet machine. The camera
 centres are compared with the truth (``truth/poses.json`` of a simulated survey) after the least-squares similarity
-(:func:`pipeline.sfm.similarity_align`): its scale (1 for a metric model) and the centres' RMS and largest error as a
+(:func:`pipeline.scale.similarity_align`): its scale (1 for a metric model) and the centres' RMS and largest error as a
 share of the survey's extent. Writes ``benchmarks/results/sfm.json``.
 """
 
@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.sfm import SfmConfig, Tracks, run_sfm_folder, similarity_align
+from pipeline.scale import similarity_align
+from pipeline.sfm import SfmConfig, Tracks, run_sfm_folder
 
 
 def camera_error(survey: Path, tracks: Tracks) -> dict:

@@ -8,6 +8,9 @@ Columns (a header row; names case-insensitive, other columns ignored):
 - ``altitude_m`` (above the seafloor), ``depth_m`` (below the surface): optional, each;
 - ``easting_m``, ``northing_m`` (the frame's position in the projected CRS that ``survey.json``'s ``crs`` names,
   e.g. a UTM zone; :mod:`pipeline.georeference`): optional, together, and only with that ``crs``;
+- ``x_m``, ``y_m``, ``z_m`` (a local position track, metres: any two of them for a vehicle in a horizontal plane, or
+  all three): ``nav_position_m``, which gives SfM its metric scale (:mod:`pipeline.scale`); easting_m and
+  northing_m (with depth_m as the third axis, negated) give it too;
 - ``roll_deg``, ``pitch_deg`` (the vehicle's attitude; ``heading_deg`` may be there and is not needed): optional,
   together. They give ``nav_down_cam``, "down" in the camera frame, for a camera looking straight down with the
   top of the image towards the bow (camera x to starboard, y aft, z down): with roll phi (starboard down positive)
@@ -15,8 +18,8 @@ Columns (a header row; names case-insensitive, other columns ignored):
   vehicle's (forward, starboard, down) axes, and down_cam = (down_body_y, -down_body_x, down_body_z).
 
 :func:`navigation_from_log` returns the survey file's keys (``nav_altitude_m``, ``nav_depth_m``, ``nav_down_cam``,
-``nav_easting_m``, ``nav_northing_m``) in the order of the frames; a frame the log does not reach (no row of its
-name, a time outside the log) is an error naming it, as is a row that is not numbers.
+``nav_easting_m``, ``nav_northing_m``, ``nav_position_m``) in the order of the frames; a frame the log does not reach
+(no row of its name, a time outside the log) is an error naming it, as is a row that is not numbers.
 """
 
 from __future__ import annotations
@@ -34,6 +37,10 @@ NAVIGATION_CSV = "navigation.csv"
 #: Survey-file keys and the log's columns that give them.
 COLUMNS = {"nav_altitude_m": "altitude_m", "nav_depth_m": "depth_m", "nav_easting_m": "easting_m",
            "nav_northing_m": "northing_m"}
+
+
+#: A local position track's columns (metres).
+POSITION_COLUMNS = ("x_m", "y_m", "z_m")
 
 
 def down_in_camera(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:
@@ -99,11 +106,14 @@ def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float]
     log = read_log(path)
     given = [key for key, column in COLUMNS.items() if column in log]
     attitude = "roll_deg" in log and "pitch_deg" in log
-    if not given and not attitude:
+    local = [c for c in POSITION_COLUMNS if c in log]
+    if len(local) == 1:
+        raise UserInputError(f"navigation log {path} has {local[0]} alone: a position needs two of x_m, y_m, z_m")
+    if not given and not attitude and not local:
         raise UserInputError(f"navigation log {path} has none of the columns altitude_m, depth_m, roll_deg + "
-                             f"pitch_deg, easting_m + northing_m (its columns: {', '.join(log)})")
+                             f"pitch_deg, easting_m + northing_m, x_m + y_m (its columns: {', '.join(log)})")
     _check_positions(path, log)
-    columns = [COLUMNS[k] for k in given] + (["roll_deg", "pitch_deg"] if attitude else [])
+    columns = [COLUMNS[k] for k in given] + (["roll_deg", "pitch_deg"] if attitude else []) + local
     values = {c: _numbers(path, log, c) for c in columns}
     if "frame" in log:
         index = {name: i for i, name in enumerate(log["frame"])}
@@ -132,4 +142,9 @@ def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float]
     out = {key: np.round(at[COLUMNS[key]], 4).tolist() for key in given}
     if attitude:
         out["nav_down_cam"] = np.round(down_in_camera(at["roll_deg"], at["pitch_deg"]), 6).tolist()
+    if local:
+        out["nav_position_m"] = np.round(np.stack([at[c] for c in local], 1), 5).tolist()
+    elif "easting_m" in at:
+        axes = [at["easting_m"], at["northing_m"]] + ([-at["depth_m"]] if "depth_m" in at else [])
+        out["nav_position_m"] = np.round(np.stack(axes, 1), 5).tolist()
     return out

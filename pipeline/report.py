@@ -155,7 +155,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
     if sfm is not None and sfm.looks_distorted:  # before the water: it carries the distortion's error
         from .sfm import distortion_warning
 
-        lines.append("Lens: " + distortion_warning(sfm.lens_k1).removeprefix("sfm: ") + ".")
+        lines.append("Lens: " + distortion_warning(sfm.lens_k1, sfm.lens_source).removeprefix("sfm: ") + ".")
     water = ws.result("water")
     if water is not None:
         data = _load_json(ws.path(water.water_json)) or {}
@@ -204,10 +204,11 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         lose = [line for line in verdict_lines if " loses to " in line]
         lines.append(f"Comparisons: {len(verdict_lines) - len(lose)} of {len(verdict_lines)} hold"
                      + (f"; {len(lose)} lose (listed under Verdict)." if lose else "."))
-    if sfm is not None and sfm.looks_distorted:  # the lens first: every stage after SfM carries its error
-        survey = ws.result("survey")
+    if sfm is not None and sfm.looks_distorted and not sfm.lens_source:  # the lens first: every stage after SfM
+        survey = ws.result("survey")  # carries its error; what already ran is not proposed again
         folder = survey.survey_dir if survey else "SURVEY"
-        command = f"watergan run {folder} --workspace {ws.root} --survey-estimate-lens"
+        command = (f"watergan run {folder} --workspace {ws.root}  # with \"calibrated\": false in its camera.json, "
+                   f"so that SfM calibrates the camera")
     return lines, command
 
 

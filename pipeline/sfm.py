@@ -22,7 +22,12 @@ with the scale ``s`` from, in order of preference (``scale="auto"``; board only 
     altitude:  navigation altitudes (``nav_altitude_m`` in survey.json):
                s = median(altitude_nav) / median(n . (C_i - o)), camera heights above the sparse points'
                median height.
-    none:      COLMAP's arbitrary scale (s = 1 after the survey-frame rotation).
+    track:     a position track (``nav_position_m`` in survey.json, from navigation.csv's x_m, y_m[, z_m]): a robust
+               similarity between the camera centres and the positions (:mod:`pipeline.scale`).
+    height:    a camera at a known height over a floor (``camera_height_m`` in survey.json): s = that height over
+               the cameras' median distance to the floor plane of the sparse points (:mod:`pipeline.scale`).
+    none:      no metric scale: the unit is the sparse observations' median depth (s = 1 / that depth), so
+               depths are of order 1 whatever COLMAP's arbitrary scale; every stage says "unscaled".
 
 Outputs (``01_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``tracks.npz``
 (:class:`Tracks`: points, observations, poses, intrinsics) and ``database.db``.
@@ -51,6 +56,8 @@ from watergan.errors import UserInputError
 from watergan.io import image_files, read_camera_json, read_json, read_survey_json
 from watergan.lens import OPENCV, Lens
 
+from .scale import fit_track, height_scale, track_halves
+
 
 class Matching(StrEnum):
     """Feature matching of SfM."""
@@ -75,6 +82,8 @@ class ScaleSource(StrEnum):
     stereo = "stereo"
     board = "board"
     altitude = "altitude"
+    track = "track"
+    height = "height"
     none = "none"
 
 
@@ -110,8 +119,8 @@ class SfmConfig:
     min_registered_fraction: float = 0.5
     """Fewer registered images than this fraction of all images is an error."""
     scale: ScaleSource = ScaleSource.auto
-    """Metric scale from 'stereo', 'board' (known board size), 'altitude' (navigation), 'none', or 'auto'
-    (stereo, else board when ``board_json`` is given, else altitude, else none)."""
+    """Metric scale from 'stereo', 'board' (known board size), 'altitude' (navigation), 'track' (positions per frame),
+    'height' (camera_height_m), 'none', or 'auto' (the first of these the survey has, in that order)."""
     board_json: str = ""
     """Board file for the 'board' scale: ``{"images": {file name: [[x, y] x 4] outer corners, or per patch
     [[x, y] x 4] | null}, "width_m", "height_m" | "patch_side_m", ...}`` (pixels, OpenCV convention;
@@ -149,7 +158,7 @@ class SfmResult:
     matching: str
     """The matching that was used."""
     scale_method: str
-    """'stereo', 'board', 'altitude' or 'none': where the metric scale came from."""
+    """'stereo', 'board', 'altitude', 'track', 'height' or 'none': where the metric scale came from."""
     scale_factor: float
     """s in p_survey = s R (p_colmap - o)."""
     scale_spread: float
@@ -158,6 +167,14 @@ class SfmResult:
     """Wall time of the stage."""
     phase_seconds: dict[str, float] = field(default_factory=dict)
     """Wall time of each step: "features", "matching", "mapping", "survey_frame" (scale and tracks) and "writing"."""
+    scale_detail: dict = field(default_factory=dict)
+    """The track scale's residual (m), frames used and kept, and its halves (:func:`pipeline.scale.track_halves`);
+    empty for the other sources."""
+    lens_source: str = ""
+    """What removed a lens from the frames before SfM: "" (nothing), "camera.json", "estimated" (the survey stage's
+    estimate with the focal length held) or "self-calibrated"."""
+    scene_mask: str = ""
+    """The survey's scene mask (workspace-relative; features only where it is the scene); empty: none."""
     lens_k1: float | None = None
     """How distorted the frames look: k1 of a one-coefficient radial camera (COLMAP's SIMPLE_RADIAL, OpenCV's k1)
     that bundle adjustment fits on the model with the known intrinsics held (:func:`refined_k1`); near 0 for
@@ -171,23 +188,35 @@ class SfmResult:
     def summary(self) -> str:
         """One line: registration, points, track length, reprojection error, matching, scale, time, and a warning
         when the frames look distorted."""
+        scale = ("unscaled (unit: the median sparse depth)" if self.scale_method == "none" else
+                 f"scale from {self.scale_method} (x{self.scale_factor:.4g}, spread {100 * self.scale_spread:.1f} %"
+                 + (f", residual {self.scale_detail['residual_m']:.3f} m" if "residual_m" in self.scale_detail
+                    else "") + ")")
         line = (f"sfm: registered {self.n_registered} of {self.n_images} images, {self.n_points} points "
                 f"(mean track {self.mean_track_length:.1f}, reprojection {self.mean_reprojection_error_px:.2f} px), "
-                f"{self.matching} matching, scale from {self.scale_method} (x{self.scale_factor:.4g}, "
-                f"spread {100 * self.scale_spread:.1f} %), {self.seconds:.1f} s")
-        return line + (f"\n{distortion_warning(self.lens_k1)}" if self.looks_distorted else "")
+                f"{self.matching} matching, {scale}, {self.seconds:.1f} s")
+        return line + (f"\n{distortion_warning(self.lens_k1, self.lens_source)}" if self.looks_distorted else "")
 
 
 #: |k1| above which the frames look distorted to SfM (a moderate wide lens behind a flat port: -0.1 to -0.3).
 DISTORTED_K1 = 0.02
 
 
-def distortion_warning(k1: float) -> str:
-    """What to do when SfM's refined k1 says the frames are distorted."""
+def distortion_warning(k1: float, lens_source: str = "") -> str:
+    """What to do when SfM's refined k1 says the frames are distorted, by what already removed a lens
+    (``lens_source``: :attr:`SfmResult.lens_source`): never the step that already ran."""
+    fix = {"": "give the lens in camera.json (OpenCV's k1, k2, p1, p2, k3, a fisheye's k1..k4, or COLMAP's model and "
+                "params), or leave the intrinsics out of camera.json (or set \"calibrated\": false) so that SfM "
+                "calibrates focal length and lens together on the survey",
+           "camera.json": "the lens in camera.json does not undo it: check its coefficients, or set \"calibrated\": "
+                          "false in camera.json so that SfM calibrates focal length and lens together on the survey",
+           "estimated": "the lens estimated with the focal length held does not undo it: set \"calibrated\": false "
+                        "in camera.json so that SfM calibrates focal length and lens together on the survey",
+           "self-calibrated": "the survey's own calibration does not undo it: give a calibration made on a target "
+                              "(fx, fy, cx, cy and the lens, with \"calibrated\": true)"}[lens_source]
     return (f"sfm: the frames look distorted (SfM's refined k1 = {k1:+.3f}, where an undistorted camera gives "
-            f"about 0): give the lens in camera.json (OpenCV's k1, k2, p1, p2, k3, a fisheye's k1..k4, or COLMAP's "
-            f"model and params), or rerun with `watergan run ... --survey-estimate-lens` so that the survey stage "
-            f"estimates it; until then the water and the corrections carry the distortion's error on image position")
+            f"about 0): {fix}; until then the water and the corrections carry the distortion's error on image "
+            f"position")
 
 
 def refined_k1(rec) -> float | None:
@@ -453,9 +482,11 @@ def _build_tracks(rec, names: list[str], K: np.ndarray, width: int, height: int)
                   obs_xy=np.array(obs_xy, np.float32).reshape(-1, 2))
 
 
-def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) -> SfmResult:
-    """SfM on a folder of images; outputs in ``out_dir`` (see the module docstring): features, matches,
-    incremental mapping, the survey frame and scale, then the model and tracks written."""
+def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
+                   scene_mask: Path | None = None) -> SfmResult:
+    """SfM on a folder of images; outputs in ``out_dir`` (see the module docstring): features (only where
+    ``scene_mask``, a PNG nonzero on the scene, allows), matches, incremental mapping, the survey frame and scale,
+    then the model and tracks written."""
     start = time.perf_counter()
     images_dir, out_dir = Path(images_dir), Path(out_dir)
     names, cam = _sfm_inputs(images_dir, cfg)
@@ -469,7 +500,7 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
         phases[phase], mark = round(now - mark, 2), now
 
     with colmap_errors_only():
-        _extract_features(database, images_dir, names, cam, cfg)
+        _extract_features(database, images_dir, names, cam, cfg, mask_png=scene_mask)
         lap("features")
         matching = _match_features(database, names, cfg)
         lap("matching")
@@ -479,7 +510,7 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
         rec, n_reg = mapping(database, images_dir, raw_dir, names, cam, cfg)
         lens_k1 = refined_k1(rec) if cam is not None else None
         lap("mapping")
-    tracks, method, scale, spread = _to_survey_frame(rec, names, images_dir, cam, cfg)
+    tracks, method, scale, spread, detail = _to_survey_frame(rec, names, images_dir, cam, cfg)
     lap("survey_frame")
     model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)
     lap("writing")
@@ -488,11 +519,12 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig) 
                        mean_track_length=float(rec.compute_mean_track_length()),
                        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                        matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
-                       seconds=time.perf_counter() - start, phase_seconds=phases, lens_k1=lens_k1)
+                       seconds=time.perf_counter() - start, phase_seconds=phases, lens_k1=lens_k1,
+                       scale_detail=detail, lens_source=_lens_source(cam))
     if cfg.progress:
         print(result.summary(), file=sys.stderr, flush=True)
     elif result.looks_distorted:
-        print(distortion_warning(lens_k1), file=sys.stderr, flush=True)
+        print(distortion_warning(lens_k1, result.lens_source), file=sys.stderr, flush=True)
     return result
 
 
@@ -520,11 +552,20 @@ def _sfm_inputs(images_dir: Path, cfg: SfmConfig) -> tuple[list[str], dict | Non
     return names, cam
 
 
+def _lens_source(cam: dict | None) -> str:
+    """What removed a lens from the frames SfM sees (:attr:`SfmResult.lens_source`), by the workspace's camera.json."""
+    if not cam or "undistorted" not in cam:
+        return ""
+    if "self_calibration" in cam:
+        return "self-calibrated"
+    return "estimated" if cam.get("lens_estimated") else "camera.json"
+
+
 def _extract_features(database: Path, images_dir: Path, names: list[str], cam: dict | None, cfg: SfmConfig,
-                      lens: Lens | None = None) -> None:
-    """SIFT features (at most ``max_features`` per image, seeded) into a new ``database``: one camera from ``cam``
-    (COLMAP's pixel-centre convention), PINHOLE or ``lens``'s model (:meth:`watergan.lens.Lens.to_colmap`), else
-    one SIMPLE_RADIAL camera to estimate."""
+                      lens: Lens | None = None, mask_png: Path | None = None) -> None:
+    """SIFT features (at most ``max_features`` per image, seeded; none where ``mask_png`` is 0) into a new
+    ``database``: one camera from ``cam`` (COLMAP's pixel-centre convention), PINHOLE or ``lens``'s model
+    (:meth:`watergan.lens.Lens.to_colmap`), else one SIMPLE_RADIAL camera to estimate."""
     import pycolmap
 
     database.unlink(missing_ok=True)
@@ -534,6 +575,8 @@ def _extract_features(database: Path, images_dir: Path, names: list[str], cam: d
         reader = pycolmap.ImageReaderOptions(camera_model=model, camera_params=",".join(str(float(v)) for v in params))
     else:
         reader = pycolmap.ImageReaderOptions(camera_model="SIMPLE_RADIAL")
+    if mask_png is not None:
+        reader.camera_mask_path = str(mask_png)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = cfg.max_features
     pycolmap.set_random_seed(cfg.seed)
@@ -661,9 +704,10 @@ def _camera_matrix(rec) -> tuple[np.ndarray, int, int]:
 
 
 def _to_survey_frame(rec, names: list[str], images_dir: Path, cam: dict | None,
-                     cfg: SfmConfig) -> tuple[Tracks, str, float, float]:
+                     cfg: SfmConfig) -> tuple[Tracks, str, float, float, dict]:
     """Move ``rec`` into the survey frame (:func:`survey_frame`, from points seen in >= 3 views when there
-    are 10) and scale it (:func:`_choose_scale`); returns its tracks and the scale's method, factor and spread."""
+    are 10) and scale it (:func:`_choose_scale`); returns its tracks and the scale's method, factor, spread and
+    detail."""
     import pycolmap
 
     K, width, height = _camera_matrix(rec)
@@ -674,9 +718,9 @@ def _to_survey_frame(rec, names: list[str], images_dir: Path, cam: dict | None,
     rotated = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), -R @ origin)
     rec.transform(rotated)
     tracks = _build_tracks(rec, names, K, width, height)
-    method, scale, spread = _choose_scale(cfg, tracks, images_dir, cam, good)
+    method, scale, spread, detail = _choose_scale(cfg, tracks, images_dir, cam, good)
     rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
-    return _build_tracks(rec, names, K, width, height), method, scale, spread
+    return _build_tracks(rec, names, K, width, height), method, scale, spread, detail
 
 
 def _write_sfm(rec, tracks: Tracks, out_dir: Path, raw_dir: Path) -> Path:
@@ -692,16 +736,22 @@ def _write_sfm(rec, tracks: Tracks, out_dir: Path, raw_dir: Path) -> Path:
 
 
 def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None,
-                  good: np.ndarray) -> tuple[str, float, float]:
-    """(method, s, spread) following ``cfg.scale`` (see the module docstring)."""
+                  good: np.ndarray) -> tuple[str, float, float, dict]:
+    """(method, s, spread, detail) following ``cfg.scale`` (see the module docstring)."""
+    method, s, spread, *detail = _scale_by(cfg, tracks, images_dir, cam, good)
+    return method, s, spread, (detail[0] if detail else {})
+
+
+def _scale_by(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None, good: np.ndarray) -> tuple:
     root = images_dir.parent
     right_dir = Path(cfg.right_dir) if cfg.right_dir else root / "right"
     survey_path = Path(cfg.survey_json) if cfg.survey_json else root / "survey.json"
     has_stereo = cam is not None and "baseline_m" in cam and right_dir.is_dir()
     survey = read_survey_json(survey_path) if survey_path.is_file() else {}
     has_altitude = "nav_altitude_m" in survey
-    choices = {"auto": ["stereo", "board", "altitude", "none"], "stereo": ["stereo"], "board": ["board"],
-               "altitude": ["altitude"], "none": ["none"]}
+    choices = {"auto": ["stereo", "board", "altitude", "track", "height", "none"], "stereo": ["stereo"],
+               "board": ["board"], "altitude": ["altitude"], "track": ["track"], "height": ["height"], "none": ["none"]}
+    points = tracks.xyz[good] if good.sum() >= 10 else tracks.xyz
     if cfg.scale not in choices:
         raise UserInputError(f"scale must be one of {', '.join(choices)}, not '{cfg.scale}'")
     for method in choices[cfg.scale]:
@@ -731,30 +781,49 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
                     return method, s, spread
             if cfg.scale == "altitude":
                 raise UserInputError(f"altitude scale needs nav_altitude_m per frame in {survey_path}")
+        elif method == "track":
+            if "nav_position_m" in survey:
+                return ("track", *_track_scale(tracks, survey, survey_path))
+            if cfg.scale == "track":
+                raise UserInputError(f"track scale needs nav_position_m per frame in {survey_path} (navigation.csv "
+                                     f"with x_m, y_m[, z_m] or easting_m, northing_m)")
+        elif method == "height":
+            if "camera_height_m" in survey:
+                centres = tracks.world_from_cam[tracks.registered, :3, 3]
+                return ("height", *height_scale(points, centres, float(survey["camera_height_m"])))
+            if cfg.scale == "height":
+                raise UserInputError(f"height scale needs camera_height_m (the camera's height over the floor, "
+                                     f"metres) in {survey_path}")
         else:
-            return "none", 1.0, 0.0
+            depths = tracks.depths()
+            depths = depths[np.isfinite(depths) & (depths > 0)]
+            return "none", (1.0 / float(np.median(depths)) if depths.size else 1.0), 0.0
     raise AssertionError("unreachable")
 
 
+def _track_scale(tracks: Tracks, survey: dict, survey_path: Path) -> tuple[float, float, dict]:
+    """(s, spread, detail) of the position track (:func:`pipeline.scale.fit_track`, :func:`track_halves`)."""
+    frames = survey.get("frames") or sorted(str(n) for n in tracks.image_names)
+    positions = dict(zip(frames, survey["nav_position_m"], strict=False))
+    index = [k for k in np.flatnonzero(tracks.registered) if str(tracks.image_names[k]) in positions]
+    if len({len(positions[str(tracks.image_names[k])]) for k in index}) > 1:
+        raise UserInputError(f"{survey_path}: nav_position_m mixes 2-D and 3-D positions")
+    centres = tracks.world_from_cam[index, :3, 3]
+    xy = np.array([positions[str(tracks.image_names[k])] for k in index], float)
+    fit = fit_track(centres, xy)
+    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept}
+    if len(index) >= 10:
+        detail["halves"] = track_halves(centres, xy)
+    return fit.scale, fit.spread, detail
+
+
 def run_sfm(ws, cfg: SfmConfig) -> SfmResult:
-    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``01_sfm``."""
+    """Workspace stage: images from ``cfg.images_dir`` or ``00_survey/images``; outputs in ``01_sfm``; features
+    only on the survey's scene mask when it has one."""
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
-    result = run_sfm_folder(images_dir, ws.stage_dir("sfm"), cfg)
+    survey = ws.result("survey")
+    mask = survey.scene_mask if survey is not None else ""
+    result = run_sfm_folder(images_dir, ws.stage_dir("sfm"), cfg, ws.path(mask) if mask else None)
     result.model_dir, result.tracks = ws.relative(result.model_dir), ws.relative(result.tracks)
+    result.scene_mask = mask
     return result
-
-
-def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama's least-squares similarity dst ~ s R src + t for point sets (N,3), N >= 3.
-    With centred sets X, Y and the SVD U D V^T of Y^T X / N: R = U S V^T (S fixes a reflection),
-    s = trace(D S) / var(X), t = mean(dst) - s R mean(src). Returns (s, R, t)."""
-    src, dst = np.asarray(src, float), np.asarray(dst, float)
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    x, y = src - mu_s, dst - mu_d
-    u, d, vt = np.linalg.svd(y.T @ x / len(src))
-    sign = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sign[2, 2] = -1
-    rotation = u @ sign @ vt
-    scale = float(np.trace(np.diag(d) @ sign) / (x**2).sum(1).mean())
-    return scale, rotation, mu_d - scale * rotation @ mu_s

@@ -13,11 +13,23 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_bytes, atomic_write_json, read_camera_json, read_json, read_survey_json
+from watergan.io import (
+    SCENE_MASK_PNG,
+    atomic_write_bytes,
+    atomic_write_json,
+    read_camera_json,
+    read_json,
+    read_survey_json,
+    scene_mask_from,
+    write_scene_mask,
+)
 from watergan.lens import LENS_KEYS, Lens, camera_matrix, distortion_of, undistort_image
 
+from .calibrate import check_plausible, needs_calibration, self_calibrate
 from .navigation import NAVIGATION_CSV, navigation_from_log
 from .workspace import Workspace
 
@@ -73,13 +85,15 @@ def check_survey(survey_dir: Path) -> dict:
             raise UserInputError(f"right/ and images/ in {survey_dir} do not pair by file name (e.g. "
                                  f"{', '.join(missing)}); remove right/ for a single camera")
     if not (survey_dir / "camera.json").is_file():
-        raise UserInputError(f"{survey_dir} has no camera.json (fx, fy, cx, cy, width, height): SfM and the "
-                             f"range of each pixel need the intrinsics")
-    cam = read_camera_json(survey_dir / "camera.json")  # malformed JSON, a missing key or a bad value: an error
+        raise UserInputError(f"{survey_dir} has no camera.json: give the image size (width, height: SfM then "
+                             f"calibrates the camera on the survey) or the intrinsics (fx, fy, cx, cy, width, height)")
+    # malformed JSON, a missing key or a bad value: an error
+    cam = read_camera_json(survey_dir / "camera.json", partial=True)
     (h, w), = sizes
     if (cam["width"], cam["height"]) != (w, h):
         raise UserInputError(f"camera file {survey_dir / 'camera.json'} is for {cam['width']}x{cam['height']} images; "
                              f"the images in {images_dir} are {w}x{h}")
+    survey_scene_mask(survey_dir, cam)
     declared = survey_navigation(survey_dir, [p.name for p in files])
     if (survey_dir / "survey.json").is_file():
         named = {p.name for p in files}
@@ -150,6 +164,25 @@ class SurveyResult:
     lens_estimate: dict = field(default_factory=dict)
     """SfM's estimation of the lens (:func:`pipeline.sfm.estimate_lens`: frames, registered, reprojection error,
     seconds, the start); empty: the lens is camera.json's."""
+    self_calibration: dict = field(default_factory=dict)
+    """SfM's calibration of the camera on the survey (:func:`pipeline.calibrate.self_calibrate`: the model chosen
+    and each model's reprojection error, each half's focal length); empty: camera.json's intrinsics held."""
+    scene_mask: str = ""
+    """The scene mask in the frames' (undistorted) geometry (:func:`watergan.io.write_scene_mask`, workspace-relative);
+    empty: every pixel is the scene."""
+
+
+def survey_scene_mask(survey_dir: Path, camera: dict):
+    """The survey's scene mask in the raw frames' geometry (:func:`watergan.io.scene_mask_from`: ``mask.png`` in the
+    survey folder, less camera.json's ``mask_rects_px``); None without either."""
+    from watergan.io import DataError
+
+    png = survey_dir / SCENE_MASK_PNG
+    try:
+        return scene_mask_from(int(camera["width"]), int(camera["height"]), png if png.is_file() else None,
+                               camera.get("mask_rects_px"))
+    except DataError as exc:
+        raise UserInputError(f"survey {survey_dir}: {exc}") from None
 
 
 def undistort_frames(survey: Path, target: Path, camera: dict, lens: Lens, progress: bool = True) -> None:
@@ -178,17 +211,19 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     survey, target = Path(cfg.survey_dir).resolve(), ws.stage_dir("survey").resolve()
     summary = check_survey(survey)
     logged = (survey / NAVIGATION_CSV).is_file()
-    camera = read_camera_json(survey / "camera.json")
-    lens = distortion_of(camera)
-    # the workspace's own camera.json: pinhole after undistortion, or COLMAP's form read into named keys
-    own_camera = lens is not None or cfg.estimate_lens or "params" in read_json(survey / "camera.json")
+    camera = read_camera_json(survey / "camera.json", partial=True)
+    calibrate = needs_calibration(camera)
+    lens = None if calibrate else distortion_of(camera)
+    mask = survey_scene_mask(survey, camera)
+    # the workspace's own camera.json: pinhole after undistortion or calibration, or COLMAP's form read into named keys
+    own_camera = lens is not None or cfg.estimate_lens or calibrate or "params" in read_json(survey / "camera.json")
     if own_camera and survey == target:
         raise UserInputError(f"{survey} is a workspace's survey folder and its camera.json has a lens or COLMAP's "
                              f"params: run on the survey folder itself, so that the workspace gets its own frames "
                              f"and camera.json")
     if survey != target:
         written = ({"survey.json"} if logged else set()) | ({"camera.json"} if own_camera else set()) | \
-            ({"images", "right"} if lens is not None or cfg.estimate_lens else set())
+            ({"images", "right"} if lens is not None or cfg.estimate_lens or calibrate else set())
         for name in ("images", "right", "camera.json", "survey.json", "truth"):
             if name in written:  # the workspace's own version, written below
                 if (target / name).is_symlink():
@@ -212,19 +247,43 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
         print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
         write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
     names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
-    estimate = {}
-    if cfg.estimate_lens:
+    estimate, calibration = {}, {}
+    if calibrate:
+        raw_mask = None
+        if mask is not None:
+            raw_mask = target / "selfcal_mask.png"
+            write_scene_mask(raw_mask, mask)
+        found, calibration = self_calibrate(survey / "images", names, camera, target / "selfcal", cfg.seed, raw_mask)
+        camera = {**{k: v for k, v in camera.items() if k not in ("fx", "fy", "cx", "cy", "hfov_deg")}, **found}
+        lens = distortion_of(camera)
+        halves = calibration["halves"]
+        print(f"survey: SfM calibrated the camera on {calibration['registered']} frames: {calibration['model']}, "
+              f"fx {camera['fx']:.1f} fy {camera['fy']:.1f} cx {camera['cx']:.1f} cy {camera['cy']:.1f} px, "
+              + ", ".join(f"{k} {camera[k]:+.4f}" for k in ("k1", "k2", "p1", "p2"))
+              + f" (reprojection {calibration['reprojection_px']:.3f} px; the halves' focal lengths differ by "
+              f"{halves.get('focal_diff_pct', float('nan')):.1f} %)", file=sys.stderr, flush=True)
+    elif cfg.estimate_lens:
         from .sfm import estimate_lens
 
         lens, estimate = estimate_lens(survey / "images", names, camera, lens, target / "lens_sfm", cfg.seed)
+        check_plausible({**camera, **lens.to_json()})
         print(f"survey: SfM's lens on {estimate['registered']} frames: {lens.model} "
               + ", ".join(f"{k} {v:+.4f}" for k, v in lens.to_json().items() if k != "lens_model")
               + f" (reprojection {estimate['reprojection_px']:.3f} px)", file=sys.stderr, flush=True)
     if lens is not None:
         undistort_frames(survey, target, camera, lens, cfg.progress)
     if own_camera:
-        pinhole = {k: v for k, v in camera.items() if k not in LENS_KEYS and k != "model"}
-        atomic_write_json(target / "camera.json", {**pinhole, **({"undistorted": lens.to_json()} if lens else {})})
+        dropped = (*LENS_KEYS, "model", "calibrated", "mask_rects_px")
+        pinhole = {k: v for k, v in camera.items() if k not in dropped}
+        atomic_write_json(target / "camera.json", {**pinhole, **({"undistorted": lens.to_json()} if lens else {}),
+                                                   **({"self_calibration": calibration} if calibration else {}),
+                                                   **({"lens_estimated": True} if estimate else {})})
+    mask_path = ""
+    if mask is not None:
+        if lens is not None:
+            mask = undistort_image(mask.astype(np.uint8) * 255, camera_matrix(camera), lens) > 127
+        write_scene_mask(target / "scene_mask.png", mask)
+        mask_path = ws.relative(target / "scene_mask.png")
     declared = survey_navigation(survey, names)
     if logged:
         if survey == target:
@@ -235,4 +294,4 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     inside = rgbd.resolve().is_relative_to(ws.root.resolve())
     return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),
                         navigation=navigation, undistorted=lens.to_json() if lens is not None else {},
-                        lens_estimate=estimate)
+                        lens_estimate=estimate, self_calibration=calibration, scene_mask=mask_path)

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from conftest import SCRATCH
 
-from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, run_sfm_folder, similarity_align
+from pipeline.scale import similarity_align
+from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, run_sfm_folder
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 
@@ -110,7 +111,8 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
     assert "the frames look distorted (SfM's refined k1 = -0." in result.summary()
     lines, command = found_lines(withheld)  # the report's first screen: the lens, and the run that estimates it
     assert lines[0].startswith("Lens: the frames look distorted")
-    assert command == f"watergan run {raw.resolve()} --workspace {withheld.root} --survey-estimate-lens"
+    assert command.startswith(f"watergan run {raw.resolve()} --workspace {withheld.root}")
+    assert '"calibrated": false' in command and "--survey-estimate-lens" not in command
 
     estimated = Workspace(tmp_path / "estimated")
     if lens_model == "fisheye":  # the model declared, its coefficients left to SfM
@@ -121,6 +123,19 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
     assert survey.undistorted["k1"] == pytest.approx(coefficients[0], abs=0.02)
     assert json.loads((estimated.folder("survey") / "camera.json").read_text())["undistorted"] == survey.undistorted
     assert abs(estimated.run("sfm", SfmConfig(progress=False)).lens_k1) < 0.02
+    if lens_model == "fisheye":
+        return
+    # only the image size known: SfM calibrates focal length, principal point and lens on the survey
+    (raw / "camera.json").write_text(json.dumps({"width": 320, "height": 240}))
+    calibrated = Workspace(tmp_path / "calibrated")
+    survey = calibrated.run("survey", SurveyConfig(survey_dir=str(raw), progress=False))
+    found = json.loads((calibrated.folder("survey") / "camera.json").read_text())
+    assert survey.self_calibration["registered"] == 10 and found["self_calibration"] == survey.self_calibration
+    assert found["fx"] == pytest.approx(camera["fx"], rel=0.05) and found["fy"] == pytest.approx(camera["fy"], rel=0.05)
+    assert survey.undistorted["k1"] == pytest.approx(coefficients[0], abs=0.05)
+    assert set(survey.self_calibration["models"]) == {"SIMPLE_RADIAL", "RADIAL", "OPENCV"}
+    sfm = calibrated.run("sfm", SfmConfig(progress=False))
+    assert sfm.n_registered == 10 and abs(sfm.lens_k1) < 0.02 and sfm.lens_source == "self-calibrated"
 
 
 def test_camera_centres_match_truth_after_similarity(sfm):
@@ -178,6 +193,42 @@ def test_altitude_scale_agrees_with_stereo_scale(sfm):
     altitudes = np.array([by_name[str(n)] for n in tracks.image_names])
     s, spread = altitude_scale(tracks.xyz, tracks.world_from_cam[:, :3, 3], altitudes)
     assert s == pytest.approx(1.0, abs=0.1) and spread < 0.1
+
+
+def test_track_scale_recovers_the_positions_scale_despite_a_glitch(sfm, tmp_path):
+    """A vehicle's position track (2-D positions in metres, one of them a glitch 5 m off) gives SfM its scale: the
+    reconstruction run with ``scale="track"`` and only the track has the stereo model's scale within 2 %, reports
+    the residual, drops the glitch, and its two halves agree within 5 %; a camera height over the floor gives it
+    within 10 %."""
+    import json
+
+    from pipeline.scale import height_scale
+
+    survey, ws, record = sfm
+    truth, index = _truth_index(survey)
+    names = sorted(index)
+    positions = truth.world_from_cam[[index[n] for n in names], :2, 3].copy()
+    positions[3] += [5.0, 0.0]
+    (tmp_path / "survey.json").write_text(json.dumps({"frames": names, "nav_position_m": positions.tolist()}))
+    result = run_sfm_folder(survey / "images", tmp_path / "track",
+                            SfmConfig(scale="track", survey_json=str(tmp_path / "survey.json"), progress=False))
+    assert result.scale_method == "track"
+    assert result.scale_factor == pytest.approx(record.scale_factor, rel=0.02)
+    assert result.scale_detail["kept"] == 9 and result.scale_detail["used"] == 10
+    assert result.scale_detail["residual_m"] < 0.05 and result.scale_detail["halves"]["heldout_pct"] < 5
+    assert "residual" in result.summary()
+    tracks = Tracks.load(ws.path(record.tracks))
+    altitude = float(np.median(json.loads((survey / "survey.json").read_text())["nav_altitude_m"]))
+    s, spread = height_scale(tracks.xyz / 3.7, tracks.world_from_cam[:, :3, 3] / 3.7, altitude)
+    assert s == pytest.approx(3.7, rel=0.1) and spread < 0.1
+
+
+def test_an_unscaled_model_has_the_median_depth_as_its_unit(sfm, tmp_path):
+    survey, _, _ = sfm
+    result = run_sfm_folder(survey / "images", tmp_path / "none", SfmConfig(scale="none", progress=False))
+    tracks = Tracks.load(tmp_path / "none" / "tracks.npz")
+    assert np.median(tracks.depths()) == pytest.approx(1.0, rel=1e-3)
+    assert "unscaled" in result.summary()
 
 
 def test_similarity_align_recovers_a_known_transform():

@@ -453,9 +453,22 @@ def write_srgb8(path: str | Path, linear_rgb: np.ndarray) -> None:
 
 
 # ---------------------------------------------------------------------------------------- depth
+def depth_within(depth_m: np.ndarray, far_limit_m: float = MAX_DEPTH_PNG_M) -> tuple[np.ndarray, np.ndarray]:
+    """A depth or range map (H,W) (metres) kept where it holds a plausible value: (a float64 copy with NaN wherever
+    it is NaN, infinite, <= 0 or beyond ``far_limit_m``, which is taken as at most ``MAX_DEPTH_PNG_M``; (H,W) bool,
+    True where a finite value beyond the limit was dropped). What it returns :func:`write_depth_png` always stores:
+    every writer of a map computed from data passes its depths through it first."""
+    depth = np.array(depth_m, np.float64)
+    with np.errstate(invalid="ignore"):
+        too_far = np.isfinite(depth) & (depth > min(far_limit_m, MAX_DEPTH_PNG_M))
+        depth[~(np.isfinite(depth) & (depth > 0)) | too_far] = np.nan
+    return depth, too_far
+
+
 def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
-    """(H,W) metres as a 16-bit PNG of millimetres, atomically: NaN or <= 0 is stored as 0 (no
-    value), values are rounded to 1 mm (at least 1 mm where valid); above 65.535 m is an error."""
+    """(H,W) metres as a 16-bit PNG of millimetres, atomically: NaN, infinite or <= 0 is stored as 0 (no
+    value), values are rounded to 1 mm (at least 1 mm where valid); above 65.535 m is an error (a caller's
+    mistake: maps computed from data are kept within it by :func:`depth_within` first)."""
     depth_m = np.asarray(depth_m, np.float64)
     valid = np.isfinite(depth_m) & (depth_m > 0)
     if (depth_m[valid] > MAX_DEPTH_PNG_M).any():
@@ -588,13 +601,14 @@ def image_files(folder: Path) -> list[str]:
     return names
 
 
-def read_camera_json(path: Path) -> dict | None:
+def read_camera_json(path: Path, partial: bool = False) -> dict | None:
     """camera.json's intrinsics, None when there is no such file: fx, fy, cx, cy (OpenCV's pixel convention: pixel
     (i, j)'s centre at (i, j)), width, height, optional ``baseline_m`` and the lens (:mod:`watergan.lens`: OpenCV's
     ``k1, k2, p1, p2, k3[, k4, k5, k6]``, or ``"lens_model": "fisheye"`` with ``k1..k4``). COLMAP's form, ``model``
     and ``params`` in its order and pixel convention (cx + 0.5), is read into those names. Malformed JSON, a
     missing key, a value that is not a number, an unknown model or lens keys that are not the model's are an
-    error naming the file."""
+    error naming the file. ``partial``: the intrinsics may be missing (a camera SfM self-calibrates): width and
+    height are required, fx, fy, cx, cy optional (``hfov_deg``, the horizontal field of view, may stand for fx)."""
     from watergan.lens import MODEL_KEYS, camera_from_colmap
 
     path = Path(path)
@@ -615,19 +629,25 @@ def read_camera_json(path: Path) -> dict | None:
         except ValueError as exc:
             raise DataError(str(exc)) from None
         del cam["params"]
-    missing = {"fx", "fy", "cx", "cy", "width", "height"} - set(cam)
+    missing = ({"width", "height"} if partial else {"fx", "fy", "cx", "cy", "width", "height"}) - set(cam)
     if missing:
         raise DataError(f"{path} lacks {', '.join(sorted(missing))}: give fx, fy, cx, cy, width, height (or "
-                        f"COLMAP's model and params)")
-    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m"):
+                        f"COLMAP's model and params)" + ("; width and height alone let SfM calibrate the camera"
+                                                         if partial else ""))
+    optional = {"baseline_m", "hfov_deg"} | ({"fx", "fy", "cx", "cy"} if partial else set())
+    for key in ("fx", "fy", "cx", "cy", "width", "height", "baseline_m", "hfov_deg"):
         value = cam.get(key)
-        if key == "baseline_m" and value is None:
+        if key in optional and value is None:
             continue
         positive = key not in ("cx", "cy")
         if not _is_number(value) or (positive and not value > 0):
             raise DataError(f"camera file {path}: {key} = {value!r} is not a {'positive ' if positive else ''}number")
         if key in ("width", "height") and value != int(value):
             raise DataError(f"camera file {path}: {key} = {value!r} is not a whole number of pixels")
+    if "hfov_deg" in cam and not 0 < cam["hfov_deg"] < 180:
+        raise DataError(f"camera file {path}: hfov_deg = {cam['hfov_deg']!r} is not a field of view in degrees")
+    if not isinstance(cam.get("calibrated", True), bool):
+        raise DataError(f"camera file {path}: calibrated = {cam['calibrated']!r}: give true or false")
     model = cam.get("lens_model", "opencv")
     if model not in MODEL_KEYS:
         raise DataError(f"camera file {path}: lens_model = {model!r}: give \"opencv\" (k1, k2, p1, p2, k3[, k4, k5, "
@@ -679,7 +699,8 @@ def _check_crs(survey: dict, path: Path, where: str) -> None:
 
 def read_survey_json(path: Path) -> dict:
     """A survey file (``survey.json``: ``frames``, ``nav_altitude_m``, ``nav_depth_m``, ``frame_time_s``,
-    ``site_depth_m``, ``lights``, ``crs`` with ``nav_easting_m`` + ``nav_northing_m``; every key optional), checked:
+    ``nav_position_m`` ([x, y] or [x, y, z] metres per frame), ``camera_height_m``, ``site_depth_m``, ``lights``,
+    ``crs`` with ``nav_easting_m`` + ``nav_northing_m``; every key optional), checked:
     malformed JSON, a value of the wrong type, or per-frame lists whose length differs from ``frames`` are an error
     naming the file and the key."""
     path = Path(path)
@@ -703,6 +724,17 @@ def read_survey_json(path: Path) -> dict:
         if frames is not None and len(values) != len(frames):
             raise DataError(f"{where}: {len(values)} {key} values for {len(frames)} frames")
     _check_crs(survey, path, where)
+    positions = survey.get("nav_position_m")
+    if positions is not None:
+        if not (isinstance(positions, list) and all(isinstance(p, list) and len(p) in (2, 3)
+                                                    and all(_is_number(v) for v in p) for p in positions)):
+            raise DataError(f"{where}: nav_position_m must be a list of [x, y] or [x, y, z] positions in metres, "
+                            f"one per frame")
+        if frames is not None and len(positions) != len(frames):
+            raise DataError(f"{where}: {len(positions)} nav_position_m values for {len(frames)} frames")
+    if "camera_height_m" in survey and not (_is_number(survey["camera_height_m"]) and survey["camera_height_m"] > 0):
+        raise DataError(f"{where}: camera_height_m = {survey['camera_height_m']!r} is not a positive number (the "
+                        f"camera's height over the floor, metres)")
     if "site_depth_m" in survey and not _is_number(survey["site_depth_m"]):
         raise DataError(f"{where}: site_depth_m = {survey['site_depth_m']!r} is not a number")
     lights = survey.get("lights")
