@@ -2,7 +2,8 @@
 
     watergan effects                      list every registered effect, its parameters and signature
     watergan simulate --out DIR [--preset demo|reef|auv|tiny|small] [--hidden NAME[,NAME]] [--seed N] [--force]
-    watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py)
+    watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py); SURVEY may be a video
+    watergan frames VIDEO... --out DIR    a survey folder of frames from video clips (see pipeline/video.py)
     watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
     watergan survey / sfm / dense / water / gan / restorer / correct / evaluate / texture / mosaic / report
              --workspace WS               one stage of the workspace (pipeline/cli_stage.py), as `run` runs it

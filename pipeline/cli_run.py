@@ -3,11 +3,14 @@
     watergan run SURVEY --workspace WS [--config run.toml] [--add LIST] [--seed N] [--force STAGE]...
                  [--STAGE-OPTION VALUE]...        e.g. --gan-budget-min 4 --restorer-head direct
     watergan demo [--out demo_out] [--preset demo|reef|auv|tiny|small] [same options]
+    watergan frames VIDEO... --out SURVEY [--overlap 0.8] [--max-step-s 2] [--camera-json FILE] ...
 
 ``demo`` simulates the built-in default survey (one effect hidden) into the survey stage's folder
 of ``OUT`` and runs every stage on it. Both print progress per stage, a summary and the report's
 path; a second run skips the finished stages. The options are RunOptions' common fields and every
 stage's own options (:func:`pipeline.run.stage_options`), all generated from the dataclasses.
+``run``'s SURVEY may be a video file or a folder of clips (:mod:`pipeline.video`: its frames are extracted into
+the workspace first, ``--video-*`` options); ``frames`` extracts a survey folder from video alone.
 """
 
 from __future__ import annotations
@@ -15,12 +18,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .cliargs import add_options, list_option, options
+from .cliargs import add_config, add_options, config_from_args, list_option, options
+from .run import NOT_OPTIONS
 
 #: The effect the demo survey hides from the visible model (the diagnosis should find it).
 DEMO_HIDDEN = "vignetting_offcentre"
-#: RunOptions fields the commands set from their own arguments.
-_POSITIONAL = ("survey_dir", "workspace", "stages", "force")
+#: RunOptions fields the commands set from their own arguments (and those that are no options at all).
+_POSITIONAL = ("survey_dir", "workspace", "force", *NOT_OPTIONS)
 
 
 def _options(args: argparse.Namespace, survey_dir: str, workspace: str):
@@ -61,14 +65,25 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _common(p: argparse.ArgumentParser) -> None:
+def cmd_frames(args: argparse.Namespace) -> int:
+    from .video import VideoConfig, clips_of, frames_from_video
+
+    videos = clips_of([Path(v) for v in args.videos])
+    frames = frames_from_video(videos, Path(args.out), config_from_args(VideoConfig, args))
+    done = "extracted earlier, kept" if frames.reused else "kept"
+    print(f"frames: {len(frames.frames)} frames of {frames.width}x{frames.height} {done} from {frames.video_s:.1f} s "
+          f"of video ({len(videos)} clip{'s' if len(videos) > 1 else ''}) in {frames.survey_dir}")
+    return 0
+
+
+def _common(p: argparse.ArgumentParser, exclude: tuple[str, ...] = ()) -> None:
     from .run import RunOptions, run_default_keys, stage_options
 
     p.add_argument("--config", metavar="FILE.toml", help="options file (keys: the options below with _ for -, "
                    "e.g. gan_budget_min = 5); the command line wins")
     p.add_argument("--force", **list_option("rerun finished stages (and those after them that read them); "
                                             "'all' for every stage", "STAGE"), default=[])
-    add_options(p, options(RunOptions, _POSITIONAL))
+    add_options(p, options(RunOptions, (*_POSITIONAL, *exclude)))
     groups: dict[str, list] = {}
     for group, o in stage_options():
         groups.setdefault(group, []).append(o)
@@ -93,7 +108,8 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
 
     add_stage_command(sub, parents, "survey", print_survey)
     p = sub.add_parser("run", parents=parents, help="every stage on a survey folder (resumable)")
-    p.add_argument("survey", help="survey folder: images/, optional right/, camera.json, optional rgbd/")
+    p.add_argument("survey", help="survey folder: images/, optional right/, camera.json, optional rgbd/; or a video "
+                                  "file, or a folder of video clips (frames extracted into WORKSPACE/video_frames)")
     p.add_argument("--workspace", required=True, help="run folder")
     _common(p)
     p.set_defaults(func=cmd_run)
@@ -105,5 +121,14 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--preset", choices=list(PRESETS), default="demo",
                    help="the simulated survey (as `watergan simulate --preset`): demo, 44 stereo frames of 640x480 "
                         "(the default); reef and auv, 60 field-like frames; tiny and small, for tests")
-    _common(p)
+    _common(p, exclude=("video",))
     p.set_defaults(func=cmd_demo)
+
+    from .video import VideoConfig
+
+    p = sub.add_parser("frames", parents=parents, help="a survey folder of frames from video clips, chosen by "
+                                                       "overlap and sharpness")
+    p.add_argument("videos", nargs="+", metavar="VIDEO", help="video files, or folders of clips (taken in name order)")
+    p.add_argument("--out", required=True, help="the survey folder to write (images/, survey.json, camera.json)")
+    add_config(p, VideoConfig)
+    p.set_defaults(func=cmd_frames)

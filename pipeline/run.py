@@ -16,6 +16,11 @@ configuration, nested ones included, but the stage's ``local`` ones), and every 
 stage's configuration, named ``STAGE_FIELD`` (``gan_budget_min``, ``restorer_head``,
 ``diagnose_measure_n_points``; on the command line ``--gan-budget-min``...), see :func:`stage_options`.
 The same keys work in a TOML file (``--config run.toml``).
+
+A survey argument that is a video file or a folder of video clips is extracted into the workspace's
+``video_frames`` folder first (:func:`pipeline.video.video_survey`, the ``video`` options), and the run goes on
+with that folder as the survey (one folder per clips and options: other frames are another survey, so every
+stage reruns on them).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from watergan.errors import UserInputError
 from watergan.io import atomic_write_json
 
 from .cliargs import Option, build, convert, field_paths, options
+from .video import VideoConfig, video_survey
 from .workspace import Workspace, config_hash
 
 if TYPE_CHECKING:
@@ -44,7 +50,8 @@ class RunOptions:
     CLI overrides it). Each stage's own options are in ``stages``."""
 
     survey_dir: str
-    """The survey folder (images/, optional right/, camera.json, optional survey.json and rgbd/)."""
+    """The survey folder (images/, optional right/, camera.json, optional survey.json and rgbd/), or a video
+    file or a folder of video clips (extracted into WORKSPACE/video_frames first)."""
     workspace: str
     """The run folder (created); stages write only here."""
     rgbd_dir: str = ""
@@ -61,10 +68,15 @@ class RunOptions:
     """Stages to rerun even when finished ('all': every stage)."""
     progress: bool = True
     """Progress bars."""
+    video: VideoConfig = field(default_factory=VideoConfig)
+    """How frames are taken from a video given as the survey (:mod:`pipeline.video`); ``progress`` is the run's."""
     stages: Mapping[str, Mapping[tuple[str, ...], Any]] = field(default_factory=dict)
     """Per stage, the options given (field path -> value): see :func:`stage_options`."""
 
 
+#: RunOptions fields that are not options (of a file or of the command line): the stages' own are given by key, and
+#: the video's progress bar is the run's.
+NOT_OPTIONS = ("stages", "video.progress")
 #: RunOptions fields that set the field of the same name in every stage configuration having one.
 COMMON = ("survey_dir", "rgbd_dir", "add", "scheduler", "seed", "progress")
 
@@ -107,14 +119,14 @@ def run_options(values: Mapping[str, Any], where: str = "options") -> RunOptions
     """RunOptions from flat keys (a TOML file's, or the command line's): common fields by name, the
     stages' options by their ``stage_field`` key; every value converted and checked as the command line
     does (:func:`pipeline.cliargs.convert`, effect names included; ``where`` names the source in errors)."""
-    common = {o.key(): o for o in options(RunOptions, ("stages",))}
+    common = {o.key(): o for o in options(RunOptions, NOT_OPTIONS)}
     by_key = {o.key(g): (g, o) for g, o in stage_options()}
     stages: dict[str, dict] = {}
     fields: dict[str, Any] = {}
     unknown = []
     for key, value in values.items():
         if key in common:
-            fields[key] = convert(common[key], value, where)
+            fields[common[key].path] = convert(common[key], value, where)
         elif key in by_key:
             group, o = by_key[key]
             stages.setdefault(group, {})[o.path] = convert(dataclasses.replace(o, name=(key,)), value, where)
@@ -123,7 +135,7 @@ def run_options(values: Mapping[str, Any], where: str = "options") -> RunOptions
     if unknown:
         raise UserInputError(f"unknown option(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(common))} "
                              f"and the stages' options (`watergan run --help`)")
-    return RunOptions(**fields, stages=stages)
+    return build(RunOptions, fields, stages=stages)
 
 
 def load_options_file(path: str | Path) -> dict:
@@ -169,6 +181,11 @@ def run_all(opts: RunOptions) -> dict:
     unknown = sorted(set(opts.force) - set(STAGES) - {"all"})
     if unknown:
         raise UserInputError(f"--force: unknown stage(s) {', '.join(unknown)}; stages: {', '.join(STAGES)}, all")
+    given = opts
+    frames = video_survey(Path(opts.survey_dir), Path(opts.workspace),
+                          dataclasses.replace(opts.video, progress=opts.progress))
+    if frames is not None:
+        opts = dataclasses.replace(opts, survey_dir=str(frames.survey_dir))
     check_inputs(opts)
     ws = Workspace(opts.workspace)
     forced = set(STAGES) if "all" in opts.force else set(opts.force)
@@ -186,7 +203,7 @@ def run_all(opts: RunOptions) -> dict:
             print(f"      {stage} done in {seconds:.1f} s", flush=True)
     report = ws.path(ws.result("report").report)
     summary = {"workspace": str(ws.root), "report": str(report), "seconds": round(time.perf_counter() - began, 2),
-               "stages": timings, "options": _summary_options(opts), "options_hash": config_hash(opts)}
+               "stages": timings, "options": _summary_options(given), "options_hash": config_hash(given)}
     atomic_write_json(ws.root / "run_summary.json", summary)
     return summary
 
