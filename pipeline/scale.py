@@ -6,8 +6,9 @@ positions P_i,
 
     P_i ~ s R C_i + t,
 
-by Umeyama's least squares, refitted ``TRIM_ROUNDS`` times without the frames whose residual exceeds
-``TRIM_MAD`` robust standard deviations (a position glitch, a frame SfM placed wrongly). With 2-D positions the
+by Umeyama's least squares, started on the frames whose distance ratios to the others agree with the median ratio
+(``START_TOLERANCE``) and refitted ``TRIM_ROUNDS`` times without the frames whose residual exceeds ``TRIM_MAD``
+robust standard deviations (a position glitch, a frame SfM placed wrongly). With 2-D positions the
 centres are first taken in the plane of their two principal directions (a vehicle at a constant height; a straight
 track leaves one of them noise, which the similarity ignores). The spread is the median absolute deviation over the
 median of the per-pair ratios |P_i - P_j| / |C_i - C_j| (pairs at least a tenth of the track's extent apart); the
@@ -28,6 +29,9 @@ from watergan.errors import UserInputError
 
 #: Robust refits of the track's similarity, and the residual (in robust standard deviations) that drops a frame.
 TRIM_ROUNDS, TRIM_MAD = 3, 3.0
+#: The frames the first fit starts from: those whose median distance ratio to the others is within this fraction of
+#: the median over all pairs (a glitch's ratios are all off).
+START_TOLERANCE = 0.25
 
 
 def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -74,13 +78,20 @@ def fit_track(centres: np.ndarray, positions: np.ndarray) -> TrackFit:
     if len(positions) < 5:
         raise UserInputError(f"only {len(positions)} registered frames have a position: the track scale needs 5")
     src = _in_plane(np.asarray(centres, float), positions.shape[1])
-    keep = np.ones(len(src), bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = (np.linalg.norm(positions[:, None] - positions[None], axis=2)
+                  / np.linalg.norm(src[:, None] - src[None], axis=2))
+    np.fill_diagonal(ratios, np.nan)
+    per_frame = np.nanmedian(np.where(np.isfinite(ratios), ratios, np.nan), axis=1)
+    keep = np.abs(per_frame / np.nanmedian(ratios) - 1) < START_TOLERANCE
+    if keep.sum() < max(3, len(src) // 2):
+        keep = np.ones(len(src), bool)
     for _ in range(TRIM_ROUNDS):
         s, R, t = similarity_align(src[keep], positions[keep])
         residual = np.linalg.norm(src @ (s * R).T + t - positions, axis=1)
         sigma = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
         new = residual <= np.median(residual[keep]) + TRIM_MAD * max(sigma, 1e-9)
-        if new.sum() < 5 or (new == keep).all():
+        if new.sum() < max(3, len(src) // 2) or (new == keep).all():
             break
         keep = new
     s, R, t = similarity_align(src[keep], positions[keep])

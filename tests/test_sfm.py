@@ -306,7 +306,7 @@ def test_board_scale_agrees_with_stereo_scale(sfm, tmp_path, outline):
     tracks = Tracks.load(ws.path(record.tracks))  # already metric (stereo): expect s = 1
     cfg = SfmConfig(scale="board", board_json=str(_board_clicks(survey, tmp_path, outline)))
     cam = json.loads((survey / "camera.json").read_text())
-    method, s, spread = _choose_scale(cfg, tracks, survey / "images", cam, tracks.track_lengths() >= 3)
+    method, s, spread, _ = _choose_scale(cfg, tracks, survey / "images", cam, tracks.track_lengths() >= 3)
     assert method == "board" and s == pytest.approx(1.0, abs=0.01) and spread < 0.02
 
 

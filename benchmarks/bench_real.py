@@ -1,0 +1,231 @@
+"""Real footage, scored without truth: the pool crawler's survey (``../shared/data/subvo-pool``) run end to end as a
+user of that camera would run it, with only the image size known.
+
+    .venv/bin/python benchmarks/bench_real.py [--out DIR] [--width 1280] [--frames 80] [--json PATH]
+                                              [extra `watergan run` options...]
+
+The survey folder it writes (``OUT/survey``): ``images/`` (links to the frames, or copies resized to ``--width``),
+``camera.json`` holding only the image size and the burned-in timestamp's rectangle (``mask_rects_px``), and
+``navigation.csv`` converted from the data's ``track.csv`` (its ``x_m``, ``z_m`` in the floor plane written as
+``x_m``, ``y_m``), as a user would. Then ``watergan run OUT/survey --workspace OUT/ws``.
+
+What it measures, with the keys of ``benchmarks/results/real.json``:
+
+- SfM: ``registered`` of ``frames``, ``reprojection_px``; the self-calibration (model, focal length, lens) and
+  ``focal_halves_pct`` (each half of the survey bundle-adjusted alone: :func:`pipeline.calibrate.self_calibrate`);
+- scale: the track's similarity (scale, spread, residual) and ``scale_heldout_pct`` (the first half of the
+  positions against the second: :func:`pipeline.scale.track_halves`);
+- the water with its intervals (``water``);
+- per method (raw, physics, restorer, gray world, Sea-thru): Table II's ``consistency`` (R, G, B: variance of
+  normalised colour across each 3D point's views), and the tile test: the floor is one tile colour near and far,
+  so the mean chromaticity c = RGB / (R + G + B) of its far band (rows 50-62 % of the frame) and of its near band
+  (rows 88-100 %), linear RGB, middle 70 % of the width, pooled over every frame and left out where the scene mask
+  says not the scene, should agree: ``tile_chromaticity_distance`` = |c_far - c_near| (Euclidean) and
+  ``tile_luminance_ratio`` = Y_far / Y_near (Y = 0.2126 R + 0.7152 G + 0.0722 B). ``black_pixels`` counts the
+  corrected frames' pixels at 0 in every channel outside the mask;
+- seconds per stage and the run's peak memory (``ru_maxrss`` of the children).
+
+The data's notice (its README: source, licence, attribution) is copied beside everything written from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import resource
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+DATA = ROOT.parent / "shared" / "data" / "subvo-pool"
+#: The burned-in timestamp at full size (1280x720), pixels [x0, y0, x1, y1].
+TIMESTAMP_PX = (0, 0, 430, 45)
+#: The tile test's bands: rows as fractions of the frame's height, and the middle fraction of its width.
+FAR_ROWS, NEAR_ROWS, MIDDLE = (0.50, 0.62), (0.88, 1.00), 0.70
+METHODS = {"raw": None, "physics": None, "restorer": None, "gray_world": "gray_world", "seathru": "seathru"}
+
+
+def prepare_survey(out: Path, width: int, n_frames: int) -> Path:
+    """The survey folder a user of this camera would write (see the module docstring); frames resized to ``width``
+    (and their mask and track alike) when it is not the data's 1280, the first ``n_frames`` of them."""
+    import cv2
+
+    survey = out / "survey"
+    names = sorted(p.name for p in (DATA / "images").iterdir())[:n_frames]
+    (survey / "images").mkdir(parents=True, exist_ok=True)
+    factor = width / 1280
+    for name in names:
+        target = survey / "images" / name
+        if target.exists() or target.is_symlink():
+            continue
+        if width == 1280:
+            target.symlink_to(DATA / "images" / name)
+        else:
+            image = cv2.imread(str(DATA / "images" / name), cv2.IMREAD_COLOR)
+            height = int(round(720 * factor))
+            cv2.imwrite(str(target), cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA),
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+    camera = {"width": width, "height": int(round(720 * factor)),
+              "mask_rects_px": [[int(round(v * factor)) for v in TIMESTAMP_PX]]}
+    (survey / "camera.json").write_text(json.dumps(camera))
+    with (DATA / "track.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["frame"] in set(names)]
+    with (survey / "navigation.csv").open("w") as f:
+        f.write("frame,x_m,y_m\n")
+        f.writelines(f"{r['frame']},{r['x_m']},{r['z_m']}\n" for r in rows)
+    shutil.copy(DATA / "README.md", survey / "NOTICE.md")
+    shutil.copy(DATA / "LICENSE", survey / "LICENSE")
+    return survey
+
+
+def tile_test(folder: Path, names: list[str], mask: np.ndarray | None) -> dict:
+    """The tile test of the module docstring on the frames of ``folder`` (found by name or stem)."""
+    from watergan.io import frame_file, read_image
+
+    sums = {"far": np.zeros(3), "near": np.zeros(3)}
+    counts = {"far": 0, "near": 0}
+    black = 0
+    for name in names:
+        image = read_image(frame_file(folder, name))
+        h, w = image.shape[:2]
+        scene = mask if mask is not None else np.ones((h, w), bool)
+        black += int(((image <= 0).all(axis=2) & scene).sum())
+        columns = slice(int(w * (1 - MIDDLE) / 2), int(w * (1 + MIDDLE) / 2))
+        for band, (top, bottom) in (("far", FAR_ROWS), ("near", NEAR_ROWS)):
+            rows = slice(int(h * top), int(h * bottom))
+            keep = scene[rows, columns]
+            sums[band] += image[rows, columns][keep].sum(0)
+            counts[band] += int(keep.sum())
+    mean = {b: sums[b] / max(counts[b], 1) for b in sums}
+    chroma = {b: mean[b] / mean[b].sum() for b in mean}
+    luminance = {b: float(mean[b] @ [0.2126, 0.7152, 0.0722]) for b in mean}
+    return {"tile_chromaticity_distance": round(float(np.linalg.norm(chroma["far"] - chroma["near"])), 5),
+            "tile_luminance_ratio": round(luminance["far"] / luminance["near"], 4),
+            "tile_far_rgb": np.round(mean["far"], 5).tolist(), "tile_near_rgb": np.round(mean["near"], 5).tolist(),
+            "black_pixels": black}
+
+
+def method_folders(ws) -> dict[str, Path]:
+    """Each method's corrected frames in the workspace (the raw frames the workspace's undistorted ones)."""
+    folders = {"raw": ws.stage_dir("survey") / "images"}
+    correct = ws.result("correct")
+    if correct is not None:
+        if correct.physics_images:
+            folders["physics"] = ws.path(correct.physics_images)
+        if correct.images:
+            folders["restorer"] = ws.path(correct.images)
+    evaluate = ws.result("eval")
+    if evaluate is not None:
+        for method in ("gray_world", "seathru"):
+            folders[method] = ws.path(evaluate.baselines_dir) / method
+    return {m: f for m, f in folders.items() if f.is_dir()}
+
+
+def collect(ws, run_summary: dict) -> dict:
+    """Everything real.json holds (see the module docstring) from a finished workspace."""
+    from watergan.io import image_files, read_scene_mask
+
+    survey, sfm = ws.result("survey"), ws.result("sfm")
+    calibration = survey.self_calibration
+    figures = {
+        "registered": sfm.n_registered, "frames": sfm.n_images,
+        "reprojection_px": round(sfm.mean_reprojection_error_px, 4),
+        "self_calibration": calibration,
+        "focal_halves_pct": calibration.get("halves", {}).get("focal_diff_pct"),
+        "lens": survey.undistorted,
+        "scale": {"method": sfm.scale_method, "factor": sfm.scale_factor, "spread": sfm.scale_spread,
+                  **sfm.scale_detail},
+        "scale_heldout_pct": sfm.scale_detail.get("halves", {}).get("heldout_pct"),
+        "sfm_lens_k1": sfm.lens_k1,
+    }
+    water = ws.result("water")
+    if water is not None:
+        data = json.loads(ws.path(water.water_json).read_text())
+        figures["water"] = {k: {f: v.get(f) for f in ("value", "low", "high", "on_bound", "units")}
+                            for k, v in data["params"].items() if k.split(".")[0] in ("attenuation", "backscatter")}
+        figures["water"]["veil"] = data.get("veil")
+    mask = read_scene_mask(ws.path(survey.scene_mask)) if survey.scene_mask else None
+    names = image_files(ws.stage_dir("survey") / "images")
+    evaluate = ws.result("eval")
+    consistency = evaluate.consistency_variance if evaluate is not None else {}
+    methods = {}
+    for method, folder in method_folders(ws).items():
+        entry = tile_test(folder, names, mask)
+        key = {"physics": "physics", "restorer": "ours"}.get(method, method)
+        if key in consistency:
+            entry["consistency"] = [float(v) for v in consistency[key]]
+        methods[method] = entry
+    figures["methods"] = methods
+    figures["seconds"] = {t["stage"]: t["seconds"] for t in run_summary.get("stages", [])}
+    figures["seconds"]["total"] = run_summary.get("seconds")
+    return figures
+
+
+def targets(figures: dict) -> dict:
+    """The issue's targets, as booleans (None where the run did not reach the figure)."""
+    raw = figures["methods"].get("raw", {})
+    def within(value, limit):
+        return None if value is None else value <= limit
+
+    out = {"registered_all": figures["registered"] == figures["frames"],
+           "reprojection_under_1px": figures["reprojection_px"] < 1.0,
+           "focal_halves_within_3pct": within(figures["focal_halves_pct"], 3),
+           "scale_heldout_within_5pct": within(figures["scale_heldout_pct"], 5)}
+    for method in ("physics", "restorer"):
+        entry = figures["methods"].get(method)
+        if entry is None or not raw:
+            continue
+        out[f"{method}_chromaticity_half_of_raw"] = \
+            entry["tile_chromaticity_distance"] <= 0.5 * raw["tile_chromaticity_distance"]
+        out[f"{method}_luminance_0p8_1p25"] = 0.8 <= entry["tile_luminance_ratio"] <= 1.25
+        if "consistency" in entry and "consistency" in raw:
+            out[f"{method}_consistency_below_raw"] = all(a < b for a, b in zip(entry["consistency"],
+                                                                                 raw["consistency"], strict=True))
+        out[f"{method}_no_black"] = entry["black_pixels"] == 0
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default="/tmp/bench_real", help="working folder (survey and workspace)")
+    parser.add_argument("--width", type=int, default=1280, help="frame width (1280: the data's own size)")
+    parser.add_argument("--frames", type=int, default=80, help="the first N frames")
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "real.json"))
+    args, extra = parser.parse_known_args()
+    from pipeline.workspace import Workspace
+
+    out = Path(args.out)
+    survey = prepare_survey(out, args.width, args.frames)
+    ws_dir = out / "ws"
+    command = [sys.executable, "-m", "pipeline.cli", "run", str(survey), "--workspace", str(ws_dir), *extra]
+    print("$ " + " ".join(command[2:]), flush=True)
+    subprocess.run(command, check=True, cwd=ROOT)
+    peak_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+    ws = Workspace(ws_dir)
+    shutil.copy(survey / "NOTICE.md", ws_dir / "NOTICE.md")
+    figures = collect(ws, json.loads((ws_dir / "run_summary.json").read_text()))
+    figures["peak_memory_gib"] = round(peak_gib, 2)
+    figures["targets"] = targets(figures)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    figures["command"] = "benchmarks/bench_real.py " + " ".join(sys.argv[1:])
+    figures["commit"] = commit.strip()
+    figures["notice"] = ("Frames: SUBVO dataset (A. Neyestani et al., IEEE I2MTC 2025), CC BY 4.0, "
+                         "github.com/A8neyestani/SUBVO; see ../shared/data/subvo-pool/README.md")
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(figures, indent=1) + "\n")
+    print(json.dumps({k: figures[k] for k in ("registered", "frames", "reprojection_px", "focal_halves_pct",
+                                              "scale_heldout_pct", "targets")}, indent=1))
+    for method, entry in figures["methods"].items():
+        print(f"{method:10} tile distance {entry['tile_chromaticity_distance']:.4f}  far/near "
+              f"{entry['tile_luminance_ratio']:.3f}  consistency {entry.get('consistency')}  "
+              f"black {entry['black_pixels']}")
+
+
+if __name__ == "__main__":
+    main()
