@@ -59,8 +59,9 @@ def print_restorer(ws, r) -> None:
 def print_correct(ws, r) -> None:
     if r.physics:
         source = f", range from the {r.physics_range_source}" if r.physics_range_source else ""
-        print(f"physics: {ws.path(r.physics_images)} ({100 * r.unresolved_fraction:.1f} % of the pixels without "
-              f"range: black, masked{source}), {r.physics_seconds:.1f} s")
+        print(f"physics: {ws.path(r.physics_images)} ({100 * r.filled_fraction:.1f} % of the pixels ranged from "
+              f"their neighbours, {100 * r.far_fraction:.1f} % at the far range {r.far_range_m:.2f} m{source}), "
+              f"{r.physics_seconds:.1f} s")
     if r.restorer:
         source = f", range from the {r.range_source}" if r.range_source else ""
         print(f"restorer: {r.corrected} frames ({r.mode} mode{source}), {len(r.failed)} failed, {r.seconds:.1f} s "

@@ -16,9 +16,9 @@ by default the ``survey.json`` beside the images folder); an image without one i
 work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's range in metres, in one of two modes
 (``mode``; ``auto``: RGB-D when ``range_dir`` is given, else monocular):
 
-- ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; holes take
-  the image's median range, :func:`watergan.nets.restorer.fill_holes`); an image without a range map is an
-  error before any work;
+- ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; a pixel
+  without range takes its neighbours' or the survey's far range, :func:`fill_range`, and a water's gain at the far
+  range is held at ``far_max_gain``, :func:`cap_gain`); an image without a range map is an error before any work;
 - ``monocular``, for frames without range (a live camera, a survey without stereo overlap): the range of a flat,
   level seafloor at the frame's altitude (:func:`watergan.formation.inverse.flat_floor_range`), from the navigation's
   altitude, its attitude where it gives one (``nav_down_cam``: :func:`watergan.data.read_nav_down`; else a nadir
@@ -31,7 +31,9 @@ A restorer trained monocular (``--no-range-input``, the paper's) takes the image
 that starts from a water's inverse (:func:`watergan.nets.restorer.water_fields`) takes the images' intrinsics from
 ``camera.json`` in the images folder or beside it (a water with lights needs them). Images already corrected (all
 three outputs present) are skipped unless ``force``. An unreadable or truncated image is reported and skipped.
-Every file is written atomically; the output folder may not be (or contain) the input folder's files.
+Every file is written atomically; the output folder may not be (or contain) the input folder's files. With a scene
+mask (``scene_mask``: :func:`watergan.io.write_scene_mask`'s file), pixels that are not the scene are written as they
+came (the raw levels, in the output's format).
 
 With ``scheduler`` (a Dask scheduler address, ``tcp://HOST:8786``) the images still to do are sent in
 chunks to the cluster's workers (:mod:`watergan.parallel`), each chunk corrected with the model loaded
@@ -43,6 +45,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import sys
 import threading
@@ -51,7 +54,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from enum import StrEnum
+from enum import IntEnum, StrEnum
 from pathlib import Path
 from typing import NamedTuple
 
@@ -75,22 +78,150 @@ from watergan.formation import Stack
 from watergan.formation import get as get_effect
 from watergan.formation.inverse import flat_floor_depth, flat_floor_range, frame_affines, needs_normals
 from watergan.io import (
-    bit_depth,
     encode_grey16_png,
     encode_image,
     is_jpeg,
     levels_bits,
     output_bits,
     read_millimetres,
+    read_scene_mask,
     read_stored,
+    srgb_levels,
     stored_as,
 )
-from watergan.nets.restorer import WaterFields, fill_holes, restore
+from watergan.nets.restorer import WaterFields, restore
 from watergan.nets.site_depth import SiteDepthNet
 from watergan.train_restorer import load_restorer
 from watergan.train_site_depth import load_site_depth
 
 SUMMARY = "summary.json"
+
+
+class RangeFrom(IntEnum):
+    """Where a corrected pixel's range came from: the value of each pixel of ``physics/range_from/<stem>.png``."""
+
+    measured = 0
+    """The frame's range map (the dense range, the fused mesh's where it had none)."""
+    neighbours = 1
+    """Inpainted from the measured range around a small hole (:func:`fill_range`)."""
+    far = 2
+    """The survey's far range: a large hole (open water, a far wall stereo did not match)."""
+    not_scene = 3
+    """Outside the scene mask: not corrected, the raw pixel passed through."""
+
+
+FILL_PX = 24.0
+"""A hole lying everywhere within this many pixels of measured range is interpolated (:func:`fill_range`)."""
+FAR_RANGE_PCT = 95.0
+"""The survey's far range: this percentile of its measured ranges (:func:`survey_far_range_m`)."""
+FAR_MAX_GAIN = 10.0
+"""The largest gain a pixel at the far range is corrected with (:func:`cap_gain`)."""
+
+
+def harmonic_fill(values: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """The values (H,W) at the ``unknown`` pixels ((H,W) bool) that solve the discrete Laplace equation (each the mean
+    of its 4 neighbours) with every other pixel's value held: a membrane over each hole, exact for a plane's values
+    (a ramp). Neighbours beyond the image's edge are left out. Returns (H,W) float64 with the filled values (the
+    rest as given); a sparse solve over the unknown pixels alone."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    h, w = values.shape
+    out = np.asarray(values, np.float64).copy()
+    ys, xs = np.nonzero(unknown)
+    n = len(ys)
+    if n == 0:
+        return out
+    index = np.full((h, w), -1, np.int64)
+    index[ys, xs] = np.arange(n)
+    rows, cols, b, degree = [], [], np.zeros(n), np.zeros(n)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        ny, nx = ys + dy, xs + dx
+        inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+        degree += inside
+        at, ny, nx = np.flatnonzero(inside), ny[inside], nx[inside]
+        other = index[ny, nx]
+        free = other >= 0
+        rows.append(at[free])
+        cols.append(other[free])
+        np.add.at(b, at[~free], out[ny[~free], nx[~free]])
+    rows.append(np.arange(n))
+    cols.append(np.arange(n))
+    data = np.concatenate([-np.ones(sum(len(r) for r in rows[:-1])), degree])
+    matrix = coo_matrix((data, (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsc()
+    out[ys, xs] = spsolve(matrix, b)
+    return out
+
+
+def fill_range(range_m: np.ndarray, far_range_m: float, fill_px: float = FILL_PX,
+               scene: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel's range for the correction, (H,W) float32 metres, and where it came from, (H,W) uint8 of
+    :class:`RangeFrom`. A scene pixel with a measured range (finite, > 0) keeps it. A hole (a connected region of scene
+    pixels without range, 8-connected) that lies everywhere within ``fill_px`` pixels of measured range takes the
+    range interpolated from around it (:func:`harmonic_fill`; a neighbour without range, outside the scene, is given
+    its nearest measured pixel's range first); a larger hole (open water, a far wall),
+    and every hole of a frame without any measured range, takes ``far_range_m``. Pixels outside ``scene`` ((H,W)
+    bool, True = scene; None: every pixel) are marked not the scene and keep their range (``far_range_m`` where they
+    have none). ``range_m``: (H,W) metres, NaN, inf or <= 0 = none. A hole that needs ``far_range_m`` when it is not
+    finite is a ValueError."""
+    import cv2
+
+    r = np.asarray(range_m, np.float32)
+    if scene is not None and scene.shape != r.shape:
+        raise DataError(f"the scene mask is {scene.shape[1]}x{scene.shape[0]}, the range map {r.shape[1]}x{r.shape[0]}")
+    in_scene = np.ones(r.shape, bool) if scene is None else scene
+    with np.errstate(invalid="ignore"):
+        ranged = np.isfinite(r) & (r > 0)
+    measured = ranged & in_scene
+    source = np.where(in_scene, np.uint8(RangeFrom.far), np.uint8(RangeFrom.not_scene))
+    source[measured] = RangeFrom.measured
+    out = np.where(ranged, r, np.float32(far_range_m)).astype(np.float32)
+    holes = in_scene & ~measured
+    if holes.any() and measured.any():
+        dist, nearest = cv2.distanceTransformWithLabels((~measured).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5,
+                                                        labelType=cv2.DIST_LABEL_PIXEL)
+        count, label = cv2.connectedComponents(holes.astype(np.uint8), connectivity=8)
+        large = np.zeros(count, bool)
+        large[label[holes & (dist > fill_px)]] = True
+        small = holes & ~large[label]
+        if small.any():
+            values = np.zeros(int(nearest.max()) + 1, np.float32)  # each measured pixel's label -> its range
+            values[nearest[measured]] = r[measured]
+            out[small] = harmonic_fill(values[nearest], small)[small]
+            source[small] = RangeFrom.neighbours
+    if not np.isfinite(far_range_m) and (source == RangeFrom.far).any():
+        raise ValueError("pixels without a measured range near them need the survey's far range, and it is not known")
+    return out, source
+
+
+def survey_far_range_m(range_maps: list[Path], pct: float = FAR_RANGE_PCT, scene: np.ndarray | None = None) -> float:
+    """The survey's far range: the ``pct`` percentile (to the millimetre) of the measured ranges of every range map's
+    scene pixels (16-bit millimetres, 0 = none; ``scene``: (H,W) bool, None: every pixel), counted in a histogram of
+    millimetres so that memory does not grow with the survey. No measured range in any of them is a DataError."""
+    counts = np.zeros(65536, np.int64)
+    for path in range_maps:
+        mm = read_millimetres(path)
+        if scene is not None and scene.shape != mm.shape:
+            raise DataError(f"the scene mask is {scene.shape[1]}x{scene.shape[0]}, the range map {path} "
+                            f"{mm.shape[1]}x{mm.shape[0]}")
+        counts += np.bincount((mm if scene is None else mm[scene]).ravel(), minlength=65536)
+    counts[0] = 0
+    total = int(counts.sum())
+    if total == 0:
+        raise DataError(f"none of the {len(range_maps)} range maps (e.g. {range_maps[0] if range_maps else '-'}) "
+                        f"holds a range: rerun the dense and water stages, or correct in monocular mode")
+    return int(np.searchsorted(np.cumsum(counts), pct / 100.0 * total)) / 1000.0
+
+
+def cap_gain(fields: torch.Tensor, capped: torch.Tensor, max_gain: float) -> torch.Tensor:
+    """The fields (...,6,H,W) (log gain g, offset o per channel) of J = exp(g) I + o = exp(g) (I - C), C = -o exp(-g),
+    with the gain held at ``max_gain`` where ``capped`` ((...,1,H,W) or (H,W) bool): J = min(exp(g), G) (I - C), so
+    g' = min(g, ln G) and o' = o exp(g' - g). The veil C is still removed in full; only its remainder is amplified
+    less. A pixel at the far range in open water (pure backscatter, I ~ C) would otherwise have its noise and any
+    error of the veil multiplied by exp(eta r) without bound."""
+    g, o = fields[..., :3, :, :], fields[..., 3:, :, :]
+    held = torch.where(capped, g.clamp_max(math.log(max_gain)), g)
+    return torch.cat([held, o * torch.exp(held - g)], dim=-3)
 
 
 @dataclass
@@ -182,6 +313,14 @@ class CorrectChunk:
     site_depth: bool = False
     """Monocular mode: each image's range is the flat seafloor's times the site depth net's factor (the net in
     ``model_dir``, :mod:`watergan.nets.site_depth`)."""
+    far_range_m: float = math.nan
+    """The survey's far range (:func:`survey_far_range_m`), for pixels of a range map without range near them."""
+    fill_px: float = FILL_PX
+    """Holes of a range map within this many pixels of measured range are interpolated (:func:`fill_range`)."""
+    far_max_gain: float = FAR_MAX_GAIN
+    """The water's gain at pixels given the far range is held at this (:func:`cap_gain`)."""
+    scene_mask: Path | None = None
+    """The survey's scene mask (:func:`watergan.io.write_scene_mask`): pixels outside it are written raw."""
 
 
 @dataclass
@@ -263,17 +402,22 @@ def monocular_range(image: np.ndarray, altitude_m: float, K: np.ndarray, down_ca
     return range_m.astype(np.float32)
 
 
-def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None, linear: bool = False
-              ) -> tuple[np.ndarray, int, np.ndarray | None, np.ndarray | None]:
+def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None, linear: bool = False,
+              scene: np.ndarray | None = None
+              ) -> tuple[np.ndarray, int, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
     """The chunk's k-th image to correct (stored values 0..1, float32), its bit depth, for an RGB-D restorer its
-    range (float32 metres: its range map, holes filled (:func:`watergan.nets.restorer.fill_holes`), or a flat
-    seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site``), and with ``linear``
-    its colours decoded to linear light (float32, from the same decoded levels); a DataError names what is wrong.
-    Runs in the I/O threads, off the nets' thread."""
+    range (float32 metres: its range map with every pixel ranged (:func:`fill_range`, ``scene`` the scene mask), or a
+    flat seafloor's (``chunk.flat_floor``), times the site depth net's factor exp(D) with ``site``), with
+    ``linear`` its colours decoded to linear light (float32, from the same decoded levels), and where a range map's
+    pixels took the far range, (H,W) bool (else None); a DataError names what is wrong. Runs in the I/O threads, off
+    the nets' thread."""
     levels = read_stored(path)
     image, bits = stored_as(levels, "linear", np.float32), levels_bits(levels)
     decoded = stored_as(levels, "srgb", np.float32) if linear else None
-    range_m = None
+    if scene is not None and scene.shape != image.shape[:2]:
+        raise DataError(f"image {path} is {image.shape[1]}x{image.shape[0]}, the scene mask {scene.shape[1]}x"
+                        f"{scene.shape[0]}")
+    range_m = far = None
     if chunk.flat_floor:
         range_m = monocular_range(image, chunk.altitude_m[k], chunk.camera.resized(*image.shape[:2]).K,
                                   chunk.down_cam[k] if chunk.down_cam is not None else None, site)
@@ -283,10 +427,10 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None
         if range_m.shape != image.shape[:2]:
             raise DataError(f"range map {range_path} is {range_m.shape[1]}x{range_m.shape[0]}, the image "
                             f"{image.shape[1]}x{image.shape[0]}")
-        if not (range_m > 0).any():
-            raise DataError(f"range map {range_path} holds no range")
-        range_m = fill_holes(range_m)[0]
-    return image, bits, range_m, decoded
+        range_m, source = fill_range(range_m, chunk.far_range_m, chunk.fill_px, scene)
+        far = source == RangeFrom.far
+        far = far if far.any() else None
+    return image, bits, range_m, decoded, far
 
 
 class Item(NamedTuple):
@@ -301,6 +445,8 @@ class Item(NamedTuple):
     range_m: np.ndarray | None
     linear: np.ndarray | None
     """(H,W,3) the colours decoded to linear light, for a restorer that takes them (:func:`restore`)."""
+    far: np.ndarray | None
+    """(H,W) bool: pixels at the survey's far range (the water's gain held there, :func:`cap_gain`); None: none."""
 
 
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
@@ -314,6 +460,7 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
     model = (model if model is not None else load_restorer(chunk.model_dir)).for_inference().to(dev)
     fields = WaterFields(model.water) if model.water is not None else None
     site = load_site_depth(chunk.model_dir)[0].to(dev) if chunk.site_depth else None  # read by the readers
+    scene = read_scene_mask(chunk.scene_mask)
     out = chunk.out_dir
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
@@ -335,11 +482,16 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
         intrinsics = None if chunk.camera is None else chunk.camera.resized(*x.shape[-2:]).as_tuple()
         with torch.no_grad():
             water = fields(range_m, intrinsics) if fields is not None else None
+            if water is not None and any(b.far is not None for b in batch):
+                far = np.stack([b.far if b.far is not None else np.zeros(b.image.shape[:2], bool) for b in batch])
+                water = cap_gain(water, torch.from_numpy(far[:, None]).to(dev), chunk.far_max_gain)
             rgb, depth = restore(model, x, altitude, range_m, intrinsics, water,
                                  stacked([b.linear for b in batch]) if linear else None)
         rgb_np = rgb.cpu().numpy().transpose(0, 2, 3, 1)
         depth_np = depth[:, 0].cpu().numpy()
         for k, b in enumerate(batch):
+            if scene is not None:  # not the scene: the stored values as they came
+                rgb_np[k][~scene] = b.image[~scene]
             _write(out, b.name, chunk.image_format, rgb_np[k], depth_np[k], b.bits)
         return len(batch)
 
@@ -365,9 +517,9 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                 running.append(nets.submit(correct_batch, list(batch)))
                 batch.clear()
 
-            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * batch_size, site, linear):
+            for k, path, read in _read_ahead(reader, chunk, 2 * lanes * batch_size, site, linear, scene):
                 try:
-                    image, bits, range_m, decoded = read.result()
+                    image, bits, range_m, decoded, far = read.result()
                 except DataError as exc:
                     result.failed.append(str(exc))
                     if bar is not None:
@@ -377,7 +529,8 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
                 if batch and batch[0].image.shape != image.shape:
                     submit()
                 batch.append(Item(path.name, image, bits,
-                                  chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m, decoded))
+                                  chunk.altitude_m[k] if chunk.altitude_m is not None else 0.0, range_m, decoded,
+                                  far))
                 if len(batch) == batch_size:
                     submit()
             if batch:
@@ -389,12 +542,12 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
 
 
 def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int, site: SiteDepthNet | None = None,
-                linear: bool = False) -> Iterator[tuple[int, Path, Future]]:
+                linear: bool = False, scene: np.ndarray | None = None) -> Iterator[tuple[int, Path, Future]]:
     """(index, path, the future of :func:`_read_one`) of each path in order, with up to ``ahead`` reads
     submitted before the one yielded."""
     reads: deque[tuple[int, Path, Future]] = deque()
     for k, path in enumerate(chunk.paths):
-        reads.append((k, path, pool.submit(_read_one, chunk, k, path, site, linear)))
+        reads.append((k, path, pool.submit(_read_one, chunk, k, path, site, linear, scene)))
         if len(reads) > ahead:
             yield reads.popleft()
     yield from reads
@@ -412,7 +565,8 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                    batch_size: int = 0, device: str = "auto", progress: bool = True, scheduler=None,
                    chunk_size: int = 64, navigation: str | Path | None = None,
                    range_dir: str | Path | None = None, mode: str = "auto",
-                   image_format: str = "input") -> CorrectResult:
+                   image_format: str = "input", scene_mask: str | Path | None = None, far_range_m: float | None = None,
+                   fill_px: float = FILL_PX, far_max_gain: float = FAR_MAX_GAIN) -> CorrectResult:
     """Correct every image of ``images_dir`` into ``out_dir`` (see the module docstring). Consecutive
     images of the same size are corrected together, ``batch_size`` at a time (0: :func:`batch_for` the device).
 
@@ -424,7 +578,10 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     ``navigation``: the survey file with each image's ``nav_altitude_m`` (None: ``survey.json`` beside
     ``images_dir``), read for a restorer trained with ``altitude`` and in monocular mode. ``range_dir``: the folder
     of each image's range map, for a restorer trained with ``range_input`` in RGB-D mode. ``mode``: a
-    :class:`CorrectMode` (auto: RGB-D when ``range_dir`` is given). ``image_format``: an :class:`ImageFormat`."""
+    :class:`CorrectMode` (auto: RGB-D when ``range_dir`` is given). ``image_format``: an :class:`ImageFormat`.
+    ``scene_mask``: the survey's scene mask file (None: every pixel is the scene). A range map's pixels without range
+    are ranged by :func:`fill_range` (``fill_px``; ``far_range_m``, None: :func:`survey_far_range_m` of the images'
+    range maps), the water's gain held at ``far_max_gain`` where they take the far range (:func:`cap_gain`)."""
     from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
 
     began = time.perf_counter()
@@ -486,6 +643,10 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
     if model.water is not None and camera is None and needs_normals(Stack.from_config(model.water)):
         raise DataError(f"the restorer in {model_dir} inverts a water with lights, which needs the camera's "
                         f"intrinsics: put the survey's camera.json in {images_dir} or beside it")
+    scene = read_scene_mask(scene_mask)
+    if ranges is not None and far_range_m is None:
+        far_range_m = survey_far_range_m([ranges / f"{p.stem}.png" for p in files], scene=scene)
+    far_range_m = math.nan if far_range_m is None else far_range_m
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
@@ -509,14 +670,16 @@ def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str |
                   unit="img") as bar:
             done = correct_chunk(CorrectChunk(Path(model_dir), tuple(todo), out, batch_size, device,
                                               altitude_of(todo), ranges, camera, flat_floor, down_of(todo),
-                                              str(image_format), site_depth), bar, model)
+                                              str(image_format), site_depth, far_range_m, fill_px, far_max_gain,
+                                              Path(scene_mask) if scene_mask else None), bar, model)
         parts = [done]
     else:
         step = batch_size or CUDA_BATCH  # a whole number of batches on either device
         size = -(-max(chunk_size, 1) // step) * step
         jobs = [CorrectChunk(shared_path(model_dir), tuple(shared_path(p) for p in part), shared_path(out),
                              batch_size, device, altitude_of(part), shared_path(ranges) if ranges else None, camera,
-                             flat_floor, down_of(part), str(image_format), site_depth)
+                             flat_floor, down_of(part), str(image_format), site_depth, far_range_m, fill_px,
+                             far_max_gain, shared_path(scene_mask) if scene_mask else None)
                 for part in chunks(todo, size)]
         parts = map_tasks(correct_chunk, jobs, scheduler, desc="correct", progress=progress, unit="chunk")
         for message in (m for part in parts for m in part.failed):
@@ -548,6 +711,17 @@ class CorrectStage:
     image_format: ImageFormat = ImageFormat.input
     """The corrected frames' format: input (the survey's own, its bit depth kept; a JPEG survey's as PNG), png,
     tiff, or jpeg (8 bits, quality 95)."""
+    fill_px: float = FILL_PX
+    """A hole in a frame's range (a connected region of pixels without range) lying everywhere within this many
+    pixels of measured range takes the range interpolated from around it; a larger one (open water, a far wall stereo
+    did not match) takes the survey's far range (``far_range_pct``)."""
+    far_range_pct: float = FAR_RANGE_PCT
+    """The survey's far range, this percentile of the measured ranges of every frame, is the range of pixels in holes
+    larger than ``fill_px``: the veil is removed and the attenuation compensated as at that range."""
+    far_max_gain: float = FAR_MAX_GAIN
+    """At pixels given the far range, the correction's gain (exp(g) of J = exp(g) I + o per channel: exp(eta r) / (k V)
+    for the default stack) is held at this, J = min(exp(g), G) (I - C): open water (pure backscatter, I ~ C) stays
+    finite and near the scene's brightness instead of its noise being amplified by exp(eta r)."""
     scheduler: str = field(default="", metadata={"hash": False})
     """Dask scheduler address (tcp://HOST:8786) for the restorer's per-image work; empty: this machine."""
     progress: bool = field(default=True, metadata={"hash": False})
@@ -557,13 +731,18 @@ class CorrectStage:
 @dataclass
 class CorrectStageResult:
     physics: str
-    """Workspace-relative folder of the physics correction (images/, mask/); empty: the water stage has not run."""
+    """Workspace-relative folder of the physics correction (images/, mask/, range_from/); empty: the water stage has
+    not run."""
     physics_images: str
-    """Its corrected frames: sRGB, the input's bit depth; black where a pixel has no range."""
+    """Its corrected frames: sRGB, the input's bit depth; every pixel corrected (:func:`fill_range`), but those
+    outside the scene mask, written raw."""
     physics_mask: str
-    """Its masks: 255 where the frame was corrected, 0 where it has no range."""
-    unresolved_fraction: float
-    """Share of the pixels the physics correction left black (no range)."""
+    """Its masks: 255 where the pixel was corrected at its measured range, 0 where its range was filled (from its
+    neighbours or the far range) or it is not the scene (what the evaluation scores: measured range only)."""
+    filled_fraction: float
+    """Share of the scene's pixels whose range the physics correction interpolated from their neighbours."""
+    far_fraction: float
+    """Share of the scene's pixels the physics correction corrected at the survey's far range."""
     physics_seconds: float
     """Wall time of the physics correction (files included)."""
     restorer: str
@@ -585,22 +764,31 @@ class CorrectStageResult:
     """"rgb-d" (each pixel's range from the water stage), "monocular" (the image and, when the restorer takes
     them, the altitude and a flat seafloor's range at it), or "" (no restorer)."""
     mesh_images: str
-    """The corrected frames the mesh stage textures with: the physics correction's when every pixel of it had a
-    range, else the restorer's."""
+    """The corrected frames the mesh stage textures with: the physics correction's when every scene pixel of it had
+    a measured range (or there is no restorer), else the restorer's."""
     range_source: str = ""
     """The restorer's range: "range maps", "flat seafloor" or "site depth net" (:class:`CorrectResult`)."""
     range_why: str = ""
     """Why monocular mode took the site depth net or kept the flat seafloor."""
     physics_range_source: str = ""
     """The physics correction's range: "range maps", "flat seafloor" or "site depth net" (:class:`PhysicsResult`)."""
+    physics_range_from: str = ""
+    """Its per-pixel sources of range: ``range_from/<stem>.png``, :class:`RangeFrom` (0 measured, 1 from the
+    neighbours, 2 the far range, 3 not the scene)."""
+    far_range_m: float = 0.0
+    """The survey's far range (metres; 0: no pixel needed it, or monocular mode)."""
 
 
 @dataclass
 class PhysicsResult:
     """What :func:`correct_physics_folder` did."""
 
-    unresolved_fraction: float
-    """Share of the pixels left black (no range)."""
+    filled_fraction: float
+    """Mean over the frames of the share of the scene's pixels whose range was interpolated from their neighbours."""
+    far_fraction: float
+    """Mean over the frames of the share of the scene's pixels corrected at the survey's far range."""
+    far_range_m: float
+    """The survey's far range (:func:`survey_far_range_m`; NaN in monocular mode, where every pixel has a range)."""
     seconds: float
     """Wall time, files included."""
     range_source: str
@@ -608,28 +796,31 @@ class PhysicsResult:
 
 
 def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, image_format: str = "input",
-                           mode: str = CorrectMode.rgbd) -> PhysicsResult:
+                           mode: str = CorrectMode.rgbd, fill_px: float = FILL_PX, far_range_pct: float = FAR_RANGE_PCT,
+                           far_max_gain: float = FAR_MAX_GAIN) -> PhysicsResult:
     """Every frame the sfm stage lists through the inverse of the water stage's estimate; writes
-    ``out/images/<name>`` (sRGB, the input's bit depth, black without range, in ``image_format``:
-    :func:`corrected_name`) and ``out/mask/<stem>.png`` (255: corrected).
+    ``out/images/<name>`` (sRGB, the input's bit depth, in ``image_format``: :func:`corrected_name`; pixels outside
+    the sfm stage's scene mask: the raw levels), ``out/mask/<stem>.png`` (255: corrected at its measured range; 0:
+    range filled, or not the scene) and ``out/range_from/<stem>.png`` (each pixel's :class:`RangeFrom`).
 
-    Each pixel's range: ``mode`` rgb-d (and auto), the water stage's range maps; monocular, for frames without range,
-    a flat seafloor's at the frame's navigation altitude and attitude (the survey's ``survey.json`` beside
-    ``images``), times the site depth net's factor where the restorer stage trained one that beat the flat seafloor
-    (:func:`monocular_range`). A stack that reads surface normals takes :func:`pipeline.water.correction_normals`
-    (in monocular mode those of the range used).
+    Each pixel's range: ``mode`` rgb-d (and auto), the water stage's range maps, a pixel without range ranged by
+    :func:`fill_range` (small holes interpolated within ``fill_px``, larger ones at the survey's far range, the
+    ``far_range_pct`` percentile of its measured ranges, with the gain held at ``far_max_gain``: :func:`cap_gain`);
+    monocular, for frames without range, a flat seafloor's at the frame's navigation altitude and attitude (the
+    survey's ``survey.json`` beside ``images``), times the site depth net's factor where the restorer stage trained
+    one that beat the flat seafloor (:func:`monocular_range`). A stack that reads surface normals takes
+    :func:`pipeline.water.correction_normals` (in monocular mode those of the range used). Pixels outside the scene
+    count in no share.
 
     The frames stream through :func:`cpu_lanes` threads, each reading, correcting and writing one frame at a time on
     one torch thread, so memory does not grow with the survey. A stack that does not read surface normals is inverted
     with the interpolated fields of :class:`watergan.nets.restorer.WaterFields` in float32 (:func:`invert_with_fields`)
     of its effects without a value per frame, each frame's image first freed of the others by the affine map they
     apply to it (:func:`watergan.formation.inverse.frame_affines`: a gain or exposure per frame); otherwise (or for a
-    frame whose effects are no such map) each frame's exact fields (:func:`watergan.formation.inverse.correct_physics`,
-    float64)."""
+    frame whose effects are no such map) each frame's exact fields (:func:`invert_exact`, float64)."""
     from eval.tracks import Tracks
     from watergan.device import single_torch_thread
-    from watergan.formation.inverse import correct_physics
-    from watergan.io import write_png, write_srgb_image
+    from watergan.io import write_png
 
     from .water import correction_normals, water_frame
 
@@ -637,7 +828,9 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
     keep_freed_memory()
     water = ws.require("water", "the physics correction")
     dense = ws.require("dense", "the physics correction")
-    tracks = Tracks.load(ws.path(ws.require("sfm", "the physics correction").tracks))
+    sfm = ws.require("sfm", "the physics correction")
+    tracks = Tracks.load(ws.path(sfm.tracks))
+    scene = read_scene_mask(ws.path(sfm.scene_mask) if getattr(sfm, "scene_mask", "") else None)
     K = np.asarray(tracks.K, float)
     stack = Stack.from_config(water.stack)
     with_normals = needs_normals(stack)
@@ -651,7 +844,7 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
     # the dense range only feeds the normals (the correction's range is the water stage's map)
     depth_dir = ws.path(dense.depth_dir) if with_normals and not monocular else None
     range_dir = ws.path(water.range_dir)
-    site, source = None, "range maps"
+    site, source, far_range_m = None, "range maps", math.nan
     if monocular:
         nav = images.parent / "survey.json"
         if not nav.is_file():
@@ -665,19 +858,22 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
                             f"(e.g. {lacking[0]}): the monocular physics correction needs one per frame")
         site = load_site_depth(ws.folder("restorer"))[0] if ws.result("restorer") is not None else None
         source = "site depth net" if site is not None else "flat seafloor"
+    else:
+        lacking = [n for n in names if not (range_dir / f"{Path(n).stem}.png").is_file()]
+        if lacking:
+            raise DataError(f"the water stage wrote no range map for {len(lacking)} of the {len(names)} frames (e.g. "
+                            f"{lacking[0]} in {range_dir}): rerun it (`watergan water --workspace WS --force`)")
+        far_range_m = survey_far_range_m([range_dir / f"{Path(n).stem}.png" for n in names], far_range_pct, scene)
 
-    def frame_range(name: str, size_hw: tuple[int, int], levels: np.ndarray | None = None) -> np.ndarray:
+    def frame_range(name: str, levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's range, every scene pixel ranged, and where each pixel's came from (:func:`fill_range`)."""
         if monocular:  # the site depth net reads the stored values (levels: the frame's, decoded once)
-            if site is not None and levels is None:
-                levels = read_stored(images / name)
             stored = stored_as(levels, "linear", np.float32) if site is not None else \
-                np.empty((*size_hw, 3), np.float32)
-            return monocular_range(stored, altitudes[name], K, downs[name] if downs else None, site)
-        path = range_dir / f"{Path(name).stem}.png"
-        if not path.is_file():
-            raise DataError(f"the water stage wrote no range map for {name} ({path}): rerun it "
-                            f"(`watergan water --workspace WS --force`)")
-        return read_millimetres(path) / 1000.0  # metres, 0 = none: both inverses and the normals take that
+                np.empty((*levels.shape[:2], 3), np.float32)
+            r = monocular_range(stored, altitudes[name], K, downs[name] if downs else None, site)
+        else:
+            r = read_millimetres(range_dir / f"{Path(name).stem}.png") / 1000.0  # metres, 0 = none
+        return fill_range(r, far_range_m, fill_px, scene)
 
     affines: dict[tuple[int, int], list] = {}  # per image size, every frame's affine map (frame_affines)
     affines_lock = threading.Lock()
@@ -688,44 +884,61 @@ def correct_physics_folder(ws, images: Path, out: Path, progress: bool = True, i
                 affines[size_hw] = frame_affines(stack, per_frame, range(len(names)), K, *size_hw)
         return affines[size_hw][k]
 
-    def correct_frame(k: int) -> float:
+    def correct_frame(k: int) -> tuple[float, float]:
         name = names[k]
-        levels, corrected = None, None
+        levels, corrected = read_stored(images / name), None
+        r, source = frame_range(name, levels)
+        far = source == RangeFrom.far
         if fields is not None:
-            levels = read_stored(images / name)
             image = stored_as(levels, "srgb", np.float32)
             affine = None if per_frame is None else frame_map(k, image.shape[:2])
             if affine is not None:  # the frame's own gain or exposure taken off first
                 s, t = affine
                 image = (image - t.astype(np.float32)) / s.astype(np.float32)
             if per_frame is None or affine is not None:
-                corrected, valid = invert_with_fields(image, frame_range(name, image.shape[:2], levels), fields, K)
+                corrected, _ = invert_with_fields(image, r, fields, K, far, far_max_gain)
         if corrected is None:  # the stack reads normals, or the frame's effects are no affine map of its image
             f = water_frame(tracks, k, images, depth_dir)
-            r = frame_range(name, f.image.shape[:2])
             normals = correction_normals(f, r, K, water.normal_smooth_px) if with_normals else None
-            corrected, valid = correct_physics(f.image, r, stack, K, frame_index=k, normals_cam=normals)
-        # both inverses give NaN where the frame has no range: black there (the writer clips and takes NaN as 0)
-        write_srgb_image(out / "images" / corrected_name(name, image_format), corrected,
-                         bit_depth(images / name) if levels is None else levels_bits(levels))
-        write_png(out / "mask" / f"{Path(name).stem}.png", valid.astype(np.uint8) * np.uint8(255))
-        return float(np.mean(~valid))
+            corrected = invert_exact(f.image, r, stack, K, k, normals, far, far_max_gain)
+        write_corrected(out / "images" / corrected_name(name, image_format), corrected, levels, scene)
+        stem = Path(name).stem
+        write_png(out / "mask" / f"{stem}.png", np.where(source == RangeFrom.measured, 255, 0).astype(np.uint8))
+        write_png(out / "range_from" / f"{stem}.png", source)
+        in_scene = max(int(np.count_nonzero(source != RangeFrom.not_scene)), 1)
+        return (np.count_nonzero(source == RangeFrom.neighbours) / in_scene,
+                np.count_nonzero(source == RangeFrom.far) / in_scene)
 
     lanes = cpu_lanes()
     with single_torch_thread(), ThreadPoolExecutor(lanes) as pool:
-        unresolved = list(tqdm(pool.map(correct_frame, range(len(names))), total=len(names),
-                               desc="physics correction", unit="frame", disable=not progress))
-    return PhysicsResult(float(np.mean(unresolved)), time.perf_counter() - began, source)
+        shares = list(tqdm(pool.map(correct_frame, range(len(names))), total=len(names),
+                           desc="physics correction", unit="frame", disable=not progress))
+    filled, far = np.mean(shares, axis=0) if shares else (0.0, 0.0)
+    return PhysicsResult(float(filled), float(far), far_range_m, time.perf_counter() - began, source)
 
 
-def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields,
-                       K: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def write_corrected(path: Path, linear_rgb: np.ndarray, levels: np.ndarray, scene: np.ndarray | None) -> None:
+    """A corrected frame (linear (H,W,3), clipped to 0..1) as ``path`` in its format at the bits of the input's
+    ``levels`` (:func:`watergan.io.read_stored`; 8 for a JPEG), atomically; pixels outside ``scene`` ((H,W) bool,
+    None: every pixel is the scene) take the input's levels as they are (a 16-bit input's rounded to 8 bits for a
+    JPEG)."""
+    rgb = srgb_levels(linear_rgb, output_bits(path, levels_bits(levels)))
+    if scene is not None:
+        raw = levels[..., ::-1]
+        rgb[~scene] = raw[~scene] if raw.dtype == rgb.dtype else np.rint(raw[~scene] / 257.0).astype(rgb.dtype)
+    atomic_write_bytes(path, encode_image(path.suffix, rgb))
+
+
+def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields, K: np.ndarray | None,
+                       capped: np.ndarray | None = None, max_gain: float = FAR_MAX_GAIN
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """J = exp(g) I + o, the physics inverse J = (I - C) / A with the log gain g = -ln A and offset o = -C / A of
     ``fields`` at each pixel's range (holes take the frame's farthest range, which the table covers, then are
-    marked), as
+    marked), the gain held at ``max_gain`` where ``capped`` ((H,W) bool, None: nowhere; :func:`cap_gain`), as
     :func:`watergan.formation.inverse.correct_physics` returns it: (J (H,W,3) float32 linear, unclipped, NaN where
     the map has no range; valid (H,W) bool). ``image``: (H,W,3) raw linear RGB; ``range_m``: (H,W) metres along the
-    ray, NaN or <= 0 = none; ``K``: the frames' intrinsics (3x3, None: depth = range)."""
+    ray, NaN or <= 0 = none (:func:`fill_range` ranges every pixel); ``K``: the frames' intrinsics (3x3, None:
+    depth = range)."""
     r = np.asarray(range_m, np.float32)
     valid = np.isfinite(r) & (r > 0)
     if not valid.any():
@@ -734,10 +947,31 @@ def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFiel
     intrinsics = None if K is None else (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     with torch.no_grad():
         g_o = fields(torch.from_numpy(filled)[None, None], intrinsics)[0]
+        if capped is not None and capped.any():
+            g_o = cap_gain(g_o, torch.from_numpy(capped)[None], max_gain)
         rgb = torch.from_numpy(np.ascontiguousarray(image, np.float32)).permute(2, 0, 1)
         out = (rgb * g_o[:3].exp() + g_o[3:]).permute(1, 2, 0).contiguous().numpy()
     out[~valid] = np.nan
     return out, valid
+
+
+def invert_exact(image: np.ndarray, range_m: np.ndarray, stack: Stack, K: np.ndarray, frame_index: int,
+                 normals_cam: np.ndarray | None, capped: np.ndarray, max_gain: float = FAR_MAX_GAIN) -> np.ndarray:
+    """J = (I - C) / A with the stack's exact fields A, C at each pixel's range
+    (:func:`watergan.formation.inverse.inverse_fields`, float64: strobes, a per-frame effect; ``frame_index``: the
+    frame's row of the per-frame parameters; ``normals_cam``: (H,W,3) camera-frame normals or None), the gain 1 / A
+    held at ``max_gain`` where ``capped`` ((H,W) bool; :func:`cap_gain`): (H,W,3) float32 linear, unclipped, NaN
+    where ``range_m`` (H,W metres) has no range. ``image``: (H,W,3) raw linear RGB."""
+    from watergan.formation.inverse import inverse_fields
+
+    a, c, valid = inverse_fields(range_m, stack, K, frame_index, normals_cam)
+    a, c = a[0].permute(1, 2, 0).numpy(), c[0].permute(1, 2, 0).numpy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = 1.0 / a
+    gain[capped] = np.minimum(gain[capped], max_gain)
+    out = (np.asarray(image, np.float64) - c) * gain
+    out[~valid] = np.nan
+    return out.astype(np.float32)
 
 
 def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
@@ -752,28 +986,37 @@ def run_correct_stage(ws, cfg: CorrectStage) -> CorrectStageResult:
     images = Path(cfg.images_dir) if cfg.images_dir else ws.folder("survey") / "images"
     folder = ws.stage_dir("correct")
     physics = restored = physics_source = ""
-    unresolved, physics_s = 1.0, 0.0
+    filled = far = physics_s = 0.0
+    far_range_m = None
+    sfm = ws.result("sfm")
+    scene_mask = ws.path(sfm.scene_mask) if sfm is not None and getattr(sfm, "scene_mask", "") else None
     if water is not None:
         done = correct_physics_folder(ws, images, folder / "physics", cfg.progress, str(cfg.image_format),
-                                      CorrectMode.monocular if cfg.mode == CorrectMode.monocular else CorrectMode.rgbd)
-        unresolved, physics_s, physics_source = done.unresolved_fraction, done.seconds, done.range_source
+                                      CorrectMode.monocular if cfg.mode == CorrectMode.monocular else CorrectMode.rgbd,
+                                      cfg.fill_px, cfg.far_range_pct, cfg.far_max_gain)
+        filled, far, physics_s, physics_source = done.filled_fraction, done.far_fraction, done.seconds, \
+            done.range_source
+        far_range_m = done.far_range_m if np.isfinite(done.far_range_m) else None
         physics = ws.relative(folder / "physics")
     result = CorrectResult(folder / "restorer", 0, 0, mode="")
     if restorer is not None:
         ranges = ws.path(water.range_dir) if water is not None else None
         result = correct_folder(restorer.out_dir, images, folder / "restorer", force=True, batch_size=cfg.batch_size,
                                 progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges,
-                                mode=str(cfg.mode), image_format=str(cfg.image_format))
+                                mode=str(cfg.mode), image_format=str(cfg.image_format), scene_mask=scene_mask,
+                                far_range_m=far_range_m, fill_px=cfg.fill_px, far_max_gain=cfg.far_max_gain)
         restored = ws.relative(folder / "restorer")
-    mesh = f"{physics}/images" if physics and (unresolved == 0.0 or not restored) else f"{restored}/images"
+    measured = filled == 0.0 and far == 0.0
+    mesh = f"{physics}/images" if physics and (measured or not restored) else f"{restored}/images"
     return CorrectStageResult(
         physics=physics, physics_images=f"{physics}/images" if physics else "",
-        physics_mask=f"{physics}/mask" if physics else "", unresolved_fraction=unresolved if physics else 0.0,
+        physics_mask=f"{physics}/mask" if physics else "", filled_fraction=filled, far_fraction=far,
         physics_seconds=physics_s, restorer=restored, images=f"{restored}/images" if restored else "",
         depth=f"{restored}/depth" if restored else "", corrected=result.corrected, failed=result.failed,
         seconds=result.seconds, fps=result.corrected / max(result.seconds, 1e-9), mode=result.mode,
         mesh_images=mesh, range_source=result.range_source, range_why=result.range_why,
-        physics_range_source=physics_source)
+        physics_range_source=physics_source, physics_range_from=f"{physics}/range_from" if physics else "",
+        far_range_m=far_range_m or 0.0)
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,14 @@ SfM model in the survey frame, then ``pycolmap.patch_match_stereo`` with geometr
 geometric depth maps (camera z in survey units; the PINHOLE camera undistorts to itself, so the
 pixels are the original ones) are read back and written and fused like SGBM's.
 
+Plausible depths only: a depth beyond the frame's far limit, ``far_limit_ratio`` x the 99th percentile of the
+sparse depths the frame sees (the survey's, for a frame with fewer than 10 sparse points; never more than the
+16-bit millimetre PNG holds, 65.535 units), is dropped as no value and counted (``too_far_fraction``): a match on
+the untextured water above a far wall, or a disparity near 0 from an overlay both views share, gives such depths,
+and SGBM searches no farther than the sparse range widened by ``depth_margin`` anyway. NaN, infinite or
+non-positive depths are no value too, as are pixels outside the survey's scene mask (the sfm stage's
+``scene_mask``: a burned-in timestamp, the vehicle's frame).
+
 Outputs (``02_dense/``): ``depth/<stem>.png`` 16-bit millimetres (0 = invalid) in the survey frame's
 units, ``fused_points.ply`` and ``fused_mesh.ply`` (TSDF fusion with the tensor VoxelBlockGrid).
 
@@ -62,7 +70,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import read_camera_json, write_failed
+from watergan.io import MAX_DEPTH_PNG_M, depth_within, read_camera_json, read_scene_mask, write_depth_png, write_failed
 
 
 class DenseMethod(StrEnum):
@@ -113,6 +121,10 @@ class DenseConfig:
     """Sub-pixel refinement: Gauss-Newton iterations."""
     subpixel_max_shift_px: float = 1.0
     """Sub-pixel refinement: pixels whose refined disparity moved further from SGBM's are dropped."""
+    far_limit_ratio: float = 3.0
+    """A depth beyond this multiple of the 99th percentile of the sparse depths the frame sees (the survey's for a
+    frame with fewer than 10 sparse points; at most 65.535, what the 16-bit millimetre PNG holds) is dropped as no
+    value (a match on open water or a far wall's untextured tiles); the result counts them."""
     fuse: bool = True
     """Fuse the depth maps into a point cloud and mesh (TSDF)."""
     voxel_m: float = 0.0
@@ -133,10 +145,16 @@ class DenseResult:
     pairs: dict[str, str]
     """Image -> partner image name, or 'rig'."""
     coverage: dict[str, float]
-    """Image -> fraction of pixels with a valid depth."""
+    """Image -> fraction of its scene pixels with a valid depth."""
     mean_coverage: float
     skipped: list[str] = field(default_factory=list)
     """Registered images without a usable partner or with no valid depth."""
+    far_limit_m: dict[str, float] = field(default_factory=dict)
+    """Image -> its far limit (survey units: metres when scaled): depths beyond it were dropped."""
+    too_far_fraction: dict[str, float] = field(default_factory=dict)
+    """Image -> fraction of its scene pixels whose depth was dropped as beyond the far limit."""
+    mean_too_far_fraction: float = 0.0
+    """The mean of ``too_far_fraction`` over the images with a depth map."""
     points_ply: str = ""
     mesh_ply: str = ""
     n_fused_points: int = 0
@@ -300,6 +318,31 @@ def choose_neighbour(k: int, tracks, median_depth: float, cfg: DenseConfig,
     return best
 
 
+def frame_far_limit(frame_depths_m: np.ndarray, survey_depths_m: np.ndarray, ratio: float) -> float:
+    """A frame's far limit: ``ratio`` x the 99th percentile of the sparse depths it sees (``frame_depths_m``; the
+    survey's ``survey_depths_m`` when it sees fewer than 10), at most ``MAX_DEPTH_PNG_M``."""
+    depths = frame_depths_m if len(frame_depths_m) >= 10 else survey_depths_m
+    return float(min(ratio * np.percentile(depths, 99), MAX_DEPTH_PNG_M))
+
+
+def write_frame_depth(path: Path, depth_m: np.ndarray, far_limit_m: float,
+                      scene: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+    """A frame's depth map kept where plausible and written as ``path`` (16-bit millimetres, atomically) when any
+    pixel has a depth: no value (NaN) where it is NaN, infinite, <= 0, beyond ``far_limit_m`` (survey units) or outside
+    ``scene`` ((H,W) bool, True = scene; None: every pixel). Returns (the kept depth, float32; coverage: the share
+    of the scene's pixels with a depth; the share of them dropped as beyond the far limit); nothing is written when
+    the coverage is 0."""
+    kept, too_far = depth_within(depth_m, far_limit_m)
+    if scene is not None:
+        kept[~scene] = np.nan
+        too_far &= scene
+    pixels = max(int(scene.sum()) if scene is not None else kept.size, 1)
+    coverage = float(np.isfinite(kept).sum() / pixels)
+    if coverage > 0:
+        write_depth_png(path, kept)
+    return kept.astype(np.float32), coverage, float(too_far.sum() / pixels)
+
+
 @dataclass(frozen=True, eq=False)
 class PairJob:
     """One image's depth task (plain, picklable values: it may run on a Dask worker)."""
@@ -316,14 +359,17 @@ class PairJob:
     cfg: DenseConfig
     depth_png: Path
     """Where the 16-bit millimetre depth map goes (written atomically)."""
+    far_limit_m: float = MAX_DEPTH_PNG_M
+    """Depths beyond it are dropped (:func:`frame_far_limit`)."""
+    scene_mask: Path | None = None
+    """The survey's scene mask (:func:`watergan.io.write_scene_mask`); None: every pixel is the scene."""
 
 
-def pair_depth(job: PairJob) -> tuple[float, np.ndarray | None]:
-    """Depth of ``job.left`` from its pair, written to ``job.depth_png``: (coverage, depth (H,W), NaN = invalid);
-    (0, None) when the rig's right frame is unreadable or no pixel got a depth (nothing written)."""
+def pair_depth(job: PairJob) -> tuple[float, float, np.ndarray | None]:
+    """Depth of ``job.left`` from its pair, kept and written by :func:`write_frame_depth` to ``job.depth_png``:
+    (coverage, share dropped as too far, depth (H,W), NaN = invalid); (0, share, None) when the rig's right frame is
+    unreadable or no pixel got a depth (nothing written)."""
     import cv2
-
-    from eval.depth import write_depth_png
 
     left = cv2.imread(str(job.left), cv2.IMREAD_COLOR)
     if left is None:
@@ -331,22 +377,20 @@ def pair_depth(job: PairJob) -> tuple[float, np.ndarray | None]:
     right = cv2.imread(str(job.right), cv2.IMREAD_COLOR)
     if right is None:
         if job.partner == "rig":
-            return 0.0, None
+            return 0.0, 0.0, None
         raise UserInputError(f"cannot read {job.right}")
     depth = rectified_pair_depth(left[..., ::-1], right[..., ::-1], job.K, job.world_from_left,
                                  job.world_from_right, job.depth_range, job.cfg)
-    cover = float(np.isfinite(depth).mean())
-    if cover == 0:
-        return 0.0, None
-    write_depth_png(job.depth_png, depth)
-    return cover, depth
+    depth, cover, too_far = write_frame_depth(job.depth_png, depth, job.far_limit_m, read_scene_mask(job.scene_mask))
+    return cover, too_far, depth if cover > 0 else None
 
 
 def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: DenseConfig,
-                     baseline_m: float | None = None, right_dir: Path | None = None) -> DenseResult:
-    """Depth maps for the registered images of ``tracks`` and their fusion (see module docstring). With
-    ``cfg.scheduler`` the per-image depth runs on that Dask cluster (:mod:`watergan.parallel`); the
-    fusion runs here."""
+                     baseline_m: float | None = None, right_dir: Path | None = None,
+                     scene_mask: Path | None = None) -> DenseResult:
+    """Depth maps for the registered images of ``tracks`` and their fusion (see module docstring); ``scene_mask``:
+    the survey's scene mask file (None: every pixel is the scene). With ``cfg.scheduler`` the per-image depth runs
+    on that Dask cluster (:mod:`watergan.parallel`); the fusion runs here."""
     from watergan.parallel import map_tasks, rows_by_label, shared_path
 
     start = time.perf_counter()
@@ -363,9 +407,11 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
     K = np.asarray(tracks.K, float)
     rows = rows_by_label(tracks.obs_image, range(len(tracks.image_names)))
     order: list[tuple[str, PairJob | None]] = []  # every registered image, None: no partner
+    limits: dict[str, float] = {}
     for k in np.flatnonzero(tracks.registered):
         name = str(tracks.image_names[k])
         mine = obs_depth[rows[k]]
+        limits[name] = frame_far_limit(mine, obs_depth, cfg.far_limit_ratio)
         z_range = (float(np.percentile(mine, 1)), float(np.percentile(mine, 99))) if len(mine) >= 10 else \
             (0.5 * median_depth, 2 * median_depth)
         if use_rig:
@@ -381,28 +427,32 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
             right, pose_r = images_dir / partner, tracks.world_from_cam[j]
         order.append((name, PairJob(name, shared_path(images_dir / name), shared_path(right), partner, K,
                                     np.array(tracks.world_from_cam[k], float), np.array(pose_r, float), z_range,
-                                    cfg, shared_path(depth_dir / f"{Path(name).stem}.png"))))
+                                    cfg, shared_path(depth_dir / f"{Path(name).stem}.png"), limits[name],
+                                    shared_path(scene_mask) if scene_mask is not None else None)))
     jobs = [job for _, job in order if job is not None]
     done = dict(zip((job.name for job in jobs), map_tasks(pair_depth, jobs, cfg.scheduler or None, desc="dense",
                                                            progress=cfg.progress, unit="image"), strict=True))
-    pairs, coverage, skipped, depths = {}, {}, [], {}
+    pairs, coverage, too_far, skipped, depths = {}, {}, {}, [], {}
     for name, job in order:
-        cover, depth = done[name] if job is not None else (0.0, None)
+        cover, dropped, depth = done[name] if job is not None else (0.0, 0.0, None)
         if depth is None:
             skipped.append(name)
             continue
-        pairs[name], coverage[name], depths[name] = job.partner, cover, depth
+        pairs[name], coverage[name], too_far[name], depths[name] = job.partner, cover, dropped, depth
     if not depths:
         raise UserInputError("no image got a dense depth map: check the pairs (--pairs) and the SfM result")
-    return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start)
+    return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start,
+                   {n: limits[n] for n in depths}, too_far)
 
 
 def _finish(depths: dict[str, np.ndarray], pairs: dict[str, str], coverage: dict[str, float], skipped: list[str],
-            depth_dir: Path, tracks, images_dir: Path, out_dir: Path, cfg: DenseConfig, start: float) -> DenseResult:
+            depth_dir: Path, tracks, images_dir: Path, out_dir: Path, cfg: DenseConfig, start: float,
+            limits: dict[str, float], too_far: dict[str, float]) -> DenseResult:
     """The result of either depth method, with the depth maps fused (TSDF) when ``cfg.fuse``: voxel
     ``cfg.voxel_m`` or the median sparse depth / 100, depth cut at 2.5x the 99th sparse percentile."""
     result = DenseResult(depth_dir=str(depth_dir), pairs=pairs, coverage=coverage,
-                         mean_coverage=float(np.mean(list(coverage.values()))), skipped=skipped)
+                         mean_coverage=float(np.mean(list(coverage.values()))), skipped=skipped, far_limit_m=limits,
+                         too_far_fraction=too_far, mean_too_far_fraction=float(np.mean(list(too_far.values()))))
     if cfg.fuse:
         index = {str(n): i for i, n in enumerate(tracks.image_names)}
         obs_depth = tracks.depths()
@@ -507,13 +557,14 @@ def read_colmap_array(path: Path) -> np.ndarray:
     return values.reshape((width, height, channels), order="F").transpose(1, 0, 2).squeeze()
 
 
-def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: Path, cfg: DenseConfig
-                           ) -> DenseResult:
-    """pycolmap patch-match depth maps (CUDA) for the registered images, written and fused like SGBM's."""
+def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: Path, cfg: DenseConfig,
+                           scene_mask: Path | None = None) -> DenseResult:
+    """pycolmap patch-match depth maps (CUDA) for the registered images, kept, written and fused like SGBM's
+    (``scene_mask``: the survey's scene mask file, None: every pixel is the scene)."""
     import pycolmap
 
-    from eval.depth import write_depth_png
     from pipeline.sfm import colmap_errors_only
+    from watergan.parallel import rows_by_label
 
     start = time.perf_counter()
     mvs, depth_dir = out_dir / "mvs", out_dir / "depth"
@@ -524,20 +575,28 @@ def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: P
     with colmap_errors_only():  # else a few hundred INFO lines per view
         pycolmap.undistort_images(mvs, model_dir, images_dir)
         pycolmap.patch_match_stereo(mvs, options=options)
-    pairs, coverage, skipped, depths = {}, {}, [], {}
+    obs_depth = tracks.depths()
+    rows = rows_by_label(tracks.obs_image, range(len(tracks.image_names)))
+    scene = read_scene_mask(scene_mask)
+    pairs, coverage, too_far, limits, skipped, depths = {}, {}, {}, {}, [], {}
     for k in np.flatnonzero(tracks.registered):
         name = str(tracks.image_names[k])
         path = mvs / "stereo" / "depth_maps" / f"{name}.geometric.bin"
-        depth = read_colmap_array(path).astype(np.float32) if path.is_file() else None
-        if depth is None or depth.shape != (tracks.height, tracks.width) or not (depth > 0).any():
+        depth = read_colmap_array(path) if path.is_file() else None
+        if depth is None or depth.shape != (tracks.height, tracks.width):
             skipped.append(name)
             continue
-        depth[~(depth > 0)] = np.nan
-        write_depth_png(depth_dir / f"{Path(name).stem}.png", depth)
-        pairs[name], coverage[name], depths[name] = "patch_match", float(np.isfinite(depth).mean()), depth
+        limit = frame_far_limit(obs_depth[rows[k]], obs_depth, cfg.far_limit_ratio)
+        depth, cover, dropped = write_frame_depth(depth_dir / f"{Path(name).stem}.png", depth, limit, scene)
+        if cover == 0:
+            skipped.append(name)
+            continue
+        pairs[name], coverage[name], too_far[name], limits[name], depths[name] = \
+            "patch_match", cover, dropped, limit, depth
     if not depths:
         raise UserInputError("patch-match gave no depth map: check the SfM result")
-    return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start)
+    return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start, limits,
+                   too_far)
 
 
 def run_dense(ws, cfg: DenseConfig) -> DenseResult:
@@ -549,8 +608,10 @@ def run_dense(ws, cfg: DenseConfig) -> DenseResult:
     tracks = Tracks.load(ws.path(sfm.tracks))
     images_dir = Path(cfg.images_dir) if cfg.images_dir else ws.stage_dir("survey") / "images"
     right_dir = Path(cfg.right_dir) if cfg.right_dir else images_dir.parent / "right"
+    scene_mask = ws.path(sfm.scene_mask) if getattr(sfm, "scene_mask", "") else None
     if method == "patch_match":
-        result = run_patch_match_folder(tracks, ws.path(sfm.model_dir), images_dir, ws.stage_dir("dense"), cfg)
+        result = run_patch_match_folder(tracks, ws.path(sfm.model_dir), images_dir, ws.stage_dir("dense"), cfg,
+                                        scene_mask)
         result.depth_dir = ws.relative(result.depth_dir)
         if result.points_ply:
             result.points_ply, result.mesh_ply = ws.relative(result.points_ply), ws.relative(result.mesh_ply)
@@ -561,7 +622,7 @@ def run_dense(ws, cfg: DenseConfig) -> DenseResult:
         raise UserInputError("the SfM model has no metric scale, so the rig baseline cannot be placed in it: "
                              "rerun sfm with --scale stereo/altitude or use --pairs neighbours")
     result = run_dense_folder(tracks, images_dir, ws.stage_dir("dense"), cfg, baseline_m,
-                              right_dir if right_dir.is_dir() else None)
+                              right_dir if right_dir.is_dir() else None, scene_mask)
     result.depth_dir = ws.relative(result.depth_dir)
     if result.points_ply:
         result.points_ply, result.mesh_ply = ws.relative(result.points_ply), ws.relative(result.mesh_ply)

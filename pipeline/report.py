@@ -478,7 +478,8 @@ def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
     body = (f"<p>{_esc(r.summary)}</p>{warn}<table><tr><th>parameter</th><th>estimate</th><th>95 % interval</th>"
             f"<th>units</th></tr>{rows}</table><p class='note'>{'A colour board pinned the gain. ' if r.board else ''}"
             f"Each pixel's range: from the dense stage, from the fused mesh for {100 * r.mesh_fraction:.1f} % of the "
-            f"pixels; {100 * r.range_missing:.1f} % had none (the physics correction leaves them black).</p>{figure}")
+            f"pixels; {100 * r.range_missing:.1f} % had none (the physics correction ranges them from their neighbours "
+            f"or at the survey's far range).</p>{figure}")
     return body, {"summary": r.summary}
 
 

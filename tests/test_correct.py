@@ -1,6 +1,8 @@
-"""Correcting an image folder with a restorer (an untrained tiny one: only files and formats matter)."""
+"""Correcting an image folder with a restorer (an untrained tiny one: only files and formats matter), and the physics
+correction's range for pixels without one on a small simulated survey."""
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -9,6 +11,7 @@ import torch
 
 from pipeline.correct import correct_folder
 from watergan.data import DataError
+from watergan.io import srgb_to_linear
 from watergan.nets.restorer import Restorer, RestorerWidths
 from watergan.train_restorer import save_restorer
 
@@ -259,3 +262,205 @@ def test_the_allocator_keeps_freed_memory_on_glibc():
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
     assert keep_freed_memory()
+
+
+# ---------------------------------------------------------------------------------------- range everywhere
+ETA = np.array([0.45, 0.14, 0.2])
+B_INF = np.array([0.05, 0.2, 0.3])
+BETA = np.array([0.35, 0.3, 0.3])
+STACK = [{"name": "attenuation", "params": {"eta_per_m": ETA.tolist()}},
+         {"name": "backscatter", "params": {"b_inf": B_INF.tolist(), "beta_per_m": BETA.tolist()}}]
+CAMERA_K = np.array([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])
+H, W = 48, 64
+OPEN_WATER = (slice(0, 16), slice(None))  # pure backscatter: no surface, no range
+SMALL_HOLE = (slice(30, 33), slice(40, 43))  # a hole in the dense range on the floor
+TIMESTAMP = (slice(42, 48), slice(0, 20))  # not the scene
+
+
+def _underwater(j: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """I = J exp(-eta r) + B_inf (1 - exp(-beta r)) (the stack above); an infinite range gives B_inf."""
+    r = range_m[..., None]
+    return j * np.exp(-ETA * r) + B_INF * -np.expm1(-BETA * r)
+
+
+def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
+    """A workspace with the records the physics correction reads, as the sfm, dense and water stages would save
+    them, for a camera over a flat floor (truth: in-air colour J and range) whose frames see open water in their top
+    rows (pure backscatter) and a burned-in timestamp (the scene mask); the water stage's range maps have no range in
+    the open water and a 3x3 hole on the floor. Returns (workspace, images folder, truth {name: (J, range)})."""
+    from eval.tracks import Tracks
+    from eval.water import WaterConfig
+    from pipeline.dense import DenseConfig, DenseResult
+    from pipeline.sfm import SfmConfig, SfmResult
+    from pipeline.water import WaterResult
+    from pipeline.workspace import Workspace
+    from watergan.formation.inverse import flat_floor_range
+    from watergan.io import linear_to_srgb, quantise, write_depth_png, write_png, write_scene_mask
+
+    ws = Workspace(tmp_path / "ws")
+    images = ws.stage_dir("survey") / "images"
+    images.mkdir()
+    ranges = ws.stage_dir("water") / "range"
+    rng = np.random.default_rng(5)
+    names, truth = [f"f{k}.png" for k in range(len(altitudes_m))], {}
+    for name, altitude_m in zip(names, altitudes_m, strict=True):
+        j = cv2.resize(rng.uniform(0.1, 0.7, (6, 8, 3)), (W, H), interpolation=cv2.INTER_CUBIC).clip(0.1, 0.7)
+        range_m = flat_floor_range(altitude_m, CAMERA_K, H, W)
+        seen = range_m.copy()
+        seen[OPEN_WATER] = np.inf
+        write_png(images / name, quantise(linear_to_srgb(_underwater(j, seen)), 16))
+        measured = range_m.copy()
+        measured[OPEN_WATER] = 0.0
+        measured[SMALL_HOLE] = 0.0
+        write_depth_png(ranges / f"{Path(name).stem}.png", measured)
+        truth[name] = (j, range_m)
+    scene = np.ones((H, W), bool)
+    scene[TIMESTAMP] = False
+    write_scene_mask(ws.stage_dir("sfm") / "scene_mask.png", scene)
+    n = len(names)
+    Tracks(image_names=np.array(names), registered=np.ones(n, bool), world_from_cam=np.tile(np.eye(4), (n, 1, 1)),
+           K=CAMERA_K, width=W, height=H, point_id=np.zeros(0, np.int64), xyz=np.zeros((0, 3)),
+           rgb=np.zeros((0, 3), np.uint8), obs_point=np.zeros(0, np.int64), obs_image=np.zeros(0, np.int64),
+           obs_xy=np.zeros((0, 2), np.float32)).save(ws.stage_dir("sfm") / "tracks.npz")
+    ws.save("sfm", SfmConfig(), SfmResult(
+        model_dir="01_sfm/model", tracks="01_sfm/tracks.npz", n_images=n, n_registered=n, n_points=0,
+        mean_track_length=0.0, mean_reprojection_error_px=0.0, matching="sequential", scale_method="altitude",
+        scale_factor=1.0, scale_spread=0.0, seconds=0.0, scene_mask="01_sfm/scene_mask.png"))
+    ws.save("dense", DenseConfig(), DenseResult(depth_dir="02_dense/depth", pairs={}, coverage={}, mean_coverage=0.0))
+    ws.save("water", WaterConfig(), WaterResult(
+        water_json="03_water/water.json", summary="", stack=STACK, range_dir="03_water/range", mesh_fraction=0.0,
+        range_missing=0.0, normal_smooth_px=24.0, board=False, at_bounds=[], converged=True, seconds=0.0,
+        estimate_seconds=0.0, observations="", n_observations=0, n_points=0))
+    return ws, images, truth
+
+
+def test_fill_range_inpaints_small_holes_and_takes_the_far_range_in_large_ones():
+    """A hole within fill_px of measured range takes the range around it (a tilted floor's, to a millimetre), a larger
+    one the far range; pixels outside the scene are marked so and keep their range; without any measured range every
+    scene pixel takes the far range."""
+    from pipeline.correct import RangeFrom, fill_range
+    from watergan.formation.inverse import flat_floor_range
+
+    down = np.array([0.0, np.sin(0.4), np.cos(0.4)])  # pitched: the range changes across the frame
+    true = flat_floor_range(2.0, CAMERA_K, H, W, down)
+    measured = true.copy()
+    measured[OPEN_WATER] = np.nan
+    measured[SMALL_HOLE] = 0.0
+    measured[5, 5] = np.inf
+    scene = np.ones((H, W), bool)
+    scene[TIMESTAMP] = False
+    r, source = fill_range(measured, 7.5, fill_px=6.0, scene=scene)
+    assert r.dtype == np.float32 and source.dtype == np.uint8
+    assert (source[SMALL_HOLE] == RangeFrom.neighbours).all()
+    np.testing.assert_allclose(r[SMALL_HOLE], true[SMALL_HOLE], atol=2e-3)
+    assert (source[OPEN_WATER] == RangeFrom.far).all() and (r[OPEN_WATER] == 7.5).all()
+    assert (source[TIMESTAMP] == RangeFrom.not_scene).all()
+    np.testing.assert_allclose(r[TIMESTAMP], true[TIMESTAMP], rtol=1e-6)
+    rest = np.ones((H, W), bool)
+    for region in (OPEN_WATER, SMALL_HOLE, TIMESTAMP):
+        rest[region] = False
+    assert (source[rest] == RangeFrom.measured).all() and np.array_equal(r[rest], true[rest].astype(np.float32))
+    r, source = fill_range(np.zeros((H, W)), 3.0, scene=scene)
+    assert (source[scene] == RangeFrom.far).all() and (r == 3.0).all()
+    with pytest.raises(ValueError, match="far range"):
+        fill_range(measured, float("nan"), fill_px=6.0)
+
+
+def test_the_gain_cap_holds_the_gain_and_removes_the_whole_veil():
+    """cap_gain: J = min(exp(g), G) (I - C) where capped, the fields unchanged elsewhere."""
+    from pipeline.correct import cap_gain
+
+    rng = np.random.default_rng(0)
+    fields = torch.from_numpy(rng.normal(0, 2, (6, 5, 7)))
+    capped = torch.from_numpy(rng.random((1, 5, 7)) < 0.5)
+    image = torch.from_numpy(rng.random((3, 5, 7)))
+    held = cap_gain(fields, capped, 4.0)
+    gain, veil = fields[:3].exp(), -fields[3:] * (-fields[:3]).exp()  # J = exp(g) (I - C), C = -o exp(-g)
+    expected = torch.where(capped, gain.clamp_max(4.0), gain) * (image - veil)
+    torch.testing.assert_close(held[:3].exp() * image + held[3:], expected)
+    assert torch.equal(held[:, ~capped[0]], fields[:, ~capped[0]])
+
+
+def test_the_physics_correction_ranges_every_pixel_and_passes_the_non_scene_through(tmp_path):
+    """With open water and a hole in the range maps and a timestamp masked out: no pixel of the scene is written
+    black, the hole's pixels (ranged from their neighbours) are corrected to their in-air colour, the open water at
+    the survey's far range (the 95th percentile of its ranges) to a finite colour no brighter than the capped gain
+    allows (a gain held at 2 holds red, whose exp(eta r) is about 4 there), the timestamp's pixels are the raw input's
+    levels exactly, and range_from/ and mask/ say which pixel got which range."""
+    from pipeline.correct import CorrectStage
+
+    ws, images, truth = _simulated_workspace(tmp_path)
+    result = ws.run("correct", CorrectStage(fill_px=6.0, progress=False))
+    _check_ranged_everywhere(ws, images, truth, result, 10.0)
+    held = ws.run("correct", CorrectStage(fill_px=6.0, far_max_gain=2.0, progress=False))
+    assert np.exp(ETA[0] * held.far_range_m) > 3.5
+    _check_ranged_everywhere(ws, images, truth, held, 2.0)
+
+
+def _check_ranged_everywhere(ws, images, truth, result, max_gain):
+    from pipeline.correct import RangeFrom
+
+    assert result.physics == "06_correct/physics" and result.restorer == ""
+    scene = np.ones((H, W), bool)
+    scene[TIMESTAMP] = False
+    ranged = scene.copy()
+    ranged[OPEN_WATER] = ranged[SMALL_HOLE] = False
+    measured = np.concatenate([r[ranged] for _, r in truth.values()])
+    assert result.far_range_m == pytest.approx(np.percentile(measured, 95), abs=0.01)
+    scene_px = scene.sum()
+    assert result.far_fraction == pytest.approx(np.count_nonzero(scene[OPEN_WATER]) / scene_px)
+    assert result.filled_fraction == pytest.approx(9 / scene_px)
+    for name, (j, _) in truth.items():
+        stem = Path(name).stem
+        out = cv2.imread(str(ws.path(result.physics_images) / name), cv2.IMREAD_UNCHANGED)
+        raw = cv2.imread(str(images / name), cv2.IMREAD_UNCHANGED)
+        assert out.dtype == np.uint16 and out.shape == (H, W, 3)
+        assert (out[scene].max(axis=1) > 0).all()  # no scene pixel black
+        assert np.array_equal(out[~scene], raw[~scene])  # not the scene: as it came
+        source = cv2.imread(str(ws.path(result.physics_range_from) / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+        assert (source[SMALL_HOLE] == RangeFrom.neighbours).all() and (source[OPEN_WATER][scene[OPEN_WATER]]
+                                                                         == RangeFrom.far).all()
+        assert (source[~scene] == RangeFrom.not_scene).all()
+        assert np.count_nonzero(source == RangeFrom.measured) == scene_px - 9 - np.count_nonzero(scene[OPEN_WATER])
+        mask = cv2.imread(str(ws.path(result.physics_mask) / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(mask == 255, source == RangeFrom.measured)
+        corrected = srgb_to_linear(out[..., ::-1] / 65535.0)
+        np.testing.assert_allclose(corrected[SMALL_HOLE], j[SMALL_HOLE], atol=0.01)  # the hole: as the floor
+        floor = (source == RangeFrom.measured)
+        assert np.abs(corrected[floor] - j[floor]).max() < 0.01
+        # open water is B_inf, what the veil at the far range leaves of it: B_inf exp(-beta r), times the gain
+        r_far = result.far_range_m
+        expected = np.minimum(np.exp(ETA * r_far), max_gain) * B_INF * np.exp(-BETA * r_far)
+        water = corrected[OPEN_WATER][scene[OPEN_WATER]]
+        np.testing.assert_allclose(water, np.broadcast_to(expected, water.shape), atol=0.005)
+
+
+def test_an_rgbd_restorer_ranges_every_pixel_and_passes_the_non_scene_through(tmp_path):
+    """A range map with a large hole, and one with no range at all, are corrected (the hole and the empty map at the
+    survey's far range, the 95th percentile of the maps' ranges unless given: another far range gives another colour
+    there); with a scene mask the pixels that are not the scene are the input's levels exactly."""
+    from watergan.io import write_depth_png, write_scene_mask
+
+    save_model(tmp_path / "model", range_input=True)
+    images = write_images(tmp_path / "images")
+    ranges = tmp_path / "range"
+    holed = np.full((32, 40), 1.5)
+    holed[:20] = 0.0  # more than fill_px from any range: the far range
+    write_depth_png(ranges / "a.png", holed)
+    write_depth_png(ranges / "b.png", np.zeros((32, 40)))
+    scene = np.ones((32, 40), bool)
+    scene[26:, :12] = False
+    write_scene_mask(tmp_path / "scene.png", scene)
+    runs = {}
+    for far_range_m in (None, 6.0):
+        out = tmp_path / f"out_{far_range_m}"
+        done = correct_folder(tmp_path / "model", images, out, progress=False, range_dir=ranges, fill_px=4.0,
+                              scene_mask=tmp_path / "scene.png", far_range_m=far_range_m)
+        assert done.corrected == 2 and not done.failed
+        runs[far_range_m] = {n: cv2.imread(str(out / "images" / n)).astype(int) for n in ("a.png", "b.png")}
+        for name in ("a.png", "b.png"):
+            raw = cv2.imread(str(images / name)).astype(int)
+            assert np.array_equal(runs[far_range_m][name][~scene], raw[~scene])
+            assert np.abs(runs[far_range_m][name][scene] - raw[scene]).max() > 2  # the scene is corrected
+    assert np.abs(runs[None]["a.png"][:20] - runs[6.0]["a.png"][:20]).max() > 2
+    assert np.abs(runs[None]["b.png"] - runs[6.0]["b.png"])[scene].max() > 2

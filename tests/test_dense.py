@@ -1,4 +1,5 @@
-"""Dense SGBM depth on the simulated stereo survey: coverage and error against rendered depth."""
+"""Dense SGBM depth on the simulated stereo survey: coverage and error against rendered depth; implausible depths
+dropped, never fatal."""
 
 import numpy as np
 import pytest
@@ -8,6 +9,9 @@ from eval.depth import read_depth
 from eval.tracks import Tracks
 from pipeline.dense import (
     DenseConfig,
+    PairJob,
+    frame_far_limit,
+    pair_depth,
     ply_complete,
     rectified_pair_depth,
     rectifying_rotation,
@@ -15,6 +19,7 @@ from pipeline.dense import (
     run_dense,
     run_dense_folder,
     write_checked,
+    write_frame_depth,
 )
 
 
@@ -43,6 +48,9 @@ def test_rig_sgbm_coverage_and_error(sfm):
     assert coverage > 0.7 and result.mean_coverage == pytest.approx(coverage, abs=0.01)
     assert np.median(rel) < 0.005  # about 0.05 px of disparity at 11 px (SGBM alone: ~0.015)
     assert result.n_fused_points > 1000 and ws.path(result.mesh_ply).is_file()
+    true_max = max(np.nanmax(read_depth(survey / "truth" / "depth" / name)) for name in result.pairs)
+    assert set(result.far_limit_m) == set(result.too_far_fraction) == set(result.pairs)
+    assert min(result.far_limit_m.values()) > true_max and result.mean_too_far_fraction < 0.001
 
 
 def test_neighbour_pairs_without_rig(sfm, tmp_path):
@@ -146,3 +154,66 @@ def test_a_mesh_file_cut_short_is_an_error_and_not_kept(tmp_path):
                                          r"\(a full disk\?\); free some space"):
         write_checked(tmp_path / "fused.ply", cloud, cut_short)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply", "points.ply"]
+
+
+def test_wild_depths_are_dropped_and_counted_never_fatal(tmp_path):
+    """Depths beyond the far limit (a mismatch on open water), beyond what the millimetre PNG holds, infinite, NaN or
+    negative are written as no value and read back as such, with the scene mask's pixels; the far limit is a
+    multiple of the frame's 99th-percentile sparse depth (the survey's for a frame with few points), never more than
+    the PNG holds."""
+    from watergan.io import MAX_DEPTH_PNG_M, DataError, write_depth_png
+
+    depth = np.full((20, 30), 2.0)
+    wild = [(0, 0, 1e6), (0, 1, 70.0), (1, 1, 9.0), (2, 2, np.inf), (3, 3, np.nan), (4, 4, -1.0), (5, 5, 0.0)]
+    for y, x, value in wild:
+        depth[y, x] = value
+    scene = np.ones(depth.shape, bool)
+    scene[-2:] = False
+    kept, coverage, too_far = write_frame_depth(tmp_path / "d.png", depth, 6.0, scene)
+    back = read_depth(tmp_path / "d.png")
+    gone = ~scene
+    for y, x, _ in wild:
+        gone[y, x] = True
+    assert np.isnan(back[gone]).all() and np.isnan(kept[gone]).all()
+    assert (back[~gone] == 2.0).all() and (kept[~gone] == 2.0).all()
+    assert too_far == pytest.approx(3 / scene.sum()) and coverage == pytest.approx((~gone).sum() / scene.sum())
+    write_frame_depth(tmp_path / "e.png", depth, 1e9)  # a limit beyond the PNG's: 70 m still dropped
+    assert np.isnan(read_depth(tmp_path / "e.png")[0, :2]).all() and read_depth(tmp_path / "e.png")[1, 1] == 9.0
+    assert write_frame_depth(tmp_path / "f.png", np.full((4, 4), 8.0), 6.0)[1:] == (0.0, 1.0)
+    assert not (tmp_path / "f.png").exists()  # no depth: nothing written
+    with pytest.raises(DataError, match="65.535"):  # the writer itself still refuses a caller's far value
+        write_depth_png(tmp_path / "far.png", np.full((2, 2), 70.0))
+    assert frame_far_limit(np.full(20, 2.0), np.full(100, 5.0), 3.0) == pytest.approx(6.0)
+    assert frame_far_limit(np.full(5, 2.0), np.full(100, 5.0), 3.0) == pytest.approx(15.0)
+    assert frame_far_limit(np.full(20, 40.0), np.full(100, 5.0), 3.0) == MAX_DEPTH_PNG_M
+
+
+def test_a_pair_s_depth_beyond_the_far_limit_or_outside_the_scene_is_no_value(tmp_path):
+    """A fronto-parallel plane at 2.46 m: with a far limit of 2 m every depth is dropped (nothing written, counted as
+    too far); with the scene mask leaving out the left half, those pixels have no depth and the coverage is the
+    scene's."""
+    import cv2
+
+    from watergan.io import write_scene_mask
+
+    left, right = _shifted_pair(16.3)
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    K = np.array([[200.0, 0, 159.5], [0, 200.0, 119.5], [0, 0, 1]])
+    pose_r = np.eye(4)
+    pose_r[0, 3] = 0.2
+    scene = np.ones(left.shape, bool)
+    scene[:, :160] = False
+    write_scene_mask(tmp_path / "scene.png", scene)
+
+    def job(far_limit_m, mask=None):
+        return PairJob("l.png", tmp_path / "l.png", tmp_path / "r.png", "rig", K, np.eye(4), pose_r, (2.0, 3.0),
+                       DenseConfig(), tmp_path / "depth.png", far_limit_m, mask)
+
+    cover, too_far, depth = pair_depth(job(2.0))
+    assert (cover, depth) == (0.0, None) and too_far > 0.7 and not (tmp_path / "depth.png").exists()
+    cover, too_far, depth = pair_depth(job(65.535, tmp_path / "scene.png"))
+    back = read_depth(tmp_path / "depth.png")
+    assert np.isnan(back[:, :160]).all() and np.isnan(depth[:, :160]).all() and too_far == 0.0
+    assert cover == pytest.approx(np.isfinite(back).sum() / scene.sum()) and cover > 0.8
+    assert np.nanmedian(back) == pytest.approx(200 * 0.2 / 16.3, rel=0.002)

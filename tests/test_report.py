@@ -85,10 +85,10 @@ def evaluated():
     ws.run("water", water_config(bootstrap=4, progress=False))
     # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
     physics = correct_physics_folder(ws, survey / "images", ws.root / "06_correct" / "physics", False)
-    unresolved, physics_s = physics.unresolved_fraction, physics.seconds
+    filled, far, physics_s = physics.filled_fraction, physics.far_fraction, physics.seconds
     ws.save("correct", CorrectStage(), CorrectStageResult(
         physics="06_correct/physics", physics_images="06_correct/physics/images",
-        physics_mask="06_correct/physics/mask", unresolved_fraction=unresolved, physics_seconds=physics_s,
+        physics_mask="06_correct/physics/mask", filled_fraction=filled, far_fraction=far, physics_seconds=physics_s,
         restorer="06_correct/restorer", images="06_correct/restorer/images", depth="06_correct/restorer/depth",
         corrected=10, failed=[], seconds=2.5, fps=4.0, mode="rgb-d", mesh_images="06_correct/restorer/images"))
     ws.run("mesh", MeshConfig(source="sparse"))
@@ -193,7 +193,7 @@ def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_n
 
     survey, ws, _, _ = evaluated
     result = correct_physics_folder(ws, survey / "images", tmp_path / "mono", False, mode="monocular")
-    assert result.range_source == "flat seafloor" and result.unresolved_fraction == 0.0
+    assert result.range_source == "flat seafloor" and result.filled_fraction == result.far_fraction == 0.0
 
     def error(folder: Path) -> float:
         return float(np.mean([np.abs(read_image(folder / p.name) - read_image(p)).mean()
