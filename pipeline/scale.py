@@ -6,7 +6,9 @@ positions P_i,
 
     P_i ~ s R C_i + t,
 
-by Umeyama's least squares, started on the frames whose distance ratios to the others agree with the median ratio
+R a rotation or a mirror image of one (a log's horizontal axes are not always right-handed seen from above: the
+data's x and z with y up are not; the scale does not depend on it, and the fit says which), by Umeyama's least
+squares, started on the frames whose distance ratios to the others agree with the median ratio
 (``START_TOLERANCE``) and refitted ``TRIM_ROUNDS`` times without the frames whose residual exceeds ``TRIM_MAD``
 robust standard deviations (a position glitch, a frame SfM placed wrongly). With 2-D positions the
 centres are first taken in the plane of their two principal directions (a vehicle at a constant height; a straight
@@ -34,16 +36,17 @@ TRIM_ROUNDS, TRIM_MAD = 3, 3.0
 START_TOLERANCE = 0.25
 
 
-def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def similarity_align(src: np.ndarray, dst: np.ndarray, reflection: bool = False
+                     ) -> tuple[float, np.ndarray, np.ndarray]:
     """Umeyama's least-squares similarity dst ~ s R src + t for point sets (N,D), N >= D, any dimension D.
-    With centred sets X, Y and the SVD U D V^T of Y^T X / N: R = U S V^T (S fixes a reflection),
-    s = trace(D S) / var(X), t = mean(dst) - s R mean(src). Returns (s, R, t)."""
+    With centred sets X, Y and the SVD U D V^T of Y^T X / N: R = U S V^T (S fixes a reflection unless
+    ``reflection``: then R may mirror), s = trace(D S) / var(X), t = mean(dst) - s R mean(src). Returns (s, R, t)."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
     mu_s, mu_d = src.mean(0), dst.mean(0)
     x, y = src - mu_s, dst - mu_d
     u, d, vt = np.linalg.svd(y.T @ x / len(src))
     sign = np.eye(src.shape[1])
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+    if not reflection and np.linalg.det(u) * np.linalg.det(vt) < 0:
         sign[-1, -1] = -1
     rotation = u @ sign @ vt
     scale = float(np.trace(np.diag(d) @ sign) / (x**2).sum(1).mean())
@@ -62,6 +65,8 @@ class TrackFit:
     """Frames the robust fit kept."""
     used: int
     """Registered frames with a position."""
+    mirrored: bool
+    """Whether the positions' axes are a mirror image of the reconstruction's (a log's x, y seen from below)."""
 
 
 def _in_plane(centres: np.ndarray, dims: int) -> np.ndarray:
@@ -87,14 +92,14 @@ def fit_track(centres: np.ndarray, positions: np.ndarray) -> TrackFit:
     if keep.sum() < max(3, len(src) // 2):
         keep = np.ones(len(src), bool)
     for _ in range(TRIM_ROUNDS):
-        s, R, t = similarity_align(src[keep], positions[keep])
+        s, R, t = similarity_align(src[keep], positions[keep], reflection=True)
         residual = np.linalg.norm(src @ (s * R).T + t - positions, axis=1)
         sigma = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
         new = residual <= np.median(residual[keep]) + TRIM_MAD * max(sigma, 1e-9)
         if new.sum() < max(3, len(src) // 2) or (new == keep).all():
             break
         keep = new
-    s, R, t = similarity_align(src[keep], positions[keep])
+    s, R, t = similarity_align(src[keep], positions[keep], reflection=True)
     residual = np.linalg.norm(src[keep] @ (s * R).T + t - positions[keep], axis=1)
     i, j = np.triu_indices(int(keep.sum()), 1)
     d_pos = np.linalg.norm(positions[keep][i] - positions[keep][j], axis=1)
@@ -103,7 +108,7 @@ def fit_track(centres: np.ndarray, positions: np.ndarray) -> TrackFit:
     ratios = d_pos[far] / d_sfm[far]
     spread = float(np.median(np.abs(ratios - np.median(ratios))) / np.median(ratios)) if far.any() else float("nan")
     return TrackFit(scale=float(s), spread=spread, residual_m=float(np.sqrt(np.mean(residual**2))),
-                    kept=int(keep.sum()), used=len(src))
+                    kept=int(keep.sum()), used=len(src), mirrored=bool(np.linalg.det(R) < 0))
 
 
 def track_halves(centres: np.ndarray, positions: np.ndarray) -> dict:
