@@ -32,6 +32,10 @@ Pixels that move more than ``subpixel_max_shift_px`` from SGBM's value or have n
 The refined disparity is carried back to the original pixels by (validity-normalised) bilinear
 interpolation.
 
+Forward motion: a neighbour pair whose baseline runs within ``forward_max_angle_deg`` of the view direction (a
+crawler or ROV looking ahead) has its epipoles in the frames, so rectification fails; such a frame takes its depth
+from the sparse points it sees instead (:func:`pipeline.sparse_depth.frame_sparse_depth`).
+
 Method: ``method="auto"`` uses pycolmap's patch-match MVS when pycolmap was built with CUDA
 (``pycolmap.has_cuda``), else this SGBM path; 'patch_match' without CUDA is an error. Patch-match
 runs on an undistorted COLMAP workspace (``02_dense/mvs``: ``pycolmap.undistort_images`` of the
@@ -71,6 +75,8 @@ import numpy as np
 
 from watergan.errors import UserInputError
 from watergan.io import MAX_DEPTH_PNG_M, depth_within, read_camera_json, read_scene_mask, write_depth_png, write_failed
+
+from .sparse_depth import frame_sparse_depth, pair_is_forward
 
 
 class DenseMethod(StrEnum):
@@ -121,6 +127,10 @@ class DenseConfig:
     """Sub-pixel refinement: Gauss-Newton iterations."""
     subpixel_max_shift_px: float = 1.0
     """Sub-pixel refinement: pixels whose refined disparity moved further from SGBM's are dropped."""
+    forward_max_angle_deg: float = 45.0
+    """Neighbour pairs whose baseline lies within this angle of the frame's view direction (a camera moving along its
+    view: the epipole in the frame, nothing for rectified stereo to match along) take the frame's depth from the
+    sparse points it sees instead (:mod:`pipeline.sparse_depth`); 0: never."""
     far_limit_ratio: float = 3.0
     """A depth beyond this multiple of the 99th percentile of the sparse depths the frame sees (the survey's for a
     frame with fewer than 10 sparse points; at most 65.535, what the 16-bit millimetre PNG holds) is dropped as no
@@ -143,7 +153,7 @@ class DenseResult:
     depth_dir: str
     """Folder of 16-bit millimetre depth maps (0 = invalid)."""
     pairs: dict[str, str]
-    """Image -> partner image name, or 'rig'."""
+    """Image -> partner image name, 'rig', or 'sparse' (interpolated from the sparse points: a forward pair)."""
     coverage: dict[str, float]
     """Image -> fraction of its scene pixels with a valid depth."""
     mean_coverage: float
@@ -365,6 +375,10 @@ class PairJob:
     """The survey's scene mask (:func:`watergan.io.write_scene_mask`); None: every pixel is the scene."""
 
 
+#: A frame whose depth comes from the sparse points (a forward-moving pair).
+SPARSE = "sparse"
+
+
 def pair_depth(job: PairJob) -> tuple[float, float, np.ndarray | None]:
     """Depth of ``job.left`` from its pair, kept and written by :func:`write_frame_depth` to ``job.depth_png``:
     (coverage, share dropped as too far, depth (H,W), NaN = invalid); (0, share, None) when the rig's right frame is
@@ -423,22 +437,34 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
             if j is None:
                 order.append((name, None))
                 continue
+            if cfg.forward_max_angle_deg > 0 and pair_is_forward(tracks.world_from_cam[k], tracks.world_from_cam[j],
+                                                                 cfg.forward_max_angle_deg):
+                order.append((name, SPARSE))
+                continue
             partner = str(tracks.image_names[j])
             right, pose_r = images_dir / partner, tracks.world_from_cam[j]
         order.append((name, PairJob(name, shared_path(images_dir / name), shared_path(right), partner, K,
                                     np.array(tracks.world_from_cam[k], float), np.array(pose_r, float), z_range,
                                     cfg, shared_path(depth_dir / f"{Path(name).stem}.png"), limits[name],
                                     shared_path(scene_mask) if scene_mask is not None else None)))
-    jobs = [job for _, job in order if job is not None]
+    jobs = [job for _, job in order if isinstance(job, PairJob)]
     done = dict(zip((job.name for job in jobs), map_tasks(pair_depth, jobs, cfg.scheduler or None, desc="dense",
                                                            progress=cfg.progress, unit="image"), strict=True))
+    mask = read_scene_mask(scene_mask) if scene_mask is not None else None
+    index = {str(n): i for i, n in enumerate(tracks.image_names)}
+    for name, job in order:
+        if job is SPARSE:
+            depth = frame_sparse_depth(tracks, index[name])
+            depth, cover, dropped = write_frame_depth(depth_dir / f"{Path(name).stem}.png", depth, limits[name], mask)
+            done[name] = (cover, dropped, depth if cover > 0 else None)
     pairs, coverage, too_far, skipped, depths = {}, {}, {}, [], {}
     for name, job in order:
         cover, dropped, depth = done[name] if job is not None else (0.0, 0.0, None)
         if depth is None:
             skipped.append(name)
             continue
-        pairs[name], coverage[name], too_far[name], depths[name] = job.partner, cover, dropped, depth
+        partner = "sparse" if job is SPARSE else job.partner
+        pairs[name], coverage[name], too_far[name], depths[name] = partner, cover, dropped, depth
     if not depths:
         raise UserInputError("no image got a dense depth map: check the pairs (--pairs) and the SfM result")
     return _finish(depths, pairs, coverage, skipped, depth_dir, tracks, images_dir, out_dir, cfg, start,
