@@ -18,10 +18,11 @@ What it measures, with the keys of ``benchmarks/results/real.json``:
 - the water with its intervals (``water``);
 - per method (raw, physics, restorer, gray world, Sea-thru): Table II's ``consistency`` (R, G, B: variance of
   normalised colour across each 3D point's views), and the tile test: the floor is one tile colour near and far,
-  so the mean chromaticity c = RGB / (R + G + B) of its far band (rows 50-62 % of the frame) and of its near band
-  (rows 88-100 %), linear RGB, middle 70 % of the width, pooled over every frame and left out where the scene mask
-  says not the scene, should agree: ``tile_chromaticity_distance`` = |c_far - c_near| (Euclidean) and
-  ``tile_luminance_ratio`` = Y_far / Y_near (Y = 0.2126 R + 0.7152 G + 0.0722 B). ``black_pixels`` counts the
+  so the mean over its pixels of the chromaticity c = RGB / (R + G + B) in its far band (rows 50-62 % of the frame)
+  and in its near band (rows 88-100 %), linear RGB, middle 70 % of the width, every frame pooled and the pixels the
+  scene mask says are not the scene left out, should agree: ``tile_chromaticity_distance`` = |c_far - c_near|
+  (Euclidean) and ``tile_luminance_ratio`` = the bands' mean Y_far / Y_near (Y = 0.2126 R + 0.7152 G + 0.0722 B).
+  ``black_pixels`` counts the
   corrected frames' pixels at 0 in every channel outside the mask;
 - seconds per stage and the run's peak memory (``ru_maxrss`` of the children).
 
@@ -85,10 +86,12 @@ def prepare_survey(out: Path, width: int, n_frames: int) -> Path:
 
 
 def tile_test(folder: Path, names: list[str], mask: np.ndarray | None) -> dict:
-    """The tile test of the module docstring on the frames of ``folder`` (found by name or stem)."""
+    """The tile test of the module docstring on the frames of ``folder`` (found by name or stem): the mean over the
+    band's pixels (every frame pooled) of each pixel's chromaticity, and the bands' mean luminance."""
     from watergan.io import frame_file, read_image
 
     sums = {"far": np.zeros(3), "near": np.zeros(3)}
+    luminance = {"far": 0.0, "near": 0.0}
     counts = {"far": 0, "near": 0}
     black = 0
     for name in names:
@@ -99,16 +102,16 @@ def tile_test(folder: Path, names: list[str], mask: np.ndarray | None) -> dict:
         columns = slice(int(w * (1 - MIDDLE) / 2), int(w * (1 + MIDDLE) / 2))
         for band, (top, bottom) in (("far", FAR_ROWS), ("near", NEAR_ROWS)):
             rows = slice(int(h * top), int(h * bottom))
-            keep = scene[rows, columns]
-            sums[band] += image[rows, columns][keep].sum(0)
-            counts[band] += int(keep.sum())
-    mean = {b: sums[b] / max(counts[b], 1) for b in sums}
-    chroma = {b: mean[b] / mean[b].sum() for b in mean}
-    luminance = {b: float(mean[b] @ [0.2126, 0.7152, 0.0722]) for b in mean}
+            pixels = image[rows, columns][scene[rows, columns]]
+            sums[band] += (pixels / np.maximum(pixels.sum(1, keepdims=True), 1e-6)).sum(0)
+            luminance[band] += float((pixels @ [0.2126, 0.7152, 0.0722]).sum())
+            counts[band] += len(pixels)
+    chroma = {b: sums[b] / max(counts[b], 1) for b in sums}
+    mean_y = {b: luminance[b] / max(counts[b], 1) for b in sums}
     return {"tile_chromaticity_distance": round(float(np.linalg.norm(chroma["far"] - chroma["near"])), 5),
-            "tile_luminance_ratio": round(luminance["far"] / luminance["near"], 4),
-            "tile_far_rgb": np.round(mean["far"], 5).tolist(), "tile_near_rgb": np.round(mean["near"], 5).tolist(),
-            "black_pixels": black}
+            "tile_luminance_ratio": round(mean_y["far"] / mean_y["near"], 4),
+            "tile_far_chromaticity": np.round(chroma["far"], 5).tolist(),
+            "tile_near_chromaticity": np.round(chroma["near"], 5).tolist(), "black_pixels": black}
 
 
 def method_folders(ws) -> dict[str, Path]:

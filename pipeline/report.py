@@ -145,6 +145,31 @@ def _link(ws, out: Path, path: str | Path, text: str) -> str:
 # ---------------------------------------------------------------------------------------- sections
 
 
+def camera_and_scale_lines(survey, sfm) -> list[str]:
+    """The first screen's lines on a camera calibrated on the survey and on where the scale came from (or that there is
+    none: everything in SfM units)."""
+    lines = []
+    calibration = survey.self_calibration if survey is not None else {}
+    if calibration:
+        halves = calibration.get("halves", {})
+        lines.append(f"Camera: calibrated on the survey ({calibration['model']}, {calibration['registered']} frames, "
+                     f"reprojection {calibration['reprojection_px']:.2f} px); the two halves' focal lengths differ by "
+                     f"{halves.get('focal_diff_pct', float('nan')):.1f} %.")
+    if sfm is not None:
+        if sfm.scale_method == "none":
+            lines.append("Scale: unscaled. No stereo rig, board, altitude, position track or camera height: lengths, "
+                         "ranges and the water's coefficients are in SfM units (1 = the median sparse depth).")
+        elif sfm.scale_method == "track":
+            detail = sfm.scale_detail
+            halves = detail.get("halves", {})
+            lines.append(f"Scale: from the position track ({detail.get('kept')} of {detail.get('used')} frames, "
+                         f"residual {detail.get('residual_m', float('nan')):.3f} m, spread "
+                         f"{100 * sfm.scale_spread:.1f} %"
+                         + (f"; the two halves' scales differ by {halves['heldout_pct']:.1f} %" if halves else "")
+                         + ").")
+    return lines
+
+
 def found_lines(ws: Workspace) -> tuple[list[str], str]:
     """(what the run found, one line each: the water and how far to trust it, what the fields over the image
     carry, the diagnosis's verdict, how the corrections compare; the command to run next, or "")."""
@@ -156,6 +181,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         from .sfm import distortion_warning
 
         lines.append("Lens: " + distortion_warning(sfm.lens_k1, sfm.lens_source).removeprefix("sfm: ") + ".")
+    lines += camera_and_scale_lines(ws.result("survey"), sfm)
     water = ws.result("water")
     if water is not None:
         data = _load_json(ws.path(water.water_json)) or {}

@@ -116,6 +116,9 @@ class SfmConfig:
     init_min_tri_angle_deg: float = 8.0
     """Smallest triangulation angle of the initial pair, degrees (COLMAP's default 16 suits
     wide baselines; seafloor surveys at 80 % overlap have about 10 degrees between neighbours)."""
+    min_pose_inliers: int = 15
+    """A frame is registered when its pose has at least this many inlier 2D-3D matches (COLMAP: 30) and a tenth of its
+    matches are inliers (COLMAP: a quarter): a survey's last frame after a gap in the recording still joins."""
     min_registered_fraction: float = 0.5
     """Fewer registered images than this fraction of all images is an error."""
     scale: ScaleSource = ScaleSource.auto
@@ -602,6 +605,9 @@ def _match_features(database: Path, names: list[str], cfg: SfmConfig) -> str:
     return matching
 
 
+#: The smallest share of a frame's 2D-3D matches that its pose must hold as inliers to be registered.
+MIN_POSE_INLIER_RATIO = 0.1
+
 #: Growth of the model (registered frames or points) that triggers the incremental mapper's next global bundle
 #: adjustment: fewer global adjustments on a long survey, the local ones still after every image.
 GLOBAL_BA_GROWTH = 1.4
@@ -620,6 +626,8 @@ def _incremental_options(cam: dict | None, cfg: SfmConfig):
     options.multiple_models = False
     options.min_model_size = 3
     options.mapper.init_min_tri_angle = cfg.init_min_tri_angle_deg
+    options.mapper.abs_pose_min_num_inliers = cfg.min_pose_inliers
+    options.mapper.abs_pose_min_inlier_ratio = MIN_POSE_INLIER_RATIO
     fixed = cam is not None and cfg.fix_intrinsics
     options.ba_refine_focal_length = not fixed
     options.ba_refine_extra_params = not fixed
