@@ -472,10 +472,10 @@ class Problem:
                        self.names if names is None else names, self.rows[np.isin(self.obs.point[self.rows], keep)],
                        self.has_board, float32=True)
 
-    def coarse_start(self) -> int:
+    def coarse_start(self, refine_names: list[str] | None = None) -> int:
         """A first fit on :meth:`coarse` (:meth:`converge`; with ``coarse_refine_evaluations``, one round of it and
-        then :meth:`refine` in float64), whose parameters start the full fit; returns its L-BFGS iterations
-        (0: none)."""
+        then :meth:`refine` in float64 over ``refine_names``, default all), whose parameters start the full fit;
+        returns its L-BFGS iterations (0: none)."""
         coarse = self.coarse() if self.theta else None
         if coarse is None:
             return 0
@@ -484,8 +484,8 @@ class Problem:
             coarse.config = replace(coarse.config, max_iterations=coarse.config.iterations)
         iterations = coarse.converge()[0]
         if refine > 0:
-            Problem(self.stack, self.obs, coarse.config, coarse.names, coarse.rows,
-                    coarse.has_board).refine(refine)
+            Problem(self.stack, self.obs, coarse.config, coarse.names if refine_names is None else refine_names,
+                    coarse.rows, coarse.has_board).refine(refine)
         return iterations
 
     def converge(self) -> tuple[int, bool]:
@@ -526,11 +526,17 @@ def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> 
     opt.step(closure)
 
 
+#: Parameters up to which the trust region solves its steps exactly (an SVD of the Jacobian); beyond (gains per frame
+#: of a long survey: hundreds of columns over a hundred thousand rows), by LSMR's iterations, which need no SVD.
+EXACT_SOLVER_MAX = 64
+
+
 def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
                       groups: list[tuple[np.ndarray, np.ndarray]] | None = None, penalty_fn=None) -> None:
     """Minimise the sum of squares of ``residual_fn()`` over the tensors ``theta`` (in place) by scipy's trust-region
-    reflective least squares, at most ``evaluations`` residual evaluations, Jacobian-scaled variables; the start is
-    kept unless the fit lowers the cost. The Jacobian is scipy's forward differences (step sqrt(eps) max(1, |x|)),
+    reflective least squares, at most ``evaluations`` residual evaluations, Jacobian-scaled variables, steps solved
+    exactly up to ``EXACT_SOLVER_MAX`` parameters and by LSMR beyond; the start is kept unless the fit lowers the
+    cost. The Jacobian is scipy's forward differences (step sqrt(eps) max(1, |x|)),
     one residual evaluation per parameter on top, or, with ``groups`` (flat parameter indices and each one's colour
     channel, -1: none; the residuals channel-last, entry k of channel k mod 3, then ``penalty_fn()``'s rows), one
     per group (:func:`grouped_jacobian`)."""
@@ -568,7 +574,8 @@ def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
     cost0 = float((fun(x0) ** 2).sum())
     with np.errstate(all="ignore"):
         result = least_squares(fun, x0, jac="2-point" if groups is None else jac, method="trf", x_scale="jac",
-                               ftol=1e-12, xtol=1e-10, gtol=1e-12, max_nfev=evaluations)
+                               ftol=1e-12, xtol=1e-10, gtol=1e-12, max_nfev=evaluations,
+                               tr_solver="exact" if len(x0) <= EXACT_SOLVER_MAX else "lsmr")
     assign(result.x if np.isfinite(result.x).all() and 2.0 * result.cost <= cost0 else x0)
 
 

@@ -547,7 +547,8 @@ def set_light_level(stack: Stack, obs: Observations, form: str, range_m: float) 
     return factor
 
 
-def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) -> tuple[Stack, dict | None]:
+def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig,
+                        range_r2: float = 0.0) -> tuple[Stack, dict | None]:
     """The fine fields over the image (``image_grid`` on ``config.correction_grid`` nodes) fitted to the table with
     every parameter of the fitted ``stack`` held, for the corrections: what the water's smooth fields leave on image
     position (a falloff clipped into a ring, a veil in a spot). Fitted after the water and its intervals, they cannot
@@ -556,7 +557,9 @@ def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) ->
     copy of ``stack`` with them when they exceed ``FIELD_FLAT_PCT`` (carried), else ``stack``; their size,
     :func:`field_extent`, with ``nodes``, ``points_fraction`` (of the fit that decided), ``carried`` and
     ``seconds``), or (``stack``, None) when the configuration has none. Where nothing is missing they stay flat and
-    the corrections are those of the water."""
+    the corrections are those of the water. Where image position explains more than ``config.field_max_range_r2``
+    of the views' range variance (``range_r2``: a camera looking ahead over a floor, its rows its ranges) the grid is
+    measured but not carried (``range_r2`` in the summary): there it would take the water's fall with range."""
     if config.correction_grid is None:
         return stack, None
     rows, cols = config.correction_grid
@@ -585,7 +588,9 @@ def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig) ->
         summary = extent(1.0)
     for p in refined.parameters():
         p.requires_grad_(False)
-    summary.update(carried=summary["form"] != "flat", seconds=round(time.perf_counter() - t0, 2))
+    on_range = range_r2 > config.field_max_range_r2
+    summary.update(carried=summary["form"] != "flat" and not on_range, seconds=round(time.perf_counter() - t0, 2),
+                   **({"range_r2": round(range_r2, 3)} if on_range else {}))
     return (refined if summary["carried"] else stack), summary
 
 
@@ -667,7 +672,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                 names += gain_names
                 first = stack_first(stack, obs, config.fit, names)
                 problem = Problem(stack, obs, config.fit, names)
-                iterations += first or problem.coarse_start()
+                # the trust region follows the water's flat directions; the gains (hundreds of columns) only L-BFGS
+                iterations += first or problem.coarse_start([n for n in names if n not in gain_names])
             else:
                 fixed[FRAME_EFFECT] = (f"the frames' gains are small (up to {max(frame_gains['largest_pct']):.1f} %, "
                                        f"under {FRAME_CARRY_PCT:.0f} %): held at 1")
@@ -715,7 +721,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             spec_fits.append(centred)
             alternatives = (*alternatives, {"image_field.additive_level": 0.0})
             fields = field_summary(stack, range_r2, mean_signal)
-        corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config)
+        corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config, range_r2)
         spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits], 0) for key, value in named.items()} \
             if spec_fits else {}
         params, tradeoffs = _describe(stack, named, named_samples, fixed, spec, config.range_scale_sd)
