@@ -1,19 +1,21 @@
 """Intrinsics from the footage: COLMAP's self-calibration of focal length, principal point and lens on the survey.
 
-A camera of which only the image size (and perhaps a guessed focal length or field of view) is known is calibrated
-by the survey itself: SIFT features on up to ``SELFCAL_MAX_FRAMES`` consecutive frames from the middle of the survey,
+A camera of which only the image size (and perhaps a guessed focal length or field of view) is known is calibrated by
+the survey itself: SIFT features on up to ``SELFCAL_MAX_FRAMES`` consecutive frames from the middle of the survey,
 sequential matching, incremental mapping with one OPENCV camera whose focal lengths, principal point and k1, k2, p1,
-p2 every bundle adjustment refines. The camera model is then chosen by evidence: the model is adjusted again with
-each simpler model (SIMPLE_RADIAL: f, k1; RADIAL: f, k1, k2) starting from OPENCV's values, and the simplest model
-whose mean reprojection error is within ``MODEL_TOLERANCE`` of OPENCV's is kept (a coefficient that lowers the error
-by less than that is not pinned by the survey). How well it is pinned: each half of the registered frames is
-bundle-adjusted on its own, its focal length started a tenth away from the whole survey's (:func:`_halves`), and the
-two halves' focal lengths are recorded beside the whole survey's.
+p2 every bundle adjustment refines (started from the guess, and from other focal lengths, ``FOCAL_TRIES``, while fewer
+than ``ENOUGH_REGISTERED`` of the frames register: a start far off can stall the mapper after its first pair). The
+camera model is then chosen by evidence: the model is adjusted again with each simpler model (SIMPLE_RADIAL: f, k1;
+RADIAL: f, k1, k2) starting from OPENCV's values, and the simplest model whose mean reprojection error is within
+``MODEL_TOLERANCE`` of OPENCV's is kept (a coefficient that lowers the error by less than that is not pinned by the
+survey). How well it is pinned: each half of the registered frames is bundle-adjusted on its own, its focal length
+started a tenth away from the whole survey's (:func:`_halves`), and the two halves' focal lengths are recorded beside
+the whole survey's.
 
-A lens the survey cannot hold is refused (:func:`check_plausible`): a tangential coefficient beyond ``MAX_TANGENTIAL``,
-a horizontal field of view outside ``HFOV_RANGE_DEG``, fx and fy differing by more than ``MAX_ASPECT_DIFF``, a
-principal point outside the middle ``PRINCIPAL_BOX`` of the image, or a radial distortion that folds the image (the
-distorted radius stops growing with the undistorted one before the image's corner).
+A lens the survey cannot hold is refused (:func:`check_plausible`): a tangential coefficient beyond
+``MAX_TANGENTIAL``, a horizontal field of view outside ``HFOV_RANGE_DEG``, fx and fy differing by more than
+``MAX_ASPECT_DIFF``, a principal point outside the middle ``PRINCIPAL_BOX`` of the image, or a radial distortion that
+folds the image (the distorted radius stops growing with the undistorted one before the image's corner).
 """
 
 from __future__ import annotations
@@ -27,6 +29,10 @@ import numpy as np
 
 from watergan.errors import UserInputError
 
+#: Starting focal lengths, as factors of the guess, that self-calibration tries in turn until it registers
+#: ``ENOUGH_REGISTERED`` of the frames (the model with the most registered frames is kept).
+FOCAL_TRIES = (1.0, 0.8, 1.25, 0.65, 1.5)
+ENOUGH_REGISTERED = 0.8
 #: Frames self-calibration maps at most (consecutive, from the middle of the survey).
 SELFCAL_MAX_FRAMES = 100
 #: A simpler camera model is kept when its reprojection error is at most this factor of OPENCV's.
@@ -131,6 +137,19 @@ def _reprojection_with(rec, model: str, start: dict) -> tuple[float, list[float]
     return float(copy.compute_mean_reprojection_error()), [float(v) for v in camera.params]
 
 
+def _set_camera(database: Path, params: list[float]) -> None:
+    """The database's (one) camera's parameters set to ``params`` (COLMAP's order)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        camera = db.read_all_cameras()[0]
+        camera.params = params
+        db.update_camera(camera)
+    finally:
+        db.close()
+
+
 def _map(database: Path, images_dir: Path, out_dir: Path, names: list[str], seed: int):
     """Incremental mapping of ``names`` with every intrinsic refined; the model with the most registered frames."""
     import pycolmap
@@ -226,8 +245,14 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
                                       extraction_options=extraction, device=pycolmap.Device.cpu)
             pairing = pycolmap.SequentialPairingOptions(overlap=10, quadratic_overlap=True)
             pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
-            rec = _map(database, images_dir, work_dir / "all", subset, seed)
-            n_reg = rec.num_reg_images() if rec is not None else 0
+            rec, n_reg = None, 0
+            for factor in FOCAL_TRIES:  # a start far from the focal length can stall the mapper after its first pair
+                _set_camera(database, [f0 * factor, f0 * factor, cx0, cy0, 0, 0, 0, 0])
+                tried = _map(database, images_dir, work_dir / "all", subset, seed)
+                if tried is not None and tried.num_reg_images() > n_reg:
+                    rec, n_reg = tried, tried.num_reg_images()
+                if n_reg >= ENOUGH_REGISTERED * len(subset):
+                    break
             if n_reg < max(3, len(subset) // 2):
                 raise UserInputError(f"self-calibration registered {n_reg} of {len(subset)} frames: SfM cannot "
                                      f"calibrate this camera on the survey; give its intrinsics in camera.json "

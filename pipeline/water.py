@@ -61,6 +61,7 @@ from watergan.formation.inverse import clean_range
 from watergan.io import (
     atomic_write_json,
     atomic_write_text,
+    depth_within,
     read_depth,
     write_depth_png,
     z_to_range,
@@ -391,6 +392,7 @@ def write_range_maps(out: Path, frames: Sequence[WaterFrame], K: np.ndarray, mes
     from_mesh, missing = [], []
     for f in tqdm(frames, desc="range maps", unit="frame", disable=not progress):
         r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
+        r, _ = depth_within(r)  # a long mesh ray or a corner's range beyond what the millimetre PNG holds: no range
         from_mesh.append(float(np.mean(meshed)))
         missing.append(float(np.mean(~(np.isfinite(r) & (r > 0)))))
         write_depth_png(out / f"{Path(f.name).stem}.png", r)
