@@ -21,8 +21,9 @@ What it measures, with the keys of ``benchmarks/results/real.json``:
   so the mean over its pixels of the chromaticity c = RGB / (R + G + B) in its far band (rows 50-62 % of the frame)
   and in its near band (rows 88-100 %), linear RGB, middle 70 % of the width, every frame pooled and the pixels the
   scene mask says are not the scene left out, should agree: ``tile_chromaticity_distance`` = |c_far - c_near|
-  (Euclidean; ``tile_chromaticity_distance_of_mean``: the same for each band's mean colour, which
-  the far band's blur, mixing tile and grout in a pixel, does not bias) and ``tile_luminance_ratio`` = the bands' mean Y_far / Y_near (Y = 0.2126 R + 0.7152 G + 0.0722 B).
+  (Euclidean; ``tile_chromaticity_distance_of_mean``: the same for each band's mean colour, which the far band's
+  blur, mixing tile and grout in a pixel, does not bias) and ``tile_luminance_ratio`` = the bands' mean Y_far /
+  Y_near (Y = 0.2126 R + 0.7152 G + 0.0722 B).
   ``black_pixels`` counts the
   corrected frames' pixels at 0 in every channel outside the mask;
 - seconds per stage and the run's peak memory (``ru_maxrss`` of the children).

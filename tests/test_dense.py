@@ -221,8 +221,8 @@ def test_a_pair_s_depth_beyond_the_far_limit_or_outside_the_scene_is_no_value(tm
 
 def test_sparse_depth_interpolates_a_plane_and_leaves_gaps_and_outliers_out():
     """Depth from the sparse points a frame sees (a forward-moving camera's): on a tilted plane the interpolation
-    is within 0.1 % of the plane's depth (2 % at the edges of the points' cover), a band without points stays empty, a wrong point is dropped; a baseline
-    along the view direction is a forward pair, one across it is not."""
+    is within 0.1 % of the plane's depth (2 % at the edges of the points' cover), a band without points stays empty,
+    a wrong point is dropped; a baseline along the view direction is a forward pair, one across it is not."""
     from pipeline.sparse_depth import pair_is_forward, sparse_depth
 
     rng = np.random.default_rng(0)

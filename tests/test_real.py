@@ -1,5 +1,5 @@
-"""Real footage: a subset of the pool crawler's survey (``../shared/data/subvo-pool``) as a user of that camera gives it,
-only the image size known, the burned-in timestamp masked, and the crawler's track: SfM calibrates the camera, the
+"""Real footage: a subset of the pool crawler's survey (``../shared/data/subvo-pool``) as a user of that camera gives
+it, only the image size known, the burned-in timestamp masked, and the crawler's track: SfM calibrates the camera, the
 track scales the model, the forward-moving frames get their depth from the sparse points, the water is fitted and
 the physics correction writes every pixel. Frames: SUBVO dataset (A. Neyestani et al., IEEE I2MTC 2025), CC BY 4.0;
 see that folder's README."""
