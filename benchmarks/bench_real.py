@@ -209,6 +209,8 @@ def main() -> None:
     args, extra = parser.parse_known_args()
     from pipeline.workspace import Workspace
 
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=ROOT).stdout.strip()
     out = Path(args.out)
     survey = prepare_survey(out, args.width, args.frames)
     ws_dir = out / "ws"
@@ -221,9 +223,8 @@ def main() -> None:
     figures = collect(ws, json.loads((ws_dir / "run_summary.json").read_text()))
     figures["peak_memory_gib"] = round(peak_gib, 2)
     figures["targets"] = targets(figures)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
     figures["command"] = "benchmarks/bench_real.py " + " ".join(sys.argv[1:])
-    figures["commit"] = commit.strip()
+    figures["commit"] = commit
     figures["notice"] = ("Frames: SUBVO dataset (A. Neyestani et al., IEEE I2MTC 2025), CC BY 4.0, "
                          "github.com/A8neyestani/SUBVO; see ../shared/data/subvo-pool/README.md")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
