@@ -819,7 +819,7 @@ def _track_scale(tracks: Tracks, survey: dict, survey_path: Path) -> tuple[float
     centres = tracks.world_from_cam[index, :3, 3]
     xy = np.array([positions[str(tracks.image_names[k])] for k in index], float)
     fit = fit_track(centres, xy)
-    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept}
+    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept, "mirrored": fit.mirrored}
     if len(index) >= 10:
         detail["halves"] = track_halves(centres, xy)
     return fit.scale, fit.spread, detail

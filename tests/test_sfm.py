@@ -215,6 +215,7 @@ def test_track_scale_recovers_the_positions_scale_despite_a_glitch(sfm, tmp_path
     assert result.scale_method == "track"
     assert result.scale_factor == pytest.approx(record.scale_factor, rel=0.02)
     assert result.scale_detail["kept"] == 9 and result.scale_detail["used"] == 10
+    assert not result.scale_detail["mirrored"]  # the simulator's x, y are right-handed seen from above
     assert result.scale_detail["residual_m"] < 0.05 and result.scale_detail["halves"]["heldout_pct"] < 5
     assert "residual" in result.summary()
     tracks = Tracks.load(ws.path(record.tracks))
