@@ -145,6 +145,42 @@ def _link(ws, out: Path, path: str | Path, text: str) -> str:
 # ---------------------------------------------------------------------------------------- sections
 
 
+def intervals_at_bounds(params: dict) -> dict[str, list[int]]:
+    """{parameter: channels whose 95 % interval reaches one of its bounds} among the water's fitted per-channel
+    parameters (``water.json``'s ``params``)."""
+    from watergan.formation import get
+
+    out = {}
+    for key, entry in params.items():
+        name, param = key.split(".", 1)
+        if not entry.get("fitted") or "low" not in entry or not isinstance(entry["value"], list):
+            continue
+        try:
+            spec = next(p for p in get(name).params if p.name == param)
+        except (KeyError, StopIteration, ValueError):
+            continue
+        low, high = np.ravel(entry["low"]), np.ravel(entry["high"])
+        channels = [c for c in range(len(low)) if low[c] <= spec.lower or high[c] >= spec.upper]
+        if channels and len(low) == 3:
+            out[key] = channels
+    return out
+
+
+def unpinned_note(data: dict) -> str:
+    """What the survey cannot pin, said where an interval reaches its parameter's bound (B_inf's where the survey's
+    ranges are short next to the veil's fall), and what it pins instead (the veil at the median range)."""
+    reached = intervals_at_bounds(data.get("params", {}))
+    if not reached:
+        return ""
+    names = "; ".join(f"{key.split('.', 1)[1]} in {'/'.join('RGB'[c] for c in channels)}"
+                      for key, channels in reached.items())
+    veil = data.get("veil")
+    pinned = (f" What it pins is the veil over its ranges: {' / '.join(f'{v:.3f}' for v in veil['value'])} at "
+              f"{veil['range_m']:.1f} m." if veil and any(k.startswith("backscatter.") for k in reached) else "")
+    return (f" Not pinned by this survey (intervals reaching a bound): {names}; its ranges are too short, next to "
+            f"the water's attenuation length, to separate them from what they trade with.{pinned}")
+
+
 def camera_and_scale_lines(survey, sfm) -> list[str]:
     """The first screen's lines on a camera calibrated on the survey and on where the scale came from (or that there is
     none: everything in SfM units)."""
@@ -187,7 +223,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         data = _load_json(ws.path(water.water_json)) or {}
         trust = ("its intervals are 95 %" if not water.at_bounds else
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
-        lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}.")
+        lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}." + unpinned_note(data))
         fields = data.get("fields")
         if fields:
             size = field_size(fields)

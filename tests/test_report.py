@@ -496,3 +496,19 @@ def test_ssim_is_scikit_images(tmp_path):
     both = fidelities({"a": tmp_path / "a", "b": tmp_path / "b"}, tmp_path / "truth", names)
     assert both["a"] == fidelity(tmp_path / "a", tmp_path / "truth", names)
     assert both["b"][1] == pytest.approx(1.0) and both["a"][1] < 0.99
+
+
+def test_the_first_screen_says_what_the_survey_cannot_pin():
+    """An interval reaching its parameter's bound (B_inf in green and blue, as on the pool footage) is named on the
+    report's first screen with what the survey pins instead (the veil); intervals inside the bounds add nothing."""
+    from pipeline.report import unpinned_note
+
+    params = {"backscatter.b_inf": {"value": [0.06, 0.97, 0.99], "low": [0.02, 0.73, 0.82], "high": [0.3, 1.0, 1.0],
+                                    "fitted": True},
+              "attenuation.eta_per_m": {"value": [0.48, 0.16, 0.34], "low": [0.39, 0.1, 0.24],
+                                        "high": [0.57, 0.23, 0.43], "fitted": True}}
+    veil = {"value": [0.031, 0.033, 0.035], "range_m": 1.2}
+    note = unpinned_note({"params": params, "veil": veil})
+    assert "b_inf in G/B" in note and "eta" not in note and "0.031 / 0.033 / 0.035 at 1.2 m" in note
+    params["backscatter.b_inf"]["high"] = [0.3, 0.99, 0.99]
+    assert unpinned_note({"params": params, "veil": veil}) == ""
