@@ -118,7 +118,6 @@ def _reprojection_with(rec, model: str, start: dict) -> tuple[float, list[float]
     intrinsics ``start`` (camera.json's keys), focal length, principal point and coefficients refined."""
     import pycolmap
 
-    from .sfm import stderr_to_null
 
     copy = pycolmap.Reconstruction(rec)
     f = math.sqrt(start["fx"] * start["fy"])
@@ -128,13 +127,22 @@ def _reprojection_with(rec, model: str, start: dict) -> tuple[float, list[float]
     for camera in copy.cameras.values():
         camera.model = getattr(pycolmap.CameraModelId, model)
         camera.params = params
+    camera = _adjust_all(copy)
+    return float(copy.compute_mean_reprojection_error()), [float(v) for v in camera.params]
+
+
+def _adjust_all(rec):
+    """Bundle adjustment of ``rec`` in place with every intrinsic free (COLMAP's log kept out); its camera."""
+    import pycolmap
+
+    from .sfm import stderr_to_null
+
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = True
     options.print_summary = False
     with stderr_to_null():
-        pycolmap.bundle_adjustment(copy, options)
-    camera = copy.cameras[next(iter(copy.cameras))]
-    return float(copy.compute_mean_reprojection_error()), [float(v) for v in camera.params]
+        pycolmap.bundle_adjustment(rec, options)
+    return rec.cameras[next(iter(rec.cameras))]
 
 
 def _set_camera(database: Path, params: list[float]) -> None:
@@ -180,7 +188,6 @@ def _halves(rec, registered: list[str], w: int, h: int) -> dict:
     (``focal_diff_pct``)."""
     import pycolmap
 
-    from .sfm import stderr_to_null
 
     halves = {}
     for half, part in (("first", registered[:len(registered) // 2]), ("second", registered[len(registered) // 2:])):
@@ -195,12 +202,7 @@ def _halves(rec, registered: list[str], w: int, h: int) -> dict:
             params[0] *= HALF_START_FACTOR
             params[1] *= HALF_START_FACTOR
             camera.params = params
-        options = pycolmap.BundleAdjustmentOptions()
-        options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = True
-        options.print_summary = False
-        with stderr_to_null():
-            pycolmap.bundle_adjustment(copy, options)
-        found = camera_json_of("OPENCV", list(copy.cameras[next(iter(copy.cameras))].params), w, h)
+        found = camera_json_of("OPENCV", list(_adjust_all(copy).params), w, h)
         halves[half] = {"registered": copy.num_reg_images(),
                         "focal_px": round(math.sqrt(found["fx"] * found["fy"]), 2)}
     focal = [halves[k]["focal_px"] for k in ("first", "second")]

@@ -20,10 +20,10 @@ from pipeline.workspace import Workspace  # noqa: E402
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not (DATA / "images").is_dir(), reason=f"the real footage is not at {DATA}")]
 
-#: The subset: 16 frames of the crawler's second straight leg, at 480 px. Other 16-frame windows at this size register
-#: too few frames to calibrate (the first leg, the second's start) or give a lens the plausibility check refuses (the
-#: turn): the whole survey at full size calibrates (benchmarks/results/real.json).
-FIRST, COUNT, WIDTH = 60, 16, 480
+#: The subset: 20 frames from the end of the turn into the second straight leg, at 640 px. Shorter or smaller windows
+#: elsewhere register too few frames to calibrate, or give a lens the plausibility check refuses (benchmarks/RESULTS.md,
+#: "Real footage"); the whole survey at full size calibrates.
+FIRST, COUNT, WIDTH = 56, 20, 640
 
 
 def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
