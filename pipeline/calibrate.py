@@ -166,7 +166,7 @@ def _map(database: Path, images_dir: Path, out_dir: Path, names: list[str], seed
     out_dir.mkdir(parents=True)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
-    options.multiple_models = False
+    options.multiple_models = True  # a first pair that stalls is not the end: the mapper starts again elsewhere
     options.min_model_size = 3
     options.image_names = names
     options.mapper.init_min_tri_angle = 8.0

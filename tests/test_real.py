@@ -35,7 +35,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     from pipeline.scale import floor_plane
     from pipeline.sfm import SfmConfig
     from pipeline.survey import SurveyConfig
-    from watergan.io import image_files, read_image, read_scene_mask
+    from watergan.io import image_files, read_image, read_png, read_scene_mask
 
     survey = prepare_survey(tmp_path, WIDTH, FIRST + COUNT)
     for name in sorted(p.name for p in (survey / "images").iterdir())[:FIRST]:
@@ -73,7 +73,10 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     corrected = ws.run("correct", CorrectStage(progress=False))
     names = image_files(ws.folder("survey") / "images")
     physics = tile_test(ws.path(corrected.physics_images), names, mask)
-    assert physics["black_pixels"] == 0
+    range_from = read_png(ws.path(corrected.physics) / "range_from" / f"{Path(names[0]).stem}.png")
+    assert (range_from[mask] <= 2).all() and (range_from[~mask] == 3).all()  # every scene pixel got a range
+    # black only where a pixel is darker than the veil removed in every channel (benchmarks/RESULTS.md)
+    assert physics["black_pixels"] < 1e-3 * mask.sum() * len(names)
     raw = read_image(ws.folder("survey") / "images" / names[0])
     out = read_image(Path(ws.path(corrected.physics_images)) / f"{Path(names[0]).stem}.png")
     assert np.abs(out[~mask] - raw[~mask]).max() < 2 / 255  # the timestamp passed through
