@@ -159,7 +159,8 @@ def _set_camera(database: Path, params: list[float]) -> None:
 
 
 def _map(database: Path, images_dir: Path, out_dir: Path, names: list[str], seed: int):
-    """Incremental mapping of ``names`` with every intrinsic refined; the model with the most registered frames."""
+    """Incremental mapping of ``names`` with every intrinsic refined, the mapper free to start again from another pair
+    when one stalls; the model with the most registered frames."""
     import pycolmap
 
     shutil.rmtree(out_dir, ignore_errors=True)
