@@ -217,6 +217,10 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         from .sfm import distortion_warning
 
         lines.append("Lens: " + distortion_warning(sfm.lens_k1, sfm.lens_source).removeprefix("sfm: ") + ".")
+    if sfm is not None and sfm.still_features:
+        from .overlay import overlay_warning
+
+        lines.append("Overlay: " + overlay_warning(sfm.still_features).removeprefix("sfm: ") + ".")
     lines += camera_and_scale_lines(ws.result("survey"), sfm)
     water = ws.result("water")
     if water is not None:

@@ -56,6 +56,7 @@ from watergan.errors import UserInputError
 from watergan.io import image_files, read_camera_json, read_json, read_survey_json
 from watergan.lens import OPENCV, Lens
 
+from .overlay import overlay_warning, still_features
 from .scale import fit_track, height_scale, track_halves
 
 
@@ -173,6 +174,9 @@ class SfmResult:
     scale_detail: dict = field(default_factory=dict)
     """The track scale's residual (m), frames used and kept, and its halves (:func:`pipeline.scale.track_halves`);
     empty for the other sources."""
+    still_features: dict = field(default_factory=dict)
+    """Features that stay still while the scene moves, without a scene mask (:func:`pipeline.overlay.still_features`:
+    the box to mask, the matches, the moving pairs); empty: none."""
     lens_source: str = ""
     """What removed a lens from the frames before SfM: "" (nothing), "camera.json", "estimated" (the survey stage's
     estimate with the focal length held) or "self-calibrated"."""
@@ -198,7 +202,12 @@ class SfmResult:
         line = (f"sfm: registered {self.n_registered} of {self.n_images} images, {self.n_points} points "
                 f"(mean track {self.mean_track_length:.1f}, reprojection {self.mean_reprojection_error_px:.2f} px), "
                 f"{self.matching} matching, {scale}, {self.seconds:.1f} s")
-        return line + (f"\n{distortion_warning(self.lens_k1, self.lens_source)}" if self.looks_distorted else "")
+        return "\n".join([line, *self.warnings()])
+
+    def warnings(self) -> list[str]:
+        """What to do: the frames look distorted; features stay still (an overlay to mask)."""
+        return ([distortion_warning(self.lens_k1, self.lens_source)] if self.looks_distorted else []) + \
+            ([overlay_warning(self.still_features)] if self.still_features else [])
 
 
 #: |k1| above which the frames look distorted to SfM (a moderate wide lens behind a flat port: -0.1 to -0.3).
@@ -512,6 +521,8 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
                    Mapper.global_: _map_globally}[Mapper(cfg.mapper)]
         rec, n_reg = mapping(database, images_dir, raw_dir, names, cam, cfg)
         lens_k1 = refined_k1(rec) if cam is not None else None
+        camera = rec.cameras[next(iter(rec.cameras))]
+        still = still_features(database, camera.width, camera.height) if scene_mask is None else None
         lap("mapping")
     tracks, method, scale, spread, detail = _to_survey_frame(rec, names, images_dir, cam, cfg)
     lap("survey_frame")
@@ -523,11 +534,12 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
                        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                        matching=matching, scale_method=method, scale_factor=scale, scale_spread=spread,
                        seconds=time.perf_counter() - start, phase_seconds=phases, lens_k1=lens_k1,
-                       scale_detail=detail, lens_source=_lens_source(cam))
+                       scale_detail=detail, lens_source=_lens_source(cam), still_features=still or {})
     if cfg.progress:
         print(result.summary(), file=sys.stderr, flush=True)
-    elif result.looks_distorted:
-        print(distortion_warning(lens_k1, result.lens_source), file=sys.stderr, flush=True)
+    else:
+        for warning in result.warnings():
+            print(warning, file=sys.stderr, flush=True)
     return result
 
 

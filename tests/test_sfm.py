@@ -232,6 +232,30 @@ def test_an_unscaled_model_has_the_median_depth_as_its_unit(sfm, tmp_path):
     assert "unscaled" in result.summary()
 
 
+def test_an_overlay_that_never_moves_is_named_with_the_rectangle_to_mask(sfm, tmp_path):
+    """A patch burned into every frame at the same place (a timestamp's stand-in) keeps its features still while the
+    scene moves: SfM names the box to mask, which holds the patch; the survey as rendered has none."""
+    import shutil
+
+    import cv2
+
+    survey, _, record = sfm
+    assert not record.still_features
+    images = tmp_path / "stamped" / "images"
+    images.mkdir(parents=True)
+    shutil.copy(survey / "camera.json", images.parent / "camera.json")
+    rng = np.random.default_rng(3)
+    stamp = np.kron(rng.integers(0, 2, (6, 12)) * 255, np.ones((4, 4))).astype(np.uint8)  # 48 x 24 px blocks
+    for path in sorted((survey / "images").iterdir()):
+        frame = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        frame[8:32, 8:56] = stamp[..., None]
+        cv2.imwrite(str(images / path.name), frame)
+    result = run_sfm_folder(images, tmp_path / "sfm", SfmConfig(scale="none", progress=False))
+    x0, y0, x1, y1 = result.still_features["box_px"]
+    assert x0 <= 8 and y0 <= 8 and 56 <= x1 <= 128 and 32 <= y1 <= 96
+    assert any('"mask_rects_px"' in warning for warning in result.warnings())
+
+
 def test_similarity_align_recovers_a_known_transform():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(20, 3))
