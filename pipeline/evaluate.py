@@ -132,6 +132,23 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
     return _Folders(folders, methods, reference, skipped, per_frame, masks), ranges
 
 
+def measured_views(tracks, mask_dir: Path) -> np.ndarray:
+    """(M,) bool: whether each observation of ``tracks`` falls on a pixel the physics correction corrected at its
+    measured range (nonzero in ``mask_dir/<stem>.png``; nearest pixel)."""
+    import cv2
+
+    keep = np.zeros(len(tracks.obs_xy), bool)
+    for k in np.unique(tracks.obs_image):
+        rows = np.flatnonzero(tracks.obs_image == k)
+        mask = cv2.imread(str(mask_dir / f"{Path(str(tracks.image_names[k])).stem}.png"), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            continue
+        ij = np.rint(tracks.obs_xy[rows]).astype(int)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < mask.shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < mask.shape[0])
+        keep[rows[inside]] = mask[ij[inside, 1], ij[inside, 0]] > 0
+    return keep
+
+
 def _depth_compare(ws: Workspace, correct_dir: Path | None) -> tuple[str, str]:
     """Run the restorer's depth against the dense stage's (again: the restorer may have changed) when both exist,
     into the stage's ``depth/``: (its workspace-relative folder or "", why it failed or "")."""
@@ -235,6 +252,10 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
 
     colours = {m: observation_colours(tracks, p, cfg.patch_px, progress=cfg.progress, scheduler=cfg.scheduler or None)
                for m, p in f.folders.items()}  # sampled once for both
+    if PHYSICS in f.masks:  # like for like: a view the physics correction gave no measured range is left out of all
+        unmeasured = ~measured_views(tracks, f.masks[PHYSICS][0])
+        for values in colours.values():
+            values[unmeasured] = np.nan
     cons = consistency(tracks, f.folders, cfg.patch_px, cfg.min_views, colours=colours)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in
