@@ -51,7 +51,6 @@ DATA = ROOT.parent / "shared" / "data" / "subvo-pool"
 TIMESTAMP_PX = (0, 0, 430, 45)
 #: The tile test's bands: rows as fractions of the frame's height, and the middle fraction of its width.
 FAR_ROWS, NEAR_ROWS, MIDDLE = (0.50, 0.62), (0.88, 1.00), 0.70
-METHODS = {"raw": None, "physics": None, "restorer": None, "gray_world": "gray_world", "seathru": "seathru"}
 
 
 def prepare_survey(out: Path, width: int, n_frames: int) -> Path:

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
+from watergan.io import write_scene_mask
 
 #: Starting focal lengths, as factors of the guess, that self-calibration tries in turn until it registers
 #: ``ENOUGH_REGISTERED`` of the frames (the model with the most registered frames is kept).
@@ -118,7 +119,6 @@ def _reprojection_with(rec, model: str, start: dict) -> tuple[float, list[float]
     intrinsics ``start`` (camera.json's keys), focal length, principal point and coefficients refined."""
     import pycolmap
 
-
     copy = pycolmap.Reconstruction(rec)
     f = math.sqrt(start["fx"] * start["fy"])
     pp = [start["cx"] + 0.5, start["cy"] + 0.5]
@@ -189,7 +189,6 @@ def _halves(rec, registered: list[str], w: int, h: int) -> dict:
     (``focal_diff_pct``)."""
     import pycolmap
 
-
     halves = {}
     for half, part in (("first", registered[:len(registered) // 2]), ("second", registered[len(registered) // 2:])):
         copy = pycolmap.Reconstruction(rec)
@@ -212,10 +211,11 @@ def _halves(rec, registered: list[str], w: int, h: int) -> dict:
 
 
 def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: Path, seed: int = 0,
-                   mask_png: Path | None = None) -> tuple[dict, dict]:
+                   mask: np.ndarray | None = None) -> tuple[dict, dict]:
     """The survey's intrinsics and lens by SfM (see the module docstring), starting from camera.json's focal guess
     (:func:`focal_guess_px`; COLMAP's 1.2 times the larger side without one) and principal point (the image's centre
-    without one). ``mask_png``: features only where it is nonzero. Works in ``work_dir`` (removed after).
+    without one). ``mask``: (H,W) bool, features only where it is True (the scene). Works in ``work_dir`` (removed
+    after).
 
     Returns camera.json's keys of the chosen model (:func:`camera_json_of`) and a summary: frames, registered,
     reprojection_px, model, models (each model's reprojection error), halves (each half's registered frames and
@@ -236,10 +236,10 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
     database = work_dir / "selfcal.db"
     try:
         with colmap_errors_only():
-            reader = pycolmap.ImageReaderOptions(camera_model="OPENCV",
-                                                 camera_params=",".join(str(v) for v in (f0, f0, cx0, cy0, 0, 0, 0, 0)))
-            if mask_png is not None:
-                reader.camera_mask_path = str(mask_png)
+            reader = pycolmap.ImageReaderOptions(camera_model="OPENCV")  # its start: FOCAL_TRIES below
+            if mask is not None:
+                write_scene_mask(work_dir / "mask.png", mask)
+                reader.camera_mask_path = str(work_dir / "mask.png")
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.sift.max_num_features = 4096
             pycolmap.set_random_seed(seed)

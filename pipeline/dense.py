@@ -34,7 +34,7 @@ interpolation.
 
 Forward motion: a neighbour pair whose baseline runs within ``forward_max_angle_deg`` of the view direction (a
 crawler or ROV looking ahead) has its epipoles in the frames, so rectification fails; such a frame takes its depth
-from the sparse points it sees instead (:func:`pipeline.sparse_depth.frame_sparse_depth`).
+from the sparse points it sees instead (:func:`pipeline.sparse_depth.sparse_depth`).
 
 Method: ``method="auto"`` uses pycolmap's patch-match MVS when pycolmap was built with CUDA
 (``pycolmap.has_cuda``), else this SGBM path; 'patch_match' without CUDA is an error. Patch-match
@@ -76,7 +76,7 @@ import numpy as np
 from watergan.errors import UserInputError
 from watergan.io import MAX_DEPTH_PNG_M, depth_within, read_camera_json, read_scene_mask, write_depth_png, write_failed
 
-from .sparse_depth import frame_sparse_depth, pair_is_forward
+from .sparse_depth import pair_is_forward, sparse_depth
 
 
 class DenseMethod(StrEnum):
@@ -453,8 +453,10 @@ def run_dense_folder(tracks, images_dir: str | Path, out_dir: str | Path, cfg: D
     mask = read_scene_mask(scene_mask) if scene_mask is not None else None
     index = {str(n): i for i, n in enumerate(tracks.image_names)}
     for name, job in order:
-        if job is SPARSE:
-            depth = frame_sparse_depth(tracks, index[name])
+        if job is SPARSE:  # interpolated from the depths of the sparse points the frame observes
+            mine = rows[index[name]]
+            depth = sparse_depth(tracks.obs_xy[mine].astype(float), obs_depth[mine], int(tracks.width),
+                                 int(tracks.height))
             depth, cover, dropped = write_frame_depth(depth_dir / f"{Path(name).stem}.png", depth, limits[name], mask)
             done[name] = (cover, dropped, depth if cover > 0 else None)
     pairs, coverage, too_far, skipped, depths = {}, {}, {}, [], {}

@@ -137,9 +137,11 @@ def measured_views(tracks, mask_dir: Path) -> np.ndarray:
     measured range (nonzero in ``mask_dir/<stem>.png``; nearest pixel)."""
     import cv2
 
+    from watergan.parallel import rows_by_label
+
     keep = np.zeros(len(tracks.obs_xy), bool)
-    for k in np.unique(tracks.obs_image):
-        rows = np.flatnonzero(tracks.obs_image == k)
+    images = np.unique(tracks.obs_image)
+    for k, rows in zip(images, rows_by_label(tracks.obs_image, images), strict=True):
         mask = cv2.imread(str(mask_dir / f"{Path(str(tracks.image_names[k])).stem}.png"), cv2.IMREAD_GRAYSCALE)
         if mask is None:
             continue

@@ -187,10 +187,9 @@ def camera_and_scale_lines(survey, sfm) -> list[str]:
     lines = []
     calibration = survey.self_calibration if survey is not None else {}
     if calibration:
-        halves = calibration.get("halves", {})
         lines.append(f"Camera: calibrated on the survey ({calibration['model']}, {calibration['registered']} frames, "
                      f"reprojection {calibration['reprojection_px']:.2f} px); the two halves' focal lengths differ by "
-                     f"{halves.get('focal_diff_pct', float('nan')):.1f} %.")
+                     f"{calibration['halves']['focal_diff_pct']:.1f} %.")
     if sfm is not None:
         if sfm.scale_method == "none":
             lines.append("Scale: unscaled. No stereo rig, board, altitude, position track or camera height: lengths, "
@@ -198,8 +197,8 @@ def camera_and_scale_lines(survey, sfm) -> list[str]:
         elif sfm.scale_method == "track":
             detail = sfm.scale_detail
             halves = detail.get("halves", {})
-            lines.append(f"Scale: from the position track ({detail.get('kept')} of {detail.get('used')} frames, "
-                         f"residual {detail.get('residual_m', float('nan')):.3f} m, spread "
+            lines.append(f"Scale: from the position track ({detail['kept']} of {detail['used']} frames, "
+                         f"residual {detail['residual_m']:.3f} m, spread "
                          f"{100 * sfm.scale_spread:.1f} %"
                          + (f"; the two halves' scales differ by {halves['heldout_pct']:.1f} %" if halves else "")
                          + ").")

@@ -757,12 +757,8 @@ def _write_sfm(rec, tracks: Tracks, out_dir: Path, raw_dir: Path) -> Path:
 
 def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None,
                   good: np.ndarray) -> tuple[str, float, float, dict]:
-    """(method, s, spread, detail) following ``cfg.scale`` (see the module docstring)."""
-    method, s, spread, *detail = _scale_by(cfg, tracks, images_dir, cam, good)
-    return method, s, spread, (detail[0] if detail else {})
-
-
-def _scale_by(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None, good: np.ndarray) -> tuple:
+    """(method, s, spread, detail) following ``cfg.scale`` (see the module docstring; detail: the track's, else
+    empty)."""
     root = images_dir.parent
     right_dir = Path(cfg.right_dir) if cfg.right_dir else root / "right"
     survey_path = Path(cfg.survey_json) if cfg.survey_json else root / "survey.json"
@@ -778,7 +774,7 @@ def _scale_by(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None
         if method == "stereo":
             if has_stereo:
                 s, spread = stereo_scale(tracks, images_dir, right_dir, float(cam["baseline_m"]))
-                return method, s, spread
+                return method, s, spread, {}
             if cfg.scale == "stereo":
                 raise UserInputError(f"stereo scale needs right frames in {right_dir} and baseline_m in camera.json")
         elif method == "board":
@@ -786,7 +782,7 @@ def _scale_by(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None
                 quads, width_m, height_m = read_board_corners(Path(cfg.board_json), cfg.board_width_m,
                                                               cfg.board_height_m)
                 s, spread = board_scale(tracks, quads, width_m, height_m)
-                return method, s, spread
+                return method, s, spread, {}
             if cfg.scale == "board":
                 raise UserInputError("board scale needs a board file with pixel corners (--board-json) and its "
                                      "true size")
@@ -796,9 +792,8 @@ def _scale_by(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None
                 reg = [k for k in np.flatnonzero(tracks.registered) if tracks.image_names[k] in by_name]
                 if len(reg) >= 3:
                     alt = np.array([by_name[tracks.image_names[k]] for k in reg], float)
-                    s, spread = altitude_scale(tracks.xyz[good] if good.sum() >= 10 else tracks.xyz,
-                                               tracks.world_from_cam[reg, :3, 3], alt)
-                    return method, s, spread
+                    s, spread = altitude_scale(points, tracks.world_from_cam[reg, :3, 3], alt)
+                    return method, s, spread, {}
             if cfg.scale == "altitude":
                 raise UserInputError(f"altitude scale needs nav_altitude_m per frame in {survey_path}")
         elif method == "track":
@@ -810,14 +805,14 @@ def _scale_by(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | None
         elif method == "height":
             if "camera_height_m" in survey:
                 centres = tracks.world_from_cam[tracks.registered, :3, 3]
-                return ("height", *height_scale(points, centres, float(survey["camera_height_m"])))
+                return ("height", *height_scale(points, centres, float(survey["camera_height_m"])), {})
             if cfg.scale == "height":
                 raise UserInputError(f"height scale needs camera_height_m (the camera's height over the floor, "
                                      f"metres) in {survey_path}")
         else:
             depths = tracks.depths()
             depths = depths[np.isfinite(depths) & (depths > 0)]
-            return "none", (1.0 / float(np.median(depths)) if depths.size else 1.0), 0.0
+            return "none", (1.0 / float(np.median(depths)) if depths.size else 1.0), 0.0, {}
     raise AssertionError("unreachable")
 
 

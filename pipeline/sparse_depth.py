@@ -78,13 +78,3 @@ def sparse_depth(xy: np.ndarray, z: np.ndarray, width: int, height: int, max_edg
     ok = near_valid & (weight > 0.5)
     out[ok] = total[ok] / weight[ok]
     return out
-
-
-def frame_sparse_depth(tracks, k: int, **options) -> np.ndarray:
-    """Frame ``k``'s depth map from the sparse points it observes (:func:`sparse_depth`; ``tracks``:
-    :class:`eval.tracks.Tracks`)."""
-    rows = np.flatnonzero(tracks.obs_image == k)
-    cam_from_world = np.linalg.inv(tracks.world_from_cam[k])
-    points = tracks.xyz[tracks.obs_point[rows]]
-    z = points @ cam_from_world[2, :3] + cam_from_world[2, 3]
-    return sparse_depth(tracks.obs_xy[rows].astype(float), z, int(tracks.width), int(tracks.height), **options)

@@ -175,8 +175,6 @@ class SurveyResult:
 def survey_scene_mask(survey_dir: Path, camera: dict):
     """The survey's scene mask in the raw frames' geometry (:func:`watergan.io.scene_mask_from`: ``mask.png`` in the
     survey folder, less camera.json's ``mask_rects_px``); None without either."""
-    from watergan.io import DataError
-
     png = survey_dir / SCENE_MASK_PNG
     try:
         return scene_mask_from(int(camera["width"]), int(camera["height"]), png if png.is_file() else None,
@@ -249,11 +247,7 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
     estimate, calibration = {}, {}
     if calibrate:
-        raw_mask = None
-        if mask is not None:
-            raw_mask = target / "selfcal_mask.png"
-            write_scene_mask(raw_mask, mask)
-        found, calibration = self_calibrate(survey / "images", names, camera, target / "selfcal", cfg.seed, raw_mask)
+        found, calibration = self_calibrate(survey / "images", names, camera, target / "selfcal", cfg.seed, mask)
         camera = {**{k: v for k, v in camera.items() if k not in ("fx", "fy", "cx", "cy", "hfov_deg")}, **found}
         lens = distortion_of(camera)
         halves = calibration["halves"]
@@ -261,7 +255,7 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
               f"fx {camera['fx']:.1f} fy {camera['fy']:.1f} cx {camera['cx']:.1f} cy {camera['cy']:.1f} px, "
               + ", ".join(f"{k} {camera[k]:+.4f}" for k in ("k1", "k2", "p1", "p2"))
               + f" (reprojection {calibration['reprojection_px']:.3f} px; the halves' focal lengths differ by "
-              f"{halves.get('focal_diff_pct', float('nan')):.1f} %)", file=sys.stderr, flush=True)
+              f"{halves['focal_diff_pct']:.1f} %)", file=sys.stderr, flush=True)
     elif cfg.estimate_lens:
         from .sfm import estimate_lens
 
