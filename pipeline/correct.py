@@ -89,7 +89,7 @@ from watergan.io import (
     srgb_levels,
     stored_as,
 )
-from watergan.nets.restorer import WaterFields, restore
+from watergan.nets.restorer import SIGNAL_FLOOR, WaterFields, restore
 from watergan.nets.site_depth import SiteDepthNet
 from watergan.train_restorer import load_restorer
 from watergan.train_site_depth import load_site_depth
@@ -932,7 +932,8 @@ def write_corrected(path: Path, linear_rgb: np.ndarray, levels: np.ndarray, scen
 def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields, K: np.ndarray | None,
                        capped: np.ndarray | None = None, max_gain: float = FAR_MAX_GAIN
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """J = exp(g) I + o, the physics inverse J = (I - C) / A with the log gain g = -ln A and offset o = -C / A of
+    """J = max(exp(g) I + o, s exp(g) I) (:data:`~watergan.nets.restorer.SIGNAL_FLOOR`), the physics inverse
+    J = (I - C) / A with the log gain g = -ln A and offset o = -C / A of
     ``fields`` at each pixel's range (holes take the frame's farthest range, which the table covers, then are
     marked), the gain held at ``max_gain`` where ``capped`` ((H,W) bool, None: nowhere; :func:`cap_gain`), as
     :func:`watergan.formation.inverse.correct_physics` returns it: (J (H,W,3) float32 linear, unclipped, NaN where
@@ -950,14 +951,16 @@ def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFiel
         if capped is not None and capped.any():
             g_o = cap_gain(g_o, torch.from_numpy(capped)[None], max_gain)
         rgb = torch.from_numpy(np.ascontiguousarray(image, np.float32)).permute(2, 0, 1)
-        out = (rgb * g_o[:3].exp() + g_o[3:]).permute(1, 2, 0).contiguous().numpy()
+        gained = rgb * g_o[:3].exp()
+        out = torch.maximum(gained + g_o[3:], SIGNAL_FLOOR * gained).permute(1, 2, 0).contiguous().numpy()
     out[~valid] = np.nan
     return out, valid
 
 
 def invert_exact(image: np.ndarray, range_m: np.ndarray, stack: Stack, K: np.ndarray, frame_index: int,
                  normals_cam: np.ndarray | None, capped: np.ndarray, max_gain: float = FAR_MAX_GAIN) -> np.ndarray:
-    """J = (I - C) / A with the stack's exact fields A, C at each pixel's range
+    """J = max(I - C, s I) / A (:data:`~watergan.nets.restorer.SIGNAL_FLOOR`) with the stack's exact fields A, C at
+    each pixel's range
     (:func:`watergan.formation.inverse.inverse_fields`, float64: strobes, a per-frame effect; ``frame_index``: the
     frame's row of the per-frame parameters; ``normals_cam``: (H,W,3) camera-frame normals or None), the gain 1 / A
     held at ``max_gain`` where ``capped`` ((H,W) bool; :func:`cap_gain`): (H,W,3) float32 linear, unclipped, NaN
@@ -969,7 +972,8 @@ def invert_exact(image: np.ndarray, range_m: np.ndarray, stack: Stack, K: np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         gain = 1.0 / a
     gain[capped] = np.minimum(gain[capped], max_gain)
-    out = (np.asarray(image, np.float64) - c) * gain
+    image = np.asarray(image, np.float64)
+    out = np.maximum(image - c, SIGNAL_FLOOR * image) * gain
     out[~valid] = np.nan
     return out.astype(np.float32)
 

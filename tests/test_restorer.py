@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from watergan.data import DataError, read_depth
 from watergan.errors import UserInputError
 from watergan.nets.restorer import (
+    SIGNAL_FLOOR,
     Restorer,
     RestorerWidths,
     SegNetCore,
@@ -102,7 +103,7 @@ def test_affine_fields_invert_the_formation_model_for_any_colour():
     """I = srgb(k (J t + B)) per channel; the fields g = -log(k t), o = -B / t give back srgb(J) for every
     colour J, saturated or not, with one pair of fields per pixel."""
     g = torch.Generator().manual_seed(0)
-    j = torch.rand(1, 3, 8, 8, generator=g)  # linear in-air colours
+    j = 0.05 + 0.95 * torch.rand(1, 3, 8, 8, generator=g)  # linear in-air colours, none darker than the floor
     t = torch.tensor([0.3, 0.75, 0.6]).view(1, 3, 1, 1)
     b = torch.tensor([0.02, 0.1, 0.12]).view(1, 3, 1, 1)
     k = 1.5
@@ -116,6 +117,13 @@ def test_affine_fields_invert_the_formation_model_for_any_colour():
         given = apply_affine(fields, recorded, srgb_decode(recorded))  # the colours decoded by the caller
     assert torch.allclose(fast, apply_affine(fields.clone().requires_grad_(), recorded), atol=1e-6)
     assert torch.allclose(given, fast, atol=1e-6)
+    # a pixel darker than the veil the fields remove keeps SIGNAL_FLOOR of its own signal, not black
+    dark = srgb_encode(0.5 * k * b.expand(1, 3, 8, 8))
+    floored = srgb_decode(apply_affine(fields, dark))
+    expected = SIGNAL_FLOOR * srgb_decode(dark) / (k * t)
+    assert torch.allclose(floored, expected, rtol=1e-4) and (floored > 0).all()
+    with torch.no_grad():
+        assert torch.allclose(srgb_decode(apply_affine(fields, dark)), expected, rtol=1e-4)
 
 
 def test_a_restorer_without_skip_layers_pools_its_input_by_parts():
