@@ -184,7 +184,7 @@ def compare(params: dict, truth: dict) -> dict:
 def compare_veil(veil: dict | None, truth: dict) -> dict:
     """{"veil": row} as :func:`compare`'s for the estimate's veil at the views' median range r (water.json's
     ``veil``), its truth B_inf (1 - exp(-beta r)) from the true backscatter; {} without either."""
-    from eval.water import veil_at
+    from eval.fields import veil_at
 
     if not veil or "backscatter.b_inf" not in truth:
         return {}
@@ -299,7 +299,7 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)
     if estimate.grid is not None:
-        from eval.water import field_size
+        from eval.fields import field_size
 
         print(f"   fine grid after the water: {'carried' if estimate.grid['carried'] else 'flat, not carried'} "
               f"({field_size(estimate.grid)}, {estimate.grid['seconds']:.1f} s)")

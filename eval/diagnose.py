@@ -59,6 +59,7 @@ from watergan.io import atomic_write_json, atomic_write_text
 from .bootstrap import paired_rmse_change
 from .diagnose_measure import GeometrySource, MeasureConfig, check_survey_folder, measure_survey
 from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
+from .fields import field_size
 from .fit import (
     DEFAULT_EFFECTS,
     FitConfig,
@@ -72,7 +73,6 @@ from .fit import (
 )
 from .ledger import LEDGER_NAME, append_ledger, plot_ledger, read_ledger
 from .observations import Observations
-from .water import field_size
 
 #: Training observations on which the start grid is evaluated.
 START_GRID_OBS = 300
@@ -446,7 +446,7 @@ def fields_explained(stack: Stack, reference: Stack, fitted: Effect, state) -> f
 
 def form_conflict(name: str, form: str, fields: dict | None) -> str:
     """Why candidate ``name`` of this ``form`` (:func:`effect_form`) does not fit the water's fields over the image
-    (``fields``: water.json's, :func:`eval.water.field_summary`), "" when it does or there is nothing to compare:
+    (``fields``: water.json's, :func:`eval.fields.field_summary`), "" when it does or there is nothing to compare:
     an image-position candidate must have the fields' form (multiplicative or additive) to explain them."""
     if not fields or get(name).axis != "image_position" or fields.get("form") not in ("multiplicative", "additive"):
         return ""

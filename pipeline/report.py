@@ -208,7 +208,7 @@ def camera_and_scale_lines(survey, sfm) -> list[str]:
 def found_lines(ws: Workspace) -> tuple[list[str], str]:
     """(what the run found, one line each: the water and how far to trust it, what the fields over the image
     carry, the diagnosis's verdict, how the corrections compare; the command to run next, or "")."""
-    from eval.water import field_size
+    from eval.fields import field_size
 
     lines, command = [], ""
     sfm = ws.result("sfm")

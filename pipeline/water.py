@@ -44,12 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
+from eval.fields import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
 from eval.water import (
-    FIELD_EFFECT,
-    FRAME_CARRY_PCT,
-    GRID_EFFECT,
     WaterConfig,
     WaterEstimate,
     on_bound,

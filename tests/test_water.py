@@ -11,10 +11,11 @@ import pytest
 import torch
 
 from eval.colour import Board
+from eval.fields import fit_correction_grid
 from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
 from eval.fit import FitConfig
 from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
-from eval.water import WaterConfig, estimate_water, fit_correction_grid
+from eval.water import WaterConfig, estimate_water
 from watergan.formation import FormationState, Stack, pixel_grid
 from watergan.formation.inverse import correct_physics, inverse_fields
 
@@ -302,7 +303,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     assert args.func(args) == 0
     correct = ws.result("correct")
     assert f"physics: {ws.path(correct.physics_images)}" in capsys.readouterr().out
-    assert correct.physics == "06_correct/physics" and correct.restorer == "" and correct.mode == ""
+    assert correct.physics == f"{STAGES['correct'].folder}/physics" and correct.restorer == "" and correct.mode == ""
     assert correct.mesh_images == correct.physics_images  # no restorer: the physics correction
     # no range: ranged from the neighbours or at the far limit
     assert result.range_missing == pytest.approx(correct.filled_fraction + correct.far_fraction, abs=1e-6)
@@ -390,7 +391,7 @@ def test_the_water_stage_needs_the_dense_range(tmp_path):
     from watergan.errors import UserInputError
 
     ws = Workspace(tmp_path / "ws")
-    ws.save("sfm", SfmConfig(), SfmResult(model_dir="", tracks="01_sfm/tracks.npz", n_images=3, n_registered=3,
+    ws.save("sfm", SfmConfig(), SfmResult(model_dir="", tracks=f"{STAGES['sfm'].folder}/tracks.npz", n_images=3, n_registered=3,
                                           n_points=0, mean_track_length=0.0, mean_reprojection_error_px=0.0,
                                           matching="", scale_method="stereo", scale_factor=1.0, scale_spread=0.0,
                                           seconds=0.0))
@@ -693,7 +694,7 @@ def test_a_fine_grid_after_the_water_takes_a_veil_the_fields_cannot_follow(surve
 def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     """A broad light fixed in the image (a reflection in the port, a Gaussian glow off-centre) reads as additive
     fields; its level is set where the field is least over the views, 0 there, and taken from the veil
-    (:func:`eval.water.set_light_level`), so the veil at the views' median range is the water's: within 10 % of the
+    (:func:`eval.fields.set_light_level`), so the veil at the views' median range is the water's: within 10 % of the
     truth in every channel where the fit, which holds the light at 0 at the image's centre (the estimate's
     ``light_at_centre``), leaves its level in the veil (over 10 % too large in some channel). Every interval takes
     the change between the two, so the veil's covers the truth."""
@@ -753,8 +754,9 @@ def test_the_hessian_perturbs_the_three_channels_of_a_parameter_together(survey)
     """The loss is a sum over the colour channels, so perturbing the three channels of eta, B_inf, the fields and
     the gains per frame together gives the Hessian that perturbing each entry gives (to the finite differences'
     accuracy) from a third of the gradients; a stack that mixes the channels is differentiated entry by entry."""
+    from eval.fields import decorrelate_frames
     from eval.fit import Problem, channels_separate, fitted_names, start_inside_bounds
-    from eval.water import build_stack, decorrelate_frames
+    from eval.water import build_stack
     from watergan.formation import RANK_SENSOR, Effect, register
 
     frames, board = survey
