@@ -99,7 +99,7 @@ def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str
 FIELD_FLAT_PCT = 5.0
 #: The water carries the gains per frame when a frame's exceeds this (per cent). Below it they are reported and
 #: held at 1: a stack that lacks an effect on image position leaves gains of up to 6 % where nothing changes from
-#: frame to frame (a clipped falloff, benchmarks/RESULTS.md), and carrying them bent eta by 8 %.
+#: frame to frame (a clipped falloff, benchmarks/RESULTS/water.md), and carrying them bent eta by 8 %.
 FRAME_CARRY_PCT = 10.0
 #: The fine grid fitted on the coarse fraction of the points (``FitConfig.coarse_fraction``) is taken as flat, without
 #: the fit on all points, when its size stays under this (per cent; the flat of ``FIELD_FLAT_PCT`` with a margin for

@@ -34,7 +34,7 @@ full fit: ``newton`` (one Newton step with the full fit's Hessian, halved until 
 ``bootstrap_iterations`` L-BFGS iterations) or ``least_squares`` (``bootstrap_iterations`` evaluations of the
 trust-region least squares). The replicates' weights are drawn in order and the replicates refitted side by side
 (:func:`side_by_side`: the same replicates, to float rounding). The intervals' coverage on simulated surveys:
-benchmarks/RESULTS.md.
+benchmarks/RESULTS/water.md.
 
 Held-out error (:func:`fit_stack`, ``holdout_fraction``): those points take no part in the fit; with theta frozen
 each one's albedo is fitted from half of its views and the error measured on the other half.
@@ -634,7 +634,7 @@ def inverse_hessian(problem: Problem) -> torch.Tensor:
     finite differences' noise along a flat direction, or a saddle: the step goes downhill either way) and at least
     ``HESSIAN_FLOOR`` of the largest. The floor must stay below the flattest valley the data pin: a Newton step is
     damped along any direction whose eigenvalue it lifts, and the bootstrap's replicates then do not spread along it
-    (see benchmarks/RESULTS.md, "The bootstrap along the valley")."""
+    (see benchmarks/RESULTS/water.md, "The bootstrap along the valley")."""
     evals, evecs = torch.linalg.eigh(problem.hessian())
     return (evecs / evals.abs().clamp_min(evals.abs().max() * HESSIAN_FLOOR + 1e-300)) @ evecs.T
 

@@ -287,7 +287,7 @@ def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> np.ndarra
     ``structural_similarity(b, a, channel_axis=2, full=True)`` computes it: local means, sample variances and
     covariance over a 7x7 uniform window (edges mirrored), S = (2 u_a u_b + C1)(2 s_ab + C2) / ((u_a^2 + u_b^2 + C1)
     (s_a^2 + s_b^2 + C2)) with C1 = (0.01 L)^2, C2 = (0.03 L)^2 and L = ``data_range``. OpenCV's box filter does the
-    windows in float32, as scikit-image does with SciPy's (benchmarks/RESULTS.md compares the two)."""
+    windows in float32, as scikit-image does with SciPy's (benchmarks/RESULTS/restorer.md compares the two)."""
     import cv2
 
     def mean(x: np.ndarray) -> np.ndarray:

@@ -75,7 +75,7 @@ Known limits: the vignetting polynomial's b and c trade with each other (the fal
 its coefficients). The fit starts on ``fit.coarse_fraction`` of the points (:meth:`eval.fit.Problem.coarse_start`):
 a round of L-BFGS, then a trust-region least squares there, which follows the flat directions (red B_inf against
 beta, the two vignettings) to their floor where L-BFGS crawls along them; then it runs on all the points.
-Measured accuracy and coverage: benchmarks/RESULTS.md ("Site water").
+Measured accuracy and coverage: benchmarks/RESULTS/water.md ("Site water").
 
 Bad input: fewer than ``min_frames`` frames with a pose and range, range on too small a part of the frames, or too
 few points seen at different ranges raise :class:`WaterInputError`, saying what to give.

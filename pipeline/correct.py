@@ -354,7 +354,7 @@ def keep_freed_memory() -> bool:
     M_MMAP_THRESHOLD and M_TRIM_THRESHOLD), for the rest of the process. By default each frame's full-resolution
     tensors are mapped afresh and unmapped when freed, and every page of every one is faulted in again, which costs
     the correction's element-wise steps more than their arithmetic; the heap then holds what one batch needs
-    (benchmarks/RESULTS.md). False where the C library is not glibc."""
+    (benchmarks/RESULTS/restorer.md). False where the C library is not glibc."""
     import ctypes
 
     try:
@@ -367,7 +367,7 @@ def keep_freed_memory() -> bool:
 
 CPU_BATCH = 1
 """Images per batch of the restorer on a CPU (``batch_size`` 0): each lane's full-resolution passes over one frame stay
-in the cache, where a batch of 4 streams through memory (measurements: benchmarks/RESULTS.md)."""
+in the cache, where a batch of 4 streams through memory (measurements: benchmarks/RESULTS/speed-and-scale.md)."""
 CUDA_BATCH = 4
 """Images per batch on CUDA (``batch_size`` 0)."""
 

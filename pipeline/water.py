@@ -370,7 +370,7 @@ def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, sm
     seam. On the auv preset (seed 0, 47 % of the pixels ranged from the mesh) the normals' error against the truth
     went from a median of 5.3 to 2.3 degrees (p90 21.9 to 7.8) and the board's CIEDE2000 from 1.35 to 1.25 (1.22
     with the true normals); on seed 1 (26 % from the mesh) the error stayed as it was (mean 3.2 degrees) and the
-    board went from 1.37 to 1.39 (1.37 with the true normals): ``benchmarks/RESULTS.md``."""
+    board went from 1.37 to 1.39 (1.37 with the true normals): ``benchmarks/RESULTS/3d.md``."""
     from eval.observations import frame_normals
     from watergan.formation.inverse import normals_from_range
 

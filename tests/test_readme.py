@@ -6,7 +6,7 @@ Which blocks run: every block fenced ```python in README.md and docs/*.md. A blo
 in a fresh interpreter. A Python block that is not meant to run is fenced ```python skip (highlighted the same by
 markdown viewers); shell commands are fenced ```sh and outputs ```text, neither of which runs.
 
-Links: every markdown link of the README, docs/ and benchmarks/RESULTS.md must name a file of the repository (and a
+Links: every markdown link of the README, docs/, benchmarks/RESULTS.md and its topic files must name a file of the repository (and a
 heading of it for ``#anchor``) or a web address.
 
 The Status section states what the Results table shows: the claims it makes (each correction's board error as a
@@ -155,9 +155,11 @@ def test_status_claims_follow_the_numbers():
 
 
 def test_links_stay_inside_the_repository():
-    """Every markdown link of the README, docs/ and RESULTS.md names a file of the repository (and a heading of it,
-    for ``#anchor``), or a public web address (papers); none points at a local path outside the checkout."""
-    for doc in [README, ROOT / "benchmarks" / "RESULTS.md", *DOCS]:
+    """Every markdown link of the README, docs/, RESULTS.md and its topic files names a file of the repository (and a
+    heading of it, for ``#anchor``), or a public web address (papers); none points at a local path outside the
+    checkout."""
+    for doc in [README, ROOT / "benchmarks" / "RESULTS.md", *sorted((ROOT / "benchmarks" / "RESULTS").glob("*.md")),
+                *DOCS]:
         for target in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
             if target.startswith(("https://", "http://")):
                 continue

@@ -15,7 +15,7 @@ only on its own input and noise z (uniform in [-1, 1], one vector per image, see
 
 ``recolour_fraction`` of the in-air images are recoloured before rendering (:func:`recolour`): an
 in-air set chosen to resemble a sediment site holds few saturated colours, and a restorer trained on
-it alone learns to return sediment colours whatever it sees (measurements: benchmarks/RESULTS.md).
+it alone learns to return sediment colours whatever it sees (measurements: benchmarks/RESULTS/gan.md).
 
 Output folder::
 

@@ -51,7 +51,7 @@ class Encoding(StrEnum):
 ENCODINGS = tuple(Encoding)
 #: The eight bytes every PNG file starts with.
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: zlib's level of :func:`encode_grey16_png` by default: stored (the fastest; benchmarks/RESULTS.md, "A 16-bit PNG
+#: zlib's level of :func:`encode_grey16_png` by default: stored (the fastest; benchmarks/RESULTS/speed-and-scale.md, "A 16-bit PNG
 #: writer for the corrected frames' depth").
 GREY16_ZLIB_LEVEL = 0
 #: Largest distance a 16-bit millimetre PNG holds, metres.

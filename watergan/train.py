@@ -120,7 +120,7 @@ class GanConfig:
     veil_lr: float | None = 2e-3
     """Adam learning rate of ``backscatter_conv``'s batch-norm shift (the veil's level per channel); None: ``lr``.
     ``lr`` is the paper's; at it the veil moves too little in the few hundred iterations a CPU allows in minutes
-    (measurements: benchmarks/RESULTS.md)."""
+    (measurements: benchmarks/RESULTS/gan.md)."""
     veil_spread_lr: float | None = None
     """Adam learning rate of ``backscatter_conv``'s batch-norm scale (the veil's spread per channel); None: ``lr``.
     Backscatter is smooth, and a fast-growing spread lets the z mask stand in for texture contrast, a random
@@ -138,7 +138,7 @@ class GanConfig:
     site_water_scattering: bool = False
     """With ``site_water``: keep the learned G-II scattering (``backscatter_conv``) beside the analytic backscatter.
     Off by default: the discriminator grows its per-image veil (trained by it) into a spread larger than the
-    backscatter itself, which the restorer cannot undo (measurements: benchmarks/RESULTS.md)."""
+    backscatter itself, which the restorer cannot undo (measurements: benchmarks/RESULTS/gan.md)."""
     gain_channels: int = 1
     """Values of the generator's ``gain``: 1 (one exposure factor, the paper's camera model) or 3 (a white balance).
     A per-channel gain and a per-channel attenuation explain a frame's colour cast equally well; only the weak
@@ -159,7 +159,7 @@ class GanConfig:
     """Let the discriminator's loss move the physical parameters (bounded values, veil level and spread), as the paper.
     False: they follow the colour-statistics term alone, which holds the data-driven start, while the
     discriminator trains the learned veil pattern (``backscatter_conv``'s layers); the adversarial gradient pushed
-    eta away from that start in every setting tried (measurements: benchmarks/RESULTS.md)."""
+    eta away from that start in every setting tried (measurements: benchmarks/RESULTS/gan.md)."""
     settle_steps: int = 100
     """Full-batch steps of the colour-statistics term alone after training (:func:`settle_statistics`; 0: none).
     Every in-air view against every real frame at once: minibatch training leaves the generated means off the
@@ -190,7 +190,7 @@ class GanConfig:
     """Channels of the discriminator's first convolution (the paper: 64).
     The discriminator is most of an iteration's cost (batch 64, 4 passes per iteration): 16 both fits several
     times more iterations into the budget and keeps the discriminator from overpowering the few physical
-    parameters (measurements: benchmarks/RESULTS.md)."""
+    parameters (measurements: benchmarks/RESULTS/gan.md)."""
     iterations: int | None = None
     """Stop after this many iterations (one discriminator update each).
     Counted from the start of training, so a resumed run stops at the same place."""

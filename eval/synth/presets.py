@@ -68,7 +68,7 @@ def reef_config() -> SimulationConfig:
     track's variance grows with that spread. The fast, large bobbing changes the range within a pass, where SfM
     links consecutive frames. Saturated albedos vary more across views than grey ones, hence the large cover and
     a pink in place of a pale coral. The strong red attenuation and the blue veil steepen the normalised colour's
-    change with range. Measurements: benchmarks/RESULTS.md."""
+    change with range. Measurements: benchmarks/RESULTS/corrections.md."""
     visible = (
         {"name": "attenuation", "params": {"eta_per_m": [0.6, 0.12, 0.1]}},
         {"name": "backscatter", "params": {"b_inf": [0.01, 0.05, 0.5], "beta_per_m": [0.35, 0.3, 0.3]}},

@@ -8,7 +8,7 @@ one (a real survey, or the reef and auv presets), generic sediment photographs a
 WaterGAN can change colour and brightness, not content, so whatever differs between the set and the
 site is learned as water: a set with twice the site's texture contrast pushes the learned water towards
 a murkier one (a larger eta dims the texture, a stronger veil restores the mean), and a set greener than
-the site raises the learned green and blue eta (measurements: benchmarks/RESULTS.md).
+the site raises the learned green and blue eta (measurements: benchmarks/RESULTS/gan.md).
 
 Written as ``rgb/NNNNNN.png`` (sRGB 8-bit in-air colour), ``depth/NNNNNN.png`` (camera z, 16-bit
 millimetres, 0 where a ray leaves the scene) and ``camera.json`` (intrinsics of these images).

@@ -256,7 +256,7 @@ class FieldTable:
     stacks whose fields depend on the pixel's position and range alone (not on surface normals: check
     :func:`needs_normals`). With K the grid's points and depths come from the pixels' rays, as in
     :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs), so a coarse grid
-    interpolates them closely (its accuracy on the demo: benchmarks/RESULTS.md). A table is built once and sampled
+    interpolates them closely (its accuracy on the demo: benchmarks/RESULTS/corrections.md). A table is built once and sampled
     for every frame it covers: building one evaluates the stack at 100k-300k grid points.
 
     Most stacks' fields are sums of a few products of a function of range and a function of position (attenuation
@@ -264,7 +264,7 @@ class FieldTable:
     matrix is then of low rank, T = sum_k U_k(r) V_k(x, y). Where ``LOW_RANK_MAX`` terms reproduce the table within
     ``LOW_RANK_TOL``, :meth:`sample` evaluates that sum instead of trilinear interpolation: the V_k bilinear at each
     pixel (once per image size), the U_k looked up every ``CURVE_STEP_M`` of range: the same values to the tolerance
-    and the curves' step, for less work per pixel (speeds: benchmarks/RESULTS.md)."""
+    and the curves' step, for less work per pixel (speeds: benchmarks/RESULTS/speed-and-scale.md)."""
 
     table: torch.Tensor
     """(1,6,R,rows,cols) float32: g then o per channel."""

@@ -148,7 +148,7 @@ def normalised_radius(pixel_uv: torch.Tensor, image_wh: tuple[int, int],
 def vector_length(t: torch.Tensor, dim: int) -> torch.Tensor:
     """The length sqrt(x^2 + y^2 + z^2) of the 3-vectors along ``dim`` (kept, of size 1). The same as
     ``t.norm(dim=dim, keepdim=True)`` to rounding; torch's norm over a dimension that is not the last is many times
-    slower on a CPU (benchmarks/RESULTS.md)."""
+    slower on a CPU (benchmarks/RESULTS/speed-and-scale.md)."""
     return torch.sqrt(dot3(t, t, dim))
 
 

@@ -60,7 +60,7 @@ final convolution, so the output is ``y = conv([dec(enc(x)), x])``. The core nee
   at full resolution before they are applied. The net then starts as the exact inverse of that water, the physics
   correction's, and the core, the geometry branch and the skip layers learn what the stack does not hold (the
   clipping and 8-bit rounding of the pairs, a learned scattering, what the discriminator added). Without it the
-  geometry branch has to learn those fields from zero. Measurements of these inputs: benchmarks/RESULTS.md.
+  geometry branch has to learn those fields from zero. Measurements of these inputs: benchmarks/RESULTS/restorer.md.
 
   Position: the colour net's input also holds each pixel's place in the whole image
   (:func:`position_maps`: u, v in [-1, 1] and the squared radius, 1 at a corner), since vignetting
@@ -496,7 +496,7 @@ class Restorer(nn.Module):
     def for_inference(self) -> Restorer:
         """A copy in eval mode for correcting frames, with the same outputs (to float rounding): each batch norm
         folded into the convolution before it, and the weights of the full-resolution 3x3 output convolution laid
-        out channels-last, which oneDNN runs faster on a CPU (measurements: benchmarks/RESULTS.md)."""
+        out channels-last, which oneDNN runs faster on a CPU (measurements: benchmarks/RESULTS/restorer.md)."""
         from torch.nn.utils.fusion import fuse_conv_bn_eval
 
         model = copy.deepcopy(self).eval()
