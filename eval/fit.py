@@ -27,14 +27,14 @@ in a flat direction can be far from the optimum); then optionally a joint polish
 with ``coarse_refine_evaluations`` follows one round of its L-BFGS with the trust region on those points in float64:
 the full fit then starts at the floor of the flat directions instead of crawling along them.
 
-Bootstrap (``bootstrap`` replicates; :func:`bootstrap`): frames drawn with replacement (the frames that see the
-board apart from the others, so every replicate keeps the board), each point's views weighted Poisson(1) and each
-board patch's too (the views of one point, or of one patch, share its errors). Each replicate is refitted from the
-full fit: ``newton`` (one Newton step with the full fit's Hessian, halved until it lowers the replicate's loss, then
-``bootstrap_iterations`` L-BFGS iterations) or ``least_squares`` (``bootstrap_iterations`` evaluations of the
-trust-region least squares). The replicates' weights are drawn in order and the replicates refitted side by side
-(:func:`side_by_side`: the same replicates, to float rounding). The intervals' coverage on simulated surveys:
-benchmarks/RESULTS/water.md.
+Bootstrap (``bootstrap`` replicates; :func:`eval.bootstrap.bootstrap`): frames drawn with replacement (the frames
+that see the board apart from the others, so every replicate keeps the board), each point's views weighted
+Poisson(1) and each board patch's too (the views of one point, or of one patch, share its errors). Each replicate is
+refitted from the full fit: ``newton`` (one Newton step with the full fit's Hessian, halved until it lowers the
+replicate's loss, then ``bootstrap_iterations`` L-BFGS iterations) or ``least_squares`` (``bootstrap_iterations``
+evaluations of the trust-region least squares). The replicates' weights are drawn in order and the replicates
+refitted side by side (:func:`eval.solvers.side_by_side`: the same replicates, to float rounding). The intervals'
+coverage on simulated surveys: benchmarks/RESULTS/water.md.
 
 Held-out error (:func:`fit_stack`, ``holdout_fraction``): those points take no part in the fit; with theta frozen
 each one's albedo is fitted from half of its views and the error measured on the other half.
@@ -49,9 +49,7 @@ import copy
 import math
 import time
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 
 import numpy as np
 import torch
@@ -61,27 +59,15 @@ from watergan.formation import Effect, FormationState, Stack
 from watergan.formation.inverse import affine_images, affine_state
 from watergan.formation.params import to_json_value
 
-from .bootstrap import normal_interval, replicate_weights
+from .bootstrap import Refit, bootstrap, normal_interval
 from .observations import Observations
+from .solvers import lbfgs, least_squares_fit, side_by_side
 
 #: The stack fitted by default (water and diagnosis): the simulator's visible physics, with WaterGAN's learned
 #: backscatter replaced by its analytic counterpart, which has physical parameters to estimate.
 DEFAULT_EFFECTS = ("attenuation", "backscatter", "vignetting", "gain")
 #: Fraction of a parameter's span kept from its bounds at the start of a fit (see start_inside_bounds).
 START_MARGIN = 0.01
-#: Least eigenvalue of the Hessian a Newton step inverts, as a fraction of the largest (:func:`inverse_hessian`).
-HESSIAN_FLOOR = 1e-8
-#: At most this many threads refit bootstrap replicates, or take the Hessian's columns, side by side
-#: (:func:`side_by_side`).
-SIDE_BY_SIDE_THREADS = 4
-
-
-class Refit(StrEnum):
-    """How a bootstrap replicate is refitted from the full fit."""
-
-    newton = "newton"
-    least_squares = "least_squares"
-
 
 @dataclass(frozen=True)
 class FitConfig:
@@ -501,200 +487,14 @@ class Problem:
         return done, config.max_iterations <= config.iterations
 
     def refine(self, evaluations: int) -> None:
-        """The trust-region least squares on :meth:`residuals` (:func:`least_squares_fit`), its finite-difference
-        Jacobian taken a group of :meth:`channel_groups` at a time for the per-channel rows and a parameter at a time
-        for the penalty rows (which need no render)."""
+        """The trust-region least squares on :meth:`residuals` (:func:`eval.solvers.least_squares_fit`), its
+        finite-difference Jacobian taken a group of :meth:`channel_groups` at a time for the per-channel rows and a
+        parameter at a time for the penalty rows (which need no render)."""
         groups, channel = self.channel_groups()
         least_squares_fit(self.theta, self.residuals, evaluations, [(g, channel[g]) for g in groups],
                           lambda: self.penalty().detach())
 
 
-def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> None:
-    """At most ``iterations`` L-BFGS iterations (strong-Wolfe line search, history 20), stopping when a step changes
-    the loss by less than ``rtol`` of its starting value."""
-    with torch.no_grad():
-        scale = abs(float(loss_fn())) + 1e-30
-    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-12, tolerance_change=rtol * scale)
-
-    def closure():
-        opt.zero_grad(set_to_none=True)
-        loss = loss_fn()
-        loss.backward()
-        return loss
-
-    opt.step(closure)
-
-
-#: Parameters up to which the trust region solves its steps exactly (an SVD of the Jacobian); beyond (gains per frame
-#: of a long survey: hundreds of columns over a hundred thousand rows), by LSMR's iterations, which need no SVD.
-EXACT_SOLVER_MAX = 64
-
-
-def least_squares_fit(theta: list[torch.Tensor], residual_fn, evaluations: int,
-                      groups: list[tuple[np.ndarray, np.ndarray]] | None = None, penalty_fn=None) -> None:
-    """Minimise the sum of squares of ``residual_fn()`` over the tensors ``theta`` (in place) by scipy's trust-region
-    reflective least squares, at most ``evaluations`` residual evaluations, Jacobian-scaled variables, steps solved
-    exactly up to ``EXACT_SOLVER_MAX`` parameters and by LSMR beyond; the start is kept unless the fit lowers the
-    cost. The Jacobian is scipy's forward differences (step sqrt(eps) max(1, |x|)),
-    one residual evaluation per parameter on top, or, with ``groups`` (flat parameter indices and each one's colour
-    channel, -1: none; the residuals channel-last, entry k of channel k mod 3, then ``penalty_fn()``'s rows), one
-    per group (:func:`grouped_jacobian`)."""
-    if evaluations <= 0 or not theta:
-        return
-    from scipy.optimize import least_squares
-
-    shapes = [t.shape for t in theta]
-    sizes = [t.numel() for t in theta]
-    x0 = torch.cat([t.detach().reshape(-1) for t in theta]).numpy().copy()
-
-    def assign(x: np.ndarray) -> None:
-        with torch.no_grad():
-            for t, part, shape in zip(theta, np.split(x, np.cumsum(sizes)[:-1]), shapes, strict=True):
-                t.copy_(torch.from_numpy(part.reshape(shape)))
-
-    last: list = [None, None]
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        assign(x)
-        with torch.no_grad():
-            f = residual_fn().reshape(-1).numpy()
-        last[:] = x.copy(), f
-        return f
-
-    def penalty(x: np.ndarray) -> np.ndarray:
-        assign(x)
-        with torch.no_grad():
-            return penalty_fn().reshape(-1).numpy()
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        f0 = last[1] if last[0] is not None and np.array_equal(last[0], x) else fun(x)
-        return grouped_jacobian(fun, x, f0, groups, None if penalty_fn is None else penalty)
-
-    cost0 = float((fun(x0) ** 2).sum())
-    with np.errstate(all="ignore"):
-        result = least_squares(fun, x0, jac="2-point" if groups is None else jac, method="trf", x_scale="jac",
-                               ftol=1e-12, xtol=1e-10, gtol=1e-12, max_nfev=evaluations,
-                               tr_solver="exact" if len(x0) <= EXACT_SOLVER_MAX else "lsmr")
-    assign(result.x if np.isfinite(result.x).all() and 2.0 * result.cost <= cost0 else x0)
-
-
-def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.ndarray, np.ndarray]],
-                     penalty=None) -> np.ndarray:
-    """Forward differences of ``fun`` at ``x`` (``f0`` = fun(x)) with scipy's steps, h_i = sqrt(eps) max(1, |x_i|)
-    signed like x_i, a group's entries moved together: where the residuals of channel c depend on the channel-c
-    entries (and the shared ones) alone, the column of a channel-c entry is the change of the channel-c residuals
-    (zero elsewhere), as moving it alone would give. An entry of channel -1 must be a group of its own. ``penalty``:
-    a function of x giving fun's last rows (which need not keep the channels apart), differenced an entry at a time
-    (None: no such rows)."""
-    h = np.sqrt(np.finfo(float).eps) * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
-    h = (x + h) - x
-    jacobian = np.zeros((len(f0), len(x)))
-    head = len(f0) - (0 if penalty is None else len(penalty(x)))
-    for index, channel in groups:
-        moved = x.copy()
-        moved[index] += h[index]
-        change = fun(moved)[:head] - f0[:head]
-        for i, c in zip(index, channel, strict=True):
-            if c < 0:
-                jacobian[:head, i] = change / h[i]
-            else:  # channel c's residuals are every third entry from c
-                jacobian[c:head:3, i] = change[c::3] / h[i]
-    if head < len(f0):
-        for i in range(len(x)):
-            moved = x.copy()
-            moved[i] += h[i]
-            jacobian[head:, i] = (penalty(moved) - f0[head:]) / h[i]
-    return jacobian
-
-
-# ---------------------------------------------------------------------------------- bootstrap
-def side_by_side(problem: Problem, work, items: list) -> list:
-    """[work(fit, item) for item in items], the items shared out over up to ``SIDE_BY_SIDE_THREADS`` threads (as many
-    as torch's), each with its own copy of ``problem`` (:meth:`Problem.on_copy`, ``problem`` itself the first) and
-    an equal share of torch's threads (one each on two cores: a render of some 10^5 views uses a second torch
-    thread poorly). ``work`` sets the parameters it needs; the copies are discarded."""
-    threads = torch.get_num_threads()
-    workers = min(threads, SIDE_BY_SIDE_THREADS, len(items))
-    if workers <= 1:
-        return [work(problem, item) for item in items]
-    torch.set_num_threads(threads // workers)  # the threads the pool starts take this count
-    try:
-        fits = [problem] + [problem.on_copy() for _ in range(workers - 1)]
-        with ThreadPoolExecutor(workers) as pool:
-            parts = list(pool.map(lambda fit, share: [work(fit, item) for item in share], fits,
-                                  [items[i::workers] for i in range(workers)]))
-    finally:
-        torch.set_num_threads(threads)
-    return [parts[i % workers][i // workers] for i in range(len(items))]
-
-
-def inverse_hessian(problem: Problem) -> torch.Tensor:
-    """H^-1 of ``problem``'s loss at its parameters, each eigenvalue taken by its magnitude (a negative one is the
-    finite differences' noise along a flat direction, or a saddle: the step goes downhill either way) and at least
-    ``HESSIAN_FLOOR`` of the largest. The floor must stay below the flattest valley the data pin: a Newton step is
-    damped along any direction whose eigenvalue it lifts, and the bootstrap's replicates then do not spread along it
-    (see benchmarks/RESULTS/water.md, "The bootstrap along the valley")."""
-    evals, evecs = torch.linalg.eigh(problem.hessian())
-    return (evecs / evals.abs().clamp_min(evals.abs().max() * HESSIAN_FLOOR + 1e-300)) @ evecs.T
-
-
-def newton_refit(problem: Problem, x0: torch.Tensor, inv: torch.Tensor, iterations: int) -> None:
-    """Refit ``problem`` (its weights or configuration changed) from the full fit's ``x0``: one Newton step with the
-    full fit's inverse Hessian ``inv``, halved until it lowers the loss (kept at ``x0`` after six halvings), then
-    ``iterations`` L-BFGS iterations."""
-    problem.set_flat(x0)
-    step = -(inv @ problem.gradient())
-    with torch.no_grad():
-        before = float(problem.loss())
-        for _ in range(6):
-            problem.set_flat(x0 + step)
-            if float(problem.loss()) < before:
-                break
-            step = step / 2
-        else:
-            problem.set_flat(x0)
-    problem.minimise(iterations)
-
-
-def bootstrap(problem: Problem, config: FitConfig, replicas: Problem | None = None,
-              inv: torch.Tensor | None = None) -> list[dict[str, np.ndarray]]:
-    """``config.bootstrap`` replicates of the fit of ``problem`` (at its optimum; see the module docstring), each
-    {raw name: physical value}. ``replicas``: the problem the replicates are evaluated on (e.g. the same stack in
-    float32; default ``problem``); ``inv``: its inverse Hessian when already computed (``newton``). The parameters
-    are restored afterwards."""
-    fast = replicas or problem
-    if not config.bootstrap or not problem.names:
-        return []
-    rng = np.random.default_rng([config.seed, 29])
-    frames = np.unique(problem.frame.numpy())
-    board_frames = np.unique(problem.board_frame.numpy()) if problem.has_board else np.zeros(0, np.int64)
-    groups = [board_frames, np.setdiff1d(frames, board_frames)]
-    n_patches = int(problem.board_patch.max()) + 1 if problem.has_board else 0
-    x0 = fast.flat()
-    if config.bootstrap_refit == Refit.newton and inv is None:
-        inv = inverse_hessian(fast)
-    weights = [replicate_weights(rng, groups, len(fast.points) if config.bootstrap_points else 0,
-                                 n_patches if config.bootstrap_points else 0) for _ in range(config.bootstrap)]
-
-    def refit(fit: Problem, replicate: tuple) -> dict[str, np.ndarray]:
-        counts, points, patches = replicate
-        fit.frame_weight = torch.from_numpy(counts)
-        if config.bootstrap_points:
-            fit.point_weight = torch.from_numpy(points)
-            fit.patch_weight = torch.from_numpy(patches) if n_patches else None
-        if config.bootstrap_refit == Refit.newton:
-            newton_refit(fit, x0, inv, config.bootstrap_iterations)
-        else:
-            fit.set_flat(x0)
-            fit.refine(config.bootstrap_iterations)
-        return fit.physical()
-
-    try:
-        return side_by_side(fast, refit, weights)
-    finally:
-        fast.frame_weight = fast.point_weight = fast.patch_weight = None
-        fast.set_flat(x0)
 
 
 # ------------------------------------------------------------------------- fit with held-out points

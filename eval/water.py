@@ -47,7 +47,7 @@ What pins what (and what does not):
   in several frames; kept off the constant (the survey's gain) and off the frames' mean ranges (the water's), so
   eta's level comes from the frames' ranges as without them.
 
-Uncertainty: the fitter's bootstrap (:func:`eval.fit.bootstrap`: frames, points and board patches resampled, each
+Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, points and board patches resampled, each
 replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
 that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
 less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each
@@ -97,6 +97,7 @@ from watergan.formation.effects.image_field import n_terms
 from watergan.formation.inverse import needs_normals
 from watergan.formation.rig import held_rig, rig_settings
 
+from .bootstrap import bootstrap, inverse_hessian, newton_refit
 from .fields import (
     FIELD_EFFECT,
     FRAME_CARRY_PCT,
@@ -111,17 +112,7 @@ from .fields import (
     stack_first,
     veil_at,
 )
-from .fit import (
-    DEFAULT_EFFECTS,
-    WATER_FIT,
-    FitConfig,
-    Problem,
-    bootstrap,
-    fitted_names,
-    inverse_hessian,
-    newton_refit,
-    start_inside_bounds,
-)
+from .fit import DEFAULT_EFFECTS, WATER_FIT, FitConfig, Problem, fitted_names, start_inside_bounds
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 

@@ -748,7 +748,8 @@ def test_the_grouped_jacobian_is_scipys_forward_differences(clean):
     from scipy.optimize._numdiff import approx_derivative
 
     from eval.diagnose import DEFAULT_EFFECTS
-    from eval.fit import Problem, fitted_names, grouped_jacobian
+    from eval.fit import Problem, fitted_names
+    from eval.solvers import grouped_jacobian
 
     meas = measure_survey(clean, MeasureConfig(n_points=150))
     q = np.array([0.3, -0.2, 0.5, 0.1, 0.4])
