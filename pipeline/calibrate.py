@@ -135,7 +135,7 @@ def _adjust_all(rec):
     """Bundle adjustment of ``rec`` in place with every intrinsic free (COLMAP's log kept out); its camera."""
     import pycolmap
 
-    from .sfm import stderr_to_null
+    from .colmap import stderr_to_null
 
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = True
@@ -222,7 +222,7 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
     focal length, and their difference in per cent), focal_guess_px, seconds."""
     import pycolmap
 
-    from .sfm import colmap_errors_only
+    from .colmap import colmap_errors_only
 
     started = time.perf_counter()
     w, h = int(camera["width"]), int(camera["height"])

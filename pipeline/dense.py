@@ -591,7 +591,7 @@ def run_patch_match_folder(tracks, model_dir: Path, images_dir: Path, out_dir: P
     (``scene_mask``: the survey's scene mask file, None: every pixel is the scene)."""
     import pycolmap
 
-    from pipeline.sfm import colmap_errors_only
+    from pipeline.colmap import colmap_errors_only
     from watergan.parallel import rows_by_label
 
     start = time.perf_counter()

@@ -1,6 +1,6 @@
 """Georeferencing: the survey frame placed in a projected CRS by the navigation's positions.
 
-The survey frame (:func:`pipeline.sfm.survey_frame`) is metric with z up, but its rotation about the vertical and
+The survey frame (:func:`pipeline.scale.survey_frame`) is metric with z up, but its rotation about the vertical and
 its origin are arbitrary. When ``survey.json`` names a CRS (``"crs": "EPSG:<code>"``, projected, in metres, e.g.
 a UTM zone) and gives each frame's position in it (``nav_easting_m``, ``nav_northing_m``, or a navigation log's
 ``easting_m``, ``northing_m``: :mod:`pipeline.navigation`), a 2-D similarity

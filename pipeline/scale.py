@@ -1,4 +1,6 @@
-"""Metric scale from what vehicles log: a position track, or a camera at a known height over a floor.
+"""The survey frame and its metric scale, from every source SfM can use: a stereo rig, a board of known size,
+navigation altitudes (their equations, the order of preference and the choice: :mod:`pipeline.sfm`), and what
+vehicles log: a position track, or a camera at a known height over a floor.
 
 Track (``nav_position_m`` per frame: [x, y] in a horizontal plane, or [x, y, z], metres; from navigation.csv's
 ``x_m``/``y_m``/``z_m`` or easting/northing): a robust similarity between the SfM camera centres C_i and the
@@ -24,10 +26,13 @@ median(h_i), spread = MAD(h) / median(h).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from eval.tracks import Tracks
 from watergan.errors import UserInputError
+from watergan.io import read_json
 
 #: Robust refits of the track's similarity, and the residual (in robust standard deviations) that drops a frame.
 TRIM_ROUNDS, TRIM_MAD = 3, 3.0
@@ -160,3 +165,166 @@ def height_scale(points: np.ndarray, centres: np.ndarray, camera_height_m: float
     heights = centres @ n - d
     median = float(np.median(heights))
     return camera_height_m / median, float(np.median(np.abs(heights - median)) / median)
+
+
+def survey_frame(points: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (rows: new axes in old coordinates) and origin o of the survey frame: z = the
+    normal of the points' least-squares plane (towards the cameras), x = main direction of the
+    camera centres within that plane, origin = the points' median."""
+    origin = np.median(points, axis=0)
+    _, _, vt = np.linalg.svd(points - points.mean(0), full_matrices=False)
+    normal = vt[2]
+    if np.median((centres - origin) @ normal) < 0:
+        normal = -normal
+    flat = centres - centres.mean(0)
+    flat -= np.outer(flat @ normal, normal)
+    _, _, vc = np.linalg.svd(flat, full_matrices=False) if len(flat) > 1 else (None, None, np.eye(3))
+    x_axis = vc[0] - (vc[0] @ normal) * normal
+    if np.linalg.norm(x_axis) < 1e-9:
+        x_axis = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x_axis /= np.linalg.norm(x_axis)
+    return np.stack([x_axis, np.cross(normal, x_axis), normal]), origin
+
+
+def _robust_ratio(samples: np.ndarray, what: str, minimum: int = 10) -> tuple[float, float]:
+    """(median, median absolute deviation / median) of the finite positive ``samples``; an error naming another
+    source when fewer than ``minimum`` are left."""
+    samples = samples[np.isfinite(samples) & (samples > 0)]
+    if samples.size < minimum:
+        raise UserInputError(f"only {samples.size} usable samples for the {what} scale (need {minimum}): "
+                             f"use another scale source (--scale)")
+    med = float(np.median(samples))
+    return med, float(np.median(np.abs(samples - med)) / med)
+
+
+def stereo_scale(tracks: Tracks, images_dir: Path, right_dir: Path, baseline_m: float,
+                 max_images: int = 12, max_obs: int = 400, patch: int = 7, min_ncc: float = 0.95
+                 ) -> tuple[float, float]:
+    """Scale from a rectified stereo rig: for each sparse observation (x, y) of a left image, the
+    patch around it is searched along row y of the right image (NCC, parabolic sub-pixel peak);
+    z_stereo = fx b / d. Returns (median of z_stereo / z_sfm, relative spread)."""
+    import cv2
+
+    fx = float(tracks.K[0, 0])
+    z_sfm_all = tracks.depths()
+    half = patch // 2
+    ratios = []
+    registered = np.flatnonzero(tracks.registered)
+    for k in registered[np.linspace(0, len(registered) - 1, min(max_images, len(registered))).astype(int)]:
+        name = str(tracks.image_names[k])
+        right_path = right_dir / name
+        left = cv2.imread(str(images_dir / name), cv2.IMREAD_GRAYSCALE)
+        right = cv2.imread(str(right_path), cv2.IMREAD_GRAYSCALE)
+        if left is None or right is None:
+            continue
+        obs = np.flatnonzero(tracks.obs_image == k)
+        obs = obs[np.linspace(0, len(obs) - 1, min(max_obs, len(obs))).astype(int)] if len(obs) else obs
+        h, w = left.shape
+        d_max = w // 3
+        for m in obs:
+            x, y = np.rint(tracks.obs_xy[m]).astype(int)
+            if not (half + d_max <= x < w - half and half <= y < h - half):
+                continue
+            template = left[y - half:y + half + 1, x - half:x + half + 1]
+            if template.std() < 2:
+                continue
+            strip = right[y - half:y + half + 1, x - half - d_max:x + half + 1]
+            score = cv2.matchTemplate(strip, template, cv2.TM_CCOEFF_NORMED)[0]
+            j = int(np.argmax(score))
+            if score[j] < min_ncc or j in (0, len(score) - 1):
+                continue
+            a, b, c = score[j - 1], score[j], score[j + 1]
+            offset = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
+            disparity = d_max - (j + offset)  # strip column j is right-image x = x - d_max + j
+            if disparity > 1.0:
+                ratios.append(fx * baseline_m / disparity / z_sfm_all[m])
+    return _robust_ratio(np.array(ratios), "stereo")
+
+
+def altitude_scale(points: np.ndarray, centres: np.ndarray, nav_altitude_m: np.ndarray) -> tuple[float, float]:
+    """s = median(nav altitude) / median(camera height above the points' median height) with the
+    heights measured along the survey frame's z (``points``/``centres`` already rotated, unscaled)."""
+    heights = centres[:, 2] - np.median(points[:, 2])
+    if np.median(heights) <= 0:
+        raise UserInputError("the cameras are not above the sparse points: cannot use the altitude scale")
+    s = float(np.median(nav_altitude_m) / np.median(heights))
+    per_image = nav_altitude_m / heights
+    spread = float(np.median(np.abs(per_image - s)) / s)
+    return s, spread
+
+
+def triangulate_dlt(projections: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """A 3D point from its pixel positions (V,2) in V >= 2 views with 3x4 projections (V,3,4): the
+    null vector of the stacked rows x P_3 - P_1, y P_3 - P_2 (linear DLT, rows normalised)."""
+    rows = np.concatenate([xy[:, :1] * projections[:, 2] - projections[:, 0],
+                           xy[:, 1:] * projections[:, 2] - projections[:, 1]])
+    rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(rows)
+    return vt[-1, :3] / vt[-1, 3]
+
+
+def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
+                       ) -> tuple[dict[str, np.ndarray], float, float]:
+    """Board file -> (image name -> (Q,4,2) pixel quads, NaN when not visible; true width; true height)."""
+    data = read_json(path, "board file")
+    try:
+        images = {}
+        for name, corners in data["images"].items():
+            if corners is None:
+                continue
+            quads = [q if q is not None else [[np.nan, np.nan]] * 4 for q in corners] \
+                if np.ndim(corners[0]) == 2 or corners[0] is None else [corners]
+            images[name] = np.array(quads, float).reshape(-1, 4, 2)
+    except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
+        raise UserInputError(f"board file {path} must have 'images' (file name -> 4 pixel corners, or 4 per "
+                             f"patch): {exc}") from exc
+    side = data.get("patch_side_m", 0.0)
+    width_m = width_m or data.get("width_m", side)
+    height_m = height_m or data.get("height_m", side) or width_m
+    if not all(isinstance(v, int | float) and v > 0 for v in (width_m, height_m)):
+        raise UserInputError(f"give the board's true size (width_m/height_m or patch_side_m in {path}, "
+                             f"or --board-width-m/--board-height-m)")
+    if len({q.shape[0] for q in images.values()}) > 1:
+        raise UserInputError(f"board file {path}: every image must list the same number of quads")
+    return images, float(width_m), float(height_m)
+
+
+def board_scale(tracks: Tracks, quads: dict[str, np.ndarray], width_m: float, height_m: float
+                ) -> tuple[float, float]:
+    """Scale from a board of known size: corners triangulated from >= 2 registered views (DLT),
+    s = median(true edge length / triangulated edge length). Returns (s, relative spread)."""
+    index = {str(n): k for k, n in enumerate(tracks.image_names)}
+    views = [(index[n], q) for n, q in quads.items() if n in index and tracks.registered[index[n]]]
+    if not views:
+        raise UserInputError("no registered image has board corners: check the board file's image names")
+    projections = []
+    for k, _ in views:
+        cam_from_world = np.linalg.inv(tracks.world_from_cam[k])
+        projections.append(tracks.K @ cam_from_world[:3])
+    projections = np.array(projections)
+    corners = np.stack([q for _, q in views])  # (V,Q,4,2)
+    xyz = np.full(corners.shape[1:3] + (3,), np.nan)
+    for qi in range(corners.shape[1]):
+        for ci in range(4):
+            seen = np.isfinite(corners[:, qi, ci]).all(1)
+            if seen.sum() >= 2:
+                xyz[qi, ci] = triangulate_dlt(projections[seen], corners[seen, qi, ci])
+    true = np.array([width_m, height_m, width_m, height_m])
+    measured = np.linalg.norm(xyz - np.roll(xyz, -1, axis=1), axis=2)  # edges 0-1, 1-2, 2-3, 3-0
+    return _robust_ratio((true / measured).ravel(), "board", minimum=3)
+
+
+def track_scale(tracks: Tracks, survey: dict, survey_path: Path) -> tuple[float, float, dict]:
+    """(s, spread, detail) of the position track (:func:`fit_track`, :func:`track_halves`)."""
+    frames = survey.get("frames") or sorted(str(n) for n in tracks.image_names)
+    positions = dict(zip(frames, survey["nav_position_m"], strict=False))
+    index = [k for k in np.flatnonzero(tracks.registered) if str(tracks.image_names[k]) in positions]
+    if len({len(positions[str(tracks.image_names[k])]) for k in index}) > 1:
+        raise UserInputError(f"{survey_path}: nav_position_m mixes 2-D and 3-D positions")
+    centres = tracks.world_from_cam[index, :3, 3]
+    xy = np.array([positions[str(tracks.image_names[k])] for k in index], float)
+    fit = fit_track(centres, xy)
+    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept, "mirrored": fit.mirrored}
+    if len(index) >= 10:
+        detail["halves"] = track_halves(centres, xy)
+    return fit.scale, fit.spread, detail

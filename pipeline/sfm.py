@@ -9,7 +9,8 @@ moved into a *survey frame* and given a metric scale:
                    points (oriented towards the cameras), x = main direction of camera travel;
     p_survey = s R (p_colmap - o)
 
-with the scale ``s`` from, in order of preference (``scale="auto"``; board only when a board file is given):
+with the scale ``s`` from, in order of preference (``scale="auto"``; board only when a board file is given; the
+survey frame and every source: :mod:`pipeline.scale`):
 
     stereo:    a rectified stereo rig (``right/`` frames, ``baseline_m`` in camera.json). Sparse
                observations are matched along their row in the right frame (normalised cross
@@ -33,17 +34,15 @@ Outputs (``01_sfm/``): ``sparse/`` (COLMAP binary model in the survey frame), ``
 (:class:`Tracks`: points, observations, poses, intrinsics) and ``database.db``.
 
 Pixel convention everywhere outside COLMAP: OpenCV, the centre of pixel (column i, row j) is at
-(i, j). COLMAP puts it at (i + 0.5, j + 0.5); the conversion happens here, once.
+(i, j). COLMAP puts it at (i + 0.5, j + 0.5); the conversion happens once, in :mod:`pipeline.colmap`.
 """
 
 from __future__ import annotations
 
-import os
 import shutil
 import sys
 import time
 import zlib  # noqa: F401  must load before pycolmap: pycolmap first makes Python's zlib corrupt the heap
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -53,11 +52,20 @@ import numpy as np
 from eval.tracks import Tracks
 from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
-from watergan.io import image_files, read_camera_json, read_json, read_survey_json
+from watergan.io import image_files, read_camera_json, read_survey_json
 from watergan.lens import OPENCV, Lens
 
+from .colmap import build_tracks, camera_matrix, colmap_errors_only, refined_k1
 from .overlay import overlay_warning, still_features
-from .scale import fit_track, height_scale, track_halves
+from .scale import (
+    altitude_scale,
+    board_scale,
+    height_scale,
+    read_board_corners,
+    stereo_scale,
+    survey_frame,
+    track_scale,
+)
 
 
 class Matching(StrEnum):
@@ -231,27 +239,6 @@ def distortion_warning(k1: float, lens_source: str = "") -> str:
             f"position")
 
 
-def refined_k1(rec) -> float | None:
-    """k1 of a SIMPLE_RADIAL camera fitted by bundle adjustment on a copy of the PINHOLE model ``rec`` (focal
-    length and principal point held, poses and points free); None when its camera is not PINHOLE."""
-    import pycolmap
-
-    copy = pycolmap.Reconstruction(rec)
-    for camera in copy.cameras.values():
-        if camera.model != pycolmap.CameraModelId.PINHOLE:
-            return None
-        fx, fy, cx, cy = camera.params
-        camera.model = pycolmap.CameraModelId.SIMPLE_RADIAL
-        camera.params = [0.5 * (fx + fy), cx, cy, 0.0]
-    options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = options.refine_principal_point = False
-    options.refine_extra_params = True
-    options.print_summary = False
-    with stderr_to_null():  # the adjuster logs its start at INFO whatever glog's level
-        pycolmap.bundle_adjustment(copy, options)
-    return float(np.median([camera.params[3] for camera in copy.cameras.values()]))
-
-
 #: Consecutive frames from the middle of the survey SfM estimates a lens on (:func:`estimate_lens`).
 LENS_FRAMES = 30
 
@@ -293,205 +280,10 @@ def estimate_lens(images_dir: Path, names: list[str], camera: dict, start: Lens 
     return refined, summary
 
 
-@contextmanager
-def stderr_to_null():
-    """The process's standard error (file descriptor 2, where C++ logs) sent to /dev/null while the block runs."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    null = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(null, 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(null)
-        os.close(saved)
-
-
-def _pose_matrix(image) -> np.ndarray:
-    """world_from_cam 4x4 of a pycolmap image (inverse of its cam_from_world)."""
-    pose = np.eye(4)
-    pose[:3, :] = image.cam_from_world().inverse().matrix()
-    return pose
-
-
-def survey_frame(points: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (rows: new axes in old coordinates) and origin o of the survey frame: z = the
-    normal of the points' least-squares plane (towards the cameras), x = main direction of the
-    camera centres within that plane, origin = the points' median."""
-    origin = np.median(points, axis=0)
-    _, _, vt = np.linalg.svd(points - points.mean(0), full_matrices=False)
-    normal = vt[2]
-    if np.median((centres - origin) @ normal) < 0:
-        normal = -normal
-    flat = centres - centres.mean(0)
-    flat -= np.outer(flat @ normal, normal)
-    _, _, vc = np.linalg.svd(flat, full_matrices=False) if len(flat) > 1 else (None, None, np.eye(3))
-    x_axis = vc[0] - (vc[0] @ normal) * normal
-    if np.linalg.norm(x_axis) < 1e-9:
-        x_axis = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-    x_axis /= np.linalg.norm(x_axis)
-    return np.stack([x_axis, np.cross(normal, x_axis), normal]), origin
-
-
-def _robust_ratio(samples: np.ndarray, what: str, minimum: int = 10) -> tuple[float, float]:
-    samples = samples[np.isfinite(samples) & (samples > 0)]
-    if samples.size < minimum:
-        raise UserInputError(f"only {samples.size} usable samples for the {what} scale (need {minimum}): "
-                             f"use another scale source (--scale)")
-    med = float(np.median(samples))
-    return med, float(np.median(np.abs(samples - med)) / med)
-
-
-def stereo_scale(tracks: Tracks, images_dir: Path, right_dir: Path, baseline_m: float,
-                 max_images: int = 12, max_obs: int = 400, patch: int = 7, min_ncc: float = 0.95
-                 ) -> tuple[float, float]:
-    """Scale from a rectified stereo rig: for each sparse observation (x, y) of a left image, the
-    patch around it is searched along row y of the right image (NCC, parabolic sub-pixel peak);
-    z_stereo = fx b / d. Returns (median of z_stereo / z_sfm, relative spread)."""
-    import cv2
-
-    fx = float(tracks.K[0, 0])
-    z_sfm_all = tracks.depths()
-    half = patch // 2
-    ratios = []
-    registered = np.flatnonzero(tracks.registered)
-    for k in registered[np.linspace(0, len(registered) - 1, min(max_images, len(registered))).astype(int)]:
-        name = str(tracks.image_names[k])
-        right_path = right_dir / name
-        left = cv2.imread(str(images_dir / name), cv2.IMREAD_GRAYSCALE)
-        right = cv2.imread(str(right_path), cv2.IMREAD_GRAYSCALE)
-        if left is None or right is None:
-            continue
-        obs = np.flatnonzero(tracks.obs_image == k)
-        obs = obs[np.linspace(0, len(obs) - 1, min(max_obs, len(obs))).astype(int)] if len(obs) else obs
-        h, w = left.shape
-        d_max = w // 3
-        for m in obs:
-            x, y = np.rint(tracks.obs_xy[m]).astype(int)
-            if not (half + d_max <= x < w - half and half <= y < h - half):
-                continue
-            template = left[y - half:y + half + 1, x - half:x + half + 1]
-            if template.std() < 2:
-                continue
-            strip = right[y - half:y + half + 1, x - half - d_max:x + half + 1]
-            score = cv2.matchTemplate(strip, template, cv2.TM_CCOEFF_NORMED)[0]
-            j = int(np.argmax(score))
-            if score[j] < min_ncc or j in (0, len(score) - 1):
-                continue
-            a, b, c = score[j - 1], score[j], score[j + 1]
-            offset = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
-            disparity = d_max - (j + offset)  # strip column j is right-image x = x - d_max + j
-            if disparity > 1.0:
-                ratios.append(fx * baseline_m / disparity / z_sfm_all[m])
-    return _robust_ratio(np.array(ratios), "stereo")
-
-
-def altitude_scale(points: np.ndarray, centres: np.ndarray, nav_altitude_m: np.ndarray) -> tuple[float, float]:
-    """s = median(nav altitude) / median(camera height above the points' median height) with the
-    heights measured along the survey frame's z (``points``/``centres`` already rotated, unscaled)."""
-    heights = centres[:, 2] - np.median(points[:, 2])
-    if np.median(heights) <= 0:
-        raise UserInputError("the cameras are not above the sparse points: cannot use the altitude scale")
-    s = float(np.median(nav_altitude_m) / np.median(heights))
-    per_image = nav_altitude_m / heights
-    spread = float(np.median(np.abs(per_image - s)) / s)
-    return s, spread
-
-
-def triangulate_dlt(projections: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """A 3D point from its pixel positions (V,2) in V >= 2 views with 3x4 projections (V,3,4): the
-    null vector of the stacked rows x P_3 - P_1, y P_3 - P_2 (linear DLT, rows normalised)."""
-    rows = np.concatenate([xy[:, :1] * projections[:, 2] - projections[:, 0],
-                           xy[:, 1:] * projections[:, 2] - projections[:, 1]])
-    rows /= np.linalg.norm(rows, axis=1, keepdims=True)
-    _, _, vt = np.linalg.svd(rows)
-    return vt[-1, :3] / vt[-1, 3]
-
-
-def read_board_corners(path: Path, width_m: float = 0.0, height_m: float = 0.0
-                       ) -> tuple[dict[str, np.ndarray], float, float]:
-    """Board file -> (image name -> (Q,4,2) pixel quads, NaN when not visible; true width; true height)."""
-    data = read_json(path, "board file")
-    try:
-        images = {}
-        for name, corners in data["images"].items():
-            if corners is None:
-                continue
-            quads = [q if q is not None else [[np.nan, np.nan]] * 4 for q in corners] \
-                if np.ndim(corners[0]) == 2 or corners[0] is None else [corners]
-            images[name] = np.array(quads, float).reshape(-1, 4, 2)
-    except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
-        raise UserInputError(f"board file {path} must have 'images' (file name -> 4 pixel corners, or 4 per "
-                             f"patch): {exc}") from exc
-    side = data.get("patch_side_m", 0.0)
-    width_m = width_m or data.get("width_m", side)
-    height_m = height_m or data.get("height_m", side) or width_m
-    if not all(isinstance(v, int | float) and v > 0 for v in (width_m, height_m)):
-        raise UserInputError(f"give the board's true size (width_m/height_m or patch_side_m in {path}, "
-                             f"or --board-width-m/--board-height-m)")
-    if len({q.shape[0] for q in images.values()}) > 1:
-        raise UserInputError(f"board file {path}: every image must list the same number of quads")
-    return images, float(width_m), float(height_m)
-
-
-
 def check_board(cfg: SfmConfig) -> None:
     """The sfm stage's input check: the board file it names, when it names one (:func:`read_board_corners`)."""
     if cfg.board_json:
         read_board_corners(Path(cfg.board_json), cfg.board_width_m, cfg.board_height_m)
-
-def board_scale(tracks: Tracks, quads: dict[str, np.ndarray], width_m: float, height_m: float
-                ) -> tuple[float, float]:
-    """Scale from a board of known size: corners triangulated from >= 2 registered views (DLT),
-    s = median(true edge length / triangulated edge length). Returns (s, relative spread)."""
-    index = {str(n): k for k, n in enumerate(tracks.image_names)}
-    views = [(index[n], q) for n, q in quads.items() if n in index and tracks.registered[index[n]]]
-    if not views:
-        raise UserInputError("no registered image has board corners: check the board file's image names")
-    projections = []
-    for k, _ in views:
-        cam_from_world = np.linalg.inv(tracks.world_from_cam[k])
-        projections.append(tracks.K @ cam_from_world[:3])
-    projections = np.array(projections)
-    corners = np.stack([q for _, q in views])  # (V,Q,4,2)
-    xyz = np.full(corners.shape[1:3] + (3,), np.nan)
-    for qi in range(corners.shape[1]):
-        for ci in range(4):
-            seen = np.isfinite(corners[:, qi, ci]).all(1)
-            if seen.sum() >= 2:
-                xyz[qi, ci] = triangulate_dlt(projections[seen], corners[seen, qi, ci])
-    true = np.array([width_m, height_m, width_m, height_m])
-    measured = np.linalg.norm(xyz - np.roll(xyz, -1, axis=1), axis=2)  # edges 0-1, 1-2, 2-3, 3-0
-    return _robust_ratio((true / measured).ravel(), "board", minimum=3)
-
-
-def _build_tracks(rec, names: list[str], K: np.ndarray, width: int, height: int) -> Tracks:
-    index = {n: i for i, n in enumerate(names)}
-    poses = np.full((len(names), 4, 4), np.nan)
-    registered = np.zeros(len(names), bool)
-    colmap_to_index = {}
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        k = index[image.name]
-        poses[k] = _pose_matrix(image)
-        registered[k] = True
-        colmap_to_index[image_id] = (k, image)
-    ids, xyz, rgb, obs_point, obs_image, obs_xy = [], [], [], [], [], []
-    for row, (pid, point) in enumerate(sorted(rec.points3D.items())):
-        ids.append(pid)
-        xyz.append(point.xyz)
-        rgb.append(point.color)
-        for el in point.track.elements:
-            k, image = colmap_to_index[el.image_id]
-            obs_point.append(row)
-            obs_image.append(k)
-            obs_xy.append(np.asarray(image.points2D[el.point2D_idx].xy) - 0.5)
-    return Tracks(image_names=np.array(names), registered=registered, world_from_cam=poses, K=K,
-                  width=width, height=height, point_id=np.array(ids, np.int64),
-                  xyz=np.array(xyz, np.float64).reshape(-1, 3), rgb=np.array(rgb, np.uint8).reshape(-1, 3),
-                  obs_point=np.array(obs_point, np.int64), obs_image=np.array(obs_image, np.int32),
-                  obs_xy=np.array(obs_xy, np.float32).reshape(-1, 2))
 
 
 def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
@@ -541,20 +333,6 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
         for warning in result.warnings():
             print(warning, file=sys.stderr, flush=True)
     return result
-
-
-@contextmanager
-def colmap_errors_only():
-    """COLMAP's log (glog: thousands of INFO lines and boilerplate warnings for a survey) kept to its errors
-    while the block runs; the level is restored after it."""
-    import pycolmap
-
-    before = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 2  # glog: 0 INFO, 1 WARNING, 2 ERROR
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = before
 
 
 def _sfm_inputs(images_dir: Path, cfg: SfmConfig) -> tuple[list[str], dict | None]:
@@ -715,14 +493,6 @@ def _largest_model(models: dict, names: list[str], cfg: SfmConfig):
     return rec, n_reg
 
 
-def _camera_matrix(rec) -> tuple[np.ndarray, int, int]:
-    """The model's (first) camera as an OpenCV pinhole K (pixel centres at integers) and its width, height."""
-    cam_model = rec.cameras[next(iter(rec.cameras))]
-    fx, fy, cx, cy = (cam_model.focal_length_x, cam_model.focal_length_y,
-                      cam_model.principal_point_x - 0.5, cam_model.principal_point_y - 0.5)
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), cam_model.width, cam_model.height
-
-
 def _to_survey_frame(rec, names: list[str], images_dir: Path, cam: dict | None,
                      cfg: SfmConfig) -> tuple[Tracks, str, float, float, dict]:
     """Move ``rec`` into the survey frame (:func:`survey_frame`, from points seen in >= 3 views when there
@@ -730,17 +500,17 @@ def _to_survey_frame(rec, names: list[str], images_dir: Path, cam: dict | None,
     detail."""
     import pycolmap
 
-    K, width, height = _camera_matrix(rec)
-    tracks = _build_tracks(rec, names, K, width, height)
+    K, width, height = camera_matrix(rec)
+    tracks = build_tracks(rec, names, K, width, height)
     centres = tracks.world_from_cam[tracks.registered, :3, 3]
     good = tracks.track_lengths() >= 3
     R, origin = survey_frame(tracks.xyz[good] if good.sum() >= 10 else tracks.xyz, centres)
     rotated = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), -R @ origin)
     rec.transform(rotated)
-    tracks = _build_tracks(rec, names, K, width, height)
+    tracks = build_tracks(rec, names, K, width, height)
     method, scale, spread, detail = _choose_scale(cfg, tracks, images_dir, cam, good)
     rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
-    return _build_tracks(rec, names, K, width, height), method, scale, spread, detail
+    return build_tracks(rec, names, K, width, height), method, scale, spread, detail
 
 
 def _write_sfm(rec, tracks: Tracks, out_dir: Path, raw_dir: Path) -> Path:
@@ -798,7 +568,7 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
                 raise UserInputError(f"altitude scale needs nav_altitude_m per frame in {survey_path}")
         elif method == "track":
             if "nav_position_m" in survey:
-                return ("track", *_track_scale(tracks, survey, survey_path))
+                return ("track", *track_scale(tracks, survey, survey_path))
             if cfg.scale == "track":
                 raise UserInputError(f"track scale needs nav_position_m per frame in {survey_path} (navigation.csv "
                                      f"with x_m, y_m[, z_m] or easting_m, northing_m)")
@@ -814,22 +584,6 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
             depths = depths[np.isfinite(depths) & (depths > 0)]
             return "none", (1.0 / float(np.median(depths)) if depths.size else 1.0), 0.0, {}
     raise AssertionError("unreachable")
-
-
-def _track_scale(tracks: Tracks, survey: dict, survey_path: Path) -> tuple[float, float, dict]:
-    """(s, spread, detail) of the position track (:func:`pipeline.scale.fit_track`, :func:`track_halves`)."""
-    frames = survey.get("frames") or sorted(str(n) for n in tracks.image_names)
-    positions = dict(zip(frames, survey["nav_position_m"], strict=False))
-    index = [k for k in np.flatnonzero(tracks.registered) if str(tracks.image_names[k]) in positions]
-    if len({len(positions[str(tracks.image_names[k])]) for k in index}) > 1:
-        raise UserInputError(f"{survey_path}: nav_position_m mixes 2-D and 3-D positions")
-    centres = tracks.world_from_cam[index, :3, 3]
-    xy = np.array([positions[str(tracks.image_names[k])] for k in index], float)
-    fit = fit_track(centres, xy)
-    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept, "mirrored": fit.mirrored}
-    if len(index) >= 10:
-        detail["halves"] = track_halves(centres, xy)
-    return fit.scale, fit.spread, detail
 
 
 def run_sfm(ws, cfg: SfmConfig) -> SfmResult:

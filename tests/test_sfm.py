@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from conftest import SCRATCH
 
-from pipeline.scale import similarity_align
-from pipeline.sfm import SfmConfig, Tracks, altitude_scale, run_sfm, run_sfm_folder
+from pipeline.scale import altitude_scale, similarity_align
+from pipeline.sfm import SfmConfig, Tracks, run_sfm, run_sfm_folder
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 

@@ -9,7 +9,7 @@ Each variant runs ``pycolmap.incremental_mapping`` on the database (features and
 COLMAP's defaults for the global bundle adjustment (growth 1.1, redundant points kept); ``growth14``/``growth20``:
 that with the global adjustment at 40 % / 100 % growth; ``redundant``: that with the redundant points left out;
 ``stage``: the stage's own options. The registered cameras' centres are compared with ``SURVEY/truth`` after a
-similarity (:func:`pipeline.sfm.similarity_align`): RMS and largest error as a share of the true centres' extent.
+similarity (:func:`pipeline.scale.similarity_align`): RMS and largest error as a share of the true centres' extent.
 """
 
 from __future__ import annotations
@@ -23,7 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from eval.synth import load_truth
-from pipeline.sfm import SfmConfig, _incremental_options, colmap_errors_only, similarity_align
+from pipeline.colmap import colmap_errors_only
+from pipeline.scale import similarity_align
+from pipeline.sfm import SfmConfig, _incremental_options
 
 COLMAP = {"ba_global_frames_ratio": 1.1, "ba_global_points_ratio": 1.1,
           "mapper.ba_global_ignore_redundant_points3D": False}
