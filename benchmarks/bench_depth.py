@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import time
@@ -42,6 +43,8 @@ from pipeline.site_depth import fit_site_depth
 from pipeline.workspace import Workspace
 from watergan.train_site_depth import SiteDepthConfig
 
+ROOT = Path(__file__).resolve().parents[1]  # the repository: result files name paths relative to it
+
 
 def _summary(result) -> dict:
     return {"relief_rmse_ratio": result.relief_rmse_ratio, "all_rmse_ratio": result.all_rmse_ratio,
@@ -55,7 +58,7 @@ def bench_survey(ws: Workspace, out: Path, steps: int) -> dict:
     nav = Navigation.from_survey(survey / "survey.json")
     if nav is None or not nav.altitude_m:
         raise SystemExit(f"{ws.root}: the survey has no camera.json or no nav_altitude_m")
-    record: dict = {"workspace": str(ws.root)}
+    record: dict = {"workspace": os.path.relpath(ws.root, ROOT)}  # relative to the repository's root
     correct = ws.result("correct")
     if correct is not None and correct.depth:
         pred = ws.path(correct.depth)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import time
 from pathlib import Path
@@ -41,6 +42,8 @@ import numpy as np
 import torch
 
 from watergan.nets.restorer import WIDTH_PRESETS, Restorer, restore
+
+ROOT = Path(__file__).resolve().parents[1]  # the repository: result files name paths relative to it
 
 
 def best_s(call, times: int = 3) -> float:
@@ -182,7 +185,8 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
         restore(model, x, altitude, range_m, intrinsics, water)  # warm-up
         parts["nets_s_per_frame"] = best_s(lambda: restore(model, x, altitude, range_m, intrinsics, water)) / len(paths)
     torch.set_num_threads(threads)
-    return {"lanes": lanes, "batch": batch, "workspace": str(own), "copies": copies, "frames": frames,
+    return {"lanes": lanes, "batch": batch, "workspace": os.path.relpath(own, ROOT), "copies": copies,
+            "frames": frames,
             "image_format": image_format, "frames_per_s": fps, "runs": runs,
             "range_source": sources, **parts}
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -21,6 +22,8 @@ import numpy as np
 
 from pipeline.scale import similarity_align
 from pipeline.sfm import SfmConfig, Tracks, run_sfm_folder
+
+ROOT = Path(__file__).resolve().parents[1]  # the repository: result files name paths relative to it
 
 
 def camera_error(survey: Path, tracks: Tracks) -> dict:
@@ -59,8 +62,8 @@ def main() -> int:
               f"reprojection {row['mean_reprojection_error_px']:.2f} px, centres {100 * row['rms_share']:.3f} % RMS "
               f"of the extent (largest {100 * row['max_share']:.3f} %), scale x{row['similarity_scale']}", flush=True)
     path = Path(__file__).resolve().parent / "results" / "sfm.json"
-    record = {"command": "benchmarks/bench_sfm.py " + " ".join(sys.argv[1:]), "survey": str(args.survey),
-              "mappers": rows}
+    record = {"command": "benchmarks/bench_sfm.py " + " ".join(sys.argv[1:]),
+              "survey": os.path.relpath(args.survey, ROOT), "mappers": rows}
     path.write_text(json.dumps(record, indent=2) + "\n")
     return 0
 

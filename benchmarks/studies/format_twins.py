@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import cv2
 
+ROOT = Path(__file__).resolve().parents[2]  # the repository: result files name paths relative to it
 FORMATS = {"png": (".png", []), "jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95]), "tiff": (".tif", [])}
 
 
@@ -81,8 +83,8 @@ def main() -> None:
         for m in sorted(row["board"]):
             print(f"{fmt:5s} {m:24s} board {row['board'][m]:.3f} ({row['board_vs_png'].get(m, float('nan')):.3f} x png)"
                   f"  consistency x png " + "/".join(f"{v:.3f}" for v in row["consistency_vs_png"].get(m, [])))
-    (args.out / "formats.json").write_text(json.dumps({"survey": str(args.survey), "options": args.run_options,
-                                                       "twins": rows}, indent=1) + "\n")
+    (args.out / "formats.json").write_text(json.dumps({"survey": os.path.relpath(args.survey, ROOT),
+                                                       "options": args.run_options, "twins": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -30,6 +31,7 @@ from bench_water import compare, truth_params  # noqa: E402
 from eval.observations import Observations  # noqa: E402
 from eval.water import WaterConfig, fit_observations  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[2]  # the repository: result files name paths relative to it
 REPORTED = ("attenuation.eta_per_m", "backscatter.b_inf", "backscatter.beta_per_m", "gain.k")
 
 
@@ -72,7 +74,7 @@ def main() -> None:
             print(f"{n:>7} points {part.n_obs:>8} views {seconds:>7.1f} s  eta error {eta['rel_error']} "
                   f"width {eta['rel_width']} covered {eta['covered']}", flush=True)
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps({"workspace": str(ws), "command": " ".join(sys.argv),
+            args.out.write_text(json.dumps({"workspace": os.path.relpath(ws, ROOT), "command": " ".join(sys.argv),
                                             "rows": rows}, indent=1) + "\n")
 
 
