@@ -37,10 +37,10 @@ import torch
 
 from eval.colour import ColourEvalConfig
 from eval.depth import DepthCompareConfig, Navigation, compare_depth_folders
-from pipeline.correct import correct_folder
 from pipeline.evaluate import run_colour_eval
 from pipeline.site_depth import fit_site_depth
 from pipeline.workspace import Workspace
+from watergan.restore_folder import correct_folder
 from watergan.train_site_depth import SiteDepthConfig
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository: result files name paths relative to it

@@ -10,8 +10,8 @@ dense stage's patch-match stereo (pycolmap built with CUDA).
   then in monocular mode on CUDA.
 - ``--copies N`` (``correct_rate``): the workspace's frames N times over (:func:`bench_restorer.replicate_workspace`),
   corrected by the restorer on CUDA as ``watergan correct`` runs it (model load and file I/O included, best of 2
-  passes): the readers and lanes of :func:`pipeline.correct.correct_chunk` swept, then the defaults in both modes with
-  PNG and JPEG output; the same frames on the machine's CPU cores; the physics correction (a CPU path) on the
+  passes): the readers and lanes of :func:`watergan.restore_folder.correct_chunk` swept, then the defaults in both
+  modes with PNG and JPEG output; the same frames on the machine's CPU cores; the physics correction (a CPU path) on the
   workspace's own frames, best of 3 passes; the codecs alone on the same frames (OpenCV on the CPU's threads,
   torchvision's nvJPEG on the GPU) and the restorer's nets alone on CUDA.
 - ``--pairs``: a ``generate`` folder: an RGB-D restorer trained on it on CUDA for 20 + 20 iterations (time, peak
@@ -39,7 +39,7 @@ def correct_check(ws: Path, out: Path) -> dict:
     """Frames per second on CUDA and on the CPU, and how far the CUDA colours are from the CPU's."""
     import cv2
 
-    from pipeline.correct import correct_folder
+    from watergan.restore_folder import correct_folder
 
     record = {}
     for device in ("cuda", "cpu"):
@@ -69,7 +69,9 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
     docstring), and the parts that bound it."""
     import os
 
-    import pipeline.correct as correct
+    import watergan.restore_folder as correct
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.workspace import Workspace
     from watergan.data import read_intrinsics
     from watergan.io import read_image
@@ -111,8 +113,9 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
     print(f"restorer cpu ({torch.get_num_threads()} threads) rgb-d png: {fps} frames/s", flush=True)
     workspace, own_frames = Workspace(ws), len(list((ws / "00_survey" / "images").glob("*.png")))
     for mode in ("rgb-d", "monocular"):
-        best = min(correct.correct_physics_folder(workspace, ws / "00_survey" / "images", out / "physics",
-                                                  progress=False, mode=mode).seconds for _ in range(3))
+        inputs = physics_inputs(workspace, ws / "00_survey" / "images")
+        best = min(correct_physics_folder(inputs, out / "physics", progress=False, mode=mode).seconds
+                   for _ in range(3))
         record["frames_per_s"][f"physics cpu {mode} png ({own_frames} frames)"] = fps = round(own_frames / best, 1)
         print(f"physics {mode} on {own_frames} frames ({correct.cpu_lanes()} lanes): {fps} frames/s", flush=True)
     record["parts"] = part_rates(ws, images, ranges, out / "parts", correct.cuda_lanes())
@@ -148,7 +151,7 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
 def images_only(timed) -> float:
     """``timed``'s RGB-D run on CUDA with correct's depth outputs (a 16-bit PNG and a .npy per frame) left out: what
     the depth files cost."""
-    import pipeline.correct as correct
+    import watergan.restore_folder as correct
 
     own = correct._write
 
@@ -167,7 +170,7 @@ def part_rates(ws: Path, images: Path, ranges: Path, out: Path, threads: int) ->
     (the three output files: ``_write``), each on ``threads`` threads."""
     from concurrent.futures import ThreadPoolExecutor
 
-    import pipeline.correct as correct
+    import watergan.restore_folder as correct
 
     paths = sorted(images.iterdir())
     chunk = correct.CorrectChunk(ws / "05_restorer", tuple(paths), out, 4, "cuda", range_dir=ranges)

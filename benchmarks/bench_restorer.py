@@ -11,16 +11,16 @@ With ``--workspace`` (a ``watergan run`` workspace) it times both corrections as
 survey's frames, model load and file reading and writing included (best of ``--repeats`` passes, at most 3; every
 pass's figure is kept under ``runs``), in both modes (``frames_per_s``, keyed by correction and mode):
 
-- ``physics``: :func:`pipeline.correct.correct_physics_folder`, the water stage's estimate inverted with its range maps
-  (``rgb-d``) or with a flat seafloor at the navigation's altitude (``monocular``; times the site depth net's factor
-  where the restorer stage trained one that won);
-- ``restorer``: :func:`pipeline.correct.correct_folder` with the workspace's restorer, the same two ranges.
+- ``physics``: :func:`pipeline.correct_physics.correct_physics_folder`, the water stage's estimate inverted with its
+  range maps (``rgb-d``) or with a flat seafloor at the navigation's altitude (``monocular``; times the site depth
+  net's factor where the restorer stage trained one that won);
+- ``restorer``: :func:`watergan.restore_folder.correct_folder` with the workspace's restorer, the same two ranges.
 
 ``--copies N``: on the survey's frames N times over (:func:`replicate_workspace`), as a dive of N times the survey's
 length, where the start of each pass (model load, the fields' grid, the first frames in flight) counts once.
 
-It also times the parts of one batch as one of correct's lanes runs it (:func:`pipeline.correct.cpu_lanes`: one
-thread; :func:`pipeline.correct.batch_for`: one frame on a CPU), best of three: the water's inverse fields
+It also times the parts of one batch as one of correct's lanes runs it (:func:`watergan.restore_folder.cpu_lanes`: one
+thread; :func:`watergan.restore_folder.batch_for`: one frame on a CPU), best of three: the water's inverse fields
 (:class:`watergan.nets.restorer.WaterFields`: the grid's build, once, and the lookup per frame) and the restorer's nets
 given them (the model's :meth:`~watergan.nets.restorer.Restorer.for_inference`
 copy). Writes ``benchmarks/results/restorer.json`` (``--result``); ``--image-format`` as correct's.
@@ -120,13 +120,14 @@ def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
 def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input", copies: int = 1) -> dict:
     """Both corrections in both modes on the workspace's frames, ``copies`` times over (:func:`replicate_workspace`;
     best of the passes), and one of the restorer's batches split into its parts."""
-    from pipeline.correct import batch_for, correct_folder, correct_physics_folder, cpu_lanes
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.workspace import Workspace
     from watergan.data import read_intrinsics
     from watergan.io import depth_or_zero, read_depth, read_image
     from watergan.nets.restorer import WaterFields, fill_range_holes
+    from watergan.restore_folder import batch_for, correct_folder, cpu_lanes
     from watergan.train_restorer import load_restorer
-
     own = ws
     if copies > 1:
         ws = replicate_workspace(own, out / "replica", copies)
@@ -146,8 +147,8 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
             seconds = []
             for _ in range(passes):
                 if correction == "physics":
-                    done = correct_physics_folder(workspace, images, out / correction / mode, progress=False,
-                                                  mode=mode, image_format=image_format)
+                    done = correct_physics_folder(physics_inputs(workspace, images), out / correction / mode,
+                                                  progress=False, mode=mode, image_format=image_format)
                     seconds.append(done.seconds)
                 else:
                     done = correct_folder(ws / "05_restorer", images, out / correction / mode, force=True,

@@ -1,5 +1,5 @@
 """The restorer and correction commands of the `watergan` console script (options:
-:class:`watergan.train_restorer.RestorerConfig`, :class:`pipeline.correct.CorrectConfig` and the workspace
+:class:`watergan.train_restorer.RestorerConfig`, :class:`watergan.restore_folder.CorrectConfig` and the workspace
 stages' :class:`pipeline.gan.RestorerStage`, :class:`pipeline.correct.CorrectStage`).
 
     watergan train-restorer --data-dir DIR --out-dir DIR [--budget-min N] [--no-skip] [--head affine|direct]
@@ -32,12 +32,13 @@ def cmd_train_restorer(args: argparse.Namespace) -> int:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from pipeline.correct import CorrectConfig, correct_folder
+    from watergan.restore_folder import CorrectConfig, correct_folder
 
     c = config_from_args(CorrectConfig, args)
     result = correct_folder(c.model_dir, c.images_dir, c.out_dir, force=c.force, batch_size=c.batch_size,
                             device=c.device, scheduler=c.scheduler or None, navigation=c.navigation,
-                            range_dir=c.range_dir, mode=str(c.mode), image_format=str(c.image_format))
+                            range_dir=c.range_dir, mode=str(c.mode), image_format=str(c.image_format),
+                            fill_px=c.fill_px, far_max_gain=c.far_max_gain, far_range_pct=c.far_range_pct)
     print(f"corrected {result.corrected} ({result.mode} mode), already done {result.already_done}, "
           f"failed {len(result.failed)} in {result.seconds:.1f} s -> {result.out_dir} (images/, depth/, summary.json)")
     for line in result.failed:
@@ -73,7 +74,7 @@ def print_correct(ws, r) -> None:
 
 def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     """Add ``train-restorer``, ``correct-folder`` and the stages' ``restorer`` and ``correct`` to ``sub``."""
-    from pipeline.correct import CorrectConfig
+    from watergan.restore_folder import CorrectConfig
     from watergan.train_restorer import RestorerConfig
 
     p = sub.add_parser("train-restorer", parents=parents,

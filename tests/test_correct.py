@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.correct import correct_folder
 from watergan.data import DataError
 from watergan.io import srgb_to_linear
 from watergan.nets.restorer import Restorer, RestorerWidths
+from watergan.restore_folder import correct_folder
 from watergan.train_restorer import save_restorer
 
 TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)
@@ -165,9 +165,9 @@ def test_an_rgbd_restorer_corrects_with_each_pixel_s_range(tmp_path):
 
 
 def test_lanes_side_by_side_write_the_same_files_and_leave_torch_s_threads(tmp_path, monkeypatch):
-    """Batches corrected side by side on the CPU (pipeline.correct.cpu_lanes) give the bytes one lane gives, with
+    """Batches corrected side by side on the CPU (watergan.restore_folder.cpu_lanes) give the bytes one lane gives, with
     batches of every size (a short last batch), and torch's thread count is left as it was."""
-    import pipeline.correct as correct
+    import watergan.restore_folder as correct
 
     save_model(tmp_path / "model")
     images = write_images(tmp_path / "images", [f"f{k}.png" for k in range(7)], seed=3)
@@ -257,7 +257,7 @@ def test_the_allocator_keeps_freed_memory_on_glibc():
     is none the correction runs with the allocator's defaults."""
     import platform
 
-    from pipeline.correct import keep_freed_memory
+    from watergan.restore_folder import keep_freed_memory
 
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
@@ -338,7 +338,7 @@ def test_fill_range_inpaints_small_holes_and_takes_the_far_range_in_large_ones()
     """A hole within fill_px of measured range takes the range around it (a tilted floor's, to a millimetre), a larger
     one the far range; pixels outside the scene are marked so and keep their range; without any measured range every
     scene pixel takes the far range."""
-    from pipeline.correct import RangeFrom, fill_range
+    from watergan.correction_range import RangeFrom, fill_range
     from watergan.formation.inverse import flat_floor_range
 
     down = np.array([0.0, np.sin(0.4), np.cos(0.4)])  # pitched: the range changes across the frame
@@ -368,7 +368,7 @@ def test_fill_range_inpaints_small_holes_and_takes_the_far_range_in_large_ones()
 
 def test_the_gain_cap_holds_the_gain_and_removes_the_whole_veil():
     """cap_gain: J = min(exp(g), G) (I - C) where capped, the fields unchanged elsewhere."""
-    from pipeline.correct import cap_gain
+    from watergan.correction_range import cap_gain
 
     rng = np.random.default_rng(0)
     fields = torch.from_numpy(rng.normal(0, 2, (6, 5, 7)))
@@ -398,7 +398,7 @@ def test_the_physics_correction_ranges_every_pixel_and_passes_the_non_scene_thro
 
 
 def _check_ranged_everywhere(ws, images, truth, result, max_gain):
-    from pipeline.correct import RangeFrom
+    from watergan.correction_range import RangeFrom
 
     assert result.physics == "06_correct/physics" and result.restorer == ""
     scene = np.ones((H, W), bool)

@@ -20,13 +20,13 @@ from test_sfm import survey_and_sfm
 from eval.colour import observation_colours
 from eval.tables import EvaluateConfig
 from eval.tracks import Tracks
-from pipeline.correct import correct_folder
 from pipeline.dense import DenseConfig, run_dense_folder
 from pipeline.evaluate import run_evaluate
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.nets.restorer import Restorer, RestorerWidths
 from watergan.parallel import chunks, map_tasks, rows_by_label
+from watergan.restore_folder import correct_folder
 from watergan.train_restorer import save_restorer
 
 TINY = RestorerWidths(depth_core=(4, 6, 8, 8), colour_core=(4, 6, 8, 8), full_res=4)

@@ -58,7 +58,8 @@ def evaluated():
     from test_water import water_config
 
     from eval.diagnose import DiagnoseConfig
-    from pipeline.correct import CorrectStage, CorrectStageResult, correct_physics_folder
+    from pipeline.correct import CorrectStage, CorrectStageResult, physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.dense import DenseConfig, DenseResult
     from pipeline.diagnose import DiagnoseStageResult
     from pipeline.gan import RestorerStage
@@ -84,7 +85,7 @@ def evaluated():
                                                 mean_coverage=1.0))
     ws.run("water", water_config(bootstrap=4, progress=False))
     # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
-    physics = correct_physics_folder(ws, survey / "images", ws.root / "06_correct" / "physics", False)
+    physics = correct_physics_folder(physics_inputs(ws, survey / "images"), ws.folder("correct") / "physics", False)
     filled, far, physics_s = physics.filled_fraction, physics.far_fraction, physics.seconds
     ws.save("correct", CorrectStage(), CorrectStageResult(
         physics="06_correct/physics", physics_images="06_correct/physics/images",
@@ -188,11 +189,12 @@ def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_n
     """Without range maps the physics correction ranges each pixel on a flat seafloor at the frame's altitude: every
     pixel corrected, nearer the in-air truth than the raw frames are (a range off by the wrong unit or camera would
     over- or under-correct them); without a navigation file it says what it needs."""
-    from pipeline.correct import correct_physics_folder
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from watergan.io import read_image
 
     survey, ws, _, _ = evaluated
-    result = correct_physics_folder(ws, survey / "images", tmp_path / "mono", False, mode="monocular")
+    result = correct_physics_folder(physics_inputs(ws, survey / "images"), tmp_path / "mono", False, mode="monocular")
     assert result.range_source == "flat seafloor" and result.filled_fraction == result.far_fraction == 0.0
 
     def error(folder: Path) -> float:
@@ -205,7 +207,7 @@ def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_n
     images = tmp_path / "frames" / "images"
     shutil.copytree(survey / "images", images)
     with pytest.raises(DataError, match="no navigation file"):
-        correct_physics_folder(ws, images, tmp_path / "none", False, mode="monocular")
+        correct_physics_folder(physics_inputs(ws, images), tmp_path / "none", False, mode="monocular")
 
 
 def test_the_physics_correction_needs_no_open3d(evaluated, tmp_path):
@@ -214,10 +216,11 @@ def test_the_physics_correction_needs_no_open3d(evaluated, tmp_path):
     survey, ws, _, _ = evaluated
     code = (f"import sys; sys.modules['open3d'] = None\n"
             f"from pathlib import Path\n"
-            f"from pipeline.correct import correct_physics_folder\n"
+            f"from pipeline.correct import physics_inputs\n"
+            f"from pipeline.correct_physics import correct_physics_folder\n"
             f"from pipeline.workspace import Workspace\n"
-            f"correct_physics_folder(Workspace(Path({str(ws.root)!r})), Path({str(survey / 'images')!r}), "
-            f"Path({str(tmp_path)!r}), False)\n")
+            f"inputs = physics_inputs(Workspace(Path({str(ws.root)!r})), Path({str(survey / 'images')!r}))\n"
+            f"correct_physics_folder(inputs, Path({str(tmp_path)!r}), False)\n")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
     for path in sorted((ws.root / "06_correct" / "physics" / "images").glob("*.png")):
         assert path.read_bytes() == (tmp_path / "images" / path.name).read_bytes(), path.name
@@ -230,7 +233,8 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     from test_water import water_config
 
     from eval.tracks import Tracks
-    from pipeline.correct import correct_physics_folder
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.water import correction_normals, water_frame
     from watergan.formation import get
     from watergan.formation.inverse import correct_physics
@@ -243,7 +247,7 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     light = {"name": "artificial_light", "params": dict(get("artificial_light").simulation_params)}
     stack = [*water.stack, light]
     lit.save("water", water_config(bootstrap=4, progress=False), dataclasses.replace(water, stack=stack))
-    result = correct_physics_folder(lit, survey / "images", tmp_path / "lit", False)
+    result = correct_physics_folder(physics_inputs(lit, survey / "images"), tmp_path / "lit", False)
     tracks = Tracks.load(lit.path(lit.result("sfm").tracks))
     K = np.asarray(tracks.K, float)
     frame = water_frame(tracks, 3, survey / "images", lit.path(lit.result("dense").depth_dir))
@@ -264,7 +268,8 @@ def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(e
     from test_water import water_config
 
     from eval.tracks import Tracks
-    from pipeline.correct import correct_physics_folder
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.water import water_frame
     from watergan.formation import RANK_WATER, Effect, Param, register
     from watergan.formation.inverse import correct_physics
@@ -291,7 +296,7 @@ def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(e
     deltas = [0.0 if k % 2 else 0.08 for k in range(len(tracks.image_names))]  # odd frames: the base water
     stack = [*water.stack, {"name": "report_test_drift", "params": {"delta_per_m": deltas}}]
     drifting.save("water", water_config(bootstrap=4, progress=False), dataclasses.replace(water, stack=stack))
-    correct_physics_folder(drifting, survey / "images", tmp_path / "drift", False)
+    correct_physics_folder(physics_inputs(drifting, survey / "images"), tmp_path / "drift", False)
     K = np.asarray(tracks.K, float)
     for k in (2, 3):
         frame = water_frame(tracks, k, survey / "images", None)

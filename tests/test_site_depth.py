@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.correct import correct_folder
 from watergan.errors import UserInputError
 from watergan.formation.inverse import flat_floor_range
 from watergan.nets.site_depth import SiteDepthNet
+from watergan.restore_folder import correct_folder
 from watergan.train_site_depth import (
     SiteDepthConfig,
     SiteFrame,

@@ -214,7 +214,7 @@ def test_the_fields_inverse_with_a_gain_per_frame_matches_the_exact_one(survey):
     first freed of its gain by the affine map measured on a probe) is the exact inverse of a stack with
     ``frame_gain`` within 5e-4 of the in-air colour (an eighth of an 8-bit level: the table's interpolation; a gain
     left in place would be off by up to 20 %); the probe refuses a difference that varies over the image."""
-    from pipeline.correct import invert_with_fields
+    from pipeline.correct_physics import invert_with_fields
     from watergan.formation.inverse import frame_affines
     from watergan.nets.restorer import WaterFields
 

@@ -5,7 +5,7 @@
 ``WS``: a ``watergan run`` workspace with range maps and an RGB-D restorer, e.g. the dive that
 ``bench_restorer.py --copies N`` builds (``OUT/replica/workspace``). On a quiet machine, ``--rounds`` rounds of: the
 physics correction, the restorer with batches of 4 and the restorer with the stage's default batch
-(:func:`pipeline.correct.batch_for`), each printed as frames per second and the process's CPU time per frame over
+(:func:`watergan.restore_folder.batch_for`), each printed as frames per second and the process's CPU time per frame over
 every thread (``resource.getrusage``), with the ceiling that CPU time allows on the machine's cores. Outputs go to a
 temporary folder.
 """
@@ -26,7 +26,9 @@ def cpu_s() -> float:
 
 
 def main() -> None:
-    import pipeline.correct as pc
+    import watergan.restore_folder as pc
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.workspace import Workspace
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -39,8 +41,9 @@ def main() -> None:
     frames = len(list(images.iterdir()))
     cores = os.cpu_count() or 1
     with tempfile.TemporaryDirectory() as tmp:
-        runs = {"physics": lambda: pc.correct_physics_folder(Workspace(ws), images, Path(tmp) / "physics",
-                                                             progress=False, mode=args.mode)}
+        inputs = physics_inputs(Workspace(ws), images)
+        runs = {"physics": lambda: correct_physics_folder(inputs, Path(tmp) / "physics", progress=False,
+                                                          mode=args.mode)}
         for batch in (4, 0):
             runs[f"restorer, batch {batch or 'default'}"] = (
                 lambda b=batch: pc.correct_folder(ws / "05_restorer", images, Path(tmp) / "restorer", force=True,

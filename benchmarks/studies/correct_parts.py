@@ -4,9 +4,9 @@
 
 On a ``watergan run`` workspace ``WS`` with range maps and an RGB-D restorer, on a quiet machine:
 
-- frames per second of :func:`pipeline.correct.correct_folder` (the restorer, RGB-D) and
-  :func:`pipeline.correct.correct_physics_folder` (the physics correction, RGB-D) with one lane (torch on one
-  thread) and with two (torch on two threads: :func:`pipeline.correct.cpu_lanes`), ``--passes`` passes each;
+- frames per second of :func:`watergan.restore_folder.correct_folder` (the restorer, RGB-D) and
+  :func:`pipeline.correct_physics.correct_physics_folder` (the physics correction, RGB-D) with one lane (torch on one
+  thread) and with two (torch on two threads: :func:`watergan.restore_folder.cpu_lanes`), ``--passes`` passes each;
 - the restorer with two lanes writing no files (its ``_write`` replaced by nothing): what reading the frames and range
   maps, the water's fields and the nets alone allow;
 - the physics correction's steps on one thread, milliseconds a frame, over 12 frames after one that builds the
@@ -28,7 +28,9 @@ import torch
 
 
 def lanes(ws: Path, passes: int, out: Path) -> None:
-    import pipeline.correct as pc
+    import watergan.restore_folder as pc
+    from pipeline.correct import physics_inputs
+    from pipeline.correct_physics import correct_physics_folder
     from pipeline.workspace import Workspace
 
     workspace = Workspace(ws)
@@ -40,7 +42,7 @@ def lanes(ws: Path, passes: int, out: Path) -> None:
                                  range_dir=ranges, mode="rgb-d").seconds
 
     def physics() -> float:
-        return pc.correct_physics_folder(workspace, images, out / "physics", progress=False).seconds
+        return correct_physics_folder(physics_inputs(workspace, images), out / "physics", progress=False).seconds
 
     threads = torch.get_num_threads()
     for n in (1, 2):
@@ -59,7 +61,7 @@ def lanes(ws: Path, passes: int, out: Path) -> None:
 
 def physics_steps(ws: Path, out: Path, frames: int = 12) -> None:
     from eval.tracks import Tracks
-    from pipeline.correct import invert_with_fields
+    from pipeline.correct_physics import invert_with_fields
     from pipeline.workspace import Workspace
     from watergan.formation import get
     from watergan.io import atomic_write_bytes, encode_png, linear_to_srgb, quantise, read_depth, read_image, write_png

@@ -23,9 +23,9 @@ import numpy as np
 
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tracks import Tracks
-from pipeline.correct import correct_folder
 from watergan.formation.inverse import correct_physics
 from watergan.io import linear_to_srgb, read_depth, read_image
+from watergan.restore_folder import correct_folder
 
 
 def main() -> int:
