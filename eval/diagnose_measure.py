@@ -42,6 +42,7 @@ from watergan.formation import state_from_rgbd
 from watergan.io import read_png, read_survey_json, srgb_to_linear
 
 from .observations import Observations, pca_normals
+from .sampling import FootprintPyramid, bilinear
 
 
 @dataclass(frozen=True)
@@ -282,21 +283,8 @@ def _navigation_water_depth(survey: Path, geometry: Geometry) -> np.ndarray | No
     return np.array([np.median(g) for g in groups])
 
 
-def bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """(N,C) values of an (H,W,C) image at pixel coordinates (N,2) (x, y), OpenCV centres;
-    coordinates must lie within [0, W-1] x [0, H-1]."""
-    h, w = image.shape[:2]
-    x = np.clip(px[:, 0], 0, w - 1)
-    y = np.clip(px[:, 1], 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(int), w - 2)
-    y0 = np.minimum(np.floor(y).astype(int), h - 2)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((1 - fx) * (1 - fy) * image[y0, x0] + fx * (1 - fy) * image[y0, x0 + 1]
-            + (1 - fx) * fy * image[y0 + 1, x0] + fx * fy * image[y0 + 1, x0 + 1])
-
-
-#: Blur levels of :func:`blurred_sample`: sigma_0 x FOOTPRINT_STEP^j, j = 0 .. FOOTPRINT_LEVELS - 1.
-FOOTPRINT_STEP = 1.5
+#: Blur levels of the footprint pyramid colours are read through (:class:`eval.sampling.FootprintPyramid`):
+#: sigma_0 x 1.5^j, j = 0 .. FOOTPRINT_LEVELS - 1, sigma_0 the least footprint of the frame's views.
 FOOTPRINT_LEVELS = 8
 
 
@@ -311,28 +299,6 @@ def footprint_sigmas(geometry: Geometry, patch_px: int) -> np.ndarray:
     far = np.zeros(len(geometry.points_world))
     np.maximum.at(far, geometry.obs_point, depth)
     return patch_px / math.sqrt(12.0) * far[geometry.obs_point] / np.maximum(depth, 1e-9)
-
-
-def blurred_sample(image: np.ndarray, px: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """(N,C) values of an (H,W,C) image blurred by a Gaussian of ``sigma`` (N,) pixels at ``px`` (N,2): bilinear
-    samples of the two nearest of the blur levels min(sigma) x 1.5^j (j < FOOTPRINT_LEVELS), interpolated
-    linearly in log sigma (clamped to the levels)."""
-    s0 = float(sigma.min())
-    pos = np.clip(np.log(sigma / s0) / math.log(FOOTPRINT_STEP), 0.0, FOOTPRINT_LEVELS - 1.001)
-    low = np.floor(pos).astype(int)
-    t = (pos - low)[:, None]
-    out = np.zeros((len(px), image.shape[2]))
-    blurred: dict[int, np.ndarray] = {}
-
-    def level(j: int) -> np.ndarray:
-        if j not in blurred:
-            blurred[j] = cv2.GaussianBlur(image, (0, 0), s0 * FOOTPRINT_STEP ** j).astype(np.float64)
-        return blurred[j]
-
-    for j in np.unique(low):
-        sel = low == j
-        out[sel] = (1 - t[sel]) * bilinear(level(j), px[sel]) + t[sel] * bilinear(level(j + 1), px[sel])
-    return out
 
 
 def patch_energy(linear: np.ndarray, patch_px: int) -> np.ndarray:
@@ -382,7 +348,8 @@ def measure(survey: Path, geometry: Geometry, config: MeasureConfig, source: str
         if sigma is None:
             colour[sel] = bilinear(cv2.blur(linear, k_size).astype(np.float64), geometry.obs_px[sel])
         else:
-            colour[sel] = blurred_sample(linear, geometry.obs_px[sel], sigma[sel])
+            pyramid = FootprintPyramid(linear, sigma[sel].min(), FOOTPRINT_LEVELS)
+            colour[sel] = pyramid.sample(geometry.obs_px[sel], sigma[sel])
         grad[sel] = bilinear(energy[..., None].astype(np.float64), geometry.obs_px[sel])[:, 0]
         clipped[sel] = bilinear(near[..., None].astype(np.float64), geometry.obs_px[sel])[:, 0] > 0
 

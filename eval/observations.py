@@ -42,6 +42,8 @@ import numpy as np
 from watergan.errors import UserInputError
 from watergan.formation.inverse import clean_range, normals_from_range, rays_cam
 
+from .sampling import FootprintPyramid
+
 
 class WaterInputError(UserInputError):
     """The survey does not hold what the water estimate needs; the message says what to give."""
@@ -81,6 +83,10 @@ class SparseTracks:
 
 
 
+#: Levels of the blur pyramid colours are read through (:class:`eval.sampling.FootprintPyramid`).
+PYRAMID_LEVELS = 6
+
+
 @dataclass(frozen=True)
 class DenseMeasureConfig:
     """How the table is measured from the frames' dense range (:func:`measure_frames`)."""
@@ -97,7 +103,7 @@ class DenseMeasureConfig:
     """Smallest Gaussian blur (sigma, pixels) of the images colours are read from (0: no blur)."""
     footprint_m: float = 0.015
     """Sigma on the surface (metres) of the blur colours are read through; 0: blur_px everywhere.
-    That is fx x this / depth pixels, clamped to the blur pyramid (blur_px x 1.5^0..5)."""
+    That is fx x this / depth pixels, clamped to the blur pyramid (blur_px x 1.5^0..5, ``PYRAMID_LEVELS``)."""
     margin_px: int = 6
     """Projections closer than this to the image border are not used."""
     range_tolerance: float = 0.02
@@ -277,19 +283,6 @@ def frame_normals(frame: WaterFrame, K: np.ndarray, smooth_px: float) -> np.ndar
     return normals_from_range(frame.range_m, K, smooth_px)
 
 
-def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Values of (H,W[,C]) at sub-pixel positions (M,2) (OpenCV centres; positions inside the image)."""
-    h, w = image.shape[:2]
-    x = np.clip(xy[:, 0], 0, w - 1.001)
-    y = np.clip(xy[:, 1], 0, h - 1.001)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    if image.ndim == 3:
-        fx, fy = fx[:, None], fy[:, None]
-    return ((1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x0 + 1])
-            + fy * ((1 - fx) * image[y0 + 1, x0] + fx * image[y0 + 1, x0 + 1]))
-
-
 def _check_inputs(frames: Sequence[WaterFrame], K: np.ndarray, config: DenseMeasureConfig) -> list[int]:
     usable, coverage = [], []
     for k, f in enumerate(frames):
@@ -319,8 +312,6 @@ def measure_frames(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTr
     """The measurement table of the module docstring (dense correspondences, tracks, board) of ``frames`` with
     intrinsics ``K`` (3,3); with ``normals`` each view's surface normal in its camera frame too (for effects that
     read them, e.g. ``artificial_light``) and each point's in the world frame."""
-    import cv2
-
     K = np.asarray(K, np.float64)
     usable = _check_inputs(frames, K, config)
     h, w = frames[usable[0]].image.shape[:2]
@@ -360,31 +351,17 @@ def measure_frames(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTr
 
     # 2. views of every point in every frame (occlusion test with that frame's own range)
     rows = {key: [] for key in ("colour", "range", "depth", "uv", "pc", "nc", "point", "frame")}
-    sigmas = (config.blur_px * 1.5 ** np.arange(6)) if config.blur_px > 0 else np.zeros(1)
     fx = float(K[0, 0])
-    cache: dict[int, list[np.ndarray]] = {}
-
-    def pyramid(k: int) -> list[np.ndarray]:
-        if k not in cache:
-            img = np.asarray(frames[k].image, np.float32)
-            cache.clear()
-            cache[k] = [cv2.GaussianBlur(img, (0, 0), float(s)) if s > 0 else img for s in sigmas]
-        return cache[k]
+    cache: dict[int, FootprintPyramid] = {}
 
     def sample(k: int, xy: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """Colour at xy blurred by the footprint's size in pixels (interpolated between pyramid levels)."""
-        levels = pyramid(k)
-        if len(levels) == 1:
-            return _bilinear(levels[0], xy).astype(np.float64)
-        want = config.footprint_m * fx / depth if config.footprint_m > 0 else np.full(len(xy), sigmas[0])
-        pos = np.clip(np.log(np.maximum(want, 1e-6) / sigmas[0]) / np.log(1.5), 0, len(sigmas) - 1.001)
-        lo = np.floor(pos).astype(int)
-        t = (pos - lo)[:, None]
-        out = np.zeros((len(xy), 3))
-        for i in np.unique(lo):
-            sel = lo == i
-            out[sel] = (1 - t[sel]) * _bilinear(levels[i], xy[sel]) + t[sel] * _bilinear(levels[i + 1], xy[sel])
-        return out
+        """Colour at xy blurred by the footprint's size in pixels (:class:`eval.sampling.FootprintPyramid`)."""
+        if k not in cache:
+            cache.clear()
+            cache[k] = FootprintPyramid(np.asarray(frames[k].image, np.float32), config.blur_px,
+                                        PYRAMID_LEVELS if config.blur_px > 0 else 1)
+        want = config.footprint_m * fx / depth if config.footprint_m > 0 else np.full(len(xy), config.blur_px)
+        return cache[k].sample(xy, want)
 
     def add(k: int, pid: np.ndarray, pc: np.ndarray, xy: np.ndarray, nw: np.ndarray) -> None:
         rows["colour"].append(sample(k, xy, pc[:, 2]))

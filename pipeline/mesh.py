@@ -59,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eval.sampling import bilinear
 from watergan.errors import UserInputError
 from watergan.io import frame_file
 
@@ -516,7 +517,7 @@ def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size:
         to_cam = pose[:3, 3] - points[idx]
         cos = np.abs(np.einsum("ni,ni->n", normals[idx], to_cam)) / np.linalg.norm(to_cam, axis=1)
         wk = np.clip(1 - rho2, 0, 1) ** blend_power * cos
-        acc[idx] += wk[:, None] * _bilinear(image[..., ::-1].astype(np.float64), u[idx], v[idx])
+        acc[idx] += wk[:, None] * bilinear(image[..., ::-1].astype(np.float64), np.stack([u[idx], v[idx]], 1))
         weight[idx] += wk
     colours = np.zeros((height, width, 3))
     covered = np.zeros((height, width), bool)
@@ -532,16 +533,6 @@ def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size:
         colours[grow] = total[grow] / count[grow, None]
         filled[grow] = 1
     return np.clip(np.rint(colours), 0, 255).astype(np.uint8), covered
-
-
-def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N,C) of an (H,W,C) image at pixel positions inside it."""
-    h, w = image.shape[:2]
-    x0 = np.clip(np.floor(u).astype(int), 0, w - 2)
-    y0 = np.clip(np.floor(v).astype(int), 0, h - 2)
-    fx, fy = (u - x0)[:, None], (v - y0)[:, None]
-    return ((1 - fx) * (1 - fy) * image[y0, x0] + fx * (1 - fy) * image[y0, x0 + 1]
-            + (1 - fx) * fy * image[y0 + 1, x0] + fx * fy * image[y0 + 1, x0 + 1])
 
 
 def tsdf_textured_mesh(mesh_ply: Path, tracks, images_dir: Path, texel_m: float, cfg: MeshConfig, out_dir: Path
