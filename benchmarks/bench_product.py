@@ -25,14 +25,17 @@ and the restorer ("ours", with the correct stage's mode), the stage times and th
 second, and checks issue 18's targets: the RGB-D restorer's board <= 1.5x the physics correction's and its
 consistency below raw's and every baseline's in every channel; in monocular mode (each mono case) the board <= 2.0
 and the consistency below raw's; from ``demo`` to ``demo_add`` the board and mean consistency of both corrections fall;
-with the generic in-air set the restorer's board changes by <= 20 %. Writes
-``benchmarks/results/product.json``.
+with the generic in-air set the restorer's board changes by <= 20 %. Per run it also records the board's mean
+distance of normalised RGB and the PSNR against the in-air truth (the README's table: ``readme_table.py``). Writes
+``benchmarks/results/product.json``, with the commit measured (``git describe --always --dirty``); its paths are
+relative: a run's workspace to the repository's root, the water WaterGAN held to that workspace.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -104,14 +107,29 @@ def summarise(ws: Path, seconds: float) -> dict:
     w = Workspace(ws)
     ev, correct, gan = w.result("eval"), w.result("correct"), w.result("gan")
     summary = json.loads((ws / "run_summary.json").read_text())
+    site_water = gan.train.get("site_water")
+    if site_water and site_water.get("water_json"):
+        site_water = {**site_water, "water_json": os.path.relpath(site_water["water_json"], ws)}
     return {
-        "workspace": str(ws), "seconds": round(seconds, 1),
+        "workspace": os.path.relpath(ws, ROOT), "seconds": round(seconds, 1),
         "stages": {s["stage"]: s["seconds"] for s in summary["stages"] if not s["skipped"]},
         "restorer_mode": correct.mode, "correct_fps": round(correct.fps, 2),
-        "gan_site_water": gan.train.get("site_water"), "gan_steps": gan.train["steps"],
+        "gan_site_water": site_water, "gan_steps": gan.train["steps"],
         "board_ciede2000": ev.mean_board_ciede2000,
+        "board_distance": ev.mean_board_distance,
         "consistency": ev.consistency_variance,
+        "psnr_db": psnr_db(w, ev.tables_json),
     }
+
+
+def psnr_db(w, tables_json: str) -> dict[str, float]:
+    """Per method, the eval stage's PSNR against the in-air truth in dB (empty where the survey has no truth)."""
+    tables = json.loads(w.path(tables_json).read_text())["tables"]
+    fidelity = next(t for t in tables if t["id"] == "fidelity")
+    if fidelity["status"] != "ok":
+        return {}
+    row = next(r for r in fidelity["rows"] if r["label"] == "PSNR (dB)")
+    return dict(zip(fidelity["columns"], row["values"], strict=True))
 
 
 def targets(runs: dict[str, list[dict]]) -> dict:
@@ -181,8 +199,9 @@ def main() -> int:
     print("\ntargets (one value per run):")
     for name, values in checks.items():
         print(f"  {name}: {values}")
-    result = {"preset": args.preset, "extra_options": extra, "runs": runs, "targets": checks,
-              "time": time.strftime("%Y-%m-%d %H:%M:%S")}
+    commit = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=ROOT, capture_output=True, text=True)
+    result = {"preset": args.preset, "extra_options": extra, "commit": commit.stdout.strip(), "runs": runs,
+              "targets": checks, "time": time.strftime("%Y-%m-%d %H:%M:%S")}
     Path(args.result).write_text(json.dumps(result, indent=2) + "\n")
     print(f"\nwrote {args.result}")
     return 0

@@ -6,15 +6,18 @@ Which blocks run: every block fenced ```python in README.md and docs/*.md. A blo
 in a fresh interpreter. A Python block that is not meant to run is fenced ```python skip (highlighted the same by
 markdown viewers); shell commands are fenced ```sh and outputs ```text, neither of which runs.
 
-Links: every markdown link of the README, docs/, benchmarks/RESULTS.md and its topic files must name a file of the repository (and a
-heading of it for ``#anchor``) or a web address.
+Links: every markdown link of the README, docs/, benchmarks/RESULTS.md and its topic files must name a file of the
+repository (and a heading of it for ``#anchor``) or a web address.
 
 The Status section states what the Results table shows: the claims it makes (each correction's board error as a
 multiple of the oracle's, whether its consistency is lower than raw's and every baseline's in each channel) are
-computed here from the table's numbers and must appear in it word for word, and every other number in it must be a
-number of the table.
+computed from the table's numbers (``benchmarks/readme_table.py``, which writes them) and must appear in it word for
+word, and every other number in it must be a number of the table. The table and the claims are what
+``benchmarks/readme_table.py`` writes from the results JSON it reads (``--check``, without running a benchmark).
 """
 
+import importlib.util
+import json
 import os
 import re
 import subprocess
@@ -27,6 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = sorted((ROOT / "docs").glob("*.md"))
 PLUGIN_FILE = re.compile(r"#\s*(\w+\.py)\b")
+_spec = importlib.util.spec_from_file_location("readme_table", ROOT / "benchmarks" / "readme_table.py")
+readme_table = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(readme_table)
 
 
 def python_blocks(path: Path = README) -> list[str]:
@@ -97,47 +103,14 @@ def headline_table(text: str) -> tuple[dict[str, dict[str, float]], set[str]]:
     return table, {value for row in rows for value in row[1:]}
 
 
-def channels(ok: list[bool]) -> str:
-    names = [n for n, good in zip(("red", "green", "blue"), ok, strict=True) if good]
-    bad = [n for n, good in zip(("red", "green", "blue"), ok, strict=True) if not good]
-    if not bad:
-        return "in every channel"
-    if not names:
-        return "in no channel"
-    return f"in {' and '.join(names)}, not in {' and '.join(bad)}"
-
-
-def status_claims(table: dict[str, dict[str, float]]) -> tuple[list[str], set[str]]:
-    """The phrases the Status must contain, computed from the table, and the ratios it may quote."""
-    board = table["board, CIEDE2000"]
-    ours = [c for c in board if c.startswith("ours")]
-    baselines = [c for c in board if c not in ours and c not in ("physics (range)", "oracle")]
-    claims, ratios = [], set()
-    for col in ours + ["physics (range)"]:
-        ratio = f"{board[col] / board['oracle']:.2f}x"
-        ratios.add(ratio)
-        claims.append(f"{board[col]:g}, {ratio} the oracle's")
-    for col in ours:
-        below = all(board[col] < board[b] for b in baselines)
-        claims.append("board error below every baseline's" if below else "board error not below every baseline's")
-        consistency = [table[f"consistency {c}"] for c in "RGB"]
-        vs_raw = [row[col] < row["raw"] for row in consistency]
-        vs_all = [all(row[col] < row[b] for b in baselines) for row in consistency]
-        if vs_all == vs_raw and any(vs_raw):
-            claims.append(f"consistency lower than raw's and every baseline's {channels(vs_raw)}")
-        else:
-            claims.append(f"consistency lower than raw's {channels(vs_raw)}")
-    return claims, ratios
-
-
 def test_status_agrees_with_the_results_table():
     text = README.read_text()
     table, numbers = headline_table(text)
     status = " ".join(section(text, "Status").split())
-    claims, ratios = status_claims(table)
+    claims, ratios = readme_table.status_claims(table)
     for claim in claims:
         assert claim in status, f"the Status should say {claim!r} (computed from the Results table)"
-    for number in re.findall(r"(?<![\w.-])\d+(?:\.\d+)?x?(?![\w.])", re.sub(r"\(docs/[^)]*\)", "", status)):
+    for number in re.findall(r"(?<![\w.-])\d+(?:\.\d+)?x?(?![\w.])", re.sub(r"\]\([^)]*\)", "]", status)):
         if number.endswith("x"):
             assert number in ratios, f"the Status quotes {number}, not a ratio of the Results table"
         else:
@@ -150,8 +123,27 @@ def test_status_claims_follow_the_numbers():
     table, _ = headline_table(README.read_text())
     for c in "RGB":
         table[f"consistency {c}"]["ours, monocular"] = 100.0
-    claims, _ = status_claims(table)
+    claims, _ = readme_table.status_claims(table)
     assert "consistency lower than raw's in no channel" in claims
+
+
+def test_the_table_and_claims_are_what_the_results_json_gives():
+    """The Results table, the commit it names and the Status's claims are those ``benchmarks/readme_table.py`` writes
+    from ``benchmarks/results/product_fast.json`` (its ``--check``; no benchmark runs)."""
+    diff = readme_table.differences(README, readme_table.RESULT)
+    assert not diff, "README.md differs from what benchmarks/readme_table.py writes:\n" + "\n".join(diff)
+
+
+def test_the_table_check_sees_a_changed_figure(tmp_path):
+    """A README whose table or claims differ from the JSON's figures fails the check, and writing it repairs both."""
+    readme = tmp_path / "README.md"
+    text = README.read_text()
+    table, _ = headline_table(text)
+    oracle = f"{table['board, CIEDE2000']['oracle']:g}"
+    readme.write_text(text.replace(f"| {oracle} |", "| 9.99 |", 1))
+    assert readme_table.differences(readme, readme_table.RESULT)
+    fixed = readme_table.render(readme.read_text(), json.loads(readme_table.RESULT.read_text()))
+    assert fixed == text
 
 
 def test_links_stay_inside_the_repository():
