@@ -256,8 +256,8 @@ class FieldTable:
     stacks whose fields depend on the pixel's position and range alone (not on surface normals: check
     :func:`needs_normals`). With K the grid's points and depths come from the pixels' rays, as in
     :func:`inverse_fields`. The fields are smooth in all three (exp(eta r), polynomial falloffs), so a coarse grid
-    interpolates them closely (its accuracy on the demo: benchmarks/RESULTS/corrections.md). A table is built once and sampled
-    for every frame it covers: building one evaluates the stack at 100k-300k grid points.
+    interpolates them closely (its accuracy on the demo: benchmarks/RESULTS/corrections.md). A table is built once and
+    sampled for every frame it covers: building one evaluates the stack at 100k-300k grid points.
 
     Most stacks' fields are sums of a few products of a function of range and a function of position (attenuation
     and backscatter in range times falloffs and gains over the image): per channel, the table's (range x position)
