@@ -141,3 +141,33 @@ def test_auto_gains_follow_each_frames_own_pixels(drawn):
     exposed = rendered(effect, {"target": params["target"], "alpha": 1.0}, state)
     y = ((exposed.direct + exposed.backscatter).numpy() * np.array([0.2126, 0.7152, 0.0722])[None, :, None, None])
     assert np.allclose(y.sum(axis=1).mean(axis=(1, 2)), params["target"])
+
+
+def test_realised_white_balance_is_what_the_frames_received(tmp_path):
+    """On a tiny survey with the full auto white balance hidden, each recorded frame's mean is grey (to noise and
+    quantisation), and the oracle with the realised gains (the truth's ``frame_colour_gain``) returns the in-air
+    frame."""
+    from dataclasses import replace
+
+    from eval.baselines import oracle
+    from eval.colour import read_rgb
+    from eval.synth import make_config, simulate_survey
+    from eval.tables import OracleGeometry
+
+    bench_forms.load_forms()
+    cfg = make_config("tiny", seed=3)
+    cfg = replace(cfg, formation=replace(cfg.formation, hidden=({"name": "auto_white_balance",
+                                                                 "params": {"alpha": 1.0}},)))
+    survey = tmp_path / "survey"
+    simulate_survey(survey, cfg, force=True, progress=False)
+    log_gains = np.asarray(bench_forms.realise_content_gains(survey, "auto_white_balance"))
+    assert log_gains.shape == (6, 3) and np.ptp(log_gains, axis=1).min() > 0.1  # a tint undone, per frame
+    geometry = OracleGeometry(survey)
+    assert "frame_colour_gain" in geometry.stack.names and "auto_white_balance" not in geometry.stack.names
+    for name in geometry.truth.frames[:2]:
+        recorded = read_rgb(survey / "images" / name)
+        means = recorded.reshape(-1, 3).mean(axis=0)
+        assert np.allclose(means, means.mean(), rtol=0.02)
+        inair = read_rgb(survey / "truth" / "inair_linear" / name, linear=False)
+        restored = oracle(recorded.astype(np.float64), geometry.state(name), geometry.stack)
+        assert np.median(np.abs(restored - inair)) < 0.01

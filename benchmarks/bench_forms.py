@@ -1,0 +1,408 @@
+"""The water against missing effects of random shape (issue 52): N seeded surveys, each with one effect the default
+stack lacks, its form and parameters drawn at random, measured as a distribution.
+
+    .venv/bin/python benchmarks/bench_forms.py [--draws 20] [--seed 0] [--out DIR] [--no-diagnose]
+
+Each draw picks a family and draws its shape (:func:`draw_effect`; the forms are the plugins in
+``benchmarks/plugins/forms/``, one effect per file, and ``water_drift`` / ``survey_exposure`` of
+``benchmarks/plugins/robust_forms.py``):
+
+- ``falloff``: a multiplicative falloff about a point anywhere in the image, per-channel strength 0-80 %, with a
+  polynomial, clipped quadratic, Gaussian or cosine-power radial profile;
+- ``spot``: light added about a point (position, width, colour), fading to zero in view or over a floor;
+- ``ramp``: a veil growing across the image along a direction, starting inside the image (its zero level in view)
+  or outside it;
+- ``frame_gain``: gains per frame set along the survey, grey or per channel;
+- ``auto_white_balance`` / ``auto_exposure``: gains the camera sets from each frame's own pixels (gray world, mean
+  luminance), so correlated with the frame's range; the oracle inverts the gains each frame received
+  (:func:`realise_content_gains`);
+- ``water_drift``: the attenuation changing along the survey (a ramp or a wave per channel).
+
+and the survey: stereo or monocular, the demo's sandy floor or a rocky one (:func:`survey_config`: the demo's
+water and camera at 320x240, 3 lines of 6 frames at 2.5 m with a 0.5 m altitude wave). On each it runs the
+pipeline's SfM and dense stages, estimates the water as ``bench_water.py`` does (:func:`eval.water.estimate_water`
+with the default :class:`eval.water.WaterConfig`, no tracks, the fine grid on the fused mesh's range) and measures
+with bench_water's helpers: eta, B_inf and the veil at the views' median range against the truth (relative error,
+95 % interval covering it), and the physics correction's PSNR, consistency and affine-RMSE (:func:`affine_rmse`)
+beside the oracle's and raw's. Then the diagnosis (:func:`eval.diagnose.run_diagnose` on the SfM tracks, the
+settings of tests/test_diagnose.py, in a process without the plugins so that only the effect library is offered):
+none of the forms is in the library, so any accepted candidate is a false acceptance.
+
+Writes ``benchmarks/results/forms.json`` (after each draw): per draw the truth and the measurements, and a
+``summary`` of fractions of the draws (eta within 10 % in every channel, eta covered in every channel, veil within
+15 % in every channel, physics PSNR within 1.5 dB of the oracle's, physics PSNR below raw's) and the count of false
+acceptances. Workspaces go to ``--out`` and are reused when present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from bench_water import (  # noqa: E402  (the benchmarks folder is not a package)
+    compare,
+    compare_veil,
+    correct_folders,
+    load_inputs,
+    load_robust_forms,
+    measure_corrections,
+    truth_params,
+)
+
+#: The folder of the drawn forms' effects, one per file named as the effect.
+FORMS_DIR = Path(__file__).parent / "plugins" / "forms"
+#: The families drawn, each as likely.
+FAMILIES = ("falloff", "spot", "ramp", "frame_gain", "auto_white_balance", "auto_exposure", "water_drift")
+#: The falloff's radial profiles: the effect of each.
+FALLOFF_PROFILES = {"polynomial": "falloff_polynomial", "clipped": "falloff_clip", "gaussian": "falloff_gaussian",
+                    "cosine_power": "falloff_cosine"}
+#: Effects that set their gains from each frame's pixels: the oracle gets the gains each frame received.
+CONTENT_GAINS = ("auto_white_balance", "auto_exposure")
+#: The survey: lines x frames per line.
+LINES, FRAMES_PER_LINE = 3, 6
+TERRAINS = ("sand", "rocky")
+
+
+def load_forms() -> None:
+    """Register the drawn forms' effects (``FORMS_DIR``) and bench_water's robustness forms, unless they are."""
+    from watergan.formation import available, load_plugin
+
+    load_robust_forms()
+    for path in sorted(FORMS_DIR.glob("*.py")):
+        if path.stem not in available():
+            load_plugin(path)
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One drawn survey: the hidden effect (``family``, ``effect``, its ``params``) and the survey's geometry."""
+
+    index: int
+    seed: int
+    family: str
+    effect: str
+    params: dict
+    stereo: bool
+    terrain: str
+
+
+def _round(values) -> list | float:
+    return np.round(np.asarray(values, float), 4).tolist()
+
+
+def draw_effect(rng: np.random.Generator, n_frames: int, eta_per_m: np.ndarray) -> tuple[str, str, dict]:
+    """(family, effect name, parameters) of one missing effect drawn from ``FAMILIES`` (see the module's doc)."""
+    family = str(rng.choice(FAMILIES))
+    if family == "falloff":
+        profile = str(rng.choice(list(FALLOFF_PROFILES)))
+        params = {"centre_uv": _round(rng.uniform(0, 1, 2)), "strength": _round(rng.uniform(0, 0.8, 3))}
+        params.update({"polynomial": {"power": _round(rng.uniform(1.0, 5.0))},
+                       "clipped": {"width": _round(rng.uniform(0.3, 1.5))},
+                       "gaussian": {"width": _round(rng.uniform(0.25, 1.2))},
+                       "cosine_power": {"width": _round(rng.uniform(0.6, 2.0)),
+                                        "power": _round(rng.uniform(1.0, 4.0))}}[profile])
+        return f"falloff_{profile}", FALLOFF_PROFILES[profile], params
+    if family == "spot":
+        zero_in_view = bool(rng.random() < 0.5)
+        return family, "additive_spot", {
+            "centre_uv": _round(rng.uniform(0, 1, 2)), "amplitude": _round(rng.uniform(0.01, 0.08) * colour(rng)),
+            "width": _round(rng.uniform(0.1, 0.4) if zero_in_view else rng.uniform(0.2, 1.0)),
+            "floor": 0.0 if zero_in_view else _round(rng.uniform(0.1, 0.5))}
+    if family == "ramp":
+        zero_in_view = bool(rng.random() < 0.5)
+        return family, "additive_ramp", {
+            "angle_deg": _round(rng.uniform(-180, 180)), "amplitude": _round(rng.uniform(0.01, 0.06) * colour(rng)),
+            "start": _round(rng.uniform(-0.3, 0.1) if zero_in_view else rng.uniform(-1.2, -0.8)),
+            "width": _round(rng.uniform(0.3, 1.2))}
+    if family == "frame_gain":
+        sd = rng.uniform(0.05, 0.25)
+        if rng.random() < 0.5:
+            return "frame_gain_grey", "survey_exposure", {"log_gain": _round(rng.normal(0, sd, n_frames))}
+        return "frame_gain_colour", "frame_colour_gain", {"log_gain": _round(rng.normal(0, sd, (n_frames, 3)))}
+    if family == "auto_white_balance":
+        return family, "auto_white_balance", {"alpha": _round(rng.uniform(0.5, 1.0))}
+    if family == "auto_exposure":
+        return family, "auto_exposure", {"target": _round(rng.uniform(0.08, 0.25)),
+                                         "alpha": _round(rng.uniform(0.5, 1.0))}
+    amplitude = rng.uniform(0.1, 0.3, 3) * eta_per_m  # water_drift: a ramp or a wave per channel
+    t = np.linspace(-1.0, 1.0, n_frames)
+    shape = t if rng.random() < 0.5 else np.sin(np.pi * t * rng.uniform(0.5, 2.0) + rng.uniform(0, 2 * np.pi))
+    return family, "water_drift", {"delta_eta_per_m": _round(shape[:, None] * amplitude * rng.choice([-1, 1], 3))}
+
+
+def colour(rng: np.random.Generator) -> np.ndarray:
+    """A random colour of mean 1 (three channels drawn on the simplex, times 3)."""
+    return 3.0 * rng.dirichlet(np.ones(3))
+
+
+def draws(n: int, seed: int) -> list[Draw]:
+    """The ``n`` draws of the seed ``seed``; draw k depends on (seed, k) alone."""
+    from eval.synth.config import default_visible_stack
+
+    eta = np.asarray(next(e for e in default_visible_stack() if e["name"] == "attenuation")["params"]["eta_per_m"])
+    out = []
+    for k in range(n):
+        rng = np.random.default_rng([seed, 52, k])
+        family, effect, params = draw_effect(rng, LINES * FRAMES_PER_LINE, eta)
+        out.append(Draw(index=k, seed=1000 * seed + k, family=family, effect=effect, params=params,
+                        stereo=bool(rng.random() < 0.5), terrain=str(rng.choice(TERRAINS))))
+    return out
+
+
+def survey_config(draw: Draw):
+    """The draw's survey: the demo's water, camera (320x240) and site, 3 lines of 6 frames at 2.5 m with a 0.5 m
+    altitude wave of period 7 frames, 10 mm texels (no aliasing at 11 mm per pixel), a one-view RGB-D set; on the
+    ``rocky`` terrain 25 boulders 0.15-0.45 m high."""
+    from eval.synth import make_config
+    from eval.synth.camera import CameraConfig
+
+    cfg = make_config("demo", seed=draw.seed)
+    scene = replace(cfg.scene, texel_m=0.01)
+    if draw.terrain == "rocky":
+        scene = replace(scene, n_rocks=25, rock_radius_m=(0.2, 0.5), rock_height_m=(0.15, 0.45))
+    return replace(cfg, camera=CameraConfig(width_px=320, height_px=240, hfov_deg=70.0), scene=scene,
+                   trajectory=replace(cfg.trajectory, stereo=draw.stereo, n_lines=LINES,
+                                      frames_per_line=FRAMES_PER_LINE, forward_overlap=0.75, altitude_wave_m=0.5,
+                                      altitude_wave_frames=7.0),
+                   rgbd=replace(cfg.rgbd, n_scenes=1, views_per_scene=1),
+                   formation=replace(cfg.formation, hidden=({"name": draw.effect, "params": draw.params},)))
+
+
+def realise_content_gains(survey: Path, effect: str) -> list[list[float]]:
+    """Where the hidden effect sets each frame's gains from its own pixels (``CONTENT_GAINS``), the gains the frames
+    of ``images/`` received: the frame rendered noise-free without it (true geometry and in-air image) gives its
+    gains by the effect's own rule. The truth's hidden and full stacks then hold them as ``frame_colour_gain``
+    (log gains per frame and channel), which the oracle can invert; returns the log gains."""
+    import torch
+
+    from eval.tables import OracleGeometry
+    from watergan.formation import Stack
+
+    truth_file = survey / "truth" / "effects.json"
+    effects = json.loads(truth_file.read_text())
+    geometry = OracleGeometry(survey)
+    before = Stack.from_config([e for e in effects["full"] if e["name"] != effect])
+    content = next(e for e in geometry.stack.effects if e.name == effect)
+    log_gains = []
+    with torch.no_grad():
+        for name in geometry.truth.frames:
+            state = geometry.state(name)
+            image = before(state.replace(direct=state.direct.to(torch.float64))).image
+            ratio = content(state.replace(direct=image, backscatter=torch.zeros_like(image))).direct / image
+            log_gains.append(torch.log(ratio.mean(dim=(0, 2, 3))).tolist())
+    entry = {"name": "frame_colour_gain", "params": {"log_gain": _round(log_gains)}}
+    for key in ("hidden", "full"):
+        effects[key] = [entry if e["name"] == effect else e for e in effects[key]]
+    truth_file.write_text(json.dumps(effects, indent=1))
+    return log_gains
+
+
+def prepare(root: Path, draw: Draw) -> Path:
+    """Simulate the draw's survey into ``root/draw_<k>_<seed>/00_survey`` and run SfM and dense (each skipped when
+    done); returns the workspace's root."""
+    from eval.synth import simulate_survey
+    from pipeline.dense import DenseConfig
+    from pipeline.sfm import SfmConfig
+    from pipeline.workspace import Workspace
+
+    ws = Workspace(root / f"draw_{draw.index:02d}_{draw.seed}")
+    survey = ws.stage_dir("survey")
+    if not (survey / "truth" / "config.json").is_file():
+        simulate_survey(survey, survey_config(draw), force=True, progress=False)
+        if draw.effect in CONTENT_GAINS:
+            realise_content_gains(survey, draw.effect)
+    if not (ws.stage_dir("sfm") / "tracks.npz").is_file():
+        ws.run("sfm", SfmConfig())
+    if not (ws.stage_dir("dense") / "result.json").is_file():
+        ws.run("dense", DenseConfig(progress=False))
+    return ws.root
+
+
+def affine_rmse(folder: Path, truth_dir: Path, names: list[str]) -> float:
+    """Mean over frames of the RMSE (sRGB 0..1) of the in-air truth T against the corrected frame J after the best
+    affine map per channel, min over (a_c, b_c) of sqrt(mean((a_c J_c + b_c - T_c)^2)): the corrections' shape over
+    the image and range, whatever their level."""
+    from eval.colour import read_rgb
+    from eval.tables import frame_file
+
+    errors = []
+    for name in names:
+        truth = read_rgb(frame_file(truth_dir, name), linear=False).reshape(-1, 3)
+        image = read_rgb(frame_file(folder, name), linear=False).reshape(-1, 3)
+        squared = 0.0
+        for c in range(3):
+            design = np.stack([image[:, c], np.ones(len(image))], axis=1)
+            coef, *_ = np.linalg.lstsq(design, truth[:, c], rcond=None)
+            squared += float(np.mean((design @ coef - truth[:, c]) ** 2))
+        errors.append(math.sqrt(squared / 3))
+    return float(np.mean(errors))
+
+
+def estimate(ws_root: Path):
+    """The water of a prepared workspace as bench_water.py estimates it (default WaterConfig, no tracks, the fine
+    grid on the fused mesh's range) and what the corrections need: (estimate, frames, K, board, tracks, config)."""
+    from eval.water import WaterConfig, estimate_water
+    from pipeline.water import fine_grid_frames, survey_lights
+
+    frames, K, _, board, tracks = load_inputs(ws_root)
+    sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
+    config = WaterConfig(progress=False, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
+    lights = survey_lights(ws_root / "00_survey")
+    water = estimate_water(frames, K, None, board, config, lights=lights,
+                           grid_frames=fine_grid_frames(frames, K, ws_root / "02_dense" / "fused_mesh.ply", config,
+                                                        lights))
+    return water, frames, K, board, tracks, config
+
+
+def diagnose(ws_root: Path) -> dict:
+    """The diagnosis on the workspace's SfM tracks (the settings of tests/test_diagnose.py), run in a process of its
+    own where only the library's effects are registered: {"accepted": the best accepted candidate or None,
+    "verdict", "ranking": the first three candidates}."""
+    done = subprocess.run([sys.executable, __file__, "--diagnose-only", str(ws_root)], capture_output=True,
+                          text=True, check=False)
+    if done.returncode != 0:
+        return {"accepted": None, "error": done.stderr.strip().splitlines()[-1:] or ["failed"]}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def diagnose_only(ws_root: Path) -> dict:
+    """:func:`diagnose`'s process: run the diagnosis and return its JSON line."""
+    import shutil
+
+    import torch
+
+    from eval.diagnose import DiagnoseConfig, run_diagnose
+    from eval.diagnose_measure import MeasureConfig
+    from eval.fit import FitConfig
+
+    torch.set_num_threads(1)
+    for stale in (ws_root / "diagnose", ws_root / "09_diagnose"):
+        shutil.rmtree(stale, ignore_errors=True)
+    (ws_root / "model_ledger.jsonl").unlink(missing_ok=True)
+    config = DiagnoseConfig(geometry="sfm", measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60),
+                            bootstrap=500, plots=False)
+    result = run_diagnose(ws_root, config, progress=False)
+    return {"accepted": result.best, "verdict": result.verdict.splitlines()[0],
+            "ranking": [{k: r[k] for k in ("name", "change", "significant") if k in r} for r in result.ranking[:3]]}
+
+
+def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
+    """Prepare, estimate, correct and measure one draw; its JSON record."""
+    seconds = {}
+    t = time.perf_counter()
+    ws_root = prepare(root, draw)
+    seconds["prepare"] = time.perf_counter() - t
+    t = time.perf_counter()
+    water, frames, K, board, tracks, config = estimate(ws_root)
+    seconds["water"] = time.perf_counter() - t
+    truth = truth_params(ws_root / "00_survey")
+    params = compare(water.params, truth)
+    params.update(compare_veil(water.veil, truth))
+    t = time.perf_counter()
+    corr = correct_folders(ws_root, frames, K, water.stack, ws_root / "forms_bench", config.range_agreement)
+    names = [f.name for f in frames]
+    metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
+    folders = {"raw": ws_root / "00_survey" / "images", **corr["folders"]}
+    truth_dir = ws_root / "00_survey" / "truth" / "inair"
+    correction = {label: {"psnr_db": metrics[label]["psnr_db"], "consistency": metrics[label]["consistency"],
+                          "board_ciede2000": metrics[label]["board_ciede2000"],
+                          "affine_rmse": affine_rmse(folders[label], truth_dir, names)}
+                  for label in ("raw", "physics", "oracle")}
+    seconds["correct"] = time.perf_counter() - t
+    t = time.perf_counter()
+    diagnosis = diagnose(ws_root) if with_diagnosis else None
+    seconds["diagnose"] = time.perf_counter() - t
+    keep = ("attenuation.eta_per_m", "backscatter.b_inf", "veil")
+    return {"truth": {**asdict(draw), "workspace": ws_root.name},
+            "params": {k: params[k] for k in keep if k in params}, "correction": correction,
+            "diagnosis": diagnosis, "false_acceptance": bool(diagnosis and diagnosis.get("accepted")),
+            "seconds": {k: round(v, 1) for k, v in seconds.items()}}
+
+
+def draw_targets(record: dict) -> dict[str, bool]:
+    """The summary's tests of one draw."""
+    p, c = record["params"], record["correction"]
+
+    def every(key: str, test) -> bool:
+        return key in p and all(test(v) for v in np.ravel(p[key][("rel_error")]))
+
+    return {"eta_within_10pct": every("attenuation.eta_per_m", lambda v: abs(v) <= 0.10),
+            "eta_covered": "attenuation.eta_per_m" in p and all(p["attenuation.eta_per_m"].get("covered", [False])),
+            "veil_within_15pct": every("veil", lambda v: abs(v) <= 0.15),
+            "psnr_within_1p5db_of_oracle": c["physics"]["psnr_db"] >= c["oracle"]["psnr_db"] - 1.5,
+            "worse_than_raw": c["physics"]["psnr_db"] < c["raw"]["psnr_db"]}
+
+
+def summarise(records: list[dict]) -> dict:
+    """Fractions of the draws meeting each of :func:`draw_targets`, and the count of false acceptances."""
+    targets = [draw_targets(r) for r in records]
+    out = {"draws": len(records)}
+    for key in ("eta_within_10pct", "eta_covered", "veil_within_15pct", "psnr_within_1p5db_of_oracle",
+                "worse_than_raw"):
+        out[key] = round(float(np.mean([t[key] for t in targets])), 3) if targets else None
+    out["false_acceptances"] = sum(r["false_acceptance"] for r in records)
+    out["diagnosed"] = sum(r["diagnosis"] is not None for r in records)
+    return out
+
+
+def row(record: dict) -> str:
+    """One line of the table printed as the draws go."""
+    t, p, c = record["truth"], record["params"], record["correction"]
+
+    def pct(key: str) -> str:
+        if key not in p:
+            return "n/a"
+        cover = "".join("y" if v else "N" for v in p[key].get("covered", []))
+        return "/".join(f"{100 * v:+.0f}" for v in np.ravel(p[key]["rel_error"])) + f" {cover}"
+
+    accepted = "-" if record["diagnosis"] is None else record["diagnosis"].get("accepted") or "none"
+    return (f"| {t['index']:2d} | {t['family']:22s} | {'stereo' if t['stereo'] else 'mono'} {t['terrain']:5s} "
+            f"| {pct('attenuation.eta_per_m'):18s} | {pct('veil'):18s} | {c['physics']['psnr_db']:5.1f} "
+            f"| {c['oracle']['psnr_db']:5.1f} | {c['raw']['psnr_db']:5.1f} | {c['physics']['affine_rmse']:.4f} "
+            f"| {accepted} | {sum(record['seconds'].values()):4.0f} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--draws", type=int, default=20, help="surveys drawn")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the draws")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/bench_forms"), help="workspaces (reused)")
+    parser.add_argument("--no-diagnose", action="store_true", help="skip the diagnosis on each draw")
+    parser.add_argument("--json", type=Path, default=Path("benchmarks/results/forms.json"))
+    args = parser.parse_args(argv)
+    from tqdm import tqdm
+
+    load_forms()
+    command = "benchmarks/bench_forms.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False,
+                            cwd=Path(__file__).parent).stdout.strip()
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    print("| draw | family | survey | eta error R/G/B %, covered | veil error %, covered | physics PSNR | oracle "
+          "| raw | physics affine-RMSE | accepted | s |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    records = []
+    for draw in tqdm(draws(args.draws, args.seed), desc="draws", unit="survey"):
+        records.append(run_draw(args.out, draw, not args.no_diagnose))
+        tqdm.write(row(records[-1]))
+        report = {"command": command, "commit": commit, "summary": summarise(records),
+                  "seconds_per_draw": round(float(np.mean([sum(r["seconds"].values()) for r in records])), 1),
+                  "draws": records}
+        args.json.write_text(json.dumps(report, indent=1, default=str) + "\n")  # after each draw
+    print("\nsummary:", json.dumps(report["summary"]), f"\nseconds per draw: {report['seconds_per_draw']}",
+          f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["--diagnose-only"]:
+    print(json.dumps(diagnose_only(Path(sys.argv[2])), default=str))
+elif __name__ == "__main__":
+    raise SystemExit(main())
