@@ -137,7 +137,8 @@ def method_folders(ws) -> dict[str, Path]:
 
 def collect(ws, run_summary: dict) -> dict:
     """Everything real.json holds (see the module docstring) from a finished workspace."""
-    from watergan.io import image_files, read_scene_mask
+    from watergan.io import read_scene_mask
+    from watergan.survey_files import image_files
 
     survey, sfm = ws.result("survey"), ws.result("sfm")
     calibration = survey.self_calibration

@@ -39,7 +39,8 @@ import torch
 from eval.synth.camera import Intrinsics, project, unproject
 from watergan.errors import UserInputError
 from watergan.formation import state_from_rgbd
-from watergan.io import read_png, read_survey_json, srgb_to_linear
+from watergan.io import read_png, srgb_to_linear
+from watergan.survey_files import read_survey_json
 
 from .observations import Observations, pca_normals
 from .sampling import FootprintPyramid, bilinear

@@ -137,7 +137,7 @@ class EvaluateResult:
 
 
 def _camera_K(survey: Path, tracks) -> np.ndarray:
-    from watergan.io import read_camera_json
+    from watergan.survey_files import read_camera_json
 
     cam = read_camera_json(survey / "camera.json")
     if cam is None:

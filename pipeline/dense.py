@@ -74,7 +74,8 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import MAX_DEPTH_PNG_M, depth_within, read_camera_json, read_scene_mask, write_depth_png, write_failed
+from watergan.io import MAX_DEPTH_PNG_M, depth_within, read_scene_mask, write_depth_png, write_failed
+from watergan.survey_files import read_camera_json
 
 from .sparse_depth import pair_is_forward, sparse_depth
 

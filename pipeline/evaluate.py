@@ -46,7 +46,8 @@ from eval.tables import (
 )
 from eval.tracks import Tracks
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_bytes, atomic_write_json, atomic_write_text, image_files
+from watergan.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from watergan.survey_files import image_files
 
 from .site_depth import site_depth_metrics
 from .workspace import Workspace

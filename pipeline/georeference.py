@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import EPSG_PATTERN
+from watergan.survey_files import EPSG_PATTERN
 
 #: |s - 1| above this is a warning (SfM is metric: the navigation and SfM disagree on the scale).
 MAX_SCALE_ERROR = 0.05
@@ -82,7 +82,8 @@ class Georeference:
 
 
 def epsg_code(crs: str) -> str:
-    """"EPSG:<code>" (upper case, stripped) of a CRS text as :func:`watergan.io.read_survey_json` accepts it."""
+    """"EPSG:<code>" (upper case, stripped) of a CRS text as :func:`watergan.survey_files.read_survey_json` accepts
+    it."""
     match = EPSG_PATTERN.fullmatch(str(crs))
     if match is None:
         raise UserInputError(f"crs {crs!r} is not \"EPSG:<code>\"")
@@ -136,7 +137,7 @@ def fit_georeference(local_xy: np.ndarray, en: np.ndarray, crs: str) -> Georefer
 
 def survey_positions(survey: dict, names: list[str]) -> tuple[str, dict[str, tuple[float, float]]] | None:
     """(crs, {frame name: (easting, northing)}) of a checked survey file's content
-    (:func:`watergan.io.read_survey_json`; ``frames`` absent: ``names`` in order); None without a crs."""
+    (:func:`watergan.survey_files.read_survey_json`; ``frames`` absent: ``names`` in order); None without a crs."""
     if "crs" not in survey:
         return None
     if "nav_easting_m" not in survey:
@@ -153,7 +154,7 @@ def survey_positions(survey: dict, names: list[str]) -> tuple[str, dict[str, tup
 def georeference_tracks(tracks, survey_json: Path) -> Georeference | None:
     """The fit (:func:`fit_georeference`) of the registered cameras of ``tracks`` (:class:`eval.tracks.Tracks`,
     survey frame) to the positions of the survey file ``survey_json``; None when it names no crs (or is absent)."""
-    from watergan.io import read_survey_json
+    from watergan.survey_files import read_survey_json
 
     if not Path(survey_json).is_file():
         return None

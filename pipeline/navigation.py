@@ -85,7 +85,7 @@ def _is_float(text: str) -> bool:
 
 def _check_positions(path: Path, log: dict[str, list[str]]) -> None:
     """easting_m and northing_m come together, and with the ``crs`` of the survey file beside the log."""
-    from watergan.io import read_survey_json
+    from watergan.survey_files import read_survey_json
 
     positions = [c for c in ("easting_m", "northing_m") if c in log]
     if len(positions) == 1:

@@ -52,8 +52,8 @@ import numpy as np
 from eval.tracks import Tracks
 from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
-from watergan.io import image_files, read_camera_json, read_survey_json
 from watergan.lens import OPENCV, Lens
+from watergan.survey_files import image_files, read_camera_json, read_survey_json
 
 from .colmap import build_tracks, camera_matrix, colmap_errors_only, refined_k1
 from .overlay import overlay_warning, still_features

@@ -21,13 +21,12 @@ from watergan.io import (
     SCENE_MASK_PNG,
     atomic_write_bytes,
     atomic_write_json,
-    read_camera_json,
     read_json,
-    read_survey_json,
     scene_mask_from,
     write_scene_mask,
 )
 from watergan.lens import LENS_KEYS, Lens, camera_matrix, distortion_of, undistort_image
+from watergan.survey_files import read_camera_json, read_survey_json
 
 from .calibrate import check_plausible, needs_calibration, self_calibrate
 from .navigation import NAVIGATION_CSV, navigation_from_log

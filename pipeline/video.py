@@ -59,11 +59,11 @@ from watergan.io import (
     atomic_write_bytes,
     atomic_write_json,
     read_json,
-    read_survey_json,
     scene_mask_from,
     to_jsonable,
     write_png,
 )
+from watergan.survey_files import read_survey_json
 
 from .navigation import NAVIGATION_CSV
 

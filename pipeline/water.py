@@ -225,7 +225,7 @@ def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None, whe
 
 def survey_lights(survey: Path) -> list[dict]:
     """The light rig the survey's ``survey.json`` declares (empty without one)."""
-    from watergan.io import read_survey_json
+    from watergan.survey_files import read_survey_json
 
     path = survey / "survey.json"
     return list(read_survey_json(path).get("lights") or []) if path.is_file() else []

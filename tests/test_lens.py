@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from watergan.data import DataError
-from watergan.io import read_camera_json
 from watergan.lens import (
     COLMAP_MODELS,
     FISHEYE,
@@ -18,6 +17,7 @@ from watergan.lens import (
     undistort_image,
     undistorted_points,
 )
+from watergan.survey_files import read_camera_json
 
 #: A moderate wide lens in each of COLMAP's models (its parameter order, pixel centres at +0.5).
 COLMAP_CAMERAS = {

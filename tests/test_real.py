@@ -35,7 +35,8 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     from pipeline.scale import floor_plane
     from pipeline.sfm import SfmConfig
     from pipeline.survey import SurveyConfig
-    from watergan.io import image_files, read_image, read_png, read_scene_mask
+    from watergan.io import read_image, read_png, read_scene_mask
+    from watergan.survey_files import image_files
 
     survey = prepare_survey(tmp_path, WIDTH, FIRST + COUNT)
     for name in sorted(p.name for p in (survey / "images").iterdir())[:FIRST]:

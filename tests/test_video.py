@@ -21,7 +21,7 @@ from pipeline.video import (
     video_survey,
 )
 from watergan.errors import UserInputError
-from watergan.io import read_survey_json
+from watergan.survey_files import read_survey_json
 
 W, H, FPS = 160, 120, 10
 CFG = VideoConfig(progress=False, max_step_s=10.0)

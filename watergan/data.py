@@ -42,11 +42,11 @@ from .io import (  # noqa: F401  (the data formats' readers and writers, re-expo
     linear_to_srgb,
     read_depth,
     read_image,
-    read_survey_json,
     srgb_to_linear,
     write_depth_png,
     write_srgb8,
 )
+from .survey_files import read_survey_json
 
 RGB_FOLDER_NAMES = ("rgb", "color")
 #: Training size of WaterGAN (height, width), pixels.
