@@ -139,6 +139,7 @@ def collect(ws, run_summary: dict) -> dict:
     """Everything real.json holds (see the module docstring) from a finished workspace."""
     from watergan.io import read_scene_mask
     from watergan.survey_files import image_files
+    from watergan.water_record import read_water
 
     survey, sfm = ws.result("survey"), ws.result("sfm")
     calibration = survey.self_calibration
@@ -155,10 +156,10 @@ def collect(ws, run_summary: dict) -> dict:
     }
     water = ws.result("water")
     if water is not None:
-        data = json.loads(ws.path(water.water_json).read_text())
+        data = read_water(ws.path(water.water_json))
         figures["water"] = {k: {f: v.get(f) for f in ("value", "low", "high", "on_bound", "units")}
-                            for k, v in data["params"].items() if k.split(".")[0] in ("attenuation", "backscatter")}
-        figures["water"]["veil"] = data.get("veil")
+                            for k, v in data.params.items() if k.split(".")[0] in ("attenuation", "backscatter")}
+        figures["water"]["veil"] = data.veil
     mask = read_scene_mask(ws.path(survey.scene_mask)) if survey.scene_mask else None
     names = image_files(ws.stage_dir("survey") / "images")
     evaluate = ws.result("eval")

@@ -96,6 +96,7 @@ from watergan.formation import Counts, Stack, get
 from watergan.formation.effects.image_field import n_terms
 from watergan.formation.inverse import needs_normals
 from watergan.formation.rig import held_rig, rig_settings
+from watergan.water_record import WaterRecord
 
 from .bootstrap import bootstrap, inverse_hessian, newton_refit
 from .fields import (
@@ -324,19 +325,22 @@ class WaterEstimate:
     """The measurement table the estimate was fitted to (:func:`estimate_water` sets it; not in :meth:`to_json`:
     the water stage saves it beside water.json for the diagnosis)."""
 
+    def to_record(self, plots: dict[str, str] | None = None) -> WaterRecord:
+        """water.json's record (:class:`watergan.water_record.WaterRecord`); ``plots``: {file: what it shows} of
+        the plots written beside it (None: none named)."""
+        return WaterRecord(
+            stack=self.stack.to_config(), params=self.params, fixed=self.fixed, held=self.held,
+            tradeoffs=self.tradeoffs, n_points=self.n_points, n_observations=self.n_observations, n_board=self.n_board,
+            n_frames=self.n_frames, rmse=self.rmse, seconds=self.seconds, iterations=self.iterations,
+            converged=self.converged, fields=self.fields, frames=self.frames, grid=self.grid, veil=self.veil,
+            interval="95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x range scale sd x "
+                     "value)^2 for 1/m]); bootstrap over frames and points; specification: largest change of the "
+                     "estimate under the specification alternatives " + json.dumps(self.alternatives),
+            plots=plots)
+
     def to_json(self) -> dict:
-        return {"stack": self.stack.to_config(), "params": self.params, "fixed": self.fixed, "held": self.held,
-                "tradeoffs": self.tradeoffs, "n_points": self.n_points, "n_observations": self.n_observations,
-                "n_board": self.n_board, "n_frames": self.n_frames, "rmse": self.rmse, "seconds": self.seconds,
-                "iterations": self.iterations, "converged": self.converged,
-                **({"fields": self.fields} if self.fields is not None else {}),
-                **({"frames": self.frames} if self.frames is not None else {}),
-                **({"grid": self.grid} if self.grid is not None else {}),
-                **({"veil": self.veil} if self.veil is not None else {}),
-                "interval": "95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x "
-                            "range scale sd x value)^2 for 1/m]); bootstrap over frames and points; specification: "
-                            "largest change of the estimate under the specification alternatives "
-                            + json.dumps(self.alternatives)}
+        """water.json's content, no plots named (:meth:`to_record`)."""
+        return self.to_record().to_json()
 
     def summary(self) -> str:
         """One line: eta, B_inf and the veil at the median range (what a short range span pins) with their

@@ -29,7 +29,8 @@ from eval.diagnose_measure import (
 from eval.ledger import LEDGER_NAME
 from eval.observations import Observations
 from watergan.errors import UserInputError
-from watergan.io import atomic_write_json, read_json
+from watergan.io import atomic_write_json
+from watergan.water_record import read_water
 
 from .workspace import Workspace
 
@@ -114,10 +115,10 @@ def run_diagnose_stage(ws: Workspace, cfg: DiagnoseConfig) -> DiagnoseStageResul
     measured = water_measurements(ws, cfg.geometry, cfg.measure)
     meas, described = measured if measured is not None else (None, "")
     out = ws.stage_dir("diagnose")
-    water_json = read_json(ws.path(water.water_json), "water file") if water is not None else {}
+    record = read_water(ws.path(water.water_json)) if water is not None else None
     result = diagnose(ws.folder("survey"), out, out, cfg, tracks, scale, corrected_summary(ws),
                       model=water.stack if water is not None else None, measurements=meas, described=described,
-                      fields=water_json.get("fields"), frames=water_json.get("frames"))
+                      fields=record.fields if record else None, frames=record.frames if record else None)
     fields = {f.name: getattr(result, f.name) for f in dataclasses.fields(result)}
     return DiagnoseStageResult(**fields, ledger=ws.relative(out / LEDGER_NAME))
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json, atomic_write_text, frame_file
+from watergan.water_record import read_water
 
 from .workspace import Workspace
 
@@ -166,15 +167,15 @@ def intervals_at_bounds(params: dict) -> dict[str, list[int]]:
     return out
 
 
-def unpinned_note(data: dict) -> str:
-    """What the survey cannot pin, said where an interval reaches its parameter's bound (B_inf's where the survey's
-    ranges are short next to the veil's fall), and what it pins instead (the veil at the median range)."""
-    reached = intervals_at_bounds(data.get("params", {}))
+def unpinned_note(params: dict, veil: dict | None) -> str:
+    """What the survey cannot pin, said where an interval of the water's ``params`` reaches its parameter's bound
+    (B_inf's where the survey's ranges are short next to the veil's fall), and what it pins instead (the ``veil`` at
+    the median range; water.json's, :class:`watergan.water_record.WaterRecord`)."""
+    reached = intervals_at_bounds(params)
     if not reached:
         return ""
     names = "; ".join(f"{key.split('.', 1)[1]} in {'/'.join('RGB'[c] for c in channels)}"
                       for key, channels in reached.items())
-    veil = data.get("veil")
     pinned = (f" What it pins is the veil over its ranges: {' / '.join(f'{v:.3f}' for v in veil['value'])} at "
               f"{veil['range_m']:.1f} m." if veil and any(k.startswith("backscatter.") for k in reached) else "")
     return (f" Not pinned by this survey (intervals reaching a bound): {names}; its ranges are too short, next to "
@@ -223,11 +224,12 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
     lines += camera_and_scale_lines(ws.result("survey"), sfm)
     water = ws.result("water")
     if water is not None:
-        data = _load_json(ws.path(water.water_json)) or {}
+        record = read_water(ws.path(water.water_json))
         trust = ("its intervals are 95 %" if not water.at_bounds else
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
-        lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}." + unpinned_note(data))
-        fields = data.get("fields")
+        lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}."
+                     + unpinned_note(record.params, record.veil))
+        fields = record.fields
         if fields:
             size = field_size(fields)
             lines.append("Fields over the image: flat, nothing the stack lacks on image position (" + size + ")."
@@ -236,13 +238,13 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
                          f"({size}); the water and the corrections carry it in the fields (see the water section).")
             if fields["form"] != "flat":
                 command = f"watergan diagnose {ws.root}"
-        grid = data.get("grid")
+        grid = record.grid
         if grid and grid["carried"]:
             rows, cols = grid["nodes"]
             lines.append(f"Finer structure on image position than the fields follow ({field_size(grid)}): the "
                          f"corrections carry it on a {rows} x {cols} grid fitted with the water held.")
             command = command or f"watergan diagnose {ws.root}"
-        frames = data.get("frames")
+        frames = record.frames
         if frames:
             size = f"up to {max(frames['largest_pct']):.0f} %, sd " + " / ".join(f"{v:.1f}" for v in frames["sd_pct"])
             carry = ("the water and the corrections carry it in the gains" if frames.get("carried", True) else
@@ -522,20 +524,18 @@ def section_mosaic(ws, out: Path) -> tuple[str, dict]:
 
 def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
     """The site water the water stage estimated: its summary line, each parameter with its 95 % interval,
-    the residual plot."""
+    the plots water.json names."""
     r = _stage_result(ws, "water")
-    water = _load_json(ws.path(r.water_json)) or {}
+    water = read_water(ws.path(r.water_json))
     from watergan.formation import builtin_effects
 
     nuisance = {name for name, cls in builtin_effects().items() if cls.nuisance}
     rows = "".join(f"<tr><th>{_esc(key)}</th><td>{_esc(p.get('value'))}</td>"
                    f"<td>{_esc([p.get('low'), p.get('high')] if p.get('low') is not None else 'held')}</td>"
-                   f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.get("params", {}).items()
+                   f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.params.items()
                    if key.split(".")[0] not in nuisance)
-    figure = "".join(_img(data_uri(read_display(plot), "png", None), alt, "wide")
-                     for plot, alt in ((ws.path(r.water_json).parent / "residuals.png", "water fit residuals"),
-                                       (ws.path(r.water_json).parent / "fields.png", "fields over the image"),
-                                       (ws.path(r.water_json).parent / "frames.png", "gains per frame"))
+    plots = ((ws.path(r.water_json).parent / name, alt) for name, alt in water.plots.items())
+    figure = "".join(_img(data_uri(read_display(plot), "png", None), alt, "wide") for plot, alt in plots
                      if plot.is_file())
     warn = (f"<p class='error'>At a bound of their range: {_esc(', '.join(r.at_bounds))}. The stack does not fit "
             f"this survey there (an effect is missing or has another form): read the residuals and the "

@@ -5,11 +5,13 @@ ray length) and the colour board when there is one (the simulator's, or ``board_
 the formation stack with :func:`eval.water.estimate_water` (which constraint pins which parameter, and
 what stays degenerate: its module docstring). Writes into the stage's folder:
 
-    water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings
+    water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings, the
+                            plots it made (:class:`watergan.water_record.WaterRecord`: written and read there alone)
     observations.npz        the measurement table the estimate was fitted to (:class:`eval.observations.Observations`,
                             each view's surface normal included): the diagnose stage ranks its candidates on it
     summary.txt             one line: eta and B_inf with their intervals
-    residuals.png           the fit's residuals against range and image position
+    residuals.png           the fit's residuals against range and image position; fields.png, frames.png: the
+                            fields over the image and the gains per frame, where the stack has them
     range/<stem>.png        each pixel's range (:func:`correction_range`), 16-bit millimetres (0: none)
 
 The range maps are this stage's (the dense stage writes camera z, not these): the correct stage inverts
@@ -57,13 +59,13 @@ from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
 from watergan.formation.inverse import clean_range
 from watergan.io import (
-    atomic_write_json,
     atomic_write_text,
     depth_within,
     read_depth,
     write_depth_png,
     z_to_range,
 )
+from watergan.water_record import WATER_PLOTS, write_water
 
 from .workspace import Workspace
 
@@ -243,8 +245,9 @@ def _board(ws: Workspace, cfg: WaterConfig, survey: Path):
     return None
 
 
-def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
-    """Residual (observed - fitted, linear) against range and against the distance from the image centre."""
+def _plot_residuals(estimate: WaterEstimate, path: Path) -> bool:
+    """Residual (observed - fitted, linear) against range and against the distance from the image centre; False
+    (nothing written) without the estimate's residuals."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -252,7 +255,7 @@ def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
 
     res = estimate.residuals
     if res is None:
-        return
+        return False
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), sharey=True)
     for ax, key, label in ((axes[0], "range_m", "range (m)"), (axes[1], "radius", "distance from the image centre "
                                                                                   "(normalised)")):
@@ -271,6 +274,7 @@ def _plot_residuals(estimate: WaterEstimate, path: Path) -> None:
     fig.suptitle("water fit: residuals binned (flat at 0: nothing left along the axis)", fontsize=9)
     fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
+    return True
 
 
 def total_fields(stack, cols: int, rows: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -436,12 +440,12 @@ def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
                               grid_frames=grid_frames)
     estimate_s = time.perf_counter() - began
     out = ws.stage_dir("water")
-    atomic_write_json(out / "water.json", estimate.to_json())
     estimate.observations.save(out / "observations.npz")
     atomic_write_text(out / "summary.txt", estimate.summary() + "\n")
-    _plot_residuals(estimate, out / "residuals.png")
-    _plot_fields(estimate, out / "fields.png")
-    _plot_frames(estimate, out / "frames.png")
+    plotted = {name: plot(estimate, out / name) for name, plot in
+               (("residuals.png", _plot_residuals), ("fields.png", _plot_fields), ("frames.png", _plot_frames))}
+    write_water(out / "water.json", estimate.to_record({name: WATER_PLOTS[name] for name, made in plotted.items()
+                                                        if made}))
     mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress,
                                            grid_frames.scene)
     print(estimate.summary(), flush=True)

@@ -17,6 +17,7 @@ from watergan.generate import GenerateConfig, generate, load_generator
 from watergan.nets.discriminator import Discriminator
 from watergan.nets.generator import DEFAULT_EFFECTS, WaterGenerator, generator_stack_config, select_state
 from watergan.train import GanConfig, build_gan, generator_param_groups, load_checkpoint, train_gan
+from watergan.water_record import WaterRecord, write_water
 
 HW = (24, 32)
 TRUTH = [{"name": "attenuation", "params": {"eta_per_m": [0.5, 0.15, 0.2]}},
@@ -387,7 +388,7 @@ def write_water_json(path, stack=TRUTH, half_width=0.1):
             params[f"{entry['name']}.{name}"] = {"value": v.tolist(), "low": (v - half_width * np.abs(v)).tolist(),
                                                  "high": (v + half_width * np.abs(v)).tolist(),
                                                  "fitted": entry["name"] != "gain"}
-    path.write_text(json.dumps({"stack": stack, "params": params}))
+    write_water(path, WaterRecord(stack=stack, params=params))
     return path
 
 

@@ -37,6 +37,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     from pipeline.survey import SurveyConfig
     from watergan.io import read_image, read_png, read_scene_mask
     from watergan.survey_files import image_files
+    from watergan.water_record import read_water
 
     survey = prepare_survey(tmp_path, WIDTH, FIRST + COUNT)
     for name in sorted(p.name for p in (survey / "images").iterdir())[:FIRST]:
@@ -67,7 +68,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     # a bounded table keeps the test short; on 16 frames the water is not the whole survey's (benchmarks/RESULTS.md)
     water = ws.run("water", WaterConfig(progress=False, measure=DenseMeasureConfig(max_points=4000),
                                         correction_grid=None))
-    eta = json.loads(ws.path(water.water_json).read_text())["params"]["attenuation.eta_per_m"]
+    eta = read_water(ws.path(water.water_json)).params["attenuation.eta_per_m"]
     value, low, high = (np.asarray(eta[k]) for k in ("value", "low", "high"))
     assert np.all(np.isfinite(value) & (value > 0)) and np.all((low <= value) & (value <= high))
 

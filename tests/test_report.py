@@ -513,7 +513,7 @@ def test_the_first_screen_says_what_the_survey_cannot_pin():
               "attenuation.eta_per_m": {"value": [0.48, 0.16, 0.34], "low": [0.39, 0.1, 0.24],
                                         "high": [0.57, 0.23, 0.43], "fitted": True}}
     veil = {"value": [0.031, 0.033, 0.035], "range_m": 1.2}
-    note = unpinned_note({"params": params, "veil": veil})
+    note = unpinned_note(params, veil)
     assert "b_inf in G/B" in note and "eta" not in note and "0.031 / 0.033 / 0.035 at 1.2 m" in note
     params["backscatter.b_inf"]["high"] = [0.3, 0.99, 0.99]
-    assert unpinned_note({"params": params, "veil": veil}) == ""
+    assert unpinned_note(params, veil) == ""

@@ -18,6 +18,7 @@ from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, Wate
 from eval.water import WaterConfig, estimate_water
 from watergan.formation import FormationState, Stack, pixel_grid
 from watergan.formation.inverse import correct_physics, inverse_fields
+from watergan.water_record import read_water
 
 W, H, F = 96, 72, 60.0
 K = np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1.0]])
@@ -270,11 +271,11 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     from pipeline.cli_restorer import add_commands
 
     survey, ws, result = water_workspace
-    water = json.loads(ws.path(result.water_json).read_text())
+    water = read_water(ws.path(result.water_json))
     truth = {f"{e['name']}.{k}": v for e in json.loads((survey / "truth" / "effects.json").read_text())["full"]
              for k, v in e["params"].items()}
     for key in ("attenuation.eta_per_m", "backscatter.b_inf"):
-        p = water["params"][key]
+        p = water.params[key]
         assert all(lo < v < hi for lo, v, hi in zip(p["low"], p["value"], p["high"], strict=True)), key
         # 10 frames of 320x240 at one altitude, with the fields over the image: measured 8-23 % off for eta and 26-32 %
         # for red B_inf over runs (along its valley with beta, which this survey's range span hardly pins; SfM's points
@@ -282,7 +283,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
         # the survey pins is the veil, checked below.
         rtol = np.array([0.4, 0.3, 0.3] if key == "backscatter.b_inf" else [0.3, 0.3, 0.3])
         assert (np.abs(np.array(p["value"]) / truth[key] - 1) <= rtol).all(), (key, p["value"], truth[key])
-    veil = water["veil"]  # what the survey pins of the backscatter: the veil at its median range, within 10 %
+    veil = water.veil  # what the survey pins of the backscatter: the veil at its median range, within 10 %
     true_veil = np.array(truth["backscatter.b_inf"]) * -np.expm1(-np.array(truth["backscatter.beta_per_m"])
                                                                    * veil["range_m"])
     np.testing.assert_allclose(veil["value"], true_veil, rtol=0.15)
@@ -291,11 +292,11 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     from eval.observations import Observations  # the table the estimate was fitted to, for the diagnosis
 
     obs = Observations.load(ws.path(result.observations))
-    assert len(obs.colour) == result.n_observations == water["n_observations"] and obs.n_points == water["n_points"]
+    assert len(obs.colour) == result.n_observations == water.n_observations and obs.n_points == water.n_points
     assert obs.points_world.shape == obs.normals_world.shape == (obs.n_points, 3) and obs.normals_cam is not None
     names = sorted(p.name for p in (survey / "images").iterdir())
     assert sorted(p.name for p in ws.path(result.range_dir).iterdir()) == names  # the range maps: the water's
-    assert (ws.path(result.water_json).parent / "residuals.png").stat().st_size > 0
+    assert (ws.path(result.water_json).parent / "residuals.png").stat().st_size > 0 and "residuals.png" in water.plots
 
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command", required=True), [])

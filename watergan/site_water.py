@@ -36,7 +36,7 @@ import torch
 from .errors import UserInputError
 from .formation import Stack, get
 from .formation.effects.backscatter_conv import BackscatterConv
-from .io import read_json
+from .water_record import read_water
 
 #: Standard deviations per half-width of a 95 % interval.
 Z95 = 1.96
@@ -80,20 +80,16 @@ def read_site_water(water_json: str | Path) -> SiteWaterStack:
     if not path.is_file():
         raise UserInputError(f"site water {path} does not exist: run the water stage (`watergan water --workspace "
                              f"WS`) or leave site_water unset")
-    data = read_json(path, "water file")
-    stack = data.get("stack") if isinstance(data, dict) else None
-    params = data.get("params", {}) if isinstance(data, dict) else {}
-    if not isinstance(stack, list) or not isinstance(params, dict):
-        raise UserInputError(f"water file {path} has no stack: is it the water stage's water.json?")
+    record = read_water(path)
     config, left_out = [], []
-    for entry in stack:
+    for entry in record.stack:
         if get(entry["name"]).varies_by_frame():
             left_out.append(entry["name"])
         else:
             config.append(entry)
     kept = {entry["name"] for entry in config}
     prior = []
-    for key, info in params.items():
+    for key, info in record.params.items():
         name, _, param = key.partition(".")
         if name not in kept or not info.get("fitted") or "low" not in info or "high" not in info:
             continue
