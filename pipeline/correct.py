@@ -77,7 +77,7 @@ class CorrectStageResult:
     (:class:`pipeline.correct_physics.PhysicsResult`)."""
     physics_range_from: str = ""
     """Its per-pixel sources of range: ``range_from/<stem>.png``, :class:`watergan.correction_range.RangeFrom`
-    (0 measured, 1 from the neighbours, 2 the far range, 3 not the scene)."""
+    (0 measured, 1 from the neighbours, 2 the far range, 3 not the scene, 4 the frame's plane)."""
     far_range_m: float = 0.0
     """The survey's far range (metres; 0: no pixel needed it, or monocular mode)."""
 

@@ -168,7 +168,7 @@ class FrameRanges:
                                 self.site)
         else:
             r = read_millimetres(self.range_dir / f"{Path(name).stem}.png") / 1000.0  # metres, 0 = none
-        return fill_range(r, self.far_range_m, self.fill_px, self.scene)
+        return fill_range(r, self.far_range_m, self.fill_px, self.scene, self.K)
 
 
 def frame_ranges(inputs: PhysicsInputs, names: list[str], K: np.ndarray, scene: np.ndarray | None, monocular: bool,

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline.stages import STAGES
 from watergan.data import DataError
 from watergan.io import srgb_to_linear
 from watergan.nets.restorer import Restorer, RestorerWidths
@@ -322,13 +323,14 @@ def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
            K=CAMERA_K, width=W, height=H, point_id=np.zeros(0, np.int64), xyz=np.zeros((0, 3)),
            rgb=np.zeros((0, 3), np.uint8), obs_point=np.zeros(0, np.int64), obs_image=np.zeros(0, np.int64),
            obs_xy=np.zeros((0, 2), np.float32)).save(ws.stage_dir("sfm") / "tracks.npz")
+    sfm, dense, water = (STAGES[s].folder for s in ("sfm", "dense", "water"))
     ws.save("sfm", SfmConfig(), SfmResult(
-        model_dir="01_sfm/model", tracks="01_sfm/tracks.npz", n_images=n, n_registered=n, n_points=0,
+        model_dir=f"{sfm}/model", tracks=f"{sfm}/tracks.npz", n_images=n, n_registered=n, n_points=0,
         mean_track_length=0.0, mean_reprojection_error_px=0.0, matching="sequential", scale_method="altitude",
-        scale_factor=1.0, scale_spread=0.0, seconds=0.0, scene_mask="01_sfm/scene_mask.png"))
-    ws.save("dense", DenseConfig(), DenseResult(depth_dir="02_dense/depth", pairs={}, coverage={}, mean_coverage=0.0))
+        scale_factor=1.0, scale_spread=0.0, seconds=0.0, scene_mask=f"{sfm}/scene_mask.png"))
+    ws.save("dense", DenseConfig(), DenseResult(depth_dir=f"{dense}/depth", pairs={}, coverage={}, mean_coverage=0.0))
     ws.save("water", WaterConfig(), WaterResult(
-        water_json="03_water/water.json", summary="", stack=STACK, range_dir="03_water/range", mesh_fraction=0.0,
+        water_json=f"{water}/water.json", summary="", stack=STACK, range_dir=f"{water}/range", mesh_fraction=0.0,
         range_missing=0.0, normal_smooth_px=24.0, board=False, at_bounds=[], converged=True, seconds=0.0,
         estimate_seconds=0.0, observations="", n_observations=0, n_points=0))
     return ws, images, truth
@@ -366,6 +368,28 @@ def test_fill_range_inpaints_small_holes_and_takes_the_far_range_in_large_ones()
         fill_range(measured, float("nan"), fill_px=6.0)
 
 
+def test_a_large_hole_on_the_near_floor_takes_the_plane_through_the_frames_measured_range():
+    """With the intrinsics, a large hole on the camera's side of its edge takes the range of the plane through the
+    frame's measured points (a forward camera's bottom rows, to a millimetre); a hole the plane puts beyond its edge
+    (the top rows: open water, a far wall), or in a frame whose measured points are no plane, takes the far range."""
+    from watergan.correction_range import RangeFrom, fill_range
+    from watergan.formation.inverse import flat_floor_range
+
+    true = flat_floor_range(2.0, CAMERA_K, H, W, np.array([0.0, np.sin(0.4), np.cos(0.4)]))  # pitched
+    near_hole = (slice(36, 48), slice(None))  # the nearest rows
+    measured = true.copy()
+    measured[OPEN_WATER] = measured[near_hole] = np.nan
+    r, source = fill_range(measured, 7.5, fill_px=6.0, K=CAMERA_K)
+    assert (source[near_hole] == RangeFrom.plane).all()
+    np.testing.assert_allclose(r[near_hole], true[near_hole], atol=1e-3)
+    assert (source[OPEN_WATER] == RangeFrom.far).all() and (r[OPEN_WATER] == 7.5).all()
+    _, source = fill_range(measured, 7.5, fill_px=6.0)  # without the intrinsics: no plane
+    assert (source[near_hole] == RangeFrom.far).all()
+    rough = np.where(np.isnan(measured), np.nan, np.random.default_rng(1).uniform(0.5, 5.0, measured.shape))
+    _, source = fill_range(rough, 7.5, fill_px=6.0, K=CAMERA_K)  # no plane through these points
+    assert (source[near_hole] == RangeFrom.far).all()
+
+
 def test_the_gain_cap_holds_the_gain_and_removes_the_whole_veil():
     """cap_gain: J = min(exp(g), G) (I - C) where capped, the fields unchanged elsewhere."""
     from watergan.correction_range import cap_gain
@@ -400,7 +424,7 @@ def test_the_physics_correction_ranges_every_pixel_and_passes_the_non_scene_thro
 def _check_ranged_everywhere(ws, images, truth, result, max_gain):
     from watergan.correction_range import RangeFrom
 
-    assert result.physics == "06_correct/physics" and result.restorer == ""
+    assert result.physics == f"{STAGES['correct'].folder}/physics" and result.restorer == ""
     scene = np.ones((H, W), bool)
     scene[TIMESTAMP] = False
     ranged = scene.copy()

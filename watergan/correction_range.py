@@ -2,8 +2,9 @@
 
 A correction (the water's physics inverse, or a restorer that starts from it) needs a range at every pixel of a frame.
 A range map has holes: small ones are interpolated from the measured range around them (:func:`fill_range`, a membrane
-over the hole, :func:`harmonic_fill`), larger ones (open water, a far wall stereo did not match) take the survey's far
-range (:func:`survey_far_range_m`), where the water's gain is held at a ceiling (:func:`cap_gain`). A frame without a
+over the hole, :func:`harmonic_fill`), larger ones the plane through the frame's measured points where their rays meet
+it (the floor beyond the range map's edge, :func:`frame_plane`), else (open water, a far wall stereo did not match) the
+survey's far range (:func:`survey_far_range_m`), where the water's gain is held at a ceiling (:func:`cap_gain`). A frame without a
 range map takes a flat seafloor's range at its altitude, times the site depth net's factor where one is given
 (:func:`monocular_range`). Each pixel's source of range is a :class:`RangeFrom`.
 """
@@ -34,6 +35,9 @@ class RangeFrom(IntEnum):
     """The survey's far range: a large hole (open water, a far wall stereo did not match)."""
     not_scene = 3
     """Outside the scene mask: not corrected, the raw pixel passed through."""
+    plane = 4
+    """A large hole on the camera's side of its edge, whose ray meets the plane through the frame's measured points
+    (the floor nearer than where the range map ends, :func:`fill_range`)."""
 
 
 FILL_PX = 24.0
@@ -42,6 +46,48 @@ FAR_RANGE_PCT = 95.0
 """The survey's far range: this percentile of its measured ranges (:func:`survey_far_range_m`)."""
 FAR_MAX_GAIN = 10.0
 """The largest gain a pixel at the far range is corrected with (:func:`cap_gain`)."""
+PLANE_TOLERANCE = 0.1
+"""A measured point lies on the frame's plane when its distance to it is at most this share of its range."""
+PLANE_MIN_SHARE = 0.5
+"""The frame's plane ranges large holes only when at least this share of its measured points lie on it."""
+PLANE_SAMPLE_PX = 4
+"""The plane is fitted to every this-many-th row and column of the measured pixels."""
+
+
+def pixel_rays(K: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """Unit viewing rays (N,3) in the camera frame of pixels (``ys``, ``xs``) of a pinhole with intrinsics ``K``:
+    u = K^-1 (x, y, 1) / |K^-1 (x, y, 1)|."""
+    d = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones(len(xs))], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def frame_plane(range_m: np.ndarray, measured: np.ndarray, K: np.ndarray, rounds: int = 3
+                ) -> tuple[np.ndarray, float] | None:
+    """The plane n . X = d (n unit, d > 0: the camera on its side n points away from) through the camera-frame points
+    X = r u of the ``measured`` pixels ((H,W) bool; ``range_m`` (H,W) metres along the ray u, :func:`pixel_rays`),
+    every :data:`PLANE_SAMPLE_PX`-th row and column: a least-squares plane (the points' smallest principal axis),
+    refitted ``rounds`` times to the points within :data:`PLANE_TOLERANCE` of their range of it. None when fewer than
+    :data:`PLANE_MIN_SHARE` of the points lie on the last fit (a scene that is no plane) or there are fewer than 3."""
+    sub = np.zeros_like(measured)
+    sub[::PLANE_SAMPLE_PX, ::PLANE_SAMPLE_PX] = True
+    ys, xs = np.nonzero(measured & sub)
+    if len(ys) < 3:
+        return None
+    r = range_m[ys, xs].astype(np.float64)
+    points = pixel_rays(K, ys, xs) * r[:, None]
+    keep = np.ones(len(r), bool)
+    for _ in range(rounds + 1):
+        if keep.sum() < 3:
+            return None
+        centre = points[keep].mean(axis=0)
+        normal = np.linalg.svd(points[keep] - centre, full_matrices=False)[2][-1]
+        d = float(normal @ centre)
+        if d < 0:
+            normal, d = -normal, -d
+        keep = np.abs(points @ normal - d) <= PLANE_TOLERANCE * r
+    if keep.mean() < PLANE_MIN_SHARE or d <= 0:
+        return None
+    return normal, d
 
 
 def harmonic_fill(values: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -80,13 +126,19 @@ def harmonic_fill(values: np.ndarray, unknown: np.ndarray) -> np.ndarray:
 
 
 def fill_range(range_m: np.ndarray, far_range_m: float, fill_px: float = FILL_PX,
-               scene: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               scene: np.ndarray | None = None, K: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every pixel's range for the correction, (H,W) float32 metres, and where it came from, (H,W) uint8 of
     :class:`RangeFrom`. A scene pixel with a measured range (finite, > 0) keeps it. A hole (a connected region of scene
     pixels without range, 8-connected) that lies everywhere within ``fill_px`` pixels of measured range takes the
     range interpolated from around it (:func:`harmonic_fill`; a neighbour without range, outside the scene, is given
-    its nearest measured pixel's range first); a larger hole (open water, a far wall),
-    and every hole of a frame without any measured range, takes ``far_range_m``. Pixels outside ``scene`` ((H,W)
+    its nearest measured pixel's range first). In a larger hole, with the intrinsics ``K`` (3x3) given, a pixel whose
+    ray meets the plane through the frame's measured points (:func:`frame_plane`) in front of the camera nearer than
+    ``far_range_m`` takes that distance when the hole lies on the camera's side of its edge (its median range on the
+    plane below the median measured range along its edge: the floor nearer than where the range map ends, as in a
+    forward camera's bottom rows; open water past a drop-off or above a floor lies beyond its edge). Every other pixel
+    of a larger hole (open water, a far wall), and every hole of a frame without any measured range, takes
+    ``far_range_m``. Pixels
+    outside ``scene`` ((H,W)
     bool, True = scene; None: every pixel) are marked not the scene and keep their range (``far_range_m`` where they
     have none). ``range_m``: (H,W) metres, NaN, inf or <= 0 = none. A hole that needs ``far_range_m`` when it is not
     finite is a ValueError."""
@@ -115,9 +167,35 @@ def fill_range(range_m: np.ndarray, far_range_m: float, fill_px: float = FILL_PX
             values[nearest[measured]] = r[measured]
             out[small] = harmonic_fill(values[nearest], small)[small]
             source[small] = RangeFrom.neighbours
+        plane = frame_plane(r, measured, K) if K is not None and (source == RangeFrom.far).any() else None
+        if plane is not None:
+            _range_near_holes_on_plane(out, source, label, measured, r, K, plane, far_range_m)
     if not np.isfinite(far_range_m) and (source == RangeFrom.far).any():
         raise ValueError("pixels without a measured range near them need the survey's far range, and it is not known")
     return out, source
+
+
+def _range_near_holes_on_plane(out: np.ndarray, source: np.ndarray, label: np.ndarray, measured: np.ndarray,
+                               r: np.ndarray, K: np.ndarray, plane: tuple[np.ndarray, float], far_range_m: float) -> None:
+    """In place: each large hole (a component of ``label`` whose pixels ``source`` marks far) that lies on the
+    camera's side of its edge, its median range on ``plane`` below the median measured range on its edge (the pixels
+    of ``measured`` next to it), takes the plane's range at each pixel nearer than ``far_range_m``."""
+    import cv2
+
+    for component in np.unique(label[source == RangeFrom.far]):
+        hole = label == component
+        edge = cv2.dilate(hole.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & measured
+        if not edge.any():
+            continue
+        ys, xs = np.nonzero(hole)
+        facing = pixel_rays(K, ys, xs) @ plane[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(facing > 0, plane[1] / facing, np.inf)
+        if not np.median(t) < np.median(r[edge]):
+            continue  # the plane puts the hole beyond its edge: open water past a drop-off, a far wall
+        meets = t <= far_range_m
+        out[ys[meets], xs[meets]] = t[meets]
+        source[ys[meets], xs[meets]] = RangeFrom.plane
 
 
 def survey_far_range_m(range_maps: list[Path], pct: float = FAR_RANGE_PCT, scene: np.ndarray | None = None) -> float:

@@ -356,7 +356,8 @@ def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None
         if range_m.shape != image.shape[:2]:
             raise DataError(f"range map {range_path} is {range_m.shape[1]}x{range_m.shape[0]}, the image "
                             f"{image.shape[1]}x{image.shape[0]}")
-        range_m, source = fill_range(range_m, chunk.far_range_m, chunk.fill_px, scene)
+        K = None if chunk.camera is None else chunk.camera.resized(*image.shape[:2]).K
+        range_m, source = fill_range(range_m, chunk.far_range_m, chunk.fill_px, scene, K)
         far = source == RangeFrom.far
         far = far if far.any() else None
     return image, bits, range_m, decoded, far
