@@ -59,7 +59,14 @@ from watergan.io import atomic_write_json, atomic_write_text
 from .bootstrap import paired_rmse_change
 from .diagnose_measure import GeometrySource, MeasureConfig, check_survey_folder, measure_survey
 from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
-from .fields import field_size
+from .diagnose_verdict import (
+    added_form_misfit,
+    form_conflict,
+    stand_in,
+    unexplained_axes,
+    verdict_text,
+    why_implausible,
+)
 from .fit import (
     DEFAULT_EFFECTS,
     FitConfig,
@@ -444,42 +451,6 @@ def fields_explained(stack: Stack, reference: Stack, fitted: Effect, state) -> f
     return 0.0 if norm <= 0 else max(0.0, 1.0 - float(((fields - candidate) ** 2).sum()) / norm)
 
 
-def form_conflict(name: str, form: str, fields: dict | None) -> str:
-    """Why candidate ``name`` of this ``form`` (:func:`effect_form`) does not fit the water's fields over the image
-    (``fields``: water.json's, :func:`eval.fields.field_summary`), "" when it does or there is nothing to compare:
-    an image-position candidate must have the fields' form (multiplicative or additive) to explain them."""
-    if not fields or get(name).axis != "image_position" or fields.get("form") not in ("multiplicative", "additive"):
-        return ""
-    if form in (fields["form"], "both"):
-        return ""
-    return (f"its form is {form} while the water's fields over the image carry {fields['form']} structure "
-            f"({field_size(fields)})")
-
-
-def fields_line(fields: dict | None) -> str:
-    """The verdict's line on the water's fields over the image ("" without them)."""
-    if not fields:
-        return ""
-    size = field_size(fields)
-    if fields["form"] == "flat":
-        return f"fields: the water's fields over the image are flat ({size}): nothing missing on image position"
-    return (f"fields: the water's fields over the image carry {fields['form']} structure ({size}): an effect of that "
-            f"form on image position is missing (03_water/fields.png)")
-
-
-def frames_line(frames: dict | None) -> str:
-    """The verdict's line on the water's gains per frame (water.json's ``frames``; "" without them)."""
-    if not frames:
-        return ""
-    size = f"up to {max(frames['largest_pct']):.0f} %"
-    if frames["flat"]:
-        return f"frames: the water's gains per frame are flat ({size}): nothing missing from frame to frame"
-    kept = "" if frames.get("carried", True) else "; small enough that the water is fitted without them"
-    return (f"frames: the water's gains per frame carry {size} beyond what the frames' ranges explain: something "
-            f"changes from frame to frame (exposure, white balance, the water along the survey; 03_water/frames.png)"
-            + kept)
-
-
 def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scores: dict, config: DiagnoseConfig,
                     split, names: list[str], progress: bool | None = None,
                     fields: dict | None = None, fitted_fields: Effect | None = None) -> list[CandidateResult]:
@@ -538,125 +509,10 @@ def order_by_fields(ranked: list[CandidateResult]) -> list[CandidateResult]:
     return ordered
 
 
-#: A fitted value within this fraction of its parameter's span from a bound sits on the bound.
-AT_BOUND = 0.005
-
-
-def why_implausible(name: str, params: dict) -> str:
-    """Why the fitted values of candidate ``name`` (``FitResult.params[name]``) are not physical, "" when they
-    are: a fitted value on a bound (within ``AT_BOUND`` of the span; the fit wanted to go further than the
-    effect's form allows) or outside the parameter's declared envelope (``Param.plausible``). A bound at 0
-    is no reason: there a part of the effect is off (no ambient light, no decay), which is physical."""
-    reasons = []
-    for p in get(name).params:
-        entry = params.get(p.name)
-        if entry is None or not entry["fitted"]:
-            continue
-        values = np.ravel(entry["value"])
-        span = p.upper - p.lower if p.bounded_above else max(abs(p.lower), 1.0)
-        on_bound = [v for v in values if (p.lower != 0 and v - p.lower < AT_BOUND * span)
-                    or (p.bounded_above and p.upper != 0 and p.upper - v < AT_BOUND * span)]
-        outside = [v for v in values if p.plausible and not p.plausible[0] <= v <= p.plausible[1]]
-        units = f" {p.units}" if p.units else ""
-        if outside:
-            reasons.append(f"{p.name} = {outside[0]:.3g}{units} outside [{p.plausible[0]:g}, {p.plausible[1]:g}]"
-                           f"{units}")
-        elif on_bound:
-            bound = p.lower if on_bound[0] - p.lower < AT_BOUND * span else p.upper
-            reasons.append(f"{p.name} = {on_bound[0]:.3g}{units} at its bound {bound:g}")
-    return "; ".join(reasons)
-
-
 def relative_amplitudes(analysis: dict, fit: FitResult) -> dict[str, float]:
     """Structure amplitude per axis over the RMSE of all the fit's residuals."""
     rms = float(np.sqrt(np.mean(fit.residual ** 2))) + 1e-12
     return {axis: round(a / rms, 3) for axis, a in amplitudes(analysis).items()}
-
-
-def unexplained_axes(final_scores: dict, structure: dict, config: DiagnoseConfig) -> list[str]:
-    """Axes with structure score > ``structure_threshold`` and amplitude >= ``structure_fraction`` of the RMSE."""
-    return [a for a, s in final_scores.items()
-            if s > config.structure_threshold and structure.get(a, 0.0) >= config.structure_fraction]
-
-
-def _short_params(params: dict) -> str:
-    """The first fitted parameter, e.g. "centre_uv (0.61, 0.44)", or its range when it has more than
-    ``SHORT_VALUES`` values (one per frame): "log_gain (16 values, -0.33 to 0.27)"."""
-    for pname, p in params.items():
-        if p["fitted"]:
-            value = np.ravel(p["value"])
-            if len(value) > SHORT_VALUES:
-                return f"{pname} ({len(value)} values, {value.min():.2f} to {value.max():.2f})"
-            text = f"({', '.join(f'{v:.2f}' for v in value)})" if isinstance(p["value"], list) else f"{value[0]:.3g}"
-            return f"{pname} {text}"
-    return ""
-
-
-#: Values of a parameter the verdict lists one by one; more are summarised by their range.
-SHORT_VALUES = 6
-
-
-def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
-                 final_structure: dict | None = None, misfit: str = "", fields: dict | None = None,
-                 frames: dict | None = None) -> str:
-    """One line naming the missing effect (or none); a line per candidate that would explain enough but
-    is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure; a line on the water's
-    ``fields`` over the image (:func:`fields_line`) and one on its gains per frame (:func:`frames_line`)."""
-    best = next((r for r in ranking if r.significant), None)
-    if best is not None:
-        line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
-                f"(95% CI {best.ci95[0] * 100:+.0f}% to {best.ci95[1] * 100:+.0f}%), {_short_params(best.params)}; "
-                f"flattens the {best.flattened} axis"
-                + (f"; reproduces {best.fields_explained:.0%} of the water's fields over the image"
-                   if best.fields_explained is not None and fields and fields.get("form") != "flat" else ""))
-    else:
-        line = "no significant missing effect"
-        if ranking:
-            top = ranking[0]
-            line += f" (best candidate {top.name}: held-out error {top.change * 100:+.1f}%, p = {top.p:.2f})"
-    for r in ranking:
-        if r.implausible and r.p < 0.05 and r.change < 0:
-            share = (f" and reproduces {r.fields_explained:.0%} of the water's fields over the image"
-                     if r.fields_explained is not None else "")
-            line += (f"\nimplausible: {r.name} explains {-r.change:.0%} of the held-out error{share}, but "
-                     f"{r.implausible}; not accepted")
-    if misfit:
-        line += f"\n{misfit}"
-    if unexplained:
-        size = final_structure or {}
-        listed = ", ".join(f"{a} (score {final_scores[a]:.1f}" + (f", {size[a]:.0%} of the RMSE)" if a in size else ")")
-                           for a in unexplained)
-        line += (f"\nunexplained structure along: {listed} — no registered candidate explains it; an effect "
-                 f"whose signature lies on this axis is missing (write one and pass --plugin FILE.py)")
-    for extra in (fields_line(fields), frames_line(frames)):
-        line += f"\n{extra}" if extra else ""
-    return line
-
-
-def added_form_misfit(added: tuple[str, ...], model_scores: dict, structure: dict, config: DiagnoseConfig) -> str:
-    """When the model's structure (``model_scores``, ``structure``: of the fit with the added effects) is still
-    unexplained (:func:`unexplained_axes`) along the axis of the effect added last (``added[-1]``), a line
-    saying that the added effect's form does not fit and where its residual map is; else ""."""
-    if not added:
-        return ""
-    name = added[-1]
-    axis = get(name).axis
-    if axis not in unexplained_axes(model_scores, structure, config):
-        return ""
-    return (f"the added effect's form does not fit: with {name} in the model, structure remains along its own "
-            f"axis, {axis} (score {model_scores[axis]:.1f}, {structure[axis]:.0%} of the RMSE; residual_{axis}.png): "
-            f"the effect at work has another shape than {name}'s (write that form and pass --plugin FILE.py)")
-
-
-def stand_in(r: CandidateResult, added: str) -> CandidateResult:
-    """When the form of the effect ``added`` last does not fit (:func:`added_form_misfit`), a candidate that
-    flattens that effect's axis without it being its own (a sensor curve flattening image position) stands in
-    for the missing form rather than being a missing effect: not significant, with the reason."""
-    axis = get(added).axis
-    if r.flattened != axis or get(r.name).axis == axis:
-        return r
-    reason = f"it flattens {axis}, the axis of {added} whose form does not fit, not its own axis ({get(r.name).axis})"
-    return replace(r, significant=False, implausible="; ".join(filter(None, (r.implausible, reason))))
 
 
 def _ledger_record(fit: FitResult, kind: str, meas: Observations, colour: dict) -> dict:

@@ -27,13 +27,11 @@ from eval.diagnose import (
     candidate_names,
     default_stack,
     effect_form,
-    form_conflict,
     small_survey_config,
     survey_counts,
-    verdict_text,
-    why_implausible,
 )
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
+from eval.diagnose_verdict import form_conflict, verdict_text, why_implausible
 from eval.fit import FitConfig, fit_stack, make_split
 from eval.ledger import find_ledger, ledger_table, read_ledger
 from eval.synth import load_truth, simulate_survey
