@@ -256,7 +256,7 @@ def estimate(ws_root: Path):
 
     frames, K, _, board, tracks = load_inputs(ws_root)
     sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
-    config = WaterConfig(progress=False, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
+    config = WaterConfig(range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     lights = survey_lights(ws_root / "00_survey")
     water = estimate_water(frames, K, None, board, config, lights=lights,
                            grid_frames=fine_grid_frames(frames, K, ws_root / "02_dense" / "fused_mesh.ply", config,

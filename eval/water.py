@@ -119,12 +119,11 @@ from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterF
 
 @dataclass(frozen=True)
 class WaterConfig:
-    """How the water is estimated: the effects, how the table is measured (``measure``) and fitted (``fit``)."""
+    """How the water is estimated: the effects, how the table is measured (``measure``) and fitted (``fit``).
+    The water stage's own settings (the board file, the range maps, ``--add``): ``pipeline.water.WaterStage``."""
 
     effects: tuple[str, ...] = DEFAULT_EFFECTS
     """Effects of the stack (any registered name), placed in scene-to-sensor order by their rank."""
-    add: tuple[str, ...] = ()
-    """Effects added to ``effects`` (``watergan run --add``: e.g. what the diagnosis found)."""
     light_rig: bool = True
     """Model the lights the survey declares (survey.json's ``lights``) with the declared rig held.
     The stack gets ``artificial_light`` (unless an effect with ``rig_params`` is already listed) with the rig's
@@ -162,14 +161,6 @@ class WaterConfig:
     range_scale_sd: float = 0.0
     """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``).
     The intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
-    board_json: str = ""
-    """A colour-board file (:func:`eval.colour.load_board_json`) for the pipeline's water stage.
-    Empty: the simulated survey's board when there is one, else none (then the gain is held)."""
-    range_agreement: float = 0.01
-    """The pipeline's range maps: a pixel keeps its dense range where the fused mesh agrees within this fraction.
-    Else it takes the mesh's (the estimate itself reads the dense range)."""
-    progress: bool = field(default=True, metadata={"hash": False})
-    """Progress bars."""
 
 
 # ------------------------------------------------------------------------------------ the stack

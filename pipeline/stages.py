@@ -96,7 +96,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("dense", "02_dense", "pipeline.dense:DenseConfig", "pipeline.dense:DenseResult",
           "pipeline.dense:run_dense", ("sfm",), "stereo / MVS depth maps, fused points and mesh", "dense",
           local=("images_dir",)),
-    Stage("water", "03_water", "eval.water:WaterConfig", "pipeline.water:WaterResult", "pipeline.water:run_water",
+    Stage("water", "03_water", "pipeline.water:WaterStage", "pipeline.water:WaterResult", "pipeline.water:run_water",
           ("sfm", "dense"), "the site's water from the survey's geometry, and each pixel's range", "water",
           local=("range_scale_sd",), check="pipeline.evaluate:check_board"),
     Stage("gan", "04_gan", "pipeline.gan:GanStage", "pipeline.gan:GanStageResult", "pipeline.gan:run_gan_stage",

@@ -202,6 +202,71 @@ def undistort_frames(survey: Path, target: Path, camera: dict, lens: Lens, progr
             atomic_write_bytes(target / folder / path.name, data.tobytes())
 
 
+def link_survey(survey: Path, target: Path, written: set[str]) -> None:
+    """Link the survey folder's images, right, camera.json, survey.json and truth into the workspace's ``target``
+    folder, but those in ``written`` (the workspace writes its own: a link left there is removed); a link left by a run
+    on another survey folder is replaced. Nothing of the survey's is changed."""
+    for name in ("images", "right", "camera.json", "survey.json", "truth"):
+        if name in written:  # the workspace's own version, written by the stage
+            if (target / name).is_symlink():
+                (target / name).unlink()
+            continue
+        src, dst = survey / name, target / name
+        if dst.is_symlink() and dst.resolve() != src.resolve():
+            dst.unlink()  # a link left by a run on another survey folder
+        if src.exists() and not dst.exists():
+            dst.symlink_to(src)
+
+
+def rgbd_set(ws: Workspace, cfg: SurveyConfig, survey: Path) -> Path:
+    """The in-air RGB-D set (rgb/ + depth/): ``cfg.rgbd_dir``, else the survey's ``rgbd/``, else a generic seafloor set
+    rendered into the stage's folder (``generic_rgbd``, seeded by ``cfg.seed``)."""
+    rgbd = Path(cfg.rgbd_dir) if cfg.rgbd_dir else survey / "rgbd"
+    if (rgbd / "rgb").is_dir():
+        return rgbd
+    if cfg.rgbd_dir:
+        raise UserInputError(f"in-air RGB-D folder {rgbd} has no rgb/ folder (rgb/ + depth/, paired by name)")
+    from eval.synth.presets import PRESETS
+    from eval.synth.rgbd import write_rgbd_set
+
+    rgbd = ws.stage_dir("survey") / "generic_rgbd"
+    if rgbd.exists():
+        shutil.rmtree(rgbd)
+    print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
+    write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
+    return rgbd
+
+
+def calibrated_camera(survey: Path, names: list[str], camera: dict, target: Path, seed: int,
+                      mask: np.ndarray | None) -> tuple[dict, Lens | None, dict]:
+    """The camera calibrated by SfM on the survey's frames (:func:`pipeline.calibrate.self_calibrate`, working in
+    ``target/selfcal``): its camera.json keys, its lens and the calibration's record; printed."""
+    found, calibration = self_calibrate(survey / "images", names, camera, target / "selfcal", seed, mask)
+    camera = {**{k: v for k, v in camera.items() if k not in ("fx", "fy", "cx", "cy", "hfov_deg")}, **found}
+    lens = distortion_of(camera)
+    halves = calibration["halves"]
+    print(f"survey: SfM calibrated the camera on {calibration['registered']} frames: {calibration['model']}, "
+          f"fx {camera['fx']:.1f} fy {camera['fy']:.1f} cx {camera['cx']:.1f} cy {camera['cy']:.1f} px, "
+          + ", ".join(f"{k} {camera[k]:+.4f}" for k in ("k1", "k2", "p1", "p2"))
+          + f" (reprojection {calibration['reprojection_px']:.3f} px; the halves' focal lengths differ by "
+          f"{halves['focal_diff_pct']:.1f} %)", file=sys.stderr, flush=True)
+    return camera, lens, calibration
+
+
+def estimated_lens(survey: Path, names: list[str], camera: dict, lens: Lens | None, target: Path,
+                   seed: int) -> tuple[Lens, dict]:
+    """The lens SfM estimates on the survey's frames from the declared one (:func:`pipeline.sfm.estimate_lens`, working
+    in ``target/lens_sfm``) and its record; checked plausible and printed."""
+    from .sfm import estimate_lens
+
+    lens, estimate = estimate_lens(survey / "images", names, camera, lens, target / "lens_sfm", seed)
+    check_plausible({**camera, **lens.to_json()})
+    print(f"survey: SfM's lens on {estimate['registered']} frames: {lens.model} "
+          + ", ".join(f"{k} {v:+.4f}" for k, v in lens.to_json().items() if k != "lens_model")
+          + f" (reprojection {estimate['reprojection_px']:.3f} px)", file=sys.stderr, flush=True)
+    return lens, estimate
+
+
 def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     """Check the survey and link it into ``00_survey`` (nothing of the user's is copied or changed);
     render a generic in-air RGB-D set when none is given."""
@@ -221,48 +286,14 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     if survey != target:
         written = ({"survey.json"} if logged else set()) | ({"camera.json"} if own_camera else set()) | \
             ({"images", "right"} if lens is not None or cfg.estimate_lens or calibrate else set())
-        for name in ("images", "right", "camera.json", "survey.json", "truth"):
-            if name in written:  # the workspace's own version, written below
-                if (target / name).is_symlink():
-                    (target / name).unlink()
-                continue
-            src, dst = survey / name, target / name
-            if dst.is_symlink() and dst.resolve() != src.resolve():
-                dst.unlink()  # a link left by a run on another survey folder
-            if src.exists() and not dst.exists():
-                dst.symlink_to(src)
-    rgbd = Path(cfg.rgbd_dir) if cfg.rgbd_dir else survey / "rgbd"
-    if not (rgbd / "rgb").is_dir():
-        if cfg.rgbd_dir:
-            raise UserInputError(f"in-air RGB-D folder {rgbd} has no rgb/ folder (rgb/ + depth/, paired by name)")
-        from eval.synth.presets import PRESETS
-        from eval.synth.rgbd import write_rgbd_set
-
-        rgbd = ws.stage_dir("survey") / "generic_rgbd"
-        if rgbd.exists():
-            shutil.rmtree(rgbd)
-        print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
-        write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
+        link_survey(survey, target, written)
+    rgbd = rgbd_set(ws, cfg, survey)
     names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
     estimate, calibration = {}, {}
     if calibrate:
-        found, calibration = self_calibrate(survey / "images", names, camera, target / "selfcal", cfg.seed, mask)
-        camera = {**{k: v for k, v in camera.items() if k not in ("fx", "fy", "cx", "cy", "hfov_deg")}, **found}
-        lens = distortion_of(camera)
-        halves = calibration["halves"]
-        print(f"survey: SfM calibrated the camera on {calibration['registered']} frames: {calibration['model']}, "
-              f"fx {camera['fx']:.1f} fy {camera['fy']:.1f} cx {camera['cx']:.1f} cy {camera['cy']:.1f} px, "
-              + ", ".join(f"{k} {camera[k]:+.4f}" for k in ("k1", "k2", "p1", "p2"))
-              + f" (reprojection {calibration['reprojection_px']:.3f} px; the halves' focal lengths differ by "
-              f"{halves['focal_diff_pct']:.1f} %)", file=sys.stderr, flush=True)
+        camera, lens, calibration = calibrated_camera(survey, names, camera, target, cfg.seed, mask)
     elif cfg.estimate_lens:
-        from .sfm import estimate_lens
-
-        lens, estimate = estimate_lens(survey / "images", names, camera, lens, target / "lens_sfm", cfg.seed)
-        check_plausible({**camera, **lens.to_json()})
-        print(f"survey: SfM's lens on {estimate['registered']} frames: {lens.model} "
-              + ", ".join(f"{k} {v:+.4f}" for k, v in lens.to_json().items() if k != "lens_model")
-              + f" (reprojection {estimate['reprojection_px']:.3f} px)", file=sys.stderr, flush=True)
+        lens, estimate = estimated_lens(survey, names, camera, lens, target, cfg.seed)
     if lens is not None:
         undistort_frames(survey, target, camera, lens, cfg.progress)
     if own_camera:

@@ -41,7 +41,7 @@ import functools
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +68,23 @@ from watergan.io import (
 from watergan.water_record import WATER_PLOTS, write_water
 
 from .workspace import Workspace
+
+
+@dataclass(frozen=True)
+class WaterStage(WaterConfig):
+    """The water stage's configuration: the estimate's (:class:`eval.water.WaterConfig`) and what the stage itself
+    reads and writes (the options are the same, flat)."""
+
+    add: tuple[str, ...] = ()
+    """Effects added to ``effects`` (``watergan run --add``: e.g. what the diagnosis found)."""
+    board_json: str = ""
+    """A colour-board file (:func:`eval.colour.load_board_json`). Empty: the simulated survey's board when there is
+    one, else none (then the gain is held)."""
+    range_agreement: float = 0.01
+    """The range maps: a pixel keeps its dense range where the fused mesh agrees within this fraction.
+    Else it takes the mesh's (the estimate itself reads the dense range)."""
+    progress: bool = field(default=True, metadata={"hash": False})
+    """Progress bars."""
 
 
 @dataclass
@@ -233,7 +250,7 @@ def survey_lights(survey: Path) -> list[dict]:
     return list(read_survey_json(path).get("lights") or []) if path.is_file() else []
 
 
-def _board(ws: Workspace, cfg: WaterConfig, survey: Path):
+def _board(ws: Workspace, cfg: WaterStage, survey: Path):
     from eval.colour import board_for_images, load_board_json, truth_board
     from watergan.data import IMAGE_SUFFIXES, list_files
 
@@ -413,7 +430,7 @@ def at_bounds(estimate: WaterEstimate) -> list[str]:
     return out
 
 
-def run_water(ws: Workspace, cfg: WaterConfig) -> WaterResult:
+def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
     """Workspace stage (see the module docstring)."""
     from eval.water import estimate_water
 

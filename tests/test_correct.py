@@ -290,10 +290,9 @@ def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
     rows (pure backscatter) and a burned-in timestamp (the scene mask); the water stage's range maps have no range in
     the open water and a 3x3 hole on the floor. Returns (workspace, images folder, truth {name: (J, range)})."""
     from eval.tracks import Tracks
-    from eval.water import WaterConfig
     from pipeline.dense import DenseConfig, DenseResult
     from pipeline.sfm import SfmConfig, SfmResult
-    from pipeline.water import WaterResult
+    from pipeline.water import WaterResult, WaterStage
     from pipeline.workspace import Workspace
     from watergan.formation.inverse import flat_floor_range
     from watergan.io import linear_to_srgb, quantise, write_depth_png, write_png, write_scene_mask
@@ -329,7 +328,7 @@ def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
         mean_track_length=0.0, mean_reprojection_error_px=0.0, matching="sequential", scale_method="altitude",
         scale_factor=1.0, scale_spread=0.0, seconds=0.0, scene_mask=f"{sfm}/scene_mask.png"))
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=f"{dense}/depth", pairs={}, coverage={}, mean_coverage=0.0))
-    ws.save("water", WaterConfig(), WaterResult(
+    ws.save("water", WaterStage(), WaterResult(
         water_json=f"{water}/water.json", summary="", stack=STACK, range_dir=f"{water}/range", mesh_fraction=0.0,
         range_missing=0.0, normal_smooth_px=24.0, board=False, at_bounds=[], converged=True, seconds=0.0,
         estimate_seconds=0.0, observations="", n_observations=0, n_points=0))

@@ -29,12 +29,12 @@ FIRST, COUNT, WIDTH = 56, 20, 640
 def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     from eval.observations import DenseMeasureConfig
     from eval.tracks import Tracks
-    from eval.water import WaterConfig
     from pipeline.correct import CorrectStage
     from pipeline.dense import DenseConfig
     from pipeline.scale import floor_plane
     from pipeline.sfm import SfmConfig
     from pipeline.survey import SurveyConfig
+    from pipeline.water import WaterStage
     from watergan.io import read_image, read_png, read_scene_mask
     from watergan.survey_files import image_files
     from watergan.water_record import read_water
@@ -66,8 +66,8 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     assert dense.mean_coverage > 0.3
 
     # a bounded table keeps the test short; on 16 frames the water is not the whole survey's (benchmarks/RESULTS.md)
-    water = ws.run("water", WaterConfig(progress=False, measure=DenseMeasureConfig(max_points=4000),
-                                        correction_grid=None))
+    water = ws.run("water", WaterStage(progress=False, measure=DenseMeasureConfig(max_points=4000),
+                                       correction_grid=None))
     eta = read_water(ws.path(water.water_json)).params["attenuation.eta_per_m"]
     value, low, high = (np.asarray(eta[k]) for k in ("value", "low", "high"))
     assert np.all(np.isfinite(value) & (value > 0)) and np.all((low <= value) & (value <= high))

@@ -15,7 +15,8 @@ from eval.fields import fit_correction_grid
 from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
 from eval.fit import FitConfig
 from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
-from eval.water import WaterConfig, estimate_water
+from eval.water import estimate_water
+from pipeline.water import WaterStage
 from watergan.formation import FormationState, Stack, pixel_grid
 from watergan.formation.inverse import correct_physics, inverse_fields
 from watergan.water_record import read_water
@@ -36,13 +37,13 @@ FOOTPRINT_M = 0.06
 BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
 
 
-def water_config(base: WaterConfig | None = None, **flat) -> WaterConfig:
-    """``base`` (default: WaterConfig() without the fine grid after the water, which only serves the corrections:
-    the tests that need it ask for it) changed by flat field names: those of the measurement
+def water_config(base: WaterStage | None = None, **flat) -> WaterStage:
+    """``base`` (default: the water stage's configuration without the fine grid after the water, which only
+    serves the corrections: the tests that need it ask for it) changed by flat field names: those of the measurement
     (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to its nested configurations."""
     from dataclasses import fields, replace
 
-    base = base or WaterConfig(correction_grid=None)
+    base = base or WaterStage(correction_grid=None)
     nested = {}
     for name, cls in (("measure", DenseMeasureConfig), ("fit", FitConfig)):
         own = {k: flat.pop(k) for k in [f.name for f in fields(cls)] if k in flat}

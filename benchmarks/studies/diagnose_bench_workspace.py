@@ -20,14 +20,14 @@ from pathlib import Path
 def main() -> None:
     from benchmarks.bench_water import load_robust_forms
     from eval.diagnose import DiagnoseConfig
-    from eval.water import WaterConfig
+    from pipeline.water import WaterStage
     from pipeline.workspace import Workspace
     from watergan.formation import builtin_effects
 
     load_robust_forms()
     ws = Workspace(Path(sys.argv[1]))
     began = time.perf_counter()
-    water = ws.run("water", WaterConfig(progress=False))
+    water = ws.run("water", WaterStage(progress=False))
     print(f"{water.summary} ({time.perf_counter() - began:.0f} s)", flush=True)
     names = tuple(n for n, c in builtin_effects().items() if not c.nuisance and n != "ambient_depth")
     began = time.perf_counter()

@@ -33,13 +33,13 @@ def main() -> None:
         if f.is_file():
             shutil.copy(f, args.new / f.name)
 
-    from eval.water import WaterConfig
     from pipeline.correct import CorrectStage
     from pipeline.evaluate import EvaluateConfig
+    from pipeline.water import WaterStage
     from pipeline.workspace import Workspace
 
     ws = Workspace(args.new)
-    config = WaterConfig(progress=False)
+    config = WaterStage(progress=False)
     if args.field_degree is not None:
         config = replace(config, field_degree=args.field_degree)
     began = time.perf_counter()
