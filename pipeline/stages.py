@@ -23,6 +23,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 
@@ -129,3 +130,14 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           ("survey", "sfm", "dense", "water", "gan", "restorer", "correct", "eval", "mesh", "diagnose"),
           "one self-contained HTML page", "report"),
 )}
+
+
+def stage_folder(root: str | Path, name: str) -> Path:
+    """The folder of stage ``name`` in the workspace at ``root``: ``root / STAGES[name].folder`` (not created).
+
+    For code that holds a workspace's path rather than a :class:`pipeline.workspace.Workspace` (benchmarks, tests
+    reading a finished run); with a workspace, :meth:`Workspace.folder` is the same lookup. An unknown name is a
+    ``KeyError`` naming the stages."""
+    if name not in STAGES:
+        raise KeyError(f"unknown stage '{name}'; stages: {', '.join(STAGES)}")
+    return Path(root) / STAGES[name].folder

@@ -312,7 +312,7 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     if logged:
         if survey == target:
             raise UserInputError(f"{survey} holds a navigation log: run on the survey folder, not on a workspace's "
-                                 f"00_survey")
+                                 f"{ws.stage('survey').folder}")
         atomic_write_json(target / "survey.json", declared)
     navigation = "nav_altitude_m" in declared
     inside = rgbd.resolve().is_relative_to(ws.root.resolve())
