@@ -31,6 +31,7 @@ from eval.diagnose import DiagnoseConfig, run_diagnose, small_survey_config
 from eval.diagnose_measure import MeasureConfig
 from eval.fit import FitConfig
 from eval.synth import HIDDEN_DEFAULTS, make_config, simulate_survey
+from pipeline.stages import stage_folder
 
 ALL = (*HIDDEN_DEFAULTS, "none")
 
@@ -39,7 +40,7 @@ def survey_dir(cache: Path, survey: str, case: str, geometry: str) -> Path:
     """Simulate (once) and return the target to diagnose: a survey folder, or a workspace with SfM."""
     hidden = [] if case == "none" else case.split("+")
     root = cache / f"{survey}-{case}"
-    target = root / "00_survey" if geometry == "sfm" else root
+    target = stage_folder(root, "survey") if geometry == "sfm" else root
     if not (target / "truth" / "config.json").is_file():
         config = small_survey_config(hidden, width_px=320 if geometry == "sfm" else 160) if survey == "small" \
             else make_config("demo", hidden=hidden, seed=0)
@@ -73,7 +74,7 @@ def main() -> None:
     rows = []
     for case in cases:
         target = survey_dir(Path(args.cache), args.survey, case, args.geometry)
-        for stale in (target / "diagnose", target / "09_diagnose"):
+        for stale in (target / "diagnose", stage_folder(target, "diagnose")):
             shutil.rmtree(stale, ignore_errors=True)
         (target / "model_ledger.jsonl").unlink(missing_ok=True)
         start = time.perf_counter()

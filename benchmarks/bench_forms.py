@@ -59,6 +59,8 @@ from bench_water import (  # noqa: E402  (the benchmarks folder is not a package
     truth_params,
 )
 
+from pipeline.stages import stage_folder  # noqa: E402
+
 #: The folder of the drawn forms' effects, one per file named as the effect.
 FORMS_DIR = Path(__file__).parent / "plugins" / "forms"
 #: The families drawn, each as likely.
@@ -255,12 +257,12 @@ def estimate(ws_root: Path):
     from pipeline.water import fine_grid_frames, survey_lights
 
     frames, K, _, board, tracks = load_inputs(ws_root)
-    sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
+    sfm = json.loads((stage_folder(ws_root, "sfm") / "result.json").read_text())["result"]
     config = WaterConfig(range_scale_sd=float(sfm.get("scale_spread", 0.0)))
-    lights = survey_lights(ws_root / "00_survey")
+    lights = survey_lights(stage_folder(ws_root, "survey"))
     water = estimate_water(frames, K, None, board, config, lights=lights,
-                           grid_frames=fine_grid_frames(frames, K, ws_root / "02_dense" / "fused_mesh.ply", config,
-                                                        lights))
+                           grid_frames=fine_grid_frames(frames, K, stage_folder(ws_root, "dense") / "fused_mesh.ply",
+                                                        config, lights))
     return water, frames, K, board, tracks, config
 
 
@@ -286,7 +288,7 @@ def diagnose_only(ws_root: Path) -> dict:
     from eval.fit import FitConfig
 
     torch.set_num_threads(1)
-    for stale in (ws_root / "diagnose", ws_root / "09_diagnose"):
+    for stale in (ws_root / "diagnose", stage_folder(ws_root, "diagnose")):
         shutil.rmtree(stale, ignore_errors=True)
     (ws_root / "model_ledger.jsonl").unlink(missing_ok=True)
     config = DiagnoseConfig(geometry="sfm", measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60),
@@ -305,15 +307,15 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
     t = time.perf_counter()
     water, frames, K, board, tracks, config = estimate(ws_root)
     seconds["water"] = time.perf_counter() - t
-    truth = truth_params(ws_root / "00_survey")
+    truth = truth_params(stage_folder(ws_root, "survey"))
     params = compare(water.params, truth)
     params.update(compare_veil(water.veil, truth))
     t = time.perf_counter()
     corr = correct_folders(ws_root, frames, K, water.stack, ws_root / "forms_bench", config.range_agreement)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
-    folders = {"raw": ws_root / "00_survey" / "images", **corr["folders"]}
-    truth_dir = ws_root / "00_survey" / "truth" / "inair"
+    folders = {"raw": stage_folder(ws_root, "survey") / "images", **corr["folders"]}
+    truth_dir = stage_folder(ws_root, "survey") / "truth" / "inair"
     correction = {label: {"psnr_db": metrics[label]["psnr_db"], "consistency": metrics[label]["consistency"],
                           "board_ciede2000": metrics[label]["board_ciede2000"],
                           "affine_rmse": affine_rmse(folders[label], truth_dir, names)}

@@ -34,6 +34,8 @@ import numpy as np
 import torch
 from bench_restorer import replicate_workspace  # this folder: the script's own
 
+from pipeline.stages import stage_folder
+
 
 def correct_check(ws: Path, out: Path) -> dict:
     """Frames per second on CUDA and on the CPU, and how far the CUDA colours are from the CPU's."""
@@ -46,8 +48,9 @@ def correct_check(ws: Path, out: Path) -> dict:
         best = float("inf")
         for _ in range(2):
             began = time.perf_counter()
-            result = correct_folder(ws / "05_restorer", ws / "00_survey" / "images", out / device, force=True,
-                                    progress=False, range_dir=ws / "03_water" / "range", device=device)
+            result = correct_folder(stage_folder(ws, "restorer"), stage_folder(ws, "survey") / "images", out / device,
+                                    force=True, progress=False, range_dir=stage_folder(ws, "water") / "range",
+                                    device=device)
             best = min(best, time.perf_counter() - began)
         record[device] = {"mode": result.mode, "frames": result.corrected, "best_s": best,
                           "frames_per_s": result.corrected / best, "torch_threads": torch.get_num_threads()}
@@ -58,8 +61,8 @@ def correct_check(ws: Path, out: Path) -> dict:
         d = np.abs(cpu - cuda).max(axis=2)
         worst, differing, pixels = max(worst, int(d.max())), differing + int((d > 0).sum()), pixels + d.size
     record["cuda_vs_cpu"] = {"max_levels": worst, "share_differing": differing / pixels}
-    mono = correct_folder(ws / "05_restorer", ws / "00_survey" / "images", out / "mono", force=True, progress=False,
-                          device="cuda", mode="monocular")
+    mono = correct_folder(stage_folder(ws, "restorer"), stage_folder(ws, "survey") / "images", out / "mono", force=True,
+                          progress=False, device="cuda", mode="monocular")
     record["cuda_monocular"] = {"mode": mono.mode, "frames": mono.corrected, "seconds": mono.seconds}
     return record
 
@@ -79,14 +82,14 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
     from watergan.train_restorer import load_restorer
 
     replica = replicate_workspace(ws, out / "frames", copies)
-    images, ranges = replica / "00_survey" / "images", replica / "03_water" / "range"
+    images, ranges = stage_folder(replica, "survey") / "images", stage_folder(replica, "water") / "range"
     frames = len(list(images.iterdir()))
 
     def timed(passes: int = 2, **kwargs) -> float:
         best = float("inf")
         for _ in range(passes):
             began = time.perf_counter()
-            done = correct.correct_folder(ws / "05_restorer", images, out / "out", force=True, progress=False,
+            done = correct.correct_folder(stage_folder(ws, "restorer"), images, out / "out", force=True, progress=False,
                                           range_dir=ranges, **kwargs)
             best = min(best, time.perf_counter() - began)
             assert done.corrected == frames and not done.failed, (done.corrected, done.failed)
@@ -111,9 +114,9 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
             print(f"{key}: {fps} frames/s", flush=True)
     record["frames_per_s"]["restorer cpu rgb-d png"] = fps = timed(passes=1, device="cpu", mode="rgb-d")
     print(f"restorer cpu ({torch.get_num_threads()} threads) rgb-d png: {fps} frames/s", flush=True)
-    workspace, own_frames = Workspace(ws), len(list((ws / "00_survey" / "images").glob("*.png")))
+    workspace, own_frames = Workspace(ws), len(list((stage_folder(ws, "survey") / "images").glob("*.png")))
     for mode in ("rgb-d", "monocular"):
-        inputs = physics_inputs(workspace, ws / "00_survey" / "images")
+        inputs = physics_inputs(workspace, stage_folder(ws, "survey") / "images")
         best = min(correct_physics_folder(inputs, out / "physics", progress=False, mode=mode).seconds
                    for _ in range(3))
         record["frames_per_s"][f"physics cpu {mode} png ({own_frames} frames)"] = fps = round(own_frames / best, 1)
@@ -124,7 +127,7 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
     print(json.dumps(record["codecs"], indent=1), flush=True)
     record["frames_per_s"]["restorer cuda rgb-d png, image files only"] = fps = images_only(timed)
     print(f"restorer cuda rgb-d png writing no depth files: {fps} frames/s", flush=True)
-    model = load_restorer(ws / "05_restorer").for_inference().cuda()
+    model = load_restorer(stage_folder(ws, "restorer")).for_inference().cuda()
     x = torch.from_numpy(np.stack([read_image(p, "linear", np.float32) for p in sorted(images.iterdir())[:16]])
                          ).permute(0, 3, 1, 2).cuda()
     r = torch.full((16, 1, *x.shape[-2:]), 2.5, device="cuda") if model.range_input else None
@@ -173,7 +176,7 @@ def part_rates(ws: Path, images: Path, ranges: Path, out: Path, threads: int) ->
     import watergan.restore_folder as correct
 
     paths = sorted(images.iterdir())
-    chunk = correct.CorrectChunk(ws / "05_restorer", tuple(paths), out, 4, "cuda", range_dir=ranges)
+    chunk = correct.CorrectChunk(stage_folder(ws, "restorer"), tuple(paths), out, 4, "cuda", range_dir=ranges)
     rates = {"threads": threads}
     with ThreadPoolExecutor(threads) as pool:
         began = time.perf_counter()

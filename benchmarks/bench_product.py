@@ -42,6 +42,8 @@ import sys
 import time
 from pathlib import Path
 
+from pipeline.stages import stage_folder
+
 ROOT = Path(__file__).resolve().parents[1]
 BASELINES = ("raw", "histeq", "clahe", "gray_world", "jaffe", "seathru")
 HIDDEN = "vignetting_offcentre"
@@ -192,7 +194,7 @@ def main() -> int:
             seconds = run_case(case, ws, out, args.preset, extra)
             rec = summarise(ws, seconds)
             if case == "demo":  # demo_add reruns in the same workspace: keep this version's eval
-                shutil.copytree(ws / "07_eval", out / f"demo_r{r}_eval_before_add", dirs_exist_ok=True)
+                shutil.copytree(stage_folder(ws, "eval"), out / f"demo_r{r}_eval_before_add", dirs_exist_ok=True)
             runs.setdefault(case, []).append(rec)
             print_run(case, r, rec)
     checks = targets(runs)

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.stages import stage_folder
 from watergan.nets.restorer import WIDTH_PRESETS, Restorer, restore
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository: result files name paths relative to it
@@ -84,36 +85,37 @@ def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
     new = folder / "workspace"
     if new.exists():
         shutil.rmtree(new)
-    survey, images, ranges = new / "00_survey", new / "00_survey" / "images", new / "03_water" / "range"
-    for d in (images, ranges, new / "01_sfm", new / "02_dense"):
+    survey, ranges = stage_folder(new, "survey"), stage_folder(new, "water") / "range"
+    images = survey / "images"
+    for d in (images, ranges, stage_folder(new, "sfm"), stage_folder(new, "dense")):
         d.mkdir(parents=True)
-    nav = json.loads((ws / "00_survey" / "survey.json").read_text())
+    nav = json.loads((stage_folder(ws, "survey") / "survey.json").read_text())
     frames = [str(f) for f in nav["frames"]]
     for c in range(copies):
         for name in frames:
             stem = Path(name).stem
-            (images / f"{c:03d}_{name}").symlink_to((ws / "00_survey" / "images" / name).resolve())
-            (ranges / f"{c:03d}_{stem}.png").symlink_to((ws / "03_water" / "range" / f"{stem}.png").resolve())
+            (images / f"{c:03d}_{name}").symlink_to((stage_folder(ws, "survey") / "images" / name).resolve())
+            (ranges / f"{c:03d}_{stem}.png").symlink_to((stage_folder(ws, "water") / "range" / f"{stem}.png").resolve())
     repeated = {"frames": [f"{c:03d}_{f}" for c in range(copies) for f in frames]}
     repeated.update({key: nav[key] * copies for key in ("nav_altitude_m", "nav_down_cam", "nav_depth_m")
                      if key in nav})
     (survey / "survey.json").write_text(json.dumps({**nav, **repeated}))
     for name in ("camera.json", "result.json"):
-        shutil.copy(ws / "00_survey" / name, survey / name)
-    shutil.copy(ws / "02_dense" / "result.json", new / "02_dense" / "result.json")
-    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
+        shutil.copy(stage_folder(ws, "survey") / name, survey / name)
+    shutil.copy(stage_folder(ws, "dense") / "result.json", stage_folder(new, "dense") / "result.json")
+    tracks = Tracks.load(stage_folder(ws, "sfm") / "tracks.npz")
     tracks.image_names = np.array([f"{c:03d}_{n}" for c in range(copies) for n in tracks.image_names])
     tracks.registered = np.tile(tracks.registered, copies)
     tracks.world_from_cam = np.tile(tracks.world_from_cam, (copies, 1, 1))
-    tracks.save(new / "01_sfm" / "tracks.npz")
-    shutil.copy(ws / "01_sfm" / "result.json", new / "01_sfm" / "result.json")
-    record = json.loads((ws / "03_water" / "result.json").read_text())
+    tracks.save(stage_folder(new, "sfm") / "tracks.npz")
+    shutil.copy(stage_folder(ws, "sfm") / "result.json", stage_folder(new, "sfm") / "result.json")
+    record = json.loads((stage_folder(ws, "water") / "result.json").read_text())
     for effect in record["result"]["stack"]:
         if get(effect["name"]).varies_by_frame():
             effect["params"] = {k: v * copies if isinstance(v, list) and len(v) == len(frames) else v
                                 for k, v in effect["params"].items()}
-    (new / "03_water" / "result.json").write_text(json.dumps(record))
-    (new / "05_restorer").symlink_to((ws / "05_restorer").resolve())
+    (stage_folder(new, "water") / "result.json").write_text(json.dumps(record))
+    stage_folder(new, "restorer").symlink_to(stage_folder(ws, "restorer").resolve())
     return new
 
 
@@ -132,14 +134,14 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
     if copies > 1:
         ws = replicate_workspace(own, out / "replica", copies)
     workspace = Workspace(ws)
-    images = ws / "00_survey" / "images"
-    ranges = ws / "03_water" / "range"
+    images = stage_folder(ws, "survey") / "images"
+    ranges = stage_folder(ws, "water") / "range"
     frames = len(list(images.glob("*.png")))
     passes = max(1, min(repeats, 3))
     fps: dict[str, dict[str, float]] = {"physics": {}, "restorer": {}}
     runs: dict[str, dict[str, list[float]]] = {"physics": {}, "restorer": {}}
     sources: dict[str, dict[str, str]] = {"physics": {}, "restorer": {}}
-    range_input = load_restorer(ws / "05_restorer").range_input
+    range_input = load_restorer(stage_folder(ws, "restorer")).range_input
     for mode in ("rgb-d", "monocular"):
         for correction in ("physics", "restorer"):
             if correction == "restorer" and mode == "rgb-d" and not range_input:
@@ -151,7 +153,7 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
                                                   progress=False, mode=mode, image_format=image_format)
                     seconds.append(done.seconds)
                 else:
-                    done = correct_folder(ws / "05_restorer", images, out / correction / mode, force=True,
+                    done = correct_folder(stage_folder(ws, "restorer"), images, out / correction / mode, force=True,
                                           progress=False, range_dir=ranges, mode=mode, image_format=image_format)
                     seconds.append(done.seconds)
             sources[correction][mode] = done.range_source
@@ -161,7 +163,7 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
                   f"{fps[correction][mode]:.1f} frames/s with file I/O and model load (passes: "
                   f"{', '.join(f'{v:.1f}' for v in runs[correction][mode])})")
     lanes = cpu_lanes()
-    model = load_restorer(ws / "05_restorer").for_inference()
+    model = load_restorer(stage_folder(ws, "restorer")).for_inference()
     batch = batch_for(torch.device("cpu"))
     paths = sorted(images.glob("*.png"))[:batch]
     x = torch.from_numpy(np.stack([read_image(p, "linear") for p in paths]).transpose(0, 3, 1, 2)).float()

@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.stages import stage_folder
+
 SURVEYS = {
     "demo0": {"seed": 0, "stereo": True},
     "demo1": {"seed": 1, "stereo": True},
@@ -147,10 +149,11 @@ def load_inputs(ws_root: Path):
     from eval.tracks import Tracks
     from pipeline.water import water_frames
 
-    survey = ws_root / "00_survey"
-    tracks = Tracks.load(ws_root / "01_sfm" / "tracks.npz")
+    survey = stage_folder(ws_root, "survey")
+    tracks = Tracks.load(stage_folder(ws_root, "sfm") / "tracks.npz")
     K = np.asarray(tracks.K, float)
-    frames = list(water_frames(tracks, survey / "images", ws_root / "02_dense" / "depth"))  # read here, not timed
+    # read here, not timed
+    frames = list(water_frames(tracks, survey / "images", stage_folder(ws_root, "dense") / "depth"))
     sparse = SparseTracks(xyz=tracks.xyz, obs_point=tracks.obs_point, obs_frame=tracks.obs_image,
                           obs_xy=tracks.obs_xy)
     return frames, K, sparse, truth_board(survey), tracks
@@ -209,7 +212,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
     from watergan.formation import Stack
     from watergan.formation.inverse import correct_physics
 
-    survey = ws_root / "00_survey"
+    survey = stage_folder(ws_root, "survey")
     geometry = OracleGeometry(survey)
     true_stack = Stack.from_config(geometry.truth.effects["full"])
     folders = {name: out / name for name in ("physics", "true_water_dense_range", "oracle")}
@@ -219,7 +222,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
     torch.set_num_threads(1)
     scene = None
     for k, f in enumerate(frames):
-        r, meshed, scene = correction_range(f, K, ws_root / "02_dense" / "fused_mesh.ply", agreement, scene)
+        r, meshed, scene = correction_range(f, K, stage_folder(ws_root, "dense") / "fused_mesh.ply", agreement, scene)
         from_mesh.append(float(np.mean(meshed)))
         filled.append(float(np.mean(~np.isfinite(r))))
         r_full = fill_nearest(r)
@@ -239,7 +242,7 @@ def measure_corrections(ws_root: Path, tracks, board, folders: dict[str, Path], 
     from eval.colour import board_accuracy, consistency
     from eval.tables import fidelities
 
-    survey = ws_root / "00_survey"
+    survey = stage_folder(ws_root, "survey")
     all_folders = {"raw": survey / "images", **folders}
     cons = consistency(tracks, all_folders)
     fid = fidelities(all_folders, survey / "truth" / "inair", names)
@@ -262,8 +265,8 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     t = time.perf_counter()
     frames, K, sparse, board, tracks = load_inputs(ws_root)
     load_seconds = time.perf_counter() - t
-    sfm = json.loads((ws_root / "01_sfm" / "result.json").read_text())["result"]
-    survey_record = ws_root / "00_survey" / "result.json"  # none where the survey was simulated in place
+    sfm = json.loads((stage_folder(ws_root, "sfm") / "result.json").read_text())["result"]
+    survey_record = stage_folder(ws_root, "survey") / "result.json"  # none where the survey was simulated in place
     survey = json.loads(survey_record.read_text())["result"] if survey_record.is_file() else {}
     config = replace(config, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     add = SURVEYS[name].get("add", ())
@@ -272,12 +275,12 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     t = time.perf_counter()
     from pipeline.water import fine_grid_frames, survey_lights
 
-    lights = survey_lights(ws_root / "00_survey")
+    lights = survey_lights(stage_folder(ws_root, "survey"))
     estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config, lights=lights,
-                              grid_frames=fine_grid_frames(frames, K, ws_root / "02_dense" / "fused_mesh.ply", config,
-                                                           lights))
+                              grid_frames=fine_grid_frames(frames, K, stage_folder(ws_root, "dense") / "fused_mesh.ply",
+                                                           config, lights))
     water_seconds = time.perf_counter() - t
-    truth = truth_params(ws_root / "00_survey")
+    truth = truth_params(stage_folder(ws_root, "survey"))
     params = compare(estimate.params, truth)
     params.update(compare_veil(estimate.veil, truth))
     print(f"\n== {name}: {estimate.summary()}")

@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipeline.stages import stage_folder
+
 
 def cpu_s() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -37,7 +39,7 @@ def main() -> None:
     parser.add_argument("--mode", default="rgb-d", choices=["rgb-d", "monocular"])
     args = parser.parse_args()
     ws = args.workspace
-    images, ranges = ws / "00_survey" / "images", ws / "03_water" / "range"
+    images, ranges = stage_folder(ws, "survey") / "images", stage_folder(ws, "water") / "range"
     frames = len(list(images.iterdir()))
     cores = os.cpu_count() or 1
     with tempfile.TemporaryDirectory() as tmp:
@@ -46,8 +48,9 @@ def main() -> None:
                                                           mode=args.mode)}
         for batch in (4, 0):
             runs[f"restorer, batch {batch or 'default'}"] = (
-                lambda b=batch: pc.correct_folder(ws / "05_restorer", images, Path(tmp) / "restorer", force=True,
-                                                  progress=False, range_dir=ranges, mode=args.mode, batch_size=b))
+                lambda b=batch: pc.correct_folder(stage_folder(ws, "restorer"), images, Path(tmp) / "restorer",
+                                                  force=True, progress=False, range_dir=ranges, mode=args.mode,
+                                                  batch_size=b))
         for _ in range(args.rounds):
             for name, run in runs.items():
                 cpu0, began = cpu_s(), time.perf_counter()

@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.stages import stage_folder
+
 
 def lanes(ws: Path, passes: int, out: Path) -> None:
     import watergan.restore_folder as pc
@@ -34,11 +36,11 @@ def lanes(ws: Path, passes: int, out: Path) -> None:
     from pipeline.workspace import Workspace
 
     workspace = Workspace(ws)
-    images, ranges = ws / "00_survey" / "images", ws / "03_water" / "range"
+    images, ranges = stage_folder(ws, "survey") / "images", stage_folder(ws, "water") / "range"
     frames = len(list(images.glob("*.png")))
 
     def restorer() -> float:
-        return pc.correct_folder(ws / "05_restorer", images, out / "restorer", force=True, progress=False,
+        return pc.correct_folder(stage_folder(ws, "restorer"), images, out / "restorer", force=True, progress=False,
                                  range_dir=ranges, mode="rgb-d").seconds
 
     def physics() -> float:
@@ -71,7 +73,7 @@ def physics_steps(ws: Path, out: Path, frames: int = 12) -> None:
     water = workspace.result("water")
     K = np.asarray(Tracks.load(workspace.path(workspace.result("sfm").tracks)).K, float)
     fields = WaterFields([e for e in water.stack if not get(e["name"]).varies_by_frame()])
-    names = sorted(p.name for p in (ws / "00_survey" / "images").glob("*.png"))[:frames + 1]
+    names = sorted(p.name for p in (stage_folder(ws, "survey") / "images").glob("*.png"))[:frames + 1]
     seconds: dict[str, float] = {}
 
     def lap(step: str, began: float) -> float:
@@ -87,9 +89,9 @@ def physics_steps(ws: Path, out: Path, frames: int = 12) -> None:
             if k == 1:
                 seconds.clear()  # the first frame builds the fields' table
             t = time.perf_counter()
-            image = read_image(ws / "00_survey" / "images" / name, dtype=np.float32)
+            image = read_image(stage_folder(ws, "survey") / "images" / name, dtype=np.float32)
             t = lap("read frame", t)
-            range_m = read_depth(ws / "03_water" / "range" / name)
+            range_m = read_depth(stage_folder(ws, "water") / "range" / name)
             t = lap("read range map", t)
             corrected, valid = invert_with_fields(image, range_m, fields, K)
             t = lap("inverse", t)

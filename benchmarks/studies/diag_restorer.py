@@ -33,6 +33,7 @@ import torch.nn.functional as F
 
 from eval.colour import consistency, observation_colours
 from eval.tracks import Tracks
+from pipeline.stages import stage_folder
 from watergan.data import read_depth, read_image, read_nav_altitudes
 from watergan.imaging import gaussian_blur
 from watergan.io import quantise
@@ -45,9 +46,9 @@ def _linear_frames(folder: Path, names: list[str]) -> np.ndarray:
 
 
 def frame_ratios(ws: Path, names: list[str]) -> None:
-    corrected = _linear_frames(ws / "06_correct" / "restorer" / "images", names)
-    truth = _linear_frames(ws / "00_survey" / "truth" / "inair", names)
-    ranges = np.array([np.median(r[r > 0]) for r in (cv2.imread(str(ws / "00_survey" / "truth" / "range" / n),
+    corrected = _linear_frames(stage_folder(ws, "correct") / "restorer" / "images", names)
+    truth = _linear_frames(stage_folder(ws, "survey") / "truth" / "inair", names)
+    ranges = np.array([np.median(r[r > 0]) for r in (cv2.imread(str(stage_folder(ws, "survey") / "truth" / "range" / n),
                                                                 cv2.IMREAD_UNCHANGED) for n in names)])
     lit = truth.sum(-1) > 0.05
     ratio = np.array([[c[..., k][m].mean() / t[..., k][m].mean() for k in range(3)]
@@ -61,7 +62,7 @@ def frame_ratios(ws: Path, names: list[str]) -> None:
     def cells(image: np.ndarray) -> np.ndarray:
         return cv2.resize(image, (8, 6), interpolation=cv2.INTER_AREA)
 
-    raw = _linear_frames(ws / "00_survey" / "images", names)
+    raw = _linear_frames(stage_folder(ws, "survey") / "images", names)
     raw_grid = np.mean([cells(r) / cells(t) for r, t in zip(raw, truth, strict=True)], axis=0)
     raw_grid /= raw_grid.mean(axis=(0, 1), keepdims=True)
     print("raw/truth over the image (8x6 cells, mean 1), R G B: "
@@ -76,19 +77,19 @@ def frame_ratios(ws: Path, names: list[str]) -> None:
 
 @torch.no_grad()
 def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dict[str, Path]:
-    model = load_restorer(ws / "05_restorer")
+    model = load_restorer(stage_folder(ws, "restorer"))
     net = model.colour_net
     if net.head != "affine":
         raise SystemExit("the variants need a restorer with the affine head")
     variants = ["model", "no skip residual", f"fields blurred {blur_px:g} px", "flat depth"]
     if model.altitude:
         variants.append("true altitude")
-        nav = read_nav_altitudes(ws / "00_survey" / "survey.json", names)
+        nav = read_nav_altitudes(stage_folder(ws, "survey") / "survey.json", names)
     folders = {v: out / v for v in variants}
     for folder in folders.values():
         folder.mkdir(parents=True, exist_ok=True)
     for name in names:
-        image = torch.from_numpy(cv2.imread(str(ws / "00_survey" / "images" / name))[..., ::-1].copy())
+        image = torch.from_numpy(cv2.imread(str(stage_folder(ws, "survey") / "images" / name))[..., ::-1].copy())
         image = image.permute(2, 0, 1).float()[None] / 255
         h, w = image.shape[-2:]
         if h % model.multiple or w % model.multiple:
@@ -101,7 +102,7 @@ def write_variants(ws: Path, names: list[str], out: Path, blur_px: float) -> dic
         outputs = [restore(model, image, altitude)[0], net.colours(fields, x),
                    net.colours(gaussian_blur(fields, blur_px), x), net(flat, None, altitude)]
         if model.altitude:
-            true_depth = read_depth(ws / "00_survey" / "truth" / "depth" / name)
+            true_depth = read_depth(stage_folder(ws, "survey") / "truth" / "depth" / name)
             outputs.append(restore(model, image, torch.tensor([float(np.median(true_depth[true_depth > 0]))]))[0])
         for folder, rgb in zip(folders.values(), outputs, strict=True):
             encoded = quantise(rgb[0].permute(1, 2, 0).numpy(), 8)
@@ -123,7 +124,7 @@ def _minus_group_mean(values: np.ndarray, group: np.ndarray) -> np.ndarray:
 
 def error_decomposition(ws: Path, tracks: Tracks, ours: np.ndarray) -> None:
     """``ours``: the corrected frames' normalised colour at every observation (:func:`observation_colours`)."""
-    truth = observation_colours(tracks, ws / "00_survey" / "truth" / "inair")
+    truth = observation_colours(tracks, stage_folder(ws, "survey") / "truth" / "inair")
     ok = np.isfinite(truth).all(1) & np.isfinite(ours).all(1)
     ok &= np.bincount(tracks.obs_point[ok], minlength=len(tracks.xyz))[tracks.obs_point] >= 3
     point, image, xy = tracks.obs_point[ok], tracks.obs_image[ok], tracks.obs_xy[ok]
@@ -147,10 +148,10 @@ def main() -> None:
     args = parser.parse_args()
     ws = args.workspace
     torch.set_num_threads(2)
-    names = sorted(p.name for p in (ws / "06_correct" / "restorer" / "images").glob("*.png"))
+    names = sorted(p.name for p in (stage_folder(ws, "correct") / "restorer" / "images").glob("*.png"))
     frame_ratios(ws, names)
-    folders = {"raw": ws / "00_survey" / "images", **write_variants(ws, names, args.out, args.blur_px)}
-    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
+    folders = {"raw": stage_folder(ws, "survey") / "images", **write_variants(ws, names, args.out, args.blur_px)}
+    tracks = Tracks.load(stage_folder(ws, "sfm") / "tracks.npz")
     colours = {name: observation_colours(tracks, folder) for name, folder in folders.items()}  # sampled once for both
     result = consistency(tracks, folders, colours=colours)
     print(f"consistency on {result.n_points} points (mean variance of c/(R+G+B) across views; R G B)")

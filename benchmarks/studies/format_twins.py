@@ -22,6 +22,8 @@ from pathlib import Path
 
 import cv2
 
+from pipeline.stages import stage_folder
+
 ROOT = Path(__file__).resolve().parents[2]  # the repository: result files name paths relative to it
 FORMATS = {"png": (".png", []), "jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95]), "tiff": (".tif", [])}
 
@@ -69,7 +71,7 @@ def main() -> None:
             print(f"{fmt}: watergan run failed ({done.returncode}):\n{done.stderr[-3000:]}")
             rows[fmt] = {"failed": done.stderr[-3000:]}
             continue
-        result = json.loads((ws / "07_eval" / "result.json").read_text())["result"]
+        result = json.loads((stage_folder(ws, "eval") / "result.json").read_text())["result"]
         rows[fmt] = {"board": result["mean_board_ciede2000"], "consistency": result["consistency_variance"],
                      "seconds": json.loads((ws / "run_summary.json").read_text())["seconds"]}
         print(f"{fmt}: methods {sorted(rows[fmt]['board'])}; {rows[fmt]['seconds']:.0f} s", flush=True)

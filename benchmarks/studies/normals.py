@@ -27,6 +27,7 @@ import numpy as np
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tables import OracleGeometry
 from eval.tracks import Tracks
+from pipeline.stages import stage_folder
 from pipeline.water import correction_normals, correction_range, water_frames
 from watergan.formation import Stack
 from watergan.formation.inverse import correct_physics, normals_from_range
@@ -47,16 +48,16 @@ def main() -> None:
     args = parser.parse_args()
     began = time.perf_counter()
     ws = args.workspace
-    survey = ws / "00_survey"
-    stack = Stack.from_config(json.loads((ws / "03_water" / "result.json").read_text())["result"]["stack"])
-    config = json.loads((ws / "03_water" / "config.json").read_text())["config"]
+    survey = stage_folder(ws, "survey")
+    stack = Stack.from_config(json.loads((stage_folder(ws, "water") / "result.json").read_text())["result"]["stack"])
+    config = json.loads((stage_folder(ws, "water") / "config.json").read_text())["config"]
     smooth_px, agreement = float(config["normal_smooth_px"]), float(config["range_agreement"])
-    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
+    tracks = Tracks.load(stage_folder(ws, "sfm") / "tracks.npz")
     K = np.asarray(tracks.K, float)
-    frames = water_frames(tracks, survey / "images", ws / "02_dense" / "depth")
+    frames = water_frames(tracks, survey / "images", stage_folder(ws, "dense") / "depth")
     board = truth_board(survey)
     geometry = OracleGeometry(survey)
-    mesh = ws / "02_dense" / "fused_mesh.ply"
+    mesh = stage_folder(ws, "dense") / "fused_mesh.ply"
     errors: dict[str, list[np.ndarray]] = {}
     scene = None
     with tempfile.TemporaryDirectory() as tmp:

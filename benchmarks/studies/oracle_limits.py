@@ -36,6 +36,7 @@ from eval.baselines import oracle
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tables import OracleGeometry, fill_nearest
 from eval.tracks import Tracks
+from pipeline.stages import stage_folder
 from watergan.data import read_depth, read_image, read_nav_altitudes, write_srgb8
 from watergan.formation import Stack
 from watergan.io import z_to_range
@@ -56,14 +57,14 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("/tmp/oracle_limits"), help="inverted frames")
     args = parser.parse_args()
     ws = args.workspace
-    survey = (ws / "00_survey").resolve()
-    gan_stack = ws / "04_gan" / "model" / "stack.json"
+    survey = stage_folder(ws, "survey").resolve()
+    gan_stack = stage_folder(ws, "gan") / "model" / "stack.json"
     learned = {e["name"]: e["params"] for e in json.loads(gan_stack.read_text())} if gan_stack.is_file() else {}
-    water = ws / "03_water" / "result.json"
+    water = stage_folder(ws, "water") / "result.json"
     estimated = json.loads(water.read_text())["result"]["stack"] if water.is_file() else None
     geometry = OracleGeometry(survey)
     board = truth_board(survey)
-    tracks = Tracks.load(ws / "01_sfm" / "tracks.npz")
+    tracks = Tracks.load(stage_folder(ws, "sfm") / "tracks.npz")
     names = sorted({str(tracks.image_names[k]) for k in tracks.obs_image} | set(board.quads))
     nav = read_nav_altitudes(survey / "survey.json", names)
     intr = geometry.intr
@@ -71,7 +72,7 @@ def main() -> None:
     true_config = geometry.truth.effects["full"]
 
     def dense_range(name: str, shape: tuple[int, int]) -> np.ndarray:
-        z = read_depth(ws / "02_dense" / "depth" / f"{Path(name).stem}.png")
+        z = read_depth(stage_folder(ws, "dense") / "depth" / f"{Path(name).stem}.png")
         return fill_nearest(z_to_range(np.where(z > 0, z, np.nan), K)).reshape(shape)
 
     def plane_range(name: str, shape: tuple[int, int]) -> np.ndarray:

@@ -17,6 +17,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from pipeline.stages import stage_folder
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -27,8 +29,8 @@ def main() -> None:
     if args.new.exists():
         raise SystemExit(f"{args.new} exists: give a new folder")
     args.new.mkdir(parents=True)
-    for stage in ("00_survey", "01_sfm", "02_dense"):
-        shutil.copytree(args.old / stage, args.new / stage)
+    for stage in ("survey", "sfm", "dense"):
+        shutil.copytree(stage_folder(args.old, stage), stage_folder(args.new, stage))
     for f in args.old.iterdir():
         if f.is_file():
             shutil.copy(f, args.new / f.name)

@@ -23,6 +23,7 @@ import numpy as np
 
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tracks import Tracks
+from pipeline.stages import STAGES, stage_folder
 from watergan.formation.inverse import correct_physics
 from watergan.io import linear_to_srgb, read_depth, read_image
 from watergan.restore_folder import correct_folder
@@ -31,26 +32,26 @@ from watergan.restore_folder import correct_folder
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--workspace", required=True)
-    parser.add_argument("--model", default=None, help="restorer folder (default: WS/05_restorer)")
+    parser.add_argument("--model", default=None, help=f"restorer folder (default: WS/{STAGES['restorer'].folder})")
     parser.add_argument("--out", default="/tmp/restorer_vs_physics")
     args = parser.parse_args()
     ws, out = Path(args.workspace), Path(args.out)
-    model = Path(args.model) if args.model else ws / "05_restorer"
+    model = Path(args.model) if args.model else stage_folder(ws, "restorer")
 
-    r = correct_folder(model, ws / "00_survey" / "images", out, force=True, progress=False,
-                       range_dir=ws / "03_water" / "range")
+    r = correct_folder(model, stage_folder(ws, "survey") / "images", out, force=True, progress=False,
+                       range_dir=stage_folder(ws, "water") / "range")
     print(f"corrected {r.corrected} frames in {r.seconds:.1f} s = {r.corrected / r.seconds:.1f} frames/s "
           f"({r.mode} mode)")
-    board = truth_board(ws / "00_survey")
-    folders = {"raw": ws / "00_survey" / "images", "restorer": out / "images",
-               "physics": ws / "06_correct" / "physics" / "images"}
-    cons = consistency(Tracks.load(ws / "01_sfm" / "tracks.npz"), folders)
+    board = truth_board(stage_folder(ws, "survey"))
+    folders = {"raw": stage_folder(ws, "survey") / "images", "restorer": out / "images",
+               "physics": stage_folder(ws, "correct") / "physics" / "images"}
+    cons = consistency(Tracks.load(stage_folder(ws, "sfm") / "tracks.npz"), folders)
     for name, path in folders.items():
         print(f"{name:9} board CIEDE2000 {board_accuracy(path, board).mean_ciede2000:6.3f}  consistency "
               + " ".join(f"{v:.2e}" for v in cons.scores[name].variance))
 
-    pairs = ws / "04_gan" / "generated"
-    stack = json.loads((ws / "04_gan" / "model" / "stack.json").read_text())
+    pairs = stage_folder(ws, "gan") / "generated"
+    stack = json.loads((stage_folder(ws, "gan") / "model" / "stack.json").read_text())
     errors = []
     for item in json.loads((pairs / "manifest.json").read_text())["items"][:20]:
         inverted, valid = correct_physics(read_image(pairs / item["underwater"]), read_depth(pairs / item["range"]),

@@ -26,6 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_water import compare, truth_params  # noqa: E402
 
+from pipeline.stages import stage_folder  # noqa: E402
+
 
 def main() -> None:
     import eval.water as ew
@@ -39,7 +41,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=300)
     args = parser.parse_args()
     ws, channel = args.workspace, args.channel
-    record = json.loads((ws / "01_sfm" / "result.json").read_text())
+    record = json.loads((stage_folder(ws, "sfm") / "result.json").read_text())
     config = replace(ew.WaterConfig(), range_scale_sd=float(record["result"]["scale_spread"]))
     fitted = {}
     bootstrap = ew.bootstrap
@@ -49,8 +51,9 @@ def main() -> None:
         return bootstrap(problem, *rest, **kwargs)
 
     ew.bootstrap = keep_fit
-    estimate = ew.fit_observations(Observations.load(args.table), config, lights=survey_lights(ws / "00_survey"))
-    row = compare(estimate.params, truth_params(ws / "00_survey"))["backscatter.b_inf"]
+    estimate = ew.fit_observations(Observations.load(args.table), config,
+                                   lights=survey_lights(stage_folder(ws, "survey")))
+    row = compare(estimate.params, truth_params(stage_folder(ws, "survey")))["backscatter.b_inf"]
     print("B_inf estimate", row["estimate"], "truth", row["truth"], "interval", row["low"], row["high"])
     problem, x0 = fitted["problem"], fitted["x"]
     index = problem.stack.names.index("backscatter")

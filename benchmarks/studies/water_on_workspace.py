@@ -33,14 +33,15 @@ from eval.colour import truth_board
 from eval.observations import DenseMeasureConfig
 from eval.tracks import Tracks
 from eval.water import WaterConfig, estimate_water
+from pipeline.stages import STAGES, stage_folder  # noqa: E402
 from pipeline.water import fine_grid_frames, survey_lights, water_frames
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("workspace", type=Path)
-    parser.add_argument("--sfm", default="01_sfm", help="the SfM stage's folder")
-    parser.add_argument("--dense", default="02_dense", help="the dense stage's folder")
+    parser.add_argument("--sfm", default=STAGES["sfm"].folder, help="the SfM stage's folder")
+    parser.add_argument("--dense", default=STAGES["dense"].folder, help="the dense stage's folder")
     parser.add_argument("--field-degree", type=int, default=WaterConfig().field_degree,
                         help="the fields' degree (0: none)")
     parser.add_argument("--max-points", type=int, default=DenseMeasureConfig().max_points,
@@ -52,7 +53,7 @@ def main() -> None:
     ws = args.workspace
     record = json.loads((ws / args.sfm / "result.json").read_text())
     sfm = record.get("result", record)
-    survey = ws / "00_survey"
+    survey = stage_folder(ws, "survey")
     tracks = Tracks.load(ws / args.sfm / "tracks.npz")
     frames = water_frames(tracks, survey / "images", ws / args.dense / "depth")
     config = replace(WaterConfig(), range_scale_sd=float(sfm["scale_spread"]), field_degree=args.field_degree)
