@@ -17,7 +17,7 @@ relative error and whether the 95 % interval covers the truth. Then it corrects 
 dense range has none or disagrees; pixels with neither take the nearest valid pixel's range, as the evaluation does
 for the range-based baselines; the mesh and filled fractions are printed) and measures
 board CIEDE2000 (:func:`eval.colour.board_accuracy`), consistency per channel on the SfM tracks
-(:func:`eval.colour.consistency`) and PSNR against the in-air truth (:func:`eval.tables.fidelity`), beside the
+(:func:`eval.colour.consistency`) and PSNR against the in-air truth (:func:`eval.fidelity.fidelity`), beside the
 oracle (:func:`eval.baselines.oracle`, the true stack and the true geometry) and the true stack with the dense
 range. Writes ``benchmarks/results/water.json``.
 
@@ -205,8 +205,8 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
     reported)."""
     import torch
 
+    from eval.baseline_runs import OracleGeometry, fill_nearest
     from eval.baselines import oracle
-    from eval.tables import OracleGeometry, fill_nearest
     from pipeline.water import correction_range
     from watergan.data import write_srgb8
     from watergan.formation import Stack
@@ -240,7 +240,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
 
 def measure_corrections(ws_root: Path, tracks, board, folders: dict[str, Path], names: list[str]) -> dict:
     from eval.colour import board_accuracy, consistency
-    from eval.tables import fidelities
+    from eval.fidelity import fidelities
 
     survey = stage_folder(ws_root, "survey")
     all_folders = {"raw": survey / "images", **folders}

@@ -1,5 +1,6 @@
 """The evaluation's measuring: every baseline and the restorer measured on the same SfM points and
-board, and the paper's tables side by side. The workspace stage that chains these is
+board, and the paper's tables side by side (the baselines run over the frames: :mod:`eval.baseline_runs`; PSNR and
+SSIM against the in-air truth: :mod:`eval.fidelity`). The workspace stage that chains these is
 :func:`pipeline.evaluate.run_evaluate` (``watergan evaluate``); it writes under the eval stage's folder:
 
     baselines/<method>/<image name>   each baseline's corrected survey frames (8-bit sRGB PNG)
@@ -29,9 +30,9 @@ Tables (as in the paper; lower is better unless said):
   truth (higher is better), averaged over frames.
 - Depth: monocular (the restorer's relative depth, the correct stage's ``depth/``) against stereo/MVS depth
   (``depth/metrics.json`` in the eval stage's folder; computed here when both inputs exist and it is missing).
-- Speed: seconds per frame of each method's correction alone, over the first ``TIMED_FRAMES`` frames run one at
-  a time (files excluded; the oracle's excludes rendering the true geometry; ours from the correct stage's
-  ``summary.json``, which includes file I/O).
+- Speed: seconds per frame of each method's correction alone, over the first ``TIMED_FRAMES``
+  (:mod:`eval.baseline_runs`) frames run one at a time (files excluded; the oracle's excludes rendering the true
+  geometry; ours from the correct stage's ``summary.json``, which includes file I/O).
 
 With ``EvaluateConfig.scheduler`` (a Dask scheduler address) the baselines (chunks of frames, every
 method) and the colour sampling at the SfM observations run on the cluster's workers
@@ -42,17 +43,16 @@ numbers are the same as a local run's. The board, fidelity and depth measurement
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 
-from eval.baselines import BASELINES, jaffe_coefficients
+from eval.baselines import BASELINES
 from eval.depth import BEST_PLANE, FLOOR, FLOOR_ALIGNED, NET
 from watergan.errors import UserInputError
-from watergan.io import frame_file, z_to_range
+from watergan.io import frame_file
 
 OURS = "ours"
 PHYSICS = "physics"
@@ -136,114 +136,6 @@ class EvaluateResult:
 # ---------------------------------------------------------------------------------------- inputs
 
 
-def _camera_K(survey: Path, tracks) -> np.ndarray:
-    from watergan.survey_files import read_camera_json
-
-    cam = read_camera_json(survey / "camera.json")
-    if cam is None:
-        return np.asarray(tracks.K, float)
-    return np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
-
-
-def fill_nearest(values: np.ndarray) -> np.ndarray:
-    """Non-finite entries of (H,W) replaced by the nearest finite one (all NaN: unchanged)."""
-    from scipy.ndimage import distance_transform_edt
-
-    bad = ~np.isfinite(values)
-    if not bad.any() or bad.all():
-        return values
-    idx = distance_transform_edt(bad, return_distances=False, return_indices=True)
-    return values[tuple(idx)]
-
-
-class RangeSource:
-    """Range (H,W) metres per frame name from the dense stage or the simulator's truth."""
-
-    def __init__(self, kind: str, dense_dir: Path | None, survey: Path, tracks) -> None:
-        self.kind = kind
-        self.dense_dir = Path(dense_dir).resolve() if dense_dir else None  # absolute: also read on a cluster's workers
-        self.truth_dir = (survey / "truth" / "range").resolve()
-        self.K = _camera_K(survey, tracks)
-        self.fallback: list[str] = []
-        depths = tracks.depths()
-        names = [str(n) for n in tracks.image_names]
-        self.sparse_m = {names[k]: float(np.median(depths[tracks.obs_image == k]))
-                         for k in np.unique(tracks.obs_image)}
-        self.sparse_all_m = float(np.median(depths)) if len(depths) else 1.0
-
-    @staticmethod
-    def choose(requested: str, dense_dir: Path | None, survey: Path) -> str:
-        """The range source to use; ``dense_dir``: the dense stage's depth maps (None: it did not run)."""
-        if requested not in RANGE_SOURCES:
-            raise UserInputError(f"range source must be one of {', '.join(RANGE_SOURCES)}, got '{requested}'")
-        dense = dense_dir is not None and Path(dense_dir).is_dir() and any(Path(dense_dir).glob("*.png"))
-        truth = (survey / "truth" / "range").is_dir()
-        if requested == "dense" and not dense:
-            raise UserInputError(f"no dense depth maps ({dense_dir or 'the dense stage did not run'}): run "
-                                 f"`watergan dense` first or use --range-source truth on a simulated survey")
-        if requested == "truth" and not truth:
-            raise UserInputError(f"no simulator range in {survey / 'truth' / 'range'}: --range-source truth needs a "
-                                 f"simulated survey; use --range-source dense")
-        if requested == "auto":
-            return "dense" if dense else "truth" if truth else "none"
-        return requested
-
-    def __call__(self, name: str, shape: tuple[int, int]) -> np.ndarray:
-        from watergan.io import read_depth
-
-        if self.kind == "truth":
-            r = read_depth(frame_file(self.truth_dir, name))
-        else:
-            path = self.dense_dir / f"{Path(name).stem}.png"
-            z = read_depth(path) if path.is_file() else np.full(shape, np.nan)
-            if z.shape != shape:
-                raise UserInputError(f"dense depth {path} is {z.shape}, the image {shape}")
-            r = z_to_range(z, self.K)
-        if np.isfinite(r).mean() < 0.01:  # no usable depth: the frame's median sparse depth, everywhere
-            self.fallback.append(name)
-            return np.full(shape, self.sparse_m.get(name, self.sparse_all_m))
-        return fill_nearest(r)
-
-
-class OracleGeometry:
-    """The simulator's true geometry and full stack: one formation state per frame (re-rendered)."""
-
-    def __init__(self, survey: Path) -> None:
-        from eval.synth import load_truth
-        from eval.synth.camera import intrinsics_for
-        from eval.synth.render import make_raycaster
-        from eval.synth.scene import build_scene
-        from watergan.formation import Stack
-
-        self.survey = Path(survey)
-        self.truth = load_truth(survey)
-        cfg = self.truth.config
-        self.scene = build_scene(cfg.scene, cfg.seed)
-        self.caster = make_raycaster(self.scene)
-        self.intr = intrinsics_for(cfg.camera)
-        self.stack = Stack.from_config(self.truth.effects["full"])
-        self.index = {name: k for k, name in enumerate(self.truth.frames)}
-        self.stems = {Path(name).stem: k for k, name in enumerate(self.truth.frames)}  # a survey in another format
-
-    def state(self, name: str):
-        from eval.synth.render import frame_state, render_view
-
-        cfg = self.truth.config
-        k = self.index.get(name, self.stems.get(Path(name).stem))
-        if k is None:
-            raise UserInputError(f"frame {name} is not in the simulator's truth of {self.truth.root}")
-        view = render_view(self.caster, self.scene, self.intr, self.truth.world_from_cam[k], cfg.render)
-        return frame_state(view, k, cfg.render.site_depth_m)
-
-
-def _write_srgb8(path: Path, linear: np.ndarray) -> None:
-    """A baseline's frame as an 8-bit sRGB PNG (``path``'s stem; lossless whatever the survey's format: a JPEG's
-    block artefacts would be measured as the method's)."""
-    from watergan.io import write_srgb8
-
-    write_srgb8(path.with_suffix(".png"), linear)
-
-
 def missing_files(folder: Path, names: list[str]) -> list[str]:
     """The frames ``names`` that ``folder`` holds in no image format (:func:`watergan.io.frame_file`)."""
     return [n for n in names if not frame_file(folder, n).is_file()]
@@ -275,97 +167,6 @@ def point_variances(tracks, folders: dict[str, Path], patch_px: int, min_views: 
         s2 = np.stack([np.bincount(point, c[:, ch] ** 2, minlength=len(n)) for ch in range(3)], 1)
         out[name] = np.maximum(s2[keep] / n[keep, None] - (s1[keep] / n[keep, None]) ** 2, 0.0)
     return out
-
-
-SSIM_WINDOW_PX = 7
-"""Side of SSIM's uniform window: scikit-image's default, which these tables have always used (Wang et al. 2004 weigh
-an 11x11 window by a Gaussian instead)."""
-
-
-def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> np.ndarray:
-    """(H,W,C) float32 SSIM of (H,W,C) images at each pixel, channel by channel, as scikit-image's
-    ``structural_similarity(b, a, channel_axis=2, full=True)`` computes it: local means, sample variances and
-    covariance over a 7x7 uniform window (edges mirrored), S = (2 u_a u_b + C1)(2 s_ab + C2) / ((u_a^2 + u_b^2 + C1)
-    (s_a^2 + s_b^2 + C2)) with C1 = (0.01 L)^2, C2 = (0.03 L)^2 and L = ``data_range``. OpenCV's box filter does the
-    windows in float32, as scikit-image does with SciPy's (benchmarks/RESULTS/restorer.md compares the two)."""
-    import cv2
-
-    def mean(x: np.ndarray) -> np.ndarray:
-        return cv2.boxFilter(x, -1, (SSIM_WINDOW_PX, SSIM_WINDOW_PX), normalize=True, borderType=cv2.BORDER_REFLECT)
-
-    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
-    n = SSIM_WINDOW_PX * SSIM_WINDOW_PX
-    cov_norm = n / (n - 1)
-    ua, ub = mean(a), mean(b)
-    va = cov_norm * (mean(a * a) - ua * ua)
-    vb = cov_norm * (mean(b * b) - ub * ub)
-    vab = cov_norm * (mean(a * b) - ua * ub)
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    return (2 * ua * ub + c1) * (2 * vab + c2) / ((ua * ua + ub * ub + c1) * (va + vb + c2))
-
-
-def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float:
-    """Mean SSIM of (H,W,C) images (:func:`ssim_map`) over the pixels whose window lies inside the image, as
-    scikit-image's ``structural_similarity`` averages it."""
-    pad = (SSIM_WINDOW_PX - 1) // 2
-    return float(ssim_map(a, b, data_range)[pad:-pad, pad:-pad].mean(dtype=np.float64))
-
-
-def fidelity(folder: Path, truth_dir: Path, names: list[str], mask_dir: Path | None = None) -> tuple[float, float]:
-    """Mean over frames of PSNR (dB) and SSIM of the sRGB-encoded frames against the in-air truth. With
-    ``mask_dir`` (``<stem>.png``, 0 = a pixel the method marked as not corrected, e.g. the physics correction's
-    pixels without range) both are taken over the pixels the method corrected: PSNR = 10 log10(1 / MSE) over them,
-    and the mean of the SSIM map over them (a mark is not a guess; the share marked is reported beside)."""
-    return fidelities({"method": folder}, truth_dir, names, {"method": mask_dir})["method"]
-
-
-def fidelities(folders: dict[str, Path], truth_dir: Path, names: list[str],
-               mask_dirs: dict[str, Path | None] | None = None, threads: int = 2) -> dict[str, tuple[float, float]]:
-    """:func:`fidelity` of each method's folder, each truth frame read once, ``threads`` frames at a time (OpenCV's
-    decoding and filters release the GIL)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from eval.colour import read_rgb
-
-    mask_dirs = mask_dirs or {}
-
-    def frame(name: str) -> dict[str, tuple[float, float]]:
-        truth = read_rgb(frame_file(truth_dir, name), linear=False)
-        out = {}
-        for method, folder in folders.items():
-            image = read_rgb(frame_file(folder, name), linear=False)
-            mask_dir = mask_dirs.get(method)
-            keep = _mask(mask_dir / f"{Path(name).stem}.png", image.shape[:2]) if mask_dir is not None else None
-            if keep is None:
-                mse = float(np.mean((image.astype(np.float64) - truth) ** 2))
-                out[method] = (10.0 * np.log10(1.0 / max(mse, 1e-12)), ssim(truth, image))
-                continue
-            mse = float(np.mean((image[keep] - truth[keep]) ** 2)) if keep.any() else float("nan")
-            out[method] = (10.0 * np.log10(1.0 / max(mse, 1e-12)),
-                           float(ssim_map(truth, image)[keep].mean()) if keep.any() else float("nan"))
-        return out
-
-    with ThreadPoolExecutor(max(1, threads)) as pool:
-        per_frame = list(pool.map(frame, names))
-    return {m: (float(np.mean([f[m][0] for f in per_frame])), float(np.mean([f[m][1] for f in per_frame])))
-            for m in folders}
-
-
-def marked_share(mask_dir: Path, names: list[str]) -> float:
-    """The share of the frames' pixels a method marked as not corrected (0 in ``mask_dir/<stem>.png``)."""
-    shares = [1.0 - float(_mask(mask_dir / f"{Path(name).stem}.png", None).mean()) for name in names]
-    return float(np.mean(shares)) if shares else 0.0
-
-
-def _mask(path: Path, hw: tuple[int, int] | None) -> np.ndarray:
-    import cv2
-
-    mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if mask is None:
-        raise FileNotFoundError(f"mask {path} is missing or unreadable")
-    if hw is not None and mask.shape != hw:
-        raise ValueError(f"mask {path} is {mask.shape[1]}x{mask.shape[0]}, the frame {hw[1]}x{hw[0]}")
-    return mask > 0
 
 
 def ours_seconds(correct_dir: Path) -> float | None:
@@ -604,150 +405,7 @@ def depth_table(depth_dir: Path, site_metrics: Path | None = None) -> dict:
                            f"{relief_note}{verdict}")
 
 
-# ------------------------------------------------------------------------------------------ stage
-
-
-@dataclass(frozen=True, eq=False)
-class BaselineChunk:
-    """Frames to correct with every method (plain, picklable values: it may run on a Dask worker)."""
-
-    names: tuple[str, ...]
-    images: Path
-    methods: tuple[str, ...]
-    out_dir: Path
-    ranges: RangeSource | None
-    """Range per frame (plain data; the frames that fell back to a constant range are returned)."""
-    coefficients: dict | None
-    oracle_survey: Path | None
-    """The simulated survey whose true geometry the oracle re-renders (built once per chunk)."""
-
-
-#: Frames of a local run that every baseline corrects one at a time, timed, before the rest run two at a time: the
-#: speed table's seconds per frame are theirs, each method alone on the machine.
-TIMED_FRAMES = 8
-#: Frames corrected at once after the timed ones in a local run (the methods and the file I/O release the GIL in
-#: OpenCV, NumPy and torch; each lane on one torch thread).
-BASELINE_LANES = 2
-
-
-def baseline_chunk(job: BaselineChunk, geometry=None, progress: bool = False, timed: int | None = None
-                   ) -> tuple[dict[str, float], int, list[str]]:
-    """Every frame of ``job`` through every method into ``out_dir/<method>/<name>`` (8-bit sRGB, atomically).
-    Returns each method's correction seconds summed over the first ``timed`` frames (None: all), which run one at a
-    time, the number of those frames, and the frames without a usable range (in ``job.names`` order); the frames
-    after them run ``BASELINE_LANES`` at a time, untimed. ``geometry``: the oracle's, when already built (local
-    runs); else built here from ``oracle_survey``."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from tqdm import tqdm
-
-    from watergan.device import single_torch_thread
-
-    seconds = dict.fromkeys(job.methods, 0.0)
-    if "oracle" in job.methods and geometry is None:
-        geometry = OracleGeometry(job.oracle_survey)
-    before = len(job.ranges.fallback) if job.ranges is not None else 0
-    timed = len(job.names) if timed is None else min(timed, len(job.names))
-
-    def correct(name: str, spent: dict[str, float]) -> None:
-        _correct_frame(name, job.images, list(job.methods), job.out_dir, spent, job.ranges, job.coefficients,
-                       geometry)
-        bar.update(1)
-
-    with single_torch_thread(), tqdm(total=len(job.names), desc="baselines", unit="frame",
-                                     disable=not progress) as bar:  # the oracle's renders: torch's pool contends
-        for name in job.names[:timed]:
-            correct(name, seconds)
-        with ThreadPoolExecutor(BASELINE_LANES) as pool:
-            list(pool.map(lambda name: correct(name, dict.fromkeys(job.methods, 0.0)), job.names[timed:]))
-    fallback = set(job.ranges.fallback[before:]) if job.ranges is not None else set()
-    return seconds, timed, [n for n in job.names if n in fallback]
-
-
-def run_baselines(names: list[str], images: Path, methods: list[str], out_dir: Path, ranges=None,
-                  coefficients: dict | None = None, geometry=None, scheduler=None,
-                  chunk_size: int = 8, progress: bool = True) -> dict[str, float]:
-    """Correct every frame with every method into ``out_dir/<method>/<name>`` (8-bit sRGB); returns
-    the seconds per frame of each method's correction alone.
-
-    ``scheduler``: empty or None runs here: the first ``TIMED_FRAMES`` frames one at a time (the seconds per frame
-    are theirs), the rest ``BASELINE_LANES`` at a time; a Dask scheduler address or ``distributed.Client`` sends
-    ``chunk_size`` frames per task to the cluster (:mod:`watergan.parallel`; folders on a file system the workers
-    share; the oracle's geometry is rebuilt once per chunk; every frame timed). The files are the same either way.
-    ``ranges.fallback`` lists the frames that had no usable range."""
-    from watergan.parallel import chunks, is_distributed, map_tasks, shared_path
-
-    needs_range = any(BASELINES[m].needs_range for m in methods)
-    frame_ranges = ranges if needs_range else None
-    if not is_distributed(scheduler):
-        results = [baseline_chunk(BaselineChunk(tuple(names), images, tuple(methods), out_dir, frame_ranges,
-                                                coefficients, None), geometry, progress, TIMED_FRAMES)]
-    else:
-        survey = shared_path(geometry.survey) if geometry is not None else None
-        jobs = [BaselineChunk(tuple(part), shared_path(images), tuple(methods), shared_path(out_dir), frame_ranges,
-                              coefficients, survey) for part in chunks(names, chunk_size)]
-        results = map_tasks(baseline_chunk, jobs, scheduler, desc="baselines", unit="chunk", progress=progress)
-    if frame_ranges is not None:
-        frame_ranges.fallback = [n for *_, fell_back in results for n in fell_back]
-    seconds = {m: sum(part[m] for part, *_ in results) for m in methods}
-    timed = sum(count for _, count, _ in results)
-    return {m: s / max(timed, 1) for m, s in seconds.items()}
-
-
-def _correct_frame(name: str, images: Path, methods: list[str], out_dir: Path, seconds: dict[str, float], ranges,
-                   coefficients: dict | None, geometry) -> None:
-    """One frame through every method (adds each method's correction time to ``seconds``)."""
-    from eval.colour import read_rgb
-
-    image = read_rgb(images / name)
-    range_m = ranges(name, image.shape[:2]) if ranges is not None else None
-    state = geometry.state(name) if "oracle" in methods else None
-    for m in methods:
-        start = time.perf_counter()
-        if m == "jaffe":
-            corrected = BASELINES[m].fn(image, range_m, **coefficients)
-        elif m == "oracle":
-            corrected = BASELINES[m].fn(image, state, geometry.stack)
-        elif BASELINES[m].needs_range:
-            corrected = BASELINES[m].fn(image, range_m)
-        else:
-            corrected = BASELINES[m].fn(image)
-        seconds[m] += time.perf_counter() - start
-        _write_srgb8(out_dir / m / name, corrected)
-
-
-def method_inputs(cfg: EvaluateConfig, survey: Path, tracks, simulated: bool, dense_dir: Path | None):
-    """(methods that can run, skipped method -> why, range source or None, Jaffe coefficients, oracle geometry).
-    ``dense_dir``: the dense stage's depth maps, None when it did not run."""
-    skipped: dict[str, str] = {}
-    range_kind = RangeSource.choose(cfg.range_source, dense_dir, survey)
-    ranges = RangeSource(range_kind, dense_dir, survey, tracks) if range_kind != "none" else None
-    coefficients = None
-    if "jaffe" in cfg.methods:
-        if cfg.jaffe_stack:
-            path = Path(cfg.jaffe_stack)
-            if not path.is_file():
-                raise UserInputError(f"Jaffe-McGlamery stack file {path} does not exist")
-            coefficients = jaffe_coefficients(json.loads(path.read_text()))
-        elif simulated:
-            coefficients = jaffe_coefficients(json.loads((survey / "truth" / "effects.json").read_text())["full"])
-        else:
-            skipped["jaffe"] = "no coefficients: give a formation-stack JSON with --jaffe-stack"
-    geometry = None
-    if "oracle" in cfg.methods:
-        if simulated:
-            geometry = OracleGeometry(survey)
-        else:
-            skipped["oracle"] = "needs the simulator's truth (not a simulated survey)"
-    methods = []
-    for m in cfg.methods:
-        if m in skipped:
-            continue
-        if BASELINES[m].needs_range and ranges is None:
-            skipped[m] = "no range: run the dense stage (or --range-source truth on a simulated survey)"
-            continue
-        methods.append(m)
-    return methods, skipped, ranges, coefficients, geometry
+# ------------------------------------------------------------------------------------------ board
 
 
 def measure_board(cfg: EvaluateConfig, survey: Path, folders: dict[str, Path]) -> tuple[object, dict, str]:

@@ -16,31 +16,28 @@ from pathlib import Path
 
 import numpy as np
 
+from eval.baseline_runs import TIMED_FRAMES, method_inputs, run_baselines
 from eval.baselines import BASELINES
 from eval.colour import ColourEvalConfig, ColourEvalResult
 from eval.depth import DepthCompareConfig, DepthCompareResult, Navigation, compare_depth_folders
+from eval.fidelity import fidelities, marked_share
 from eval.tables import (
     INAIR,
     LABELS,
     OURS,
     PHYSICS,
-    TIMED_FRAMES,
     EvaluateConfig,
     EvaluateResult,
     board_table,
     consistency_table,
     depth_table,
     example_frames,
-    fidelities,
     make_table,
-    marked_share,
     measure_board,
-    method_inputs,
     missing_files,
     ours_seconds,
     point_variances,
     restorer_table,
-    run_baselines,
     table_markdown,
     verdict_lines,
 )

@@ -24,19 +24,18 @@ import torch
 from conftest import SCRATCH
 from test_sfm import survey_and_sfm
 
+from eval.baseline_runs import RangeSource
 from eval.tables import (
     EvaluateConfig,
-    RangeSource,
     best_cells,
     make_table,
     table_markdown,
     verdict_lines,
-    z_to_range,
 )
 from pipeline.evaluate import run_evaluate
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
-from watergan.io import DataError
+from watergan.io import DataError, z_to_range
 
 CHROMIUM = Path("/usr/bin/chromium")
 VALIDATION = {"val_count": 2, "units": "stored sRGB 0..1; relative depth 0..1",
@@ -458,7 +457,7 @@ def test_fidelity_is_taken_over_the_pixels_a_method_corrected(tmp_path):
     others: its PSNR is that of its error there, and the share it marked is reported."""
     import cv2
 
-    from eval.tables import fidelity, marked_share
+    from eval.fidelity import fidelity, marked_share
 
     rng = np.random.default_rng(0)
     for sub in ("truth", "method", "mask"):
@@ -483,7 +482,7 @@ def test_ssim_is_scikit_images(tmp_path):
     import cv2
     from skimage.metrics import structural_similarity
 
-    from eval.tables import fidelities, fidelity, ssim, ssim_map
+    from eval.fidelity import fidelities, fidelity, ssim, ssim_map
 
     rng = np.random.default_rng(1)
     truth = cv2.GaussianBlur(rng.random((48, 64, 3)).astype(np.float32), (5, 5), 1.5)

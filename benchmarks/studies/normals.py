@@ -24,8 +24,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from eval.baseline_runs import OracleGeometry
 from eval.colour import board_accuracy, consistency, truth_board
-from eval.tables import OracleGeometry
 from eval.tracks import Tracks
 from pipeline.stages import stage_folder
 from pipeline.water import correction_normals, correction_range, water_frames

@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from eval.baseline_runs import OracleGeometry, fill_nearest
 from eval.baselines import oracle
 from eval.colour import board_accuracy, consistency, truth_board
-from eval.tables import OracleGeometry, fill_nearest
 from eval.tracks import Tracks
 from pipeline.stages import stage_folder
 from watergan.data import read_depth, read_image, read_nav_altitudes, write_srgb8
