@@ -187,7 +187,7 @@ def realise_content_gains(survey: Path, effect: str) -> list[list[float]]:
     (log gains per frame and channel), which the oracle can invert; returns the log gains."""
     import torch
 
-    from eval.tables import OracleGeometry
+    from eval.baseline_runs import OracleGeometry
     from watergan.formation import Stack
 
     truth_file = survey / "truth" / "effects.json"

@@ -149,10 +149,10 @@ def test_realised_white_balance_is_what_the_frames_received(tmp_path):
     frame."""
     from dataclasses import replace
 
+    from eval.baseline_runs import OracleGeometry
     from eval.baselines import oracle
     from eval.colour import read_rgb
     from eval.synth import make_config, simulate_survey
-    from eval.tables import OracleGeometry
 
     bench_forms.load_forms()
     cfg = make_config("tiny", seed=3)
