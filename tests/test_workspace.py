@@ -115,13 +115,120 @@ def test_folders_are_numbered_in_run_order_and_every_stage_has_a_workspace_comma
         assert args.stage == name, name
 
 
+def test_stage_folder_is_the_tables_folder_under_a_workspace_path(tmp_path):
+    from pipeline.stages import stage_folder
+
+    for name, stage in STAGES.items():
+        assert stage_folder(tmp_path, name) == Workspace(tmp_path).folder(name) == tmp_path / stage.folder
+    with pytest.raises(KeyError, match="unknown stage 'waters'"):
+        stage_folder(tmp_path, "waters")
+
+
+#: Where each stage's ``found`` fields come from (stage -> found field -> source), as its function fills them:
+#: "STAGE.FIELD" a field of the result of a stage it reads, "STAGE/" a stage's folder (its own or one it reads),
+#: "config.FIELD" a field of its own configuration.
+FOUND_SOURCES = {
+    "gan": {"train.rgbd_dir": "survey.rgbd_dir", "train.underwater_dir": "survey/", "train.out_dir": "gan/",
+            "train.site_water": "water.water_json", "train.budget_min": "config.budget_min",
+            "generate.model_dir": "gan/", "generate.rgbd_dir": "survey.rgbd_dir", "generate.out_dir": "gan/"},
+    "restorer": {"train.data_dir": "gan.generated", "train.out_dir": "restorer/", "train.altitude": "survey.navigation",
+                 "train.range_input": "water.range_dir"},
+}
+
+
+def _field_type(cls: type, dotted: str) -> type:
+    """The type of the field ``dotted`` names in the dataclass ``cls`` (walked through nested dataclasses); an
+    AssertionError naming the part that is not a field."""
+    import dataclasses
+    import typing
+
+    for part in dotted.split("."):
+        assert dataclasses.is_dataclass(cls), f"{dotted}: {cls} has no fields (at {part!r})"
+        assert part in {f.name for f in dataclasses.fields(cls)}, f"{dotted}: {cls.__name__} has no field {part!r}"
+        cls = typing.get_type_hints(cls)[part]
+    return cls
+
+
+def test_found_and_local_fields_are_fields_of_the_configuration_and_found_ones_of_an_upstream_result():
+    """Every dotted path of the stage table (``found``, ``local``, ``run_defaults``) names a field of the stage's
+    configuration, and every ``found`` field has its source (:data:`FOUND_SOURCES`): a field the result of a stage
+    it reads has, a stage's folder, or a field of its own configuration."""
+    import dataclasses
+
+    assert set(FOUND_SOURCES) == {name for name, stage in STAGES.items() if stage.found}
+    for name, stage in STAGES.items():
+        for path in (*stage.found, *stage.local, *(p for p, _ in stage.run_defaults)):
+            _field_type(stage.config_type, path)
+        sources = FOUND_SOURCES.get(name, {})
+        assert set(sources) == set(stage.found), name
+        for path, source in sources.items():
+            if source.startswith("config."):
+                _field_type(stage.config_type, source.removeprefix("config."))
+            elif source.endswith("/"):
+                assert source[:-1] == name or source[:-1] in stage.reads, (name, path, source)
+            else:
+                upstream, _, field = source.partition(".")
+                assert upstream in stage.reads, (name, path, source)
+                assert field in {f.name for f in dataclasses.fields(STAGES[upstream].result_type)}, (name, path, source)
+
+
+def _marked_result(stage: str):
+    """The stage's result with every string field ``"STAGE.FIELD"`` (a mark to find where it went), every boolean
+    False, numbers 1 and containers empty."""
+    import dataclasses
+    import typing
+
+    cls = STAGES[stage].result_type
+    values = {}
+    for f in dataclasses.fields(cls):
+        kind = typing.get_origin(typing.get_type_hints(cls)[f.name]) or typing.get_type_hints(cls)[f.name]
+        values[f.name] = {str: f"{stage}.{f.name}", bool: False, int: 1, float: 1.0, list: [], dict: {}}[kind]
+    return cls(**values)
+
+
+def test_found_fields_are_filled_from_the_sources_named(tmp_path):
+    """Each stage with ``found`` fields, resolved in a workspace whose upstream results carry marks
+    (:func:`_marked_result`), fills each found field from the source :data:`FOUND_SOURCES` names: the mark of that
+    result's field (a path ending in it, or a flag other than the field's default that the mark sets), a path in
+    that stage's folder, or the value given to that configuration field."""
+    import dataclasses
+    import operator
+
+    from pipeline.gan import gan_configs, restorer_config
+
+    resolve = {"gan": lambda ws, cfg: dict(zip(("train", "generate"), gan_configs(ws, cfg), strict=True)),
+               "restorer": lambda ws, cfg: {"train": restorer_config(ws, cfg)}}
+    assert set(resolve) == set(FOUND_SOURCES)
+    ws = Workspace(tmp_path / "ws")
+    for stage in {src.partition(".")[0] for sources in FOUND_SOURCES.values() for src in sources.values()
+                  if "." in src and not src.startswith("config.")}:
+        ws.save(stage, None, _marked_result(stage))
+    for name, sources in FOUND_SOURCES.items():
+        given = {src.removeprefix("config."): 7.5 for src in sources.values() if src.startswith("config.")}
+        cfg = dataclasses.replace(STAGES[name].config_type(), **given)
+        default = STAGES[name].config_type()
+        resolved = resolve[name](ws, cfg)
+        for path, source in sources.items():
+            head, _, rest = path.partition(".")
+            value = operator.attrgetter(rest)(resolved[head])
+            if source.startswith("config."):
+                assert value == given[source.removeprefix("config.")], (name, path)
+            elif source.endswith("/"):
+                assert ws.folder(source[:-1]).resolve() in (value.resolve(), *value.resolve().parents), (name, path)
+            elif isinstance(value, bool):
+                mark = getattr(ws.result(source.partition(".")[0]), source.partition(".")[2])
+                assert value == bool(mark) != operator.attrgetter(path)(default), (name, path, value)
+            else:
+                assert str(value).endswith(source), (name, path, value)
+
+
 def test_a_workspace_an_older_version_made_is_refused_with_what_to_do(tmp_path):
     """Folders named otherwise by an older version (04_sfm, 06_water, 01_gan) are never read under the new names."""
     import subprocess
     import sys
 
     old = tmp_path / "old"
-    for folder in ("00_survey", "01_gan", "04_sfm", "06_water"):
+    for folder in (STAGES["survey"].folder, "01_gan", "04_sfm", "06_water"):
         (old / folder).mkdir(parents=True)
         (old / folder / "result.json").write_text("{}")
     with pytest.raises(UserInputError, match=r"made by an older version of watergan .*01_gan, 04_sfm, 06_water.*"
