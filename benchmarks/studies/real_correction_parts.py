@@ -54,6 +54,7 @@ def part_stack(stack: list[dict], keep: set[str]) -> list[dict]:
 
 def main() -> None:
     from bench_real import tile_test
+
     from eval.colour import consistency
     from eval.tracks import Tracks
     from pipeline.workspace import Workspace
