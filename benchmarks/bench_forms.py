@@ -18,15 +18,15 @@ Each draw picks a family and draws its shape (:func:`draw_effect`; the forms are
   (:func:`realise_content_gains`);
 - ``water_drift``: the attenuation changing along the survey (a ramp or a wave per channel).
 
-and the survey: stereo or monocular, the demo's sandy floor or a rocky one (:func:`survey_config`: the demo's
-water and camera at 320x240, 3 lines of 6 frames at 2.5 m with a 0.5 m altitude wave). On each it runs the
-pipeline's SfM and dense stages, estimates the water as ``bench_water.py`` does (:func:`eval.water.estimate_water`
-with the default :class:`eval.water.WaterConfig`, no tracks, the fine grid on the fused mesh's range) and measures
-with bench_water's helpers: eta, B_inf and the veil at the views' median range against the truth (relative error,
-95 % interval covering it), and the physics correction's PSNR, consistency and affine-RMSE (:func:`affine_rmse`)
-beside the oracle's and raw's. Then the diagnosis (:func:`eval.diagnose.run_diagnose` on the SfM tracks, the
-settings of tests/test_diagnose.py, in a process without the plugins so that only the effect library is offered):
-none of the forms is in the library, so any accepted candidate is a false acceptance.
+and the survey: stereo or monocular, the demo's sandy floor or a rocky one (:func:`survey_config`: the demo's water
+and camera at 320x240, 3 lines of 6 frames at 2.5 m with a 0.5 m altitude wave). On each it runs the pipeline's SfM
+and dense stages, estimates the water as ``bench_water.py`` does (:func:`eval.water.estimate_water` with the water
+stage's defaults, :class:`pipeline.water.WaterStage`; no tracks; the fine grid on the fused mesh's range) and
+measures with bench_water's helpers: eta, B_inf and the veil at the views' median range against the truth (relative
+error, 95 % interval covering it), and the physics correction's PSNR, consistency and affine-RMSE
+(:func:`affine_rmse`) beside the oracle's and raw's. Then the diagnosis (:func:`eval.diagnose.run_diagnose` on the
+SfM tracks, the settings of tests/test_diagnose.py, in a process without the plugins so that only the effect library
+is offered): none of the forms is in the library, so any accepted candidate is a false acceptance.
 
 Writes ``benchmarks/results/forms.json`` (after each draw): per draw the truth and the measurements, and a
 ``summary`` of fractions of the draws (eta within 10 % in every channel, eta covered in every channel, veil within
@@ -235,7 +235,7 @@ def affine_rmse(folder: Path, truth_dir: Path, names: list[str]) -> float:
     affine map per channel, min over (a_c, b_c) of sqrt(mean((a_c J_c + b_c - T_c)^2)): the corrections' shape over
     the image and range, whatever their level."""
     from eval.colour import read_rgb
-    from eval.tables import frame_file
+    from watergan.io import frame_file
 
     errors = []
     for name in names:
@@ -251,14 +251,14 @@ def affine_rmse(folder: Path, truth_dir: Path, names: list[str]) -> float:
 
 
 def estimate(ws_root: Path):
-    """The water of a prepared workspace as bench_water.py estimates it (default WaterConfig, no tracks, the fine
-    grid on the fused mesh's range) and what the corrections need: (estimate, frames, K, board, tracks, config)."""
-    from eval.water import WaterConfig, estimate_water
-    from pipeline.water import fine_grid_frames, survey_lights
+    """The water of a prepared workspace as bench_water.py estimates it (the water stage's defaults, no tracks, the
+    fine grid on the fused mesh's range) and what the corrections need: (estimate, frames, K, board, tracks, config)."""
+    from eval.water import estimate_water
+    from pipeline.water import WaterStage, fine_grid_frames, survey_lights
 
     frames, K, _, board, tracks = load_inputs(ws_root)
     sfm = json.loads((stage_folder(ws_root, "sfm") / "result.json").read_text())["result"]
-    config = WaterConfig(range_scale_sd=float(sfm.get("scale_spread", 0.0)))
+    config = WaterStage(progress=False, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
     lights = survey_lights(stage_folder(ws_root, "survey"))
     water = estimate_water(frames, K, None, board, config, lights=lights,
                            grid_frames=fine_grid_frames(frames, K, stage_folder(ws_root, "dense") / "fused_mesh.ply",
@@ -391,13 +391,17 @@ def main(argv: list[str] | None = None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     print("| draw | family | survey | eta error R/G/B %, covered | veil error %, covered | physics PSNR | oracle "
           "| raw | physics affine-RMSE | accepted | s |\n|---|---|---|---|---|---|---|---|---|---|---|")
-    records = []
+    records, failed = [], []
     for draw in tqdm(draws(args.draws, args.seed), desc="draws", unit="survey"):
-        records.append(run_draw(args.out, draw, not args.no_diagnose))
-        tqdm.write(row(records[-1]))
-        report = {"command": command, "commit": commit, "summary": summarise(records),
-                  "seconds_per_draw": round(float(np.mean([sum(r["seconds"].values()) for r in records])), 1),
-                  "draws": records}
+        try:
+            records.append(run_draw(args.out, draw, not args.no_diagnose))
+            tqdm.write(row(records[-1]))
+        except Exception as exc:  # a draw the pipeline cannot take (SfM fails, ...): recorded, not measured
+            failed.append({"truth": asdict(draw), "error": f"{type(exc).__name__}: {exc}"})
+            tqdm.write(f"| {draw.index:2d} | {draw.family} | failed: {failed[-1]['error']} |")
+        report = {"command": command, "commit": commit, "summary": {**summarise(records), "failed": len(failed)},
+                  "seconds_per_draw": round(float(np.mean([sum(r["seconds"].values()) for r in records])), 1)
+                  if records else None, "draws": records, "failed": failed}
         args.json.write_text(json.dumps(report, indent=1, default=str) + "\n")  # after each draw
     print("\nsummary:", json.dumps(report["summary"]), f"\nseconds per draw: {report['seconds_per_draw']}",
           f"\nwrote {args.json}")
