@@ -47,18 +47,18 @@ What pins what (and what does not):
   in several frames; kept off the constant (the survey's gain) and off the frames' mean ranges (the water's), so
   eta's level comes from the frames' ranges as without them.
 
-Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, points and board patches resampled, each
-replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a bias
-that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
+Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, points and board patches resampled,
+each replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a
+bias that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
 less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each
-parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2
-[+ (1.96 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
-(:func:`on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not pin it. Pairs of
-parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs. Where B_inf and beta
-trade (a short range span), what the survey pins is the veil over its ranges: ``veil`` gives B_inf (1 - exp(-beta
-r)) at the views' median range with its interval, bootstrap and specification change alike
-(:func:`veil_at_median_range`), and B_inf's interval covers the valley along which the veil's and beta's intervals
-leave it (:func:`cover_the_valley`).
+parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2 [+ (1.96
+range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
+(:func:`eval.intervals.on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not
+pin it. Pairs of parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs
+(:func:`eval.intervals.describe_intervals`). Where B_inf and beta trade (a short range span), what the survey pins
+is the veil over its ranges: ``veil`` gives B_inf (1 - exp(-beta r)) at the views' median range with its interval,
+bootstrap and specification change alike (:func:`eval.intervals.veil_at_median_range`), and B_inf's interval covers
+the valley along which the veil's and beta's intervals leave it (:func:`eval.intervals.cover_the_valley`).
 
 A declared light rig (``lights``: survey.json's strobes, per light offset_m, tilt_deg, beam_deg): the stack gets
 ``artificial_light`` (:func:`build_stack`), so each view's in-air colour is lit by
@@ -111,9 +111,9 @@ from .fields import (
     measure_frame_gains,
     set_light_level,
     stack_first,
-    veil_at,
 )
 from .fit import DEFAULT_EFFECTS, WATER_FIT, FitConfig, Problem, fitted_names, start_inside_bounds
+from .intervals import cover_the_valley, describe_intervals, veil_at_median_range
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 
@@ -242,32 +242,6 @@ def held_parameters(stack: Stack, config: WaterConfig, lights: list[dict] | None
 
 
 
-#: Which measurement pins each parameter of the built-in effects (for the JSON; see the module docstring).
-PINNED_BY = {
-    "attenuation.eta_per_m": "same point at several ranges (dense correspondences, tracks), altitude diversity",
-    "backscatter.b_inf": "offsets that no albedo explains across ranges; dark pixels; the board (absolute level)",
-    "backscatter.beta_per_m": "curvature of the offset over the survey's range span (weak)",
-    "vignetting.a_margin": "same point at different image positions",
-    "vignetting.b": "same point at different image positions",
-    "vignetting.c": "same point at different image positions",
-    "vignetting_offcentre.centre_uv": "same point at different image positions",
-    "vignetting_offcentre.a_margin": "same point at different image positions; overall scale degenerate with strength",
-    "vignetting_offcentre.b": "same point at different image positions; overall scale degenerate with strength",
-    "vignetting_offcentre.c": "same point at different image positions; overall scale degenerate with strength",
-    "vignetting_offcentre.strength": "ratios between channels only (s x polynomial: the scale is degenerate)",
-    "gain.k": "the board's known colours (without a board: degenerate with the albedo scale, held fixed)",
-    "artificial_light.offset_m": "declared in survey.json's lights (held)",
-    "artificial_light.tilt_deg": "declared in survey.json's lights (held)",
-    "artificial_light.beam_deg": "declared in survey.json's lights (held)",
-    "artificial_light.power": "ratios between lights: brightness across the beams; level: degenerate with the gain "
-                              "(held)",
-    "artificial_light.eta_per_m": "tied to attenuation.eta_per_m (one water)",
-    "artificial_light.ambient": "brightness that does not fall with the distance from the lights (other light)",
-}
-
-
-
-
 @dataclass
 class WaterEstimate:
     """The fitted stack and every parameter's estimate with its 95 % interval.
@@ -311,7 +285,7 @@ class WaterEstimate:
     """The fine fields over the image fitted after the water for the corrections, and whether ``stack`` carries
     them (:func:`fit_correction_grid`); None: none fitted."""
     veil: dict | None = None
-    """The backscatter at the views' median range with its interval (:func:`veil_at_median_range`)."""
+    """The backscatter at the views' median range with its interval (:func:`eval.intervals.veil_at_median_range`)."""
     observations: Observations | None = None
     """The measurement table the estimate was fitted to (:func:`estimate_water` sets it; not in :meth:`to_json`:
     the water stage saves it beside water.json for the diagnosis)."""
@@ -353,57 +327,6 @@ class WaterEstimate:
         unconverged = "" if self.converged else f", not converged in {self.iterations} iterations"
         return "water: " + "; ".join(parts) + f" (rmse {self.rmse:.4f}, {self.n_points} points{unconverged})"
 
-
-
-def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
-                         alternatives: tuple[dict, ...] = (), light_at_centre: dict | None = None) -> dict | None:
-    """The veil B(r) = B_inf (1 - exp(-beta r)) at the views' median range ``range_m`` per channel, with a 95 %
-    interval from the bootstrap replicates ``samples`` ({"effect.param": value}) of B_inf and beta jointly (what a
-    survey pins when its range span leaves B_inf and beta trading: the veil over its ranges) and, as every
-    parameter's, the largest change under the specification ``alternatives`` (their fits, {"effect.param": value})
-    added in quadrature (no range-scale term: the veil at a measured range is a level of colour, whatever the
-    range's scale); with ``light_at_centre`` (the fit before :func:`set_light_level`) also the veil it had. None
-    without the ``backscatter`` effect. Without replicates the interval is None."""
-    if "backscatter" not in stack.names:
-        return None
-    effect = stack["backscatter"]
-    keys = ("backscatter.b_inf", "backscatter.beta_per_m")
-
-    def veil(b_inf, beta):
-        return veil_at(b_inf, beta, range_m)
-
-    value = veil(effect.param("b_inf").detach().numpy(), effect.param("beta_per_m").detach().numpy())
-    entry = {"range_m": round(range_m, 3), "value": np.round(value, 6).tolist(), "low": None, "high": None}
-    if light_at_centre is not None and all(k in light_at_centre for k in keys):
-        entry["light_at_centre"] = np.round(veil(*(light_at_centre[k] for k in keys)), 6).tolist()
-    if len(samples) > 1 and all(k in samples[0] for k in keys):
-        values = np.stack([veil(s[keys[0]], s[keys[1]]) for s in samples])
-        shifts = [np.abs(veil(a[keys[0]], a[keys[1]]) - value) for a in alternatives if all(k in a for k in keys)]
-        shift = np.max(shifts, 0) if shifts else np.zeros_like(value)
-        half = np.sqrt((1.96 * values.std(0, ddof=1)) ** 2 + shift ** 2)
-        entry.update(low=np.round(np.clip(value - half, 0, None), 6).tolist(), high=np.round(value + half, 6).tolist())
-    return entry
-
-
-def cover_the_valley(params: dict, veil: dict | None) -> None:
-    """Widen B_inf's interval (``params``' entry, in place) to the valley the survey leaves it in: where its range
-    span pins the veil V at the median range r but hardly beta, B_inf = V / (1 - exp(-beta r)) runs along the
-    valley; over the veil's interval and beta's (each 95 %), B_inf spans [V_low / (1 - exp(-beta_high r)),
-    V_high / (1 - exp(-beta_low r))] (beta_low at 0: up to B_inf's bound). The interval becomes its union with
-    that span (``valley``: True where that widened it); nothing without the veil's or beta's interval."""
-    b_inf, beta = params.get("backscatter.b_inf"), params.get("backscatter.beta_per_m")
-    if not veil or veil.get("low") is None or not b_inf or not beta or b_inf.get("low") is None \
-            or beta.get("low") is None:
-        return
-    r = veil["range_m"]
-    with np.errstate(divide="ignore"):
-        low = np.asarray(veil["low"]) / -np.expm1(-np.asarray(beta["high"]) * r)
-        high = np.asarray(veil["high"]) / -np.expm1(-np.asarray(beta["low"]) * r)
-    upper = next(p.upper for p in get("backscatter").params if p.name == "b_inf")
-    widened = (low < b_inf["low"]) | (np.minimum(high, upper) > b_inf["high"])
-    b_inf.update(low=np.round(np.minimum(low, b_inf["low"]), 6).tolist(),
-                 high=np.round(np.minimum(np.maximum(high, b_inf["high"]), upper), 6).tolist(),
-                 valley=widened.tolist())
 
 
 def _key(stack: Stack, raw_name: str) -> str:
@@ -504,7 +427,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config, range_r2)
         spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits], 0) for key, value in named.items()} \
             if spec_fits else {}
-        params, tradeoffs = _describe(stack, named, named_samples, fixed, spec, config.range_scale_sd)
+        params, tradeoffs = describe_intervals(stack, named, named_samples, fixed, spec, config.range_scale_sd)
         veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred)
         cover_the_valley(params, veil)
         return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
@@ -521,72 +444,6 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              veil=veil)
     finally:
         torch.set_num_threads(threads)
-
-
-#: Fitted parameters whose lower bound is a physical value rather than a limit of the model: a survey in darkness
-#: has no light but the declared lights (``artificial_light.ambient`` = 0 is the auv preset's truth).
-PHYSICAL_LOWER_BOUNDS = ("artificial_light.ambient",)
-#: A component within this fraction of its parameter's span (absolute for an unbounded side) sits on the bound.
-BOUND_TOLERANCE = 1e-3
-
-
-def on_bound(key: str, p, value: np.ndarray) -> np.ndarray:
-    """(n,) bool per component of ``value`` (parameter ``p`` named ``key``): on a bound of its range (a lower bound
-    in ``PHYSICAL_LOWER_BOUNDS`` does not count). The fit wanted to go further: the stack does not fit there."""
-    value = np.atleast_1d(np.asarray(value, float)).ravel()
-    span = (p.upper - p.lower) if np.isfinite(p.upper) else 1.0
-    low = (np.abs(value - p.lower) <= BOUND_TOLERANCE * span) & (key not in PHYSICAL_LOWER_BOUNDS)
-    return low | (np.abs(p.upper - value) <= BOUND_TOLERANCE * span)
-
-
-def _describe(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: dict,
-              range_scale_sd: float) -> tuple[dict, list]:
-    """The parameters' entries (see :class:`WaterEstimate`) and the trade-offs. A component on a bound
-    (:func:`on_bound`) gets its parameter's whole range as interval: the data pushed it out of the model, so they do
-    not pin it (its bootstrap, all on the bound, would say 0 wide)."""
-    params = {}
-    for effect in stack.effects:
-        for p in effect.params:
-            key = f"{effect.name}.{p.name}"
-            value = effect.param(p.name).detach().numpy()
-            entry = {"value": np.round(value, 6).tolist(), "units": p.units, "fitted": key in best,
-                     "pinned_by": PINNED_BY.get(key, "")}
-            if key in best and samples:
-                stack_s = np.stack([s[key] for s in samples])
-                std = stack_s.std(0, ddof=1) if len(samples) > 1 else np.zeros_like(value)
-                shift = spec.get(key, np.zeros_like(value))
-                scale = range_scale_sd * np.abs(value) if p.units == "1/m" else np.zeros_like(value)
-                half = np.sqrt((1.96 * std) ** 2 + shift ** 2 + (1.96 * scale) ** 2)
-                bound = on_bound(key, p, value).reshape(np.shape(value))
-                low = np.where(bound, p.lower, np.clip(value - half, p.lower, p.upper))
-                high = np.where(bound, p.upper, np.clip(value + half, p.lower, p.upper))
-                entry.update(std=np.round(std, 6).tolist(), specification=np.round(shift, 6).tolist(),
-                             low=np.round(low, 6).tolist(), high=np.round(high, 6).tolist(),
-                             on_bound=bound.tolist(),
-                             p2_5=np.round(np.percentile(stack_s, 2.5, 0), 6).tolist(),
-                             p97_5=np.round(np.percentile(stack_s, 97.5, 0), 6).tolist())
-            params[key] = entry
-    tradeoffs = []
-    if len(samples) > 2:
-        keys = sorted(best)
-        cols, labels = [], []
-        for key in keys:
-            flat = np.stack([np.atleast_1d(s[key]).ravel() for s in samples])
-            for i in range(flat.shape[1]):
-                cols.append(flat[:, i])
-                labels.append(f"{key}[{i}]" if flat.shape[1] > 1 else key)
-        mat = np.stack(cols, 1)
-        sd = mat.std(0)
-        ok = sd > 1e-12
-        if ok.sum() > 1:
-            corr = np.corrcoef(mat[:, ok].T)
-            lab = [lab for lab, keep in zip(labels, ok, strict=True) if keep]
-            for i in range(len(lab)):
-                for j in range(i + 1, len(lab)):
-                    if abs(corr[i, j]) > 0.95:
-                        tradeoffs.append([lab[i], lab[j], round(float(corr[i, j]), 3)])
-    return params, tradeoffs
-
 
 
 def estimate_water(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,

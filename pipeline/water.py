@@ -47,14 +47,10 @@ from pathlib import Path
 import numpy as np
 
 from eval.fields import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT
+from eval.intervals import on_bound
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
-from eval.water import (
-    WaterConfig,
-    WaterEstimate,
-    on_bound,
-    reads_normals,
-)
+from eval.water import WaterConfig, WaterEstimate, reads_normals
 from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
 from watergan.formation.inverse import clean_range
@@ -419,7 +415,7 @@ def write_range_maps(out: Path, frames: Sequence[WaterFrame], K: np.ndarray, mes
 
 
 def at_bounds(estimate: WaterEstimate) -> list[str]:
-    """The fitted parameter components on a bound of their range (:func:`eval.water.on_bound`)."""
+    """The fitted parameter components on a bound of their range (:func:`eval.intervals.on_bound`)."""
     out = []
     for effect in estimate.stack.effects:
         for p in effect.params:

@@ -333,7 +333,7 @@ def test_the_evaluation_measures_the_physics_correction(water_workspace):
 def test_the_veils_interval_holds_its_bootstrap_spread_and_the_specification_change():
     """The veil at the median range: B_inf (1 - exp(-beta r)); its interval's half width is the bootstrap's 1.96 sd
     and the largest change under the specification alternatives in quadrature (as every parameter's)."""
-    from eval.water import veil_at_median_range
+    from eval.intervals import veil_at_median_range
 
     stack = Stack.from_config(TRUE)
     b_inf, beta, r = np.array(TRUE[1]["params"]["b_inf"]), np.array(TRUE[1]["params"]["beta_per_m"]), 3.0
@@ -356,7 +356,7 @@ def test_b_infs_interval_covers_the_valley_the_veil_and_beta_leave_it_in():
     """B_inf's interval widens to B_inf = V / (1 - exp(-beta r)) over the veil V's interval and beta's: a narrow
     bootstrap interval of B_inf in a wide valley of beta becomes the valley's span; with beta's interval reaching 0
     it reaches B_inf's upper bound; where the valley is narrower than B_inf's own interval nothing changes."""
-    from eval.water import cover_the_valley
+    from eval.intervals import cover_the_valley
 
     r = 3.0
     veil = {"range_m": r, "low": [0.02, 0.09, 0.115], "high": [0.024, 0.1, 0.118]}

@@ -35,7 +35,7 @@ class WaterRecord:
                views (linear colour); ``seconds``: wall time per part.
     iterations, converged: the main fit's L-BFGS iterations and whether it converged.
     fields, frames, grid, veil: the fields over the image, the gains per frame, the fine grid and the veil at the
-               views' median range (:mod:`eval.fields`, :func:`eval.water.veil_at_median_range`); None: none.
+               views' median range (:mod:`eval.fields`, :func:`eval.intervals.veil_at_median_range`); None: none.
     interval:  how the intervals were made, in words.
     plots:     {file name beside water.json: what it shows} of the plots the stage wrote; None: not named (not in
                the file; :func:`read_water` gives a file without them ``WATER_PLOTS``).
