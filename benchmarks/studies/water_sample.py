@@ -31,6 +31,7 @@ from bench_water import compare, truth_params  # noqa: E402
 from eval.observations import Observations  # noqa: E402
 from eval.water import WaterConfig, fit_observations  # noqa: E402
 from pipeline.stages import stage_folder  # noqa: E402
+from watergan.water_record import read_water  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository: result files name paths relative to it
 REPORTED = ("attenuation.eta_per_m", "backscatter.b_inf", "backscatter.beta_per_m", "gain.k")
@@ -57,9 +58,9 @@ def main() -> None:
     truth = truth_params(stage_folder(ws, "survey"))
     record = json.loads((stage_folder(ws, "sfm") / "result.json").read_text())
     config = WaterConfig(range_scale_sd=float(record.get("result", record)["scale_spread"]))
-    stage = json.loads((stage_folder(ws, "water") / "water.json").read_text())
-    rows = [{"points": obs.n_points, "views": obs.n_obs, "seed": None, "seconds": stage["seconds"],
-             "params": rows_of(stage["params"], truth)}]
+    stage = read_water(stage_folder(ws, "water") / "water.json")
+    rows = [{"points": obs.n_points, "views": obs.n_obs, "seed": None, "seconds": stage.seconds,
+             "params": rows_of(stage.params, truth)}]
     for seed in (int(s) for s in args.seeds.split(",")):
         for n in (int(s) for s in args.points.split(",")):
             if n >= obs.n_points:
