@@ -38,6 +38,7 @@ from eval.synth import load_truth, simulate_survey
 from eval.synth.config import default_visible_stack
 from eval.synth.presets import NOT_SIMULATED
 from pipeline.diagnose import measure_target, run_diagnose
+from pipeline.stages import STAGES, stage_folder
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.formation import Stack, available
@@ -172,7 +173,7 @@ def _tracks_from_truth(survey: Path, ws: Path, scale_method: str = "stereo"):
 def test_tracks_geometry_reads_the_reconstruction(clean, tmp_path):
     ws = tmp_path / "ws"
     Workspace(ws)
-    (ws / "00_survey").symlink_to(clean)
+    stage_folder(ws, "survey").symlink_to(clean)
     geo = _tracks_from_truth(clean, ws)
     m = measure_target(ws, MeasureConfig(n_points=800))  # auto: the workspace has tracks
     assert m.source == "sfm (scale: stereo)"
@@ -498,13 +499,14 @@ def _eval_record(ws: Path) -> None:
 def test_add_appends_a_model_version_and_cli_prints_ledger(surveys, tmp_path):
     ws = tmp_path / "ws"
     ws.mkdir()
-    (ws / "00_survey").symlink_to(surveys("vignetting_offcentre"))
+    stage_folder(ws, "survey").symlink_to(surveys("vignetting_offcentre"))
     _eval_record(ws)
     config = replace(FAST, add=("vignetting_offcentre",), candidates=("sensor_response",))
     result = run_diagnose(ws, config, progress=False)
-    assert result.stack[-2:] == ["vignetting_offcentre", "gain"] and result.out_dir == str(ws / "09_diagnose")
-    assert (ws / "09_diagnose" / "result.json").is_file()
-    assert result.ledger == "09_diagnose/model_ledger.jsonl"  # in the stage's folder, named in its result
+    assert result.stack[-2:] == ["vignetting_offcentre", "gain"] and result.out_dir == str(stage_folder(ws, "diagnose"))
+    assert (stage_folder(ws, "diagnose") / "result.json").is_file()
+    # in the stage's folder, named in its result
+    assert result.ledger == f"{STAGES['diagnose'].folder}/model_ledger.jsonl"
     records = read_ledger(ws / result.ledger)
     assert [r["kind"] for r in records] == ["model", "candidate"]
     assert records[0]["consistency"] == {"raw": 2e-4, "ours (unknown)": 5e-5}
@@ -514,7 +516,7 @@ def test_add_appends_a_model_version_and_cli_prints_ledger(surveys, tmp_path):
     out = subprocess.run([sys.executable, "-m", "pipeline.cli", "ledger", str(ws)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert "heldout_rmse" in out.stdout and "ours (unknown)" in out.stdout
-    assert (ws / "09_diagnose" / "ledger.png").is_file() and not (ws / "model_ledger.png").exists()
+    assert (stage_folder(ws, "diagnose") / "ledger.png").is_file() and not (ws / "model_ledger.png").exists()
 
 
 @pytest.mark.slow
@@ -572,7 +574,7 @@ def water_ws(surveys, tmp_path_factory):
     root = tmp_path_factory.mktemp("water-ws") / "ws"
     ws = Workspace(root)
     survey = surveys("vignetting_offcentre")
-    (root / "00_survey").symlink_to(survey)
+    stage_folder(root, "survey").symlink_to(survey)
     _tracks_from_truth(survey, root)
     truth = load_truth(survey)
     depth = ws.stage_dir("dense") / "depth"
@@ -594,7 +596,8 @@ def test_the_diagnosis_of_a_workspace_takes_the_water_stages_observations(water_
 
     ws, water = water_ws
     obs = Observations.load(ws.path(water.observations))
-    assert water.observations == "03_water/observations.npz" and len(obs.colour) == water.n_observations
+    assert water.observations == f"{STAGES['water'].folder}/observations.npz"
+    assert len(obs.colour) == water.n_observations
     m = measure_target(ws.root, MeasureConfig(n_points=10 ** 6))  # auto: the water stage's table, all of it
     assert m.source == "water stage (scale: stereo)" and (m.n_obs, m.n_points) == (len(obs.colour), obs.n_points)
     for name in ("colour", "range_m", "depth_m", "pixel_uv", "points_cam", "normals_cam", "point", "frame"):

@@ -134,7 +134,7 @@ def test_the_texture_takes_the_frames_the_correct_stage_names(sfm, tmp_path):
     import shutil
 
     ws = Workspace(tmp_path / "ws")
-    (ws.root / "00_survey").symlink_to(survey)
+    ws.folder("survey").symlink_to(survey)
     shutil.copytree(shared.folder("sfm"), ws.folder("sfm"))
     with pytest.raises(UserInputError, match="needs the correct stage"):
         ws.run("mesh", MeshConfig(source="sparse"))

@@ -118,12 +118,12 @@ def test_baselines_and_colour_sampling_on_the_cluster_match_local(cluster):
     runs = {}
     for label, scheduler in (("local", ""), ("remote", address)):
         ws = Workspace(Path(tempfile.mkdtemp(prefix=f"watergan-par-{label}-", dir=SCRATCH)) / "ws")
-        shutil.copytree(survey, ws.root / "00_survey")
+        shutil.copytree(survey, ws.folder("survey"))
         shutil.copytree(shared.folder("sfm"), ws.folder("sfm"))
         cfg = EvaluateConfig(methods=("raw", "gray_world", "jaffe", "seathru", "oracle"), range_source="truth",
                              scheduler=scheduler)
         result = run_evaluate(ws, cfg)
-        runs[label] = ws.root / "07_eval", result
+        runs[label] = ws.folder("eval"), result
     (local_dir, local), (remote_dir, remote) = runs["local"], runs["remote"]
     assert remote.methods == local.methods == ["raw", "gray_world", "jaffe", "seathru", "oracle"]
     assert _files(remote_dir / "baselines") == _files(local_dir / "baselines")

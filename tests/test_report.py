@@ -33,6 +33,7 @@ from eval.tables import (
     verdict_lines,
 )
 from pipeline.evaluate import run_evaluate
+from pipeline.stages import STAGES, stage_folder
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.io import DataError, z_to_range
@@ -46,9 +47,9 @@ VALIDATION = {"val_count": 2, "units": "stored sRGB 0..1; relative depth 0..1",
 def _copy_workspace(prefix: str) -> tuple[Path, Workspace]:
     survey, shared, _ = survey_and_sfm()
     ws = Workspace(Path(tempfile.mkdtemp(prefix=prefix, dir=SCRATCH)) / "ws")
-    shutil.copytree(survey, ws.root / "00_survey")
+    shutil.copytree(survey, ws.folder("survey"))
     shutil.copytree(shared.folder("sfm"), ws.folder("sfm"))
-    return ws.root / "00_survey", ws
+    return ws.folder("survey"), ws
 
 
 @pytest.fixture(scope="module")
@@ -67,30 +68,31 @@ def evaluated():
     from watergan.train_restorer import RestorerResult
 
     survey, ws = _copy_workspace("watergan-eval-")
-    ours = ws.root / "06_correct" / "restorer"
+    ours = ws.folder("correct") / "restorer"
     shutil.copytree(survey / "images", ours / "images")  # "ours" stands in as the raw frames
     (ours / "summary.json").write_text(json.dumps({"corrected": 10, "seconds": 2.5}))
-    (ws.root / "05_restorer").mkdir()
-    (ws.root / "05_restorer" / "validation.json").write_text(json.dumps(VALIDATION))
-    (ws.root / "02_dense" / "depth").mkdir(parents=True)
+    ws.folder("restorer").mkdir()
+    (ws.folder("restorer") / "validation.json").write_text(json.dumps(VALIDATION))
+    (ws.folder("dense") / "depth").mkdir(parents=True)
     (ours / "depth").mkdir()
     for path in sorted((survey / "truth" / "depth").glob("*.png")):
-        shutil.copy(path, ws.root / "02_dense" / "depth" / path.name)
+        shutil.copy(path, ws.folder("dense") / "depth" / path.name)
         write_depth_png(ours / "depth" / path.name, 0.5 * read_depth(path))
     # the stand-ins' records, as their stages would save them
-    ws.save("restorer", RestorerStage(), RestorerResult(out_dir=ws.root / "05_restorer", steps=(0, 0), seconds=0.0,
+    ws.save("restorer", RestorerStage(), RestorerResult(out_dir=ws.folder("restorer"), steps=(0, 0), seconds=0.0,
                                                         loss=0.0, validation={}, train_count=0, val_count=2))
-    ws.save("dense", DenseConfig(), DenseResult(depth_dir="02_dense/depth", pairs={}, coverage={},
+    ws.save("dense", DenseConfig(), DenseResult(depth_dir=f"{STAGES['dense'].folder}/depth", pairs={}, coverage={},
                                                 mean_coverage=1.0))
     ws.run("water", water_config(bootstrap=4, progress=False))
     # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
     physics = correct_physics_folder(physics_inputs(ws, survey / "images"), ws.folder("correct") / "physics", False)
     filled, far, physics_s = physics.filled_fraction, physics.far_fraction, physics.seconds
+    correct = STAGES["correct"].folder
     ws.save("correct", CorrectStage(), CorrectStageResult(
-        physics="06_correct/physics", physics_images="06_correct/physics/images",
-        physics_mask="06_correct/physics/mask", filled_fraction=filled, far_fraction=far, physics_seconds=physics_s,
-        restorer="06_correct/restorer", images="06_correct/restorer/images", depth="06_correct/restorer/depth",
-        corrected=10, failed=[], seconds=2.5, fps=4.0, mode="rgb-d", mesh_images="06_correct/restorer/images"))
+        physics=f"{correct}/physics", physics_images=f"{correct}/physics/images",
+        physics_mask=f"{correct}/physics/mask", filled_fraction=filled, far_fraction=far, physics_seconds=physics_s,
+        restorer=f"{correct}/restorer", images=f"{correct}/restorer/images", depth=f"{correct}/restorer/depth",
+        corrected=10, failed=[], seconds=2.5, fps=4.0, mode="rgb-d", mesh_images=f"{correct}/restorer/images"))
     ws.run("mesh", MeshConfig(source="sparse"))
     ledger = ws.stage_dir("diagnose") / "model_ledger.jsonl"
     ledger.write_text("".join(json.dumps(r) + "\n" for r in (
@@ -100,9 +102,9 @@ def evaluated():
     ws.save("diagnose", DiagnoseConfig(), DiagnoseStageResult(
         out_dir=str(ledger.parent), stack=["attenuation", "gain"], heldout_rmse=0.02, n_points=0, n_obs=0,
         verdict="", best=None, ranking=[], skipped={}, unexplained_axes=[], scores={}, geometry="water", seconds=0.0,
-        ledger="09_diagnose/model_ledger.jsonl"))
+        ledger=f"{STAGES['diagnose'].folder}/model_ledger.jsonl"))
     record = ws.run("eval", EvaluateConfig(range_source="dense"))
-    tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
+    tables = json.loads((ws.folder("eval") / "tables.json").read_text())
     return survey, ws, record, tables
 
 
@@ -122,7 +124,7 @@ def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
                               "oracle"]
     assert result.range_source == "dense" and result.skipped == {}
     for m in ["raw", "histeq", "clahe", "gray_world", "jaffe", "seathru", "oracle"]:
-        files = sorted(p.name for p in (ws.root / "07_eval" / "baselines" / m).iterdir())
+        files = sorted(p.name for p in (ws.folder("eval") / "baselines" / m).iterdir())
         assert files == sorted(p.name for p in (survey / "images").iterdir()), m
     board, cons = _table(tables, "table1"), _table(tables, "table2")
     assert board["reference"] == cons["reference"] == ["inair"]
@@ -137,7 +139,7 @@ def test_every_method_is_measured_on_the_same_points_and_board(evaluated):
     fid = _table(tables, "fidelity")
     assert _row(fid, "PSNR (dB)")["oracle"] > _row(fid, "PSNR (dB)")["raw"] + 10
     # per-point variances behind Table II average to it
-    with np.load(ws.root / "07_eval" / "consistency_points.npz") as npz:
+    with np.load(ws.folder("eval") / "consistency_points.npz") as npz:
         assert np.isclose(npz["raw"][:, 1].mean(), _row(cons, "G")["raw"], rtol=1e-4)
 
 
@@ -150,7 +152,7 @@ def test_verdict_says_plainly_where_ours_loses(evaluated):
     assert any(line.startswith("ours loses to Jaffe-McGlamery on mean board distance") for line in verdict)
     assert not any("to raw " in line or "beats raw" in line for line in verdict)  # a tie is neither
     assert any("more than 2x" in line and "oracle" in line for line in verdict)
-    md = (ws.root / "07_eval" / "tables.md").read_text()
+    md = (ws.folder("eval") / "tables.md").read_text()
     assert f"**{mean['oracle']:.4f}**" in md and "ours loses to oracle" in md
 
 
@@ -201,7 +203,7 @@ def test_the_physics_correction_in_monocular_mode_takes_a_flat_seafloor_at_the_n
                               for p in sorted((survey / "truth" / "inair").glob("*.png"))]))
 
     raw, mono, rgbd = error(survey / "images"), error(tmp_path / "mono" / "images"), \
-        error(ws.root / "06_correct" / "physics" / "images")
+        error(ws.folder("correct") / "physics" / "images")
     assert mono < 0.25 * raw and rgbd < 0.25 * raw, (raw, mono, rgbd)
     images = tmp_path / "frames" / "images"
     shutil.copytree(survey / "images", images)
@@ -221,7 +223,7 @@ def test_the_physics_correction_needs_no_open3d(evaluated, tmp_path):
             f"inputs = physics_inputs(Workspace(Path({str(ws.root)!r})), Path({str(survey / 'images')!r}))\n"
             f"correct_physics_folder(inputs, Path({str(tmp_path)!r}), False)\n")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
-    for path in sorted((ws.root / "06_correct" / "physics" / "images").glob("*.png")):
+    for path in sorted((ws.folder("correct") / "physics" / "images").glob("*.png")):
         assert path.read_bytes() == (tmp_path / "images" / path.name).read_bytes(), path.name
 
 
@@ -257,7 +259,7 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     expected = np.clip(np.nan_to_num(exact), 0.0, 1.0)
     assert result.range_source == "range maps"
     assert np.abs(written - expected)[valid].max() < 2 / 255  # the 8-bit file's rounding, in linear light
-    assert np.abs(written - read_image(ws.root / "06_correct" / "physics" / "images" / frame.name))[valid].mean() > 0.01
+    assert np.abs(written - read_image(ws.folder("correct") / "physics" / "images" / frame.name))[valid].mean() > 0.01
 
 
 def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(evaluated, tmp_path):
@@ -315,7 +317,7 @@ def test_missing_inputs_are_skipped_with_reasons(tmp_path):
     assert result.methods == ["raw", "gray_world"] and result.range_source == "none"
     assert set(result.skipped) == {"jaffe", "seathru", "oracle", "ours"}
     assert result.verdict[0].startswith("ours not measured")
-    tables = json.loads((ws.root / "07_eval" / "tables.json").read_text())
+    tables = json.loads((ws.folder("eval") / "tables.json").read_text())
     assert _table(tables, "table1")["status"].startswith("not measured")
     assert _table(tables, "fidelity")["status"].startswith("not measured")
     assert ws.run("eval", cfg).seconds == result.seconds  # done: skipped
@@ -381,10 +383,10 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
 
     _, ws, _, _ = evaluated
     path = write_report(ws)
-    assert path == ws.root / "10_report" / "report.html"
+    assert path == ws.folder("report") / "report.html"
     page = path.read_text()
     assert "<script" not in page and not re.search(r"""(src|href)=['"]?(https?:)?//""", page)
-    report = json.loads((ws.root / "10_report" / "report.json").read_text())
+    report = json.loads((ws.folder("report") / "report.json").read_text())
     status = {s["id"]: s["status"] for s in report["sections"]}
     assert set(status.values()) == {"ok"}, report["sections"]
     assert report["verdict"] and any("ours loses to oracle" in line for line in report["verdict"])
@@ -395,8 +397,8 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
     assert any(line.startswith("Gains per frame: ") for line in found["found"]) and "gains per frame" in page
     frames = next(s for s in report["sections"] if s["id"] == "frames")
     assert len(frames["frames"]) == 3 and frames["columns"][-1] == "inair"
-    assert "href='../08_mesh/mesh.glb'" in page and "<b>" in page
-    assert "ours loses to oracle" in (ws.root / "10_report" / "report.md").read_text()
+    assert f"href='../{STAGES['mesh'].folder}/mesh.glb'" in page and "<b>" in page
+    assert "ours loses to oracle" in (ws.folder("report") / "report.md").read_text()
     if not CHROMIUM.is_file():
         pytest.skip(NO_CHROMIUM)
     probe, console = _open_in_chromium(path, tmp_path)
@@ -412,14 +414,14 @@ def test_report_of_an_empty_workspace_says_not_run(tmp_path):
     args = parser.parse_args(["report", "--workspace", str(tmp_path / "ws")])
     Workspace(tmp_path / "ws")
     assert args.func(args) == 0
-    report = json.loads((tmp_path / "ws" / "10_report" / "report.json").read_text())
+    report = json.loads((stage_folder(tmp_path / "ws", "report") / "report.json").read_text())
     status = {s["id"]: s["status"] for s in report["sections"]}
     assert status.pop("config") == "ok" and set(status.values()) == {"not run"}
-    page = (tmp_path / "ws" / "10_report" / "report.html").read_text()
+    page = (stage_folder(tmp_path / "ws", "report") / "report.html").read_text()
     assert page.count("not run") >= 9
     if not CHROMIUM.is_file():
         pytest.skip(NO_CHROMIUM)
-    probe, console = _open_in_chromium(tmp_path / "ws" / "10_report" / "report.html", tmp_path)
+    probe, console = _open_in_chromium(stage_folder(tmp_path / "ws", "report") / "report.html", tmp_path)
     assert probe["bad"] == [] and probe["errors"] == [] and console == []
 
 
@@ -449,7 +451,7 @@ def test_evaluate_command_prints_the_verdict_of_the_finished_stage(evaluated, ca
     assert args.func(args) == 0  # the same options as the fixture's stage: skipped, its result printed
     printed = capsys.readouterr().out
     assert f"{result.seconds:.1f} s" in printed and "ours loses to oracle on mean board distance" in printed
-    assert str(ws.root / "07_eval" / "tables.md") in printed
+    assert str(ws.folder("eval") / "tables.md") in printed
 
 
 def test_fidelity_is_taken_over_the_pixels_a_method_corrected(tmp_path):

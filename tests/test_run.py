@@ -19,6 +19,7 @@ from pipeline.run import (
     run_options,
     stage_config,
 )
+from pipeline.stages import STAGES, stage_folder
 from pipeline.survey import SurveyConfig, SurveyResult, check_survey
 from watergan.errors import UserInputError
 
@@ -37,7 +38,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     out = tmp_path / "ws"
     first = watergan("demo", "--preset", "small", "--out", str(out), *FAST)
     assert first.returncode == 0, first.stderr[-3000:]
-    report = out / "10_report" / "report.html"
+    report = stage_folder(out, "report") / "report.html"
     assert f"report: {report}" in first.stdout
     html = report.read_text()
     assert "<img" in html and "http://" not in html.replace("http://www.w3.org", "")
@@ -46,22 +47,22 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
                                                        "eval", "mesh", "diagnose", "report"]
     assert not any(s["skipped"] for s in summary["stages"])
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == [
-        "00_survey", "01_sfm", "02_dense", "03_water", "04_gan", "05_restorer", "06_correct", "07_eval", "08_mesh",
-        "09_diagnose", "10_report"]  # numbered in run order, nothing loose but the run's summary
+        s.folder for s in STAGES.values()]  # numbered in run order, nothing loose but the run's summary
     assert sorted(p.name for p in out.iterdir() if p.is_file()) == [".lock", "run_summary.json"]  # the run's lock
-    assert len(list((out / "06_correct" / "restorer" / "images").glob("*.png"))) == 10
-    assert len(list((out / "06_correct" / "physics" / "images").glob("*.png"))) == 10
-    correct = json.loads((out / "06_correct" / "result.json").read_text())["result"]
-    assert correct["mesh_images"] in ("06_correct/physics/images", "06_correct/restorer/images")
-    assert (out / "08_mesh" / "mesh.glb").stat().st_size > 0
-    tables = json.loads((out / "07_eval" / "tables.json").read_text())
+    assert len(list((stage_folder(out, "correct") / "restorer" / "images").glob("*.png"))) == 10
+    assert len(list((stage_folder(out, "correct") / "physics" / "images").glob("*.png"))) == 10
+    correct = json.loads((stage_folder(out, "correct") / "result.json").read_text())["result"]
+    assert correct["mesh_images"] in [f"{STAGES['correct'].folder}/{c}/images" for c in ("physics", "restorer")]
+    assert (stage_folder(out, "mesh") / "mesh.glb").stat().st_size > 0
+    tables = json.loads((stage_folder(out, "eval") / "tables.json").read_text())
     assert "ours" in json.dumps(tables) and tables["ours_mode"] == "rgb-d"  # the survey has range: RGB-D restorer
     assert "physics" in tables["methods"]
-    gan = json.loads((out / "04_gan" / "result.json").read_text())["result"]["train"]
-    assert gan["site_water"]["mode"] == "held" and gan["site_water"]["water_json"].endswith("03_water/water.json")
-    assert len(list((out / "03_water" / "range").glob("*.png"))) == 10
-    diagnosis = json.loads((out / "09_diagnose" / "result.json").read_text())["result"]
-    assert diagnosis["ledger"] == "09_diagnose/model_ledger.jsonl"
+    gan = json.loads((stage_folder(out, "gan") / "result.json").read_text())["result"]["train"]
+    assert gan["site_water"]["mode"] == "held"
+    assert gan["site_water"]["water_json"].endswith(f"{STAGES['water'].folder}/water.json")
+    assert len(list((stage_folder(out, "water") / "range").glob("*.png"))) == 10
+    diagnosis = json.loads((stage_folder(out, "diagnose") / "result.json").read_text())["result"]
+    assert diagnosis["ledger"] == f"{STAGES['diagnose'].folder}/model_ledger.jsonl"
     ledger = [json.loads(line) for line in (out / diagnosis["ledger"]).read_text().splitlines()]
     model = [r for r in ledger if r["kind"] == "model"][-1]
     for key in ("board_ciede2000", "consistency"):  # the ledger records what the corrected frames achieve
@@ -74,14 +75,14 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert all(s["skipped"] for s in json.loads((out / "run_summary.json").read_text())["stages"])
     assert second.stdout.count("finished earlier, skipped") == 11
 
-    restorer_mtime = (out / "05_restorer" / "result.json").stat().st_mtime_ns
-    sfm_mtime = (out / "01_sfm" / "result.json").stat().st_mtime_ns
+    restorer_mtime = (stage_folder(out, "restorer") / "result.json").stat().st_mtime_ns
+    sfm_mtime = (stage_folder(out, "sfm") / "result.json").stat().st_mtime_ns
     forced = watergan("demo", "--preset", "small", "--out", str(out), "--force", "mesh", *FAST)
     assert forced.returncode == 0, forced.stderr[-3000:]
     ran = {s["stage"] for s in json.loads((out / "run_summary.json").read_text())["stages"] if not s["skipped"]}
     assert ran == {"mesh", "report"}  # the mesh and the stage that reads it, nothing before it
-    assert (out / "05_restorer" / "result.json").stat().st_mtime_ns == restorer_mtime
-    assert (out / "01_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
+    assert (stage_folder(out, "restorer") / "result.json").stat().st_mtime_ns == restorer_mtime
+    assert (stage_folder(out, "sfm") / "result.json").stat().st_mtime_ns == sfm_mtime
 
     # a standalone stage command recognises what `watergan run` wrote: printed, not rerun (in this process: the
     # commands' own start-up is what the subprocesses above test)
@@ -89,25 +90,25 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
 
     assert main(["sfm", "--workspace", str(out)]) == 0
     assert "registered 10 of 10" in capsys.readouterr().out
-    assert (out / "01_sfm" / "result.json").stat().st_mtime_ns == sfm_mtime
-    correct_mtime = (out / "06_correct" / "result.json").stat().st_mtime_ns
+    assert (stage_folder(out, "sfm") / "result.json").stat().st_mtime_ns == sfm_mtime
+    correct_mtime = (stage_folder(out, "correct") / "result.json").stat().st_mtime_ns
     for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1", "--site-depth-steps", "20",
                                                         "--stage1-min-iterations", "0", "--stage2-min-iterations", "0"],
                     ["correct"]):
         assert main([*command, "--workspace", str(out), "--no-progress"]) == 0, command  # as run did them: skipped
-    assert (out / "06_correct" / "result.json").stat().st_mtime_ns == correct_mtime
+    assert (stage_folder(out, "correct") / "result.json").stat().st_mtime_ns == correct_mtime
     capsys.readouterr()
     assert main(["report", "--workspace", str(out), "--force"]) == 0
     assert capsys.readouterr().out.strip() == str(report)
 
     # a moved workspace is still finished; a stage whose output is gone runs again, and the stages after it
     moved = out.rename(tmp_path / "moved")
-    (moved / "10_report" / "report.html").unlink()
+    (stage_folder(moved, "report") / "report.html").unlink()
     assert main(["demo", "--preset", "small", "--out", str(moved), *FAST]) == 0
     captured = capsys.readouterr()
     assert captured.out.count("finished earlier, skipped") == 10, captured.out  # all but the report
     assert "report: 1 of its files are gone or cut short since it ran (e.g. 10_report/report.html)" in captured.err
-    assert (moved / "10_report" / "report.html").is_file()
+    assert (stage_folder(moved, "report") / "report.html").is_file()
 
 
 def _survey(root, n=4, size=(48, 64)):
@@ -204,7 +205,7 @@ def test_bad_survey_is_refused_before_training(tmp_path, problem, message):
     before = sorted(p.name for p in survey.rglob("*"))
     with pytest.raises(UserInputError, match=message):
         run_all(RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False))
-    assert not (tmp_path / "ws" / "04_gan").exists()  # nothing trained
+    assert not (stage_folder(tmp_path / "ws", "gan")).exists()  # nothing trained
     assert sorted(p.name for p in survey.rglob("*")) == before  # the user's folder is untouched
 
 
@@ -226,7 +227,7 @@ def test_a_survey_file_spoilt_after_the_survey_stage_is_refused_on_the_next_run(
     (survey / "survey.json").write_text('{"frames": ["f0.png", "f1.png"], "nav_altitude_m": [2.0, ')
     with pytest.raises(UserInputError, match="survey.json is not valid JSON"):
         run_all(opts)
-    assert not (tmp_path / "ws" / "04_gan").exists()
+    assert not (stage_folder(tmp_path / "ws", "gan")).exists()
 
 
 @pytest.mark.parametrize("what", ["survey", "camera", "sfm_board", "eval_board", "toml"])
@@ -244,7 +245,7 @@ def test_cli_bad_input_file_is_one_line_naming_it_and_exit_2(tmp_path, what):
     out = watergan("run", str(survey), "--workspace", str(tmp_path / "ws"), "--no-progress", *options)
     assert out.returncode == 2, out.stderr[-2000:]
     assert len(out.stderr.strip().splitlines()) == 1 and str(bad) in out.stderr, out.stderr
-    assert "Traceback" not in out.stderr and not (tmp_path / "ws" / "04_gan").exists()
+    assert "Traceback" not in out.stderr and not (stage_folder(tmp_path / "ws", "gan")).exists()
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file() and "ws" not in p.parts} == before
 
 
@@ -283,9 +284,9 @@ def test_survey_stage_links_without_copying(tmp_path):
         (tmp_path / name / "rgbd" / "rgb").mkdir(parents=True)
     ws = Workspace(tmp_path / "ws")
     run_survey(ws, SurveyConfig(str(tmp_path / "a")))
-    assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "a" / "images").resolve()
+    assert (ws.folder("survey") / "images").resolve() == (tmp_path / "a" / "images").resolve()
     summary = run_survey(ws, SurveyConfig(str(tmp_path / "b")))  # the workspace moved to another survey
-    assert (ws.root / "00_survey" / "images").resolve() == (tmp_path / "b" / "images").resolve()
+    assert (ws.folder("survey") / "images").resolve() == (tmp_path / "b" / "images").resolve()
     assert summary.rgbd_dir == str((tmp_path / "b" / "rgbd").resolve())
     assert sorted(p.name for p in (tmp_path / "a" / "images").iterdir()) == ["f0.png", "f1.png", "f2.png", "f3.png"]
 
@@ -315,13 +316,13 @@ def test_a_standalone_sfm_is_what_run_would_do(tmp_path):
     simulate_survey(survey, make_config("small"), force=True)
     out = watergan("sfm", "--workspace", str(ws), "--survey", str(survey))
     assert out.returncode == 0 and "registered" in out.stdout, out.stderr[-3000:]
-    sfm_record = (ws / "01_sfm" / "result.json").read_text()
+    sfm_record = (stage_folder(ws, "sfm") / "result.json").read_text()
 
     workspace = Workspace(ws)
     opts = run_options({"survey_dir": str(survey), "workspace": str(ws), "progress": False})
     workspace.run("survey", stage_config("survey", opts))  # as run_all does
     assert workspace.is_done("sfm", stage_config("sfm", opts))
-    assert (ws / "01_sfm" / "result.json").read_text() == sfm_record
+    assert (stage_folder(ws, "sfm") / "result.json").read_text() == sfm_record
     other = run_options({"survey_dir": str(survey), "workspace": str(ws), "sfm_matching": "exhaustive"})
     assert not workspace.is_done("sfm", stage_config("sfm", other))
 
@@ -392,10 +393,11 @@ def test_the_restorer_finds_its_pairs_altitude_and_range_mode_in_the_workspace(t
     survey = SurveyResult(n_images=3, width=8, height=6, stereo=False, simulated=False, rgbd_dir=str(tmp_path),
                           survey_dir="S", navigation=False)
     ws.save("survey", SurveyConfig("S"), survey)
-    ws.save("gan", GanStage(), GanStageResult(train={}, model="04_gan/model", generated="04_gan/generated",
+    gan = STAGES["gan"].folder
+    ws.save("gan", GanStage(), GanStageResult(train={}, model=f"{gan}/model", generated=f"{gan}/generated",
                                               generated_count=2, generate_seconds=0.0))
     cfg = restorer_config(ws, RestorerStage())
-    assert cfg.data_dir == ws.root / "04_gan" / "generated" and cfg.out_dir == ws.root / "05_restorer"
+    assert cfg.data_dir == ws.folder("gan") / "generated" and cfg.out_dir == ws.folder("restorer")
     assert not cfg.altitude and not cfg.range_input  # no navigation, no water stage
     ws.save("survey", SurveyConfig("S"), dataclasses.replace(survey, navigation=True))
     assert restorer_config(ws, RestorerStage()).altitude
@@ -420,7 +422,7 @@ def test_a_navigation_log_gives_the_survey_its_navigation(tmp_path):
     before = (survey / "survey.json").read_text()
     opts = RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False)
     result = Workspace(opts.workspace).run("survey", stage_config("survey", opts))
-    written = json.loads((tmp_path / "ws" / "00_survey" / "survey.json").read_text())
+    written = json.loads((stage_folder(tmp_path / "ws", "survey") / "survey.json").read_text())
     assert result.navigation and (survey / "survey.json").read_text() == before
     np.testing.assert_allclose(written["nav_altitude_m"], [2.1, 2.3, 2.5, 2.6])
     np.testing.assert_allclose(written["nav_depth_m"], [10.25, 10.75, 11.25, 11.5])

@@ -16,6 +16,7 @@ from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
 from eval.fit import FitConfig
 from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
 from eval.water import estimate_water
+from pipeline.stages import STAGES
 from pipeline.water import WaterStage
 from watergan.formation import FormationState, Stack, pixel_grid
 from watergan.formation.inverse import correct_physics, inverse_fields
@@ -393,8 +394,9 @@ def test_the_water_stage_needs_the_dense_range(tmp_path):
     from watergan.errors import UserInputError
 
     ws = Workspace(tmp_path / "ws")
-    ws.save("sfm", SfmConfig(), SfmResult(model_dir="", tracks=f"{STAGES['sfm'].folder}/tracks.npz", n_images=3, n_registered=3,
-                                          n_points=0, mean_track_length=0.0, mean_reprojection_error_px=0.0,
+    ws.save("sfm", SfmConfig(), SfmResult(model_dir="", tracks=f"{STAGES['sfm'].folder}/tracks.npz", n_images=3,
+                                          n_registered=3, n_points=0, mean_track_length=0.0,
+                                          mean_reprojection_error_px=0.0,
                                           matching="", scale_method="stereo", scale_factor=1.0, scale_spread=0.0,
                                           seconds=0.0))
     with pytest.raises(UserInputError, match="run the dense stage first"):
