@@ -29,7 +29,7 @@ from watergan.correction_range import (
 from watergan.data import DataError, atomic_write_bytes, read_nav_altitudes, read_nav_down
 from watergan.formation import Stack
 from watergan.formation import get as get_effect
-from watergan.formation.inverse import frame_affines, needs_normals
+from watergan.formation.inverse import SIGNAL_FLOOR, frame_affines, needs_normals
 from watergan.io import (
     encode_image,
     levels_bits,
@@ -40,7 +40,7 @@ from watergan.io import (
     srgb_levels,
     stored_as,
 )
-from watergan.nets.restorer import SIGNAL_FLOOR, WaterFields
+from watergan.nets.restorer import WaterFields
 from watergan.nets.site_depth import SiteDepthNet
 from watergan.restore_folder import CorrectMode, corrected_name, cpu_lanes, keep_freed_memory
 from watergan.train_site_depth import load_site_depth
@@ -262,7 +262,7 @@ def write_corrected(path: Path, linear_rgb: np.ndarray, levels: np.ndarray, scen
 def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFields, K: np.ndarray | None,
                        capped: np.ndarray | None = None, max_gain: float = FAR_MAX_GAIN
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """J = max(exp(g) I + o, s exp(g) I) (:data:`~watergan.nets.restorer.SIGNAL_FLOOR`), the physics inverse
+    """J = max(exp(g) I + o, s exp(g) I) (:data:`~watergan.formation.inverse.SIGNAL_FLOOR`), the physics inverse
     J = (I - C) / A with the log gain g = -ln A and offset o = -C / A of
     ``fields`` at each pixel's range (holes take the frame's farthest range, which the table covers, then are
     marked), the gain held at ``max_gain`` where ``capped`` ((H,W) bool, None: nowhere; :func:`cap_gain`), as
@@ -289,7 +289,7 @@ def invert_with_fields(image: np.ndarray, range_m: np.ndarray, fields: WaterFiel
 
 def invert_exact(image: np.ndarray, range_m: np.ndarray, stack: Stack, K: np.ndarray, frame_index: int,
                  normals_cam: np.ndarray | None, capped: np.ndarray, max_gain: float = FAR_MAX_GAIN) -> np.ndarray:
-    """J = max(I - C, s I) / A (:data:`~watergan.nets.restorer.SIGNAL_FLOOR`) with the stack's exact fields A, C at
+    """J = max(I - C, s I) / A (:data:`~watergan.formation.inverse.SIGNAL_FLOOR`) with the stack's exact fields A, C at
     each pixel's range
     (:func:`watergan.formation.inverse.inverse_fields`, float64: strobes, a per-frame effect; ``frame_index``: the
     frame's row of the per-frame parameters; ``normals_cam``: (H,W,3) camera-frame normals or None), the gain 1 / A

@@ -238,7 +238,7 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     from pipeline.correct_physics import correct_physics_folder
     from pipeline.water import correction_normals, water_frame
     from watergan.formation import get
-    from watergan.formation.inverse import correct_physics
+    from watergan.formation.inverse import SIGNAL_FLOOR, correct_physics
     from watergan.io import read_depth, read_image
 
     survey, ws, _, _ = evaluated
@@ -254,7 +254,8 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     frame = water_frame(tracks, 3, survey / "images", lit.path(lit.result("dense").depth_dir))
     r = read_depth(lit.path(water.range_dir) / f"{Path(frame.name).stem}.png")
     exact, valid = correct_physics(frame.image, r, stack, K, frame_index=3,
-                                   normals_cam=correction_normals(frame, r, K, water.normal_smooth_px))
+                                   normals_cam=correction_normals(frame, r, K, water.normal_smooth_px),
+                                   signal_floor=SIGNAL_FLOOR)
     written = read_image(tmp_path / "lit" / "images" / frame.name)
     expected = np.clip(np.nan_to_num(exact), 0.0, 1.0)
     assert result.range_source == "range maps"
@@ -273,7 +274,7 @@ def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(e
     from pipeline.correct_physics import correct_physics_folder
     from pipeline.water import water_frame
     from watergan.formation import RANK_WATER, Effect, Param, register
-    from watergan.formation.inverse import correct_physics
+    from watergan.formation.inverse import SIGNAL_FLOOR, correct_physics
     from watergan.io import read_depth, read_image
 
     @register
@@ -302,7 +303,7 @@ def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(e
     for k in (2, 3):
         frame = water_frame(tracks, k, survey / "images", None)
         r = read_depth(drifting.path(water.range_dir) / f"{Path(frame.name).stem}.png")
-        exact, valid = correct_physics(frame.image, r, stack, K, frame_index=k)
+        exact, valid = correct_physics(frame.image, r, stack, K, frame_index=k, signal_floor=SIGNAL_FLOOR)
         written = read_image(tmp_path / "drift" / "images" / frame.name)
         assert np.abs(written - np.clip(np.nan_to_num(exact), 0.0, 1.0))[valid].max() < 3 / 255, k
 

@@ -10,8 +10,8 @@ import torch.nn.functional as F
 
 from watergan.data import DataError, read_depth
 from watergan.errors import UserInputError
+from watergan.formation.inverse import SIGNAL_FLOOR
 from watergan.nets.restorer import (
-    SIGNAL_FLOOR,
     Restorer,
     RestorerWidths,
     SegNetCore,

@@ -2,11 +2,11 @@
 
 A correction (the water's physics inverse, or a restorer that starts from it) needs a range at every pixel of a frame.
 A range map has holes: small ones are interpolated from the measured range around them (:func:`fill_range`, a membrane
-over the hole, :func:`harmonic_fill`), larger ones the plane through the frame's measured points where their rays meet
-it (the floor beyond the range map's edge, :func:`frame_plane`), else (open water, a far wall stereo did not match) the
-survey's far range (:func:`survey_far_range_m`), where the water's gain is held at a ceiling (:func:`cap_gain`). A frame without a
-range map takes a flat seafloor's range at its altitude, times the site depth net's factor where one is given
-(:func:`monocular_range`). Each pixel's source of range is a :class:`RangeFrom`.
+over the hole, :func:`harmonic_fill`), larger ones on the camera's side of their edge the plane through the frame's
+measured points (the floor nearer than where the range map ends, :func:`frame_plane`), the others (open water, a far
+wall stereo did not match) the survey's far range (:func:`survey_far_range_m`), where the water's gain is held at a
+ceiling (:func:`cap_gain`). A frame without a range map takes a flat seafloor's range at its altitude, times the site
+depth net's factor where one is given (:func:`monocular_range`). Each pixel's source of range is a :class:`RangeFrom`.
 """
 
 from __future__ import annotations
@@ -176,7 +176,8 @@ def fill_range(range_m: np.ndarray, far_range_m: float, fill_px: float = FILL_PX
 
 
 def _range_near_holes_on_plane(out: np.ndarray, source: np.ndarray, label: np.ndarray, measured: np.ndarray,
-                               r: np.ndarray, K: np.ndarray, plane: tuple[np.ndarray, float], far_range_m: float) -> None:
+                               r: np.ndarray, K: np.ndarray, plane: tuple[np.ndarray, float],
+                               far_range_m: float) -> None:
     """In place: each large hole (a component of ``label`` whose pixels ``source`` marks far) that lies on the
     camera's side of its edge, its median range on ``plane`` below the median measured range on its edge (the pixels
     of ``measured`` next to it), takes the plane's range at each pixel nearer than ``far_range_m``."""

@@ -410,9 +410,16 @@ def range_span(range_m: torch.Tensor, margin_m: float = LUT_RANGE_MARGIN_M,
     return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
 
 
+SIGNAL_FLOOR = 0.1
+"""Share s of a pixel's own signal a correction keeps where the veil it removes reaches the pixel's value:
+J = max(I - C, s I) / A (with the log gain g = -ln A and offset o = -C / A: max(exp(g) I + o, s exp(g) I)). A pixel
+darker than the estimated veil (a shadow, a dark object, the veil over-estimated there) stays dark with its texture
+instead of turning black."""
+
+
 def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[dict],
                     K: np.ndarray | None = None, frame_index: int = 0, normals_cam: np.ndarray | None = None,
-                    normal_smooth_px: float = 24.0) -> tuple[np.ndarray, np.ndarray]:
+                    normal_smooth_px: float = 24.0, signal_floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
     J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
     J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
@@ -427,12 +434,13 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
              :func:`normals_from_range` of ``range_m`` smoothed by ``normal_smooth_px``.
     frame_index: the frame's index in the survey (the water estimate's frames list): the row that parameters held
              per frame take.
+    signal_floor: s > 0 gives J = max(I - C, s I) / A, as the correct stage writes it (:data:`SIGNAL_FLOOR`).
     Returns (J (H,W,3) float32 linear, unclipped, NaN where there is no range; valid (H,W) bool). Pixels
     without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
     a, c, valid = inverse_fields(range_m, stack, K, frame_index, normals_cam, normal_smooth_px)
     a, c = a[0].permute(1, 2, 0).numpy(), c[0].permute(1, 2, 0).numpy()
     image = np.asarray(image, np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = (image - c) / a
+        out = np.maximum(image - c, signal_floor * image) / a if signal_floor > 0 else (image - c) / a
     out[~valid] = np.nan
     return out.astype(np.float32), valid

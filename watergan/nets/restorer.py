@@ -84,6 +84,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from watergan.formation.inverse import SIGNAL_FLOOR
+
 LEVELS = 3
 """Max-pooling levels of the core: its input sides must be multiples of 2**LEVELS."""
 class Head(StrEnum):
@@ -190,18 +192,12 @@ def srgb_encode(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
 
 
-SIGNAL_FLOOR = 0.1
-"""Share s of a pixel's own signal a correction keeps where the veil it removes reaches the pixel's value:
-J = exp(g) max(I - C, s I) (with o = -exp(g) C: max(exp(g) I + o, s exp(g) I)). A pixel darker than the estimated
-veil (a shadow, a dark object, the veil over-estimated there) stays dark with its texture instead of turning black."""
-
-
 def apply_affine(fields: torch.Tensor, image: torch.Tensor, linear: torch.Tensor | None = None) -> torch.Tensor:
-    """y = srgb(max(exp(g) lin(x) + o, s exp(g) lin(x))) per channel (s = :data:`SIGNAL_FLOOR`): ``fields``
-    (B,6,H,W) holds the log gains g and offsets o (linear light), ``image`` (B,3,H,W) the sRGB-encoded 0..1 input;
-    zero fields give y = x. Without gradients (correcting frames) the same equation in fewer full-resolution passes
-    (:func:`_apply_affine_in_place`), with lin(x) taken from ``linear`` (B,3,H,W) where the caller decoded it
-    already (a table lookup when reading)."""
+    """y = srgb(max(exp(g) lin(x) + o, s exp(g) lin(x))) per channel (s:
+    :data:`watergan.formation.inverse.SIGNAL_FLOOR`): ``fields`` (B,6,H,W) holds the log gains g and offsets o
+    (linear light), ``image`` (B,3,H,W) the sRGB-encoded 0..1 input; zero fields give y = x. Without gradients
+    (correcting frames) the same equation in fewer full-resolution passes (:func:`_apply_affine_in_place`), with
+    lin(x) taken from ``linear`` (B,3,H,W) where the caller decoded it already (a table lookup when reading)."""
     if torch.is_grad_enabled() and (fields.requires_grad or image.requires_grad):
         gained = srgb_decode(image) * torch.exp(fields[:, :3])
         return srgb_encode(torch.maximum(gained + fields[:, 3:], SIGNAL_FLOOR * gained))
