@@ -209,6 +209,11 @@ def realise_content_gains(survey: Path, effect: str) -> list[list[float]]:
     return log_gains
 
 
+def workspace_name(draw: Draw) -> str:
+    """The draw's workspace under ``--out``."""
+    return f"draw_{draw.index:02d}_{draw.seed}"
+
+
 def prepare(root: Path, draw: Draw) -> Path:
     """Simulate the draw's survey into ``root/draw_<k>_<seed>/00_survey`` and run SfM and dense (each skipped when
     done); returns the workspace's root."""
@@ -217,7 +222,7 @@ def prepare(root: Path, draw: Draw) -> Path:
     from pipeline.sfm import SfmConfig
     from pipeline.workspace import Workspace
 
-    ws = Workspace(root / f"draw_{draw.index:02d}_{draw.seed}")
+    ws = Workspace(root / workspace_name(draw))
     survey = ws.stage_dir("survey")
     if not (survey / "truth" / "config.json").is_file():
         simulate_survey(survey, survey_config(draw), force=True, progress=False)
@@ -283,9 +288,10 @@ def diagnose_only(ws_root: Path) -> dict:
 
     import torch
 
-    from eval.diagnose import DiagnoseConfig, run_diagnose
+    from eval.diagnose import DiagnoseConfig
     from eval.diagnose_measure import MeasureConfig
     from eval.fit import FitConfig
+    from pipeline.diagnose import run_diagnose
 
     torch.set_num_threads(1)
     for stale in (ws_root / "diagnose", stage_folder(ws_root, "diagnose")):
@@ -321,14 +327,21 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
                           "affine_rmse": affine_rmse(folders[label], truth_dir, names)}
                   for label in ("raw", "physics", "oracle")}
     seconds["correct"] = time.perf_counter() - t
-    t = time.perf_counter()
-    diagnosis = diagnose(ws_root) if with_diagnosis else None
-    seconds["diagnose"] = time.perf_counter() - t
     keep = ("attenuation.eta_per_m", "backscatter.b_inf", "veil")
-    return {"truth": {**asdict(draw), "workspace": ws_root.name},
-            "params": {k: params[k] for k in keep if k in params}, "correction": correction,
-            "diagnosis": diagnosis, "false_acceptance": bool(diagnosis and diagnosis.get("accepted")),
-            "seconds": {k: round(v, 1) for k, v in seconds.items()}}
+    record = {"truth": {**asdict(draw), "workspace": ws_root.name},
+              "params": {k: params[k] for k in keep if k in params}, "correction": correction,
+              "diagnosis": None, "false_acceptance": False, "seconds": {k: round(v, 1) for k, v in seconds.items()}}
+    return add_diagnosis(record, ws_root) if with_diagnosis else record
+
+
+def add_diagnosis(record: dict, ws_root: Path) -> dict:
+    """``record`` with the diagnosis of its workspace (:func:`diagnose`), whether it accepted a library effect
+    (a false acceptance: no drawn form is in the library) and its seconds."""
+    t = time.perf_counter()
+    diagnosis = diagnose(ws_root)
+    seconds = {**record["seconds"], "diagnose": round(time.perf_counter() - t, 1)}
+    return {**record, "diagnosis": diagnosis, "false_acceptance": bool(diagnosis.get("accepted")),
+            "seconds": seconds}
 
 
 def draw_targets(record: dict) -> dict[str, bool]:
@@ -353,7 +366,7 @@ def summarise(records: list[dict]) -> dict:
                 "worse_than_raw"):
         out[key] = round(float(np.mean([t[key] for t in targets])), 3) if targets else None
     out["false_acceptances"] = sum(r["false_acceptance"] for r in records)
-    out["diagnosed"] = sum(r["diagnosis"] is not None for r in records)
+    out["diagnosed"] = sum(r["diagnosis"] is not None and "error" not in r["diagnosis"] for r in records)
     return out
 
 
@@ -367,7 +380,8 @@ def row(record: dict) -> str:
         cover = "".join("y" if v else "N" for v in p[key].get("covered", []))
         return "/".join(f"{100 * v:+.0f}" for v in np.ravel(p[key]["rel_error"])) + f" {cover}"
 
-    accepted = "-" if record["diagnosis"] is None else record["diagnosis"].get("accepted") or "none"
+    diagnosis = record["diagnosis"]
+    accepted = "-" if diagnosis is None else "error" if "error" in diagnosis else diagnosis["accepted"] or "none"
     return (f"| {t['index']:2d} | {t['family']:22s} | {'stereo' if t['stereo'] else 'mono'} {t['terrain']:5s} "
             f"| {pct('attenuation.eta_per_m'):18s} | {pct('veil'):18s} | {c['physics']['psnr_db']:5.1f} "
             f"| {c['oracle']['psnr_db']:5.1f} | {c['raw']['psnr_db']:5.1f} | {c['physics']['affine_rmse']:.4f} "
@@ -381,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("/tmp/bench_forms"), help="workspaces (reused)")
     parser.add_argument("--no-diagnose", action="store_true", help="skip the diagnosis on each draw")
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/forms.json"))
+    parser.add_argument("--resume", action="store_true", help="reuse the draws --json already holds (same truth) and "
+                        "run only what they lack: the diagnosis where it failed or was skipped")
     args = parser.parse_args(argv)
     from tqdm import tqdm
 
@@ -391,10 +407,18 @@ def main(argv: list[str] | None = None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     print("| draw | family | survey | eta error R/G/B %, covered | veil error %, covered | physics PSNR | oracle "
           "| raw | physics affine-RMSE | accepted | s |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    previous = {}
+    if args.resume and args.json.is_file():
+        previous = {r["truth"]["workspace"]: r for r in json.loads(args.json.read_text())["draws"]}
     records, failed = [], []
     for draw in tqdm(draws(args.draws, args.seed), desc="draws", unit="survey"):
         try:
-            records.append(run_draw(args.out, draw, not args.no_diagnose))
+            record = previous.get(workspace_name(draw))
+            if record is None or {**record["truth"], "workspace": None} != {**asdict(draw), "workspace": None}:
+                record = run_draw(args.out, draw, not args.no_diagnose)
+            elif not args.no_diagnose and (record["diagnosis"] is None or "error" in record["diagnosis"]):
+                record = add_diagnosis(record, args.out / workspace_name(draw))
+            records.append(record)
             tqdm.write(row(records[-1]))
         except Exception as exc:  # a draw the pipeline cannot take (SfM fails, ...): recorded, not measured
             failed.append({"truth": asdict(draw), "error": f"{type(exc).__name__}: {exc}"})
