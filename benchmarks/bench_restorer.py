@@ -130,6 +130,7 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
     from watergan.nets.restorer import WaterFields, fill_range_holes
     from watergan.restore_folder import batch_for, correct_folder, cpu_lanes
     from watergan.train_restorer import load_restorer
+
     own = ws
     if copies > 1:
         ws = replicate_workspace(own, out / "replica", copies)
