@@ -395,8 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("/tmp/bench_forms"), help="workspaces (reused)")
     parser.add_argument("--no-diagnose", action="store_true", help="skip the diagnosis on each draw")
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/forms.json"))
-    parser.add_argument("--resume", action="store_true", help="reuse the draws --json already holds (same truth) and "
-                        "run only what they lack: the diagnosis where it failed or was skipped")
+    parser.add_argument("--resume", action="store_true", help="reuse the draws --json already holds (same truth, "
+                        "workspace kept) and run only what they lack: the diagnosis where it failed or was skipped")
     args = parser.parse_args(argv)
     from tqdm import tqdm
 
@@ -414,7 +414,9 @@ def main(argv: list[str] | None = None) -> int:
     for draw in tqdm(draws(args.draws, args.seed), desc="draws", unit="survey"):
         try:
             record = previous.get(workspace_name(draw))
-            if record is None or {**record["truth"], "workspace": None} != {**asdict(draw), "workspace": None}:
+            kept = (args.out / workspace_name(draw) / "00_survey" / "truth" / "config.json").is_file()
+            same = record is not None and {**record["truth"], "workspace": None} == {**asdict(draw), "workspace": None}
+            if not (same and kept):
                 record = run_draw(args.out, draw, not args.no_diagnose)
             elif not args.no_diagnose and (record["diagnosis"] is None or "error" in record["diagnosis"]):
                 record = add_diagnosis(record, args.out / workspace_name(draw))

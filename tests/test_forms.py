@@ -75,6 +75,10 @@ def test_falloff_darkens_by_its_profile_and_strength(drawn, label):
     elif full.any():
         assert np.allclose(1.0 - v[:, full], s[:, None], atol=1e-9)
     assert np.all(1.0 - v <= s[:, None, None] + 1e-9)
+    narrow = {**params, "width": 0.3} if "width" in params else params  # pixels beyond the ring
+    with torch.no_grad():  # as the simulator renders: float32, finite beyond the ring too
+        single = get(effect)(**narrow)(state.replace(direct=state.direct.float(), pixel_uv=state.pixel_uv.float()))
+    assert torch.isfinite(single.direct).all()
 
 
 def test_spot_and_ramp_add_their_stated_veils(drawn):

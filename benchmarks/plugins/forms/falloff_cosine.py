@@ -30,6 +30,6 @@ class FalloffCosine(Effect):
         like = state.direct
         d = normalised_radius(state.pixel_uv, state.image_wh, self.param("centre_uv", like))
         angle = 0.5 * math.pi * torch.clamp(d / self.param("width", like), max=1.0)
-        profile = 1.0 - torch.cos(angle) ** self.param("power", like)
+        profile = 1.0 - torch.cos(angle).clamp_min(0.0) ** self.param("power", like)  # cos(pi/2) < 0 in float32
         v = 1.0 - self.param("strength", like).view(1, 3, 1, 1) * profile
         return state.replace(direct=state.direct * v, backscatter=state.backscatter * v)
