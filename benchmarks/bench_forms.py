@@ -275,6 +275,9 @@ def diagnose(ws_root: Path) -> dict:
     """The diagnosis on the workspace's SfM tracks (the settings of tests/test_diagnose.py), run in a process of its
     own where only the library's effects are registered: {"accepted": the best accepted candidate or None,
     "verdict", "ranking": the first three candidates}."""
+    from pipeline.workspace import release_workspaces
+
+    release_workspaces()  # the stages run here hold the workspace's lock until released
     done = subprocess.run([sys.executable, __file__, "--diagnose-only", str(ws_root)], capture_output=True,
                           text=True, check=False)
     if done.returncode != 0:
