@@ -355,10 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "water.json")
     args = parser.parse_args(argv)
 
-    from eval.water import WaterConfig
+    from pipeline.water import WaterStage  # the estimate's options and the stage's range maps' (range_agreement)
 
-    config = WaterConfig() if args.bootstrap is None else \
-        WaterConfig(fit=replace(WaterConfig().fit, bootstrap=args.bootstrap))
+    config = WaterStage() if args.bootstrap is None else \
+        WaterStage(fit=replace(WaterStage().fit, bootstrap=args.bootstrap))
     if args.no_light_rig:
         config = replace(config, light_rig=False)
     if args.field_degree is not None:
