@@ -417,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     for draw in tqdm(draws(args.draws, args.seed), desc="draws", unit="survey"):
         try:
             record = previous.get(workspace_name(draw))
-            kept = (args.out / workspace_name(draw) / "00_survey" / "truth" / "config.json").is_file()
+            kept = (stage_folder(args.out / workspace_name(draw), "survey") / "truth" / "config.json").is_file()
             same = record is not None and {**record["truth"], "workspace": None} == {**asdict(draw), "workspace": None}
             if not (same and kept):
                 record = run_draw(args.out, draw, not args.no_diagnose)
