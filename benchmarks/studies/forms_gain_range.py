@@ -32,7 +32,7 @@ def constant_only(stack, obs) -> None:
         return
     effect = stack[FRAME_EFFECT]
     n = effect.param("log_gain").shape[0]
-    effect.set_values(orthogonal_to=np.ones((n, 1)) / np.sqrt(n))
+    effect.set_values(orthogonal_to=np.stack([np.ones(n) / np.sqrt(n), np.zeros(n)], 1))  # the second: none
 
 
 def main() -> None:
