@@ -78,7 +78,8 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     range_from = read_png(ws.path(corrected.physics) / "range_from" / f"{Path(names[0]).stem}.png")
     # every scene pixel got a range
     assert np.isin(range_from[mask], [0, 1, 2, 4]).all() and (range_from[~mask] == 3).all()
-    assert physics["black_pixels"] == 0  # a pixel darker than the veil keeps a share of its signal
+    # a pixel darker than the veil keeps a share of its signal: black only where raw is within a level or two of it
+    assert physics["black_pixels"] < 1e-4 * mask.sum() * len(names)
     raw = read_image(ws.folder("survey") / "images" / names[0])
     out = read_image(Path(ws.path(corrected.physics_images)) / f"{Path(names[0]).stem}.png")
     assert np.abs(out[~mask] - raw[~mask]).max() < 2 / 255  # the timestamp passed through

@@ -410,7 +410,7 @@ def range_span(range_m: torch.Tensor, margin_m: float = LUT_RANGE_MARGIN_M,
     return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
 
 
-SIGNAL_FLOOR = 0.1
+SIGNAL_FLOOR = 0.01
 """Share s of a pixel's own signal a correction keeps where the veil it removes reaches the pixel's value:
 J = max(I - C, s I) / A (with the log gain g = -ln A and offset o = -C / A: max(exp(g) I + o, s exp(g) I)). A pixel
 darker than the estimated veil (a shadow, a dark object, the veil over-estimated there) stays dark with its texture
