@@ -78,7 +78,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     range_from = read_png(ws.path(corrected.physics) / "range_from" / f"{Path(names[0]).stem}.png")
     # every scene pixel got a range
     assert np.isin(range_from[mask], [0, 1, 2, 4]).all() and (range_from[~mask] == 3).all()
-    # a pixel darker than the veil keeps a share of its signal: black only where raw is within a level or two of it
+    # a pixel darker than the veil keeps a hundredth of its signal: black only where that rounds to 0 (dark pixels)
     assert physics["black_pixels"] < 1e-4 * mask.sum() * len(names)
     raw = read_image(ws.folder("survey") / "images" / names[0])
     out = read_image(Path(ws.path(corrected.physics_images)) / f"{Path(names[0]).stem}.png")
