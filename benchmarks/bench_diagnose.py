@@ -27,10 +27,11 @@ from pathlib import Path
 
 import torch
 
-from eval.diagnose import DiagnoseConfig, run_diagnose, small_survey_config
+from eval.diagnose import DiagnoseConfig, small_survey_config
 from eval.diagnose_measure import MeasureConfig
 from eval.fit import FitConfig
 from eval.synth import HIDDEN_DEFAULTS, make_config, simulate_survey
+from pipeline.diagnose import run_diagnose
 from pipeline.stages import stage_folder
 
 ALL = (*HIDDEN_DEFAULTS, "none")
