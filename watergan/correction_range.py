@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from watergan.data import DataError
-from watergan.formation.inverse import flat_floor_depth, flat_floor_range
+from watergan.formation.inverse import camera_unit_rays, flat_floor_depth, flat_floor_range
 from watergan.io import read_millimetres
 from watergan.nets.site_depth import SiteDepthNet
 
@@ -54,17 +54,10 @@ PLANE_SAMPLE_PX = 4
 """The plane is fitted to every this-many-th row and column of the measured pixels."""
 
 
-def pixel_rays(K: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-    """Unit viewing rays (N,3) in the camera frame of pixels (``ys``, ``xs``) of a pinhole with intrinsics ``K``:
-    u = K^-1 (x, y, 1) / |K^-1 (x, y, 1)|."""
-    d = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones(len(xs))], axis=1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
 def frame_plane(range_m: np.ndarray, measured: np.ndarray, K: np.ndarray, rounds: int = 3
                 ) -> tuple[np.ndarray, float] | None:
     """The plane n . X = d (n unit, d > 0: the camera on its side n points away from) through the camera-frame points
-    X = r u of the ``measured`` pixels ((H,W) bool; ``range_m`` (H,W) metres along the ray u, :func:`pixel_rays`),
+    X = r u of the ``measured`` pixels ((H,W) bool; ``range_m`` (H,W) metres along the unit ray u of ``K``),
     every :data:`PLANE_SAMPLE_PX`-th row and column: a least-squares plane (the points' smallest principal axis),
     refitted ``rounds`` times to the points within :data:`PLANE_TOLERANCE` of their range of it. None when fewer than
     :data:`PLANE_MIN_SHARE` of the points lie on the last fit (a scene that is no plane) or there are fewer than 3."""
@@ -74,7 +67,7 @@ def frame_plane(range_m: np.ndarray, measured: np.ndarray, K: np.ndarray, rounds
     if len(ys) < 3:
         return None
     r = range_m[ys, xs].astype(np.float64)
-    points = pixel_rays(K, ys, xs) * r[:, None]
+    points = camera_unit_rays(K, *range_m.shape)[ys, xs] * r[:, None]
     keep = np.ones(len(r), bool)
     for _ in range(rounds + 1):
         if keep.sum() < 3:
@@ -189,7 +182,7 @@ def _range_near_holes_on_plane(out: np.ndarray, source: np.ndarray, label: np.nd
         if not edge.any():
             continue
         ys, xs = np.nonzero(hole)
-        facing = pixel_rays(K, ys, xs) @ plane[0]
+        facing = camera_unit_rays(K, *hole.shape)[ys, xs] @ plane[0]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(facing > 0, plane[1] / facing, np.inf)
         if not np.median(t) < np.median(r[edge]):

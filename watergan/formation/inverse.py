@@ -32,7 +32,7 @@ def flat_floor_range(altitude_m: float, K: np.ndarray, h: int, w: int,
     """(H,W) the range (metres) of a flat, level seafloor ``altitude_m`` below the camera, along each pixel's ray
     d = K^-1 (x, y, 1): r = a |d| / (d . g), g the unit "down" in the camera frame (``down_cam``; None: a nadir
     camera, g = (0, 0, 1), r = a |d|). Rays at or above the horizon (d . g <= 1 % of |d|) take 100 a."""
-    unit = unit_rays(_intrinsics(np.asarray(K, np.float64)), h, w)
+    unit = camera_unit_rays(K, h, w)
     g = np.array([0.0, 0.0, 1.0]) if down_cam is None else np.asarray(down_cam, np.float64)
     return altitude_m / np.maximum(unit @ (g / np.linalg.norm(g)), 0.01)
 
@@ -48,11 +48,16 @@ def unit_rays(intrinsics: tuple[float, float, float, float], h: int, w: int) -> 
     return unit
 
 
+def camera_unit_rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(H,W,3) read-only unit vectors along each pixel's ray of the camera matrix ``K`` (:func:`unit_rays`)."""
+    return unit_rays(_intrinsics(np.asarray(K, np.float64)), h, w)
+
+
 def flat_floor_depth(altitude_m: float, K: np.ndarray, h: int, w: int,
                      down_cam: np.ndarray | None = None, range_m: np.ndarray | None = None) -> np.ndarray:
     """(H,W) camera-z depth (metres) of the same seafloor: :func:`flat_floor_range` (or ``range_m``, where the caller
     holds it) over each ray's length |K^-1 (x, y, 1)|."""
-    unit_z = unit_rays(_intrinsics(np.asarray(K, np.float64)), h, w)[..., 2]  # 1 / |K^-1 (x, y, 1)|
+    unit_z = camera_unit_rays(K, h, w)[..., 2]  # 1 / |K^-1 (x, y, 1)|
     return (flat_floor_range(altitude_m, K, h, w, down_cam) if range_m is None else range_m) * unit_z
 
 
