@@ -20,13 +20,15 @@ Each draw picks a family and draws its shape (:func:`draw_effect`; the forms are
 
 and the survey: stereo or monocular, the demo's sandy floor or a rocky one (:func:`survey_config`: the demo's water
 and camera at 320x240, 3 lines of 6 frames at 2.5 m with a 0.5 m altitude wave). On each it runs the pipeline's SfM
-and dense stages, estimates the water as ``bench_water.py`` does (:func:`eval.water.estimate_water` with the water
-stage's defaults, :class:`pipeline.water.WaterStage`; no tracks; the fine grid on the fused mesh's range) and
-measures with bench_water's helpers: eta, B_inf and the veil at the views' median range against the truth (relative
-error, 95 % interval covering it), and the physics correction's PSNR, consistency and affine-RMSE
-(:func:`affine_rmse`) beside the oracle's and raw's. Then the diagnosis (:func:`eval.diagnose.run_diagnose` on the
-SfM tracks, the settings of tests/test_diagnose.py, in a process without the plugins so that only the effect library
-is offered): none of the forms is in the library, so any accepted candidate is a false acceptance.
+and dense stages, then the water stage itself (:func:`water_stage`: ``watergan water --workspace WS`` with its
+defaults, :class:`pipeline.water.WaterStage`; no tracks; the fine grid on the fused mesh's range) and measures its
+water.json with bench_water's helpers: eta, B_inf and the veil at the views' median range against the truth
+(relative error, 95 % interval covering it), and the physics correction's PSNR, consistency and affine-RMSE
+(:func:`affine_rmse`) beside the oracle's and raw's. Then the diagnosis stage as ``watergan run`` runs it after the
+water (:func:`pipeline.diagnose.run_diagnose`: the water's stack as its model, its fields over the image and gains per
+frame read by the candidates' checks and the verdict; on the SfM tracks, the settings of tests/test_diagnose.py, in a
+process without the plugins so that only the effect library is offered): none of the forms is in the library, so any
+accepted candidate is a false acceptance.
 
 Writes ``benchmarks/results/forms.json`` (after each draw): per draw the truth and the measurements, and a
 ``summary`` of fractions of the draws (eta within 10 % in every channel, eta covered in every channel, veil within
@@ -255,28 +257,39 @@ def affine_rmse(folder: Path, truth_dir: Path, names: list[str]) -> float:
     return float(np.mean(errors))
 
 
-def estimate(ws_root: Path):
-    """The water of a prepared workspace as bench_water.py estimates it (the water stage's defaults, no tracks, the
-    fine grid on the fused mesh's range) and what the corrections need: (estimate, frames, K, board, tracks, config)."""
-    from eval.water import estimate_water
-    from pipeline.water import WaterStage, fine_grid_frames, survey_lights
+def water_stage(ws_root: Path):
+    """The water stage on a prepared workspace, as ``watergan water --workspace WS`` runs it (its defaults: the SfM
+    scale's spread, no tracks, the fine grid on the fused mesh's range; skipped when done): (its result, its
+    configuration)."""
+    from pipeline.water import WaterStage
+    from pipeline.workspace import Workspace
 
+    config = WaterStage(progress=False)
+    return Workspace(ws_root).run("water", config), config
+
+
+def estimate(ws_root: Path):
+    """The water of a prepared workspace by the water stage (:func:`water_stage`), so that the diagnosis after it
+    sees what a user's does: water.json with its fields over the image and gains per frame, and the stage's
+    measurement table. Returns (water.json's record, its stack, frames, K, board, tracks, the stage's
+    configuration)."""
+    from watergan.formation import Stack
+    from watergan.water_record import read_water
+
+    result, config = water_stage(ws_root)
+    record = read_water(Path(ws_root) / result.water_json)
     frames, K, _, board, tracks = load_inputs(ws_root)
-    sfm = json.loads((stage_folder(ws_root, "sfm") / "result.json").read_text())["result"]
-    config = WaterStage(progress=False, range_scale_sd=float(sfm.get("scale_spread", 0.0)))
-    lights = survey_lights(stage_folder(ws_root, "survey"))
-    water = estimate_water(frames, K, None, board, config, lights=lights,
-                           grid_frames=fine_grid_frames(frames, K, stage_folder(ws_root, "dense") / "fused_mesh.ply",
-                                                        config, lights))
-    return water, frames, K, board, tracks, config
+    return record, Stack.from_config(record.stack), frames, K, board, tracks, config
 
 
 def diagnose(ws_root: Path) -> dict:
-    """The diagnosis on the workspace's SfM tracks (the settings of tests/test_diagnose.py), run in a process of its
-    own where only the library's effects are registered: {"accepted": the best accepted candidate or None,
-    "verdict", "ranking": the first three candidates}."""
+    """The diagnose stage after the water stage (:func:`water_stage`, run first where it has not), on the
+    workspace's SfM tracks (the settings of tests/test_diagnose.py), in a process of its own where only the library's
+    effects are registered: {"accepted": the best accepted candidate or None, "verdict", "ranking": the first three
+    candidates}."""
     from pipeline.workspace import release_workspaces
 
+    water_stage(ws_root)  # a draw measured before the bench ran the water stage (--resume) gets it now
     release_workspaces()  # the stages run here hold the workspace's lock until released
     done = subprocess.run([sys.executable, __file__, "--diagnose-only", str(ws_root)], capture_output=True,
                           text=True, check=False)
@@ -314,13 +327,13 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
     ws_root = prepare(root, draw)
     seconds["prepare"] = time.perf_counter() - t
     t = time.perf_counter()
-    water, frames, K, board, tracks, config = estimate(ws_root)
+    water, stack, frames, K, board, tracks, config = estimate(ws_root)
     seconds["water"] = time.perf_counter() - t
     truth = truth_params(stage_folder(ws_root, "survey"))
     params = compare(water.params, truth)
     params.update(compare_veil(water.veil, truth))
     t = time.perf_counter()
-    corr = correct_folders(ws_root, frames, K, water.stack, ws_root / "forms_bench", config.range_agreement)
+    corr = correct_folders(ws_root, frames, K, stack, ws_root / "forms_bench", config.range_agreement)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
     folders = {"raw": stage_folder(ws_root, "survey") / "images", **corr["folders"]}
