@@ -59,10 +59,10 @@ def decorrelate_fields(stack: Stack, obs: Observations, max_r2: float) -> float:
     return r2
 
 
-def decorrelate_frames(stack: Stack, obs: Observations) -> None:
+def decorrelate_frames(stack: Stack, obs: Observations, off_range: bool = True) -> None:
     """Set the stack's ``frame_gain.orthogonal_to`` (in place, unless given) to orthonormal columns spanning the
-    constant and each frame's mean range over its views (frames without views at the survey's mean), so that the
-    gains per frame have no mean and cannot take what is linear in the frames' ranges (see
+    constant and (``off_range``) each frame's mean range over its views (frames without views at the survey's mean),
+    so that the gains per frame have no mean and cannot take what is linear in the frames' ranges (see
     :mod:`watergan.formation.effects.frame_gain`)."""
     if FRAME_EFFECT not in stack.names:
         return
@@ -73,7 +73,7 @@ def decorrelate_frames(stack: Stack, obs: Observations) -> None:
     views = np.bincount(obs.frame, minlength=n)[:n]
     mean_range = np.bincount(obs.frame, weights=obs.range_m, minlength=n)[:n] / np.maximum(views, 1)
     mean_range[views == 0] = obs.range_m.mean()
-    columns = np.stack([np.ones(n), mean_range - mean_range.mean()], 1)
+    columns = np.stack([np.ones(n), (mean_range - mean_range.mean()) * off_range], 1)
     q, r = np.linalg.qr(columns)
     q[:, np.abs(np.diag(r)) < 1e-9 * np.sqrt(n)] = 0.0  # every frame at one range: the constant alone
     effect.set_values(orthogonal_to=q)

@@ -46,6 +46,10 @@ What pins what (and what does not):
   frame to frame (exposure, white balance, a drifting water), per frame and channel, pinned by the same points seen
   in several frames; kept off the constant (the survey's gain) and off the frames' mean ranges (the water's), so
   eta's level comes from the frames' ranges as without them.
+- a camera that sets its gains from each frame's content makes them follow the frames' mean ranges, which the gains
+  are kept off: ``structure_alternatives`` (by default the gains free of the ranges, ``frame_gain_off_range=False``)
+  refits the water from its start under another structure (:func:`structure_fits`), and each parameter's change
+  counts in its interval as a specification alternative's.
 
 Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, points and board patches resampled,
 each replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a
@@ -147,6 +151,11 @@ class WaterConfig:
     ``FRAME_CARRY_PCT`` (:func:`measure_frame_gains`), so that what the stack lacks along the survey (auto-exposure,
     white balance, a water that drifts) bends it and not the water; not when an effect of the stack already has a
     value per frame. The physics correction inverts it with the stack."""
+    frame_gain_off_range: bool = True
+    """Keep the gains per frame off the frames' mean ranges (:func:`decorrelate_frames`): eta's level then comes
+    from the frames' ranges. False: the gains are free apart from their mean and carried whatever their size, and eta
+    comes from the range differences within the points that frames share (a camera that sets its gains from each
+    frame's content)."""
     correction_grid: tuple[int, int] | None = (13, 17)
     """Nodes (rows x cols, at least 3 x 3) of the fine fields over the image (``image_grid``) fitted after the water
     with every other parameter held, and carried for the corrections where they exceed ``eval.fields.FIELD_FLAT_PCT``
@@ -158,6 +167,11 @@ class WaterConfig:
     """Changes of the fit's configuration (e.g. ``{"board_weight": 1.0}``) under which the fit is repeated.
     Each parameter's largest change widens its interval (in quadrature with the bootstrap). None: board weight / 10
     with a board, else loss scale x 3."""
+    structure_alternatives: tuple[dict, ...] = ({"frame_gain_off_range": False},)
+    """Changes of the model's structure (fields of this configuration) under which the water is fitted again
+    from its start, without bootstrap: each parameter's change counts in its interval as a specification
+    alternative's does. By default the gains per frame free of the frames' ranges (a camera that sets them from
+    each frame's content). Empty: none."""
     range_scale_sd: float = 0.0
     """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``).
     The intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
@@ -334,6 +348,18 @@ def _key(stack: Stack, raw_name: str) -> str:
     return f"{stack.effects[int(raw_name.split('.')[1])].name}.{raw_name.rsplit('.', 1)[1]}"
 
 
+def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | None) -> list[dict]:
+    """{"effect.param": value} of the water fitted under each of ``config.structure_alternatives`` (from its start,
+    no bootstrap, no alternatives of its own, no fine grid)."""
+    fits = []
+    for change in config.structure_alternatives:
+        alone = replace(config, **change, structure_alternatives=(), spec_alternatives=(), correction_grid=None,
+                        fit=replace(config.fit, bootstrap=0))
+        params = fit_observations(obs, alone, lights).params
+        fits.append({key: np.asarray(p["value"], float) for key, p in params.items() if p.get("fitted")})
+    return fits
+
+
 def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                      lights: list[dict] | None = None, grid_obs: Observations | None = None) -> WaterEstimate:
     """Fit the stack to a measurement table, bootstrap it and repeat it under the specification alternatives (see
@@ -360,7 +386,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         gain_names = [n for n in names if stack.effects[int(n.split(".")[1])].name == FRAME_EFFECT]
         names = [n for n in names if n not in gain_names]
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
-        decorrelate_frames(stack, obs)
+        decorrelate_frames(stack, obs, config.frame_gain_off_range)
         start_inside_bounds(stack, names + gain_names)
         problem = Problem(stack, obs, config.fit, names)
         x_start = problem.flat()
@@ -370,7 +396,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         frame_gains = None
         if gain_names:
             frame_gains = measure_frame_gains(problem, gain_names, frames)
-            if frame_gains["carried"]:  # the water again from its start, beside the gains the frames want
+            # the water again from its start, beside the gains the frames want
+            if frame_gains["carried"] or not config.frame_gain_off_range:
                 problem.set_flat(x_start)
                 names += gain_names
                 first = stack_first(stack, obs, config.fit, names)
@@ -382,14 +409,14 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                                        f"under {FRAME_CARRY_PCT:.0f} %): held at 1")
         done, converged = problem.converge()
         iterations += done
-        if frame_gains is not None and frame_gains["carried"]:
+        if gain_names and gain_names[0] in names:
             frame_gains = frame_summary(stack, frames, carried=True)
         problem.refine(config.fit.refine_evaluations)
         x_best, best = problem.flat(), problem.physical()
         t_fit = time.perf_counter() - t0
 
         fast = Problem(stack, obs, config.fit, names, float32=True) if config.fit.float32 else problem
-        inv = inverse_hessian(fast) if names else None
+        inv = inverse_hessian(fast) if names and config.fit.bootstrap else None
         samples = bootstrap(problem, config.fit, fast, inv)
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives
@@ -408,7 +435,6 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         rmse = float(np.sqrt((residual ** 2).mean()))
         for p in stack.parameters():
             p.requires_grad_(False)
-        t_spec = time.perf_counter() - t0 - t_fit - t_boot
         mean_signal = obs.colour.mean(0)
         named = {_key(stack, k): v for k, v in best.items()}
         named_samples = [{_key(stack, k): v for k, v in s.items()} for s in samples]
@@ -424,9 +450,14 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             spec_fits.append(centred)
             alternatives = (*alternatives, {"image_field.additive_level": 0.0})
             fields = field_summary(stack, range_r2, mean_signal)
+        structures = structure_fits(obs, config, lights)
+        spec_fits += structures
+        alternatives = (*alternatives, *config.structure_alternatives)
+        t_spec = time.perf_counter() - t0 - t_fit - t_boot
         corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config, range_r2)
-        spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits], 0) for key, value in named.items()} \
-            if spec_fits else {}
+        spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits
+                             if np.shape(fit.get(key)) == np.shape(value)], 0, initial=0.0)
+                for key, value in named.items()}
         params, tradeoffs = describe_intervals(stack, named, named_samples, fixed, spec, config.range_scale_sd)
         veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred)
         cover_the_valley(params, veil)

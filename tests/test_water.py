@@ -15,7 +15,7 @@ from eval.fields import fit_correction_grid
 from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
 from eval.fit import FitConfig
 from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
-from eval.water import estimate_water
+from eval.water import build_stack, estimate_water
 from pipeline.stages import STAGES
 from pipeline.water import WaterStage
 from watergan.formation import FormationState, Stack, pixel_grid
@@ -754,13 +754,44 @@ def test_gains_per_frame_keep_the_water_when_the_exposure_changes(survey):
     assert held.frames["carried"] and not held.frames["flat"] and bent.frames is None
 
 
+@pytest.mark.slow
+def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(survey):
+    """A camera that sets its exposure from what it sees brightens the frames flown higher: the gains follow the
+    frames' mean ranges, which the gains per frame are kept off, so eta is bent (by more than 10 % in a channel).
+    The structure alternative with the gains free of the ranges (``structure_alternatives``'s default) leaves the
+    estimate where it was and widens eta's interval to the truth; without it the interval misses the truth."""
+    from dataclasses import replace
+
+    from eval.fields import decorrelate_frames
+
+    truth = np.array([0.45, 0.14, 0.2])
+    frames, board = survey
+    altitude = np.array([1.8 + 1.4 * ((k * 5) % 12) / 11 for k in range(12)])  # make_survey's
+    log_gain = 0.2 * (altitude - altitude.mean())
+    exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
+               for f, g in zip(frames, log_gain, strict=True)]
+    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100)
+    alone = estimate_water(exposed, K, board=board, config=water_config(config, structure_alternatives=()))
+    widened = estimate_water(exposed, K, board=board, config=config)
+    eta, low, high = (np.asarray(alone.params["attenuation.eta_per_m"][k]) for k in ("value", "low", "high"))
+    assert np.abs(eta / truth - 1).max() > 0.1 and not ((low <= truth) & (truth <= high)).all()
+    wide = widened.params["attenuation.eta_per_m"]
+    np.testing.assert_allclose(wide["value"], eta, rtol=1e-6)
+    assert ((np.asarray(wide["low"]) <= truth) & (truth <= np.asarray(wide["high"]))).all()
+    assert {"frame_gain_off_range": False} in widened.alternatives
+    stack = build_stack(config, len(frames))
+    decorrelate_frames(stack, widened.observations, off_range=False)
+    q = stack["frame_gain"].param("orthogonal_to").numpy()
+    np.testing.assert_allclose(q[:, 0], 1 / np.sqrt(len(frames)), rtol=1e-9)
+    assert not q[:, 1].any()
+
+
 def test_the_hessian_perturbs_the_three_channels_of_a_parameter_together(survey):
     """The loss is a sum over the colour channels, so perturbing the three channels of eta, B_inf, the fields and
     the gains per frame together gives the Hessian that perturbing each entry gives (to the finite differences'
     accuracy) from a third of the gradients; a stack that mixes the channels is differentiated entry by entry."""
     from eval.fields import decorrelate_frames
     from eval.fit import Problem, channels_separate, fitted_names, start_inside_bounds
-    from eval.water import build_stack
     from watergan.formation import RANK_SENSOR, Effect, register
 
     frames, board = survey
