@@ -3,7 +3,8 @@
 A candidate whose fitted values are not physical (:func:`why_implausible`) or whose form on image position is not the
 water's fields' (:func:`form_conflict`) is not accepted; a candidate that flattens the axis of an added effect whose
 form does not fit (:func:`added_form_misfit`) stands in for it (:func:`stand_in`). :func:`verdict_text` writes the
-verdict: the missing effect (or none), the implausible candidates, the structure no candidate explains
+verdict: the missing effect, or the axis whose structure no library effect's form explains
+(:func:`unmatched_form_line`), or none; the implausible candidates, the structure no candidate explains
 (:func:`unexplained_axes`), and the water's fields over the image and gains per frame (water.json's,
 :class:`watergan.water_record.WaterRecord`). :mod:`eval.diagnose` ranks the candidates and calls these.
 """
@@ -114,11 +115,15 @@ SHORT_VALUES = 6
 def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_scores: dict,
                  final_structure: dict | None = None, misfit: str = "", fields: dict | None = None,
                  frames: dict | None = None) -> str:
-    """One line naming the missing effect (or none); a line per candidate that would explain enough but
-    is implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure; a line on the water's
+    """One line naming the missing effect, or the axis where no library effect explains the water's fields over
+    the image (:func:`unmatched_form_line`), or none; a line per candidate that would explain enough but is
+    implausible; ``misfit`` (:func:`added_form_misfit`); a line on unexplained structure; a line on the water's
     ``fields`` over the image (:func:`fields_line`) and one on its gains per frame (:func:`frames_line`)."""
     best = next((r for r in ranking if r.significant), None)
-    if best is not None:
+    unmatched = unmatched_form_line(ranking, fields) if best is None else ""
+    if unmatched:
+        line = unmatched
+    elif best is not None:
         line = (f"missing: {best.name} — held-out error {best.change * 100:+.0f}% "
                 f"(95% CI {best.ci95[0] * 100:+.0f}% to {best.ci95[1] * 100:+.0f}%), {_short_params(best.params)}; "
                 f"flattens the {best.flattened} axis"
@@ -146,6 +151,24 @@ def verdict_text(ranking: list[CandidateResult], unexplained: list[str], final_s
     for extra in (fields_line(fields), frames_line(frames)):
         line += f"\n{extra}" if extra else ""
     return line
+
+
+def unmatched_form_line(ranking: list[CandidateResult], fields: dict | None) -> str:
+    """When no candidate is accepted while the water's fields over the image carry structure (``fields``' form not
+    "flat") and an image-position candidate (one that says how much of them it reproduces) would have cut the
+    held-out error (p < 0.05, change < 0) but was not accepted (its form, its share of the fields, or its values):
+    the headline naming the axis, with the first such candidate; "" otherwise. The structure is real (the fields and
+    the held-out error both say so), but its form is not a library effect's."""
+    if not fields or fields.get("form", "flat") == "flat":
+        return ""
+    turned = next((r for r in ranking if r.fields_explained is not None and r.implausible and r.p < 0.05
+                   and r.change < 0), None)
+    if turned is None:
+        return ""
+    return (f"missing: structure on image position of a form not in the library — the water's fields over the image "
+            f"carry {fields['form']} structure ({field_size(fields)}); the closest library effect, {turned.name}, "
+            f"cuts the held-out error by {-turned.change:.0%} and reproduces {turned.fields_explained:.0%} of them, "
+            f"not accepted (write that form and pass --plugin FILE.py)")
 
 
 def added_form_misfit(added: tuple[str, ...], model_scores: dict, structure: dict, config: DiagnoseConfig) -> str:

@@ -690,6 +690,28 @@ def test_the_verdict_reads_the_water_gains_per_frame():
     assert verdict_text([], [], {}) == "no significant missing effect"
 
 
+def test_the_verdict_names_the_axis_when_no_library_form_reproduces_the_fields():
+    """When the water's fields over the image carry structure and the image-position candidate that cuts the
+    held-out error is not accepted for them, the headline names the axis and a form not in the library, not "no
+    significant missing effect"; flat fields, or an accepted candidate, keep their headlines."""
+    from eval.diagnose import CandidateResult
+
+    fields = {"form": "multiplicative", "multiplicative_pct": [20.0, 31.0, 25.0], "additive_pct": [1.0, 2.0, 1.5]}
+    turned = CandidateResult(name="vignetting_offcentre", heldout_rmse=0.01, change=-0.5, ci95=(-0.6, -0.4), p=0.0,
+                             significant=False, flattened="image_position", flattened_drop=1.0, params={}, scores={},
+                             structure={}, seconds=0.0, implausible="it flattens too little of them",
+                             fields_explained=0.6)
+    headline = verdict_text([turned], [], {}, fields=fields).splitlines()[0]
+    assert headline.startswith("missing: structure on image position of a form not in the library"), headline
+    assert "vignetting_offcentre" in headline and "by 50%" in headline and "60% of them" in headline
+    assert "multiplicative up to 31 %" in headline
+    flat = verdict_text([turned], [], {}, fields={**fields, "form": "flat"})
+    assert flat.startswith("no significant missing effect (best candidate vignetting_offcentre"), flat
+    accepted = replace(turned, significant=True, implausible="")
+    assert verdict_text([accepted], [], {}, fields=fields).startswith("missing: vignetting_offcentre —")
+    assert verdict_text([replace(turned, p=0.2)], [], {}, fields=fields).startswith("no significant missing effect")
+
+
 def test_a_candidate_says_how_much_of_the_water_fields_it_reproduces():
     """What a candidate's fit changes at the views, against the fit without it, is compared with the water's fields
     over the image: the fields themselves reproduce all of them; an off-centre falloff reproduces most of a
