@@ -416,7 +416,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         t_fit = time.perf_counter() - t0
 
         fast = Problem(stack, obs, config.fit, names, float32=True) if config.fit.float32 else problem
-        inv = inverse_hessian(fast) if names and config.fit.bootstrap else None
+        refits = config.fit.bootstrap or config.spec_alternatives != ()  # Newton steps from the full fit
+        inv = inverse_hessian(fast) if names and refits else None
         samples = bootstrap(problem, config.fit, fast, inv)
         t_boot = time.perf_counter() - t0 - t_fit
         alternatives = config.spec_alternatives

@@ -97,7 +97,7 @@ class ImageField(Effect):
               shapes=((3, -1),)),
         Param("additive_level", (0.0, 0.0, 0.0), -0.5, 0.5, "linear", "G's level l per channel, held (a constant G is "
               "the backscatter's veil)", learnable=False),
-        Param("smoothness", 1e-4, 0.0, 1.0, "", "penalty weight lambda of the fit", learnable=False),
+        Param("smoothness", 1e-5, 0.0, 1.0, "", "penalty weight lambda of the fit", learnable=False),
         Param("orthogonal_to", (0.0,) * 5, -1.0, 1.0, "", "unit direction q of the coefficients the fields are kept "
               "off (0: none; a fit sets it to the monomials' covariance with range)", learnable=False,
               shapes=((-1,),)),
