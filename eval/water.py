@@ -348,11 +348,16 @@ def _key(stack: Stack, raw_name: str) -> str:
     return f"{stack.effects[int(raw_name.split('.')[1])].name}.{raw_name.rsplit('.', 1)[1]}"
 
 
-def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | None) -> list[dict]:
-    """{"effect.param": value} of the water fitted under each of ``config.structure_alternatives`` (from its start,
-    no bootstrap, no alternatives of its own, no fine grid)."""
+#: The configuration fields that only matter where the stack carries gains per frame.
+FRAME_SETTINGS = frozenset({"frame_gain", "frame_gain_off_range"})
+
+
+def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | None,
+                   changes: Sequence[dict]) -> list[dict]:
+    """{"effect.param": value} of the water fitted under each of the ``changes`` of ``config`` (from its start, no
+    bootstrap, no alternatives of its own, no fine grid)."""
     fits = []
-    for change in config.structure_alternatives:
+    for change in changes:
         alone = replace(config, **change, structure_alternatives=(), spec_alternatives=(), correction_grid=None,
                         fit=replace(config.fit, bootstrap=0))
         params = fit_observations(obs, alone, lights).params
@@ -451,9 +456,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             spec_fits.append(centred)
             alternatives = (*alternatives, {"image_field.additive_level": 0.0})
             fields = field_summary(stack, range_r2, mean_signal)
-        structures = structure_fits(obs, config, lights)
-        spec_fits += structures
-        alternatives = (*alternatives, *config.structure_alternatives)
+        changes = [c for c in config.structure_alternatives if gain_names or not set(c) <= FRAME_SETTINGS]
+        spec_fits += structure_fits(obs, config, lights, changes)
+        alternatives = (*alternatives, *changes)
         t_spec = time.perf_counter() - t0 - t_fit - t_boot
         corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config, range_r2)
         spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits

@@ -752,6 +752,8 @@ def test_gains_per_frame_keep_the_water_when_the_exposure_changes(survey):
     fitted = np.log(np.asarray(held.frames["gain"]))
     np.testing.assert_allclose(fitted, np.repeat(expected[:, None], 3, 1), atol=0.03)
     assert held.frames["carried"] and not held.frames["flat"] and bent.frames is None
+    assert {"frame_gain_off_range": False} in held.alternatives  # no gains per frame: no fit with them free
+    assert {"frame_gain_off_range": False} not in bent.alternatives
 
 
 @pytest.mark.slow
