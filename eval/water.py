@@ -349,7 +349,7 @@ def _key(stack: Stack, raw_name: str) -> str:
 
 
 #: The configuration fields that only matter where the stack carries gains per frame.
-FRAME_SETTINGS = frozenset({"frame_gain", "frame_gain_off_range"})
+FRAME_SETTINGS = frozenset({"frame_gain_off_range"})
 
 
 def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | None,
