@@ -56,10 +56,21 @@ def errors(water, truth: dict) -> dict:
                   "covered": p[key].get("covered")} for key in ("attenuation.eta_per_m", "veil")}
 
 
-def main(argv: list[str] | None = None) -> int:
+def measured_table(ws: Path):
+    """(the water table of workspace ``ws`` as bench_forms measures it, the water stage's configuration without the
+    fine grid, the declared lights, the survey's true parameters)."""
     from eval.observations import measure_frames
-    from eval.water import fit_observations
     from pipeline.water import WaterStage, survey_lights
+
+    frames, K, _, board, _ = load_inputs(ws)
+    sfm = json.loads((stage_folder(ws, "sfm") / "result.json").read_text())["result"]
+    config = WaterStage(progress=False, range_scale_sd=float(sfm.get("scale_spread", 0.0)), correction_grid=None)
+    obs = measure_frames(frames, K, None, board, config.measure, normals=False)
+    return obs, config, survey_lights(stage_folder(ws, "survey")), truth_params(stage_folder(ws, "survey"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    from eval.water import fit_observations
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="bench_forms.py's workspaces")
@@ -73,13 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = json.loads(args.json.read_text())["draws"] if args.json.is_file() and args.draws else {}
     for i in chosen:
         draw = records[i]["truth"]
-        ws = args.out / draw["workspace"]
-        frames, K, _, board, _ = load_inputs(ws)
-        sfm = json.loads((stage_folder(ws, "sfm") / "result.json").read_text())["result"]
-        config = WaterStage(progress=False, range_scale_sd=float(sfm.get("scale_spread", 0.0)), correction_grid=None)
-        lights = survey_lights(stage_folder(ws, "survey"))
-        obs = measure_frames(frames, K, None, board, config.measure, normals=False)
-        truth = truth_params(stage_folder(ws, "survey"))
+        obs, config, lights, truth = measured_table(args.out / draw["workspace"])
         rows[str(i)] = {"effect": draw["effect"], "stereo": draw["stereo"], "terrain": draw["terrain"]}
         for label, cfg in (("default", config), ("exact_form", exact_form(config, draw["effect"], truth))):
             rows[str(i)][label] = errors(fit_observations(obs, cfg, lights), truth)
