@@ -14,7 +14,8 @@ What it measures, with the keys of ``benchmarks/results/real.json``:
 - SfM: ``registered`` of ``frames``, ``reprojection_px``; the self-calibration (model, focal length, lens) and
   ``focal_halves_pct`` (each half of the survey bundle-adjusted alone: :func:`pipeline.calibrate.self_calibrate`);
 - scale: the track's similarity (scale, spread, residual) and ``scale_heldout_pct`` (the first half of the
-  positions against the second: :func:`pipeline.scale.track_halves`);
+  positions against the second: :func:`pipeline.scale.track_halves`); ``scale_height_halves_pct``: the same check
+  read from the model's camera heights over the floor (:func:`model_height_halves`), which the track does not enter;
 - the water with its intervals (``water``);
 - per method (raw, physics, restorer, gray world, Sea-thru): Table II's ``consistency`` (R, G, B: variance of
   normalised colour across each 3D point's views), and the tile test: the floor is one tile colour near and far,
@@ -135,6 +136,19 @@ def method_folders(ws) -> dict[str, Path]:
     return {m: f for m, f in folders.items() if f.is_dir()}
 
 
+def model_height_halves(ws) -> dict:
+    """The crawler's camera rides at a constant height over the floor: :func:`pipeline.scale.height_halves` of the
+    model's camera heights over its floor plane, the model's own scale drift between the halves, read without the
+    track."""
+    from eval.tracks import Tracks
+    from pipeline.scale import floor_plane, height_halves
+
+    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
+    centres = tracks.world_from_cam[tracks.registered, :3, 3]
+    n, d = floor_plane(tracks.xyz, centres)
+    return height_halves(centres @ n - d)
+
+
 def collect(ws, run_summary: dict) -> dict:
     """Everything real.json holds (see the module docstring) from a finished workspace."""
     from watergan.io import read_scene_mask
@@ -152,6 +166,7 @@ def collect(ws, run_summary: dict) -> dict:
         "scale": {"method": sfm.scale_method, "factor": sfm.scale_factor, "spread": sfm.scale_spread,
                   **sfm.scale_detail},
         "scale_heldout_pct": sfm.scale_detail.get("halves", {}).get("heldout_pct"),
+        "scale_height_halves_pct": model_height_halves(ws)["heldout_pct"],
         "sfm_lens_k1": sfm.lens_k1,
     }
     water = ws.result("water")

@@ -198,9 +198,16 @@ def camera_and_scale_lines(survey, sfm) -> list[str]:
         elif sfm.scale_method == "track":
             detail = sfm.scale_detail
             halves = detail.get("halves", {})
-            lines.append(f"Scale: from the position track ({detail['kept']} of {detail['used']} frames, "
+            steps = (f"its straight steps: its errors accumulate, Durbin-Watson {detail['durbin_watson']:.2f}; "
+                     if detail.get("estimator") == "steps" else "")
+            lines.append(f"Scale: from the position track ({steps}{detail['kept']} of {detail['used']} frames, "
                          f"residual {detail['residual_m']:.3f} m, spread "
                          f"{100 * sfm.scale_spread:.1f} %"
+                         + (f"; the two halves' scales differ by {halves['heldout_pct']:.1f} %" if halves else "")
+                         + ").")
+        elif sfm.scale_method == "height":
+            halves = sfm.scale_detail.get("halves", {})
+            lines.append(f"Scale: from the camera's height over the floor (spread {100 * sfm.scale_spread:.1f} %"
                          + (f"; the two halves' scales differ by {halves['heldout_pct']:.1f} %" if halves else "")
                          + ").")
     return lines

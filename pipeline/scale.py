@@ -16,11 +16,21 @@ robust standard deviations (a position glitch, a frame SfM placed wrongly). With
 centres are first taken in the plane of their two principal directions (a vehicle at a constant height; a straight
 track leaves one of them noise, which the similarity ignores). The spread is the median absolute deviation over the
 median of the per-pair ratios |P_i - P_j| / |C_i - C_j| (pairs at least a tenth of the track's extent apart); the
-held-out check fits the first half of the frames (in time order) and reads the second half's scale on its own.
+held-out check fits the first half of the frames (in the frames' order, time for a survey's names) and reads the
+second half's scale on its own.
+
+A dead-reckoned track (wheel odometry, a DVL's integrated velocity, a log that advances one step per frame across a
+gap in the recording) errs by a walk: its error accumulates, so the similarity's residuals r_i follow each other
+(the Durbin-Watson statistic DW = sum |r_i+1 - r_i|^2 / sum |r_i|^2 is near 2 for white errors and near 0 for a
+walk), and one bad step shifts every later position and bends the similarity's scale. Where DW < ``DEAD_RECKONED_DW``
+the scale is read from the steps, whose errors are independent: s = median |P_i+1 - P_i| / |C_i+1 - C_i| over the
+steps that go straight (the track turns by less than ``STRAIGHT_DEG`` on either side: in a turn a camera away from
+the logged point sweeps an arc the point does not) and move (at least ``MOVE_FRACTION`` of the median step), spread
+= their MAD / median; the similarity still gives the orientation, the mirror and the residual.
 
 Height (``camera_height_m``: crawlers, ROVs on skids, a diver's frame): the floor is the plane through the most
 sparse points with every camera on one side (RANSAC), h_i the cameras' distances to it, s = camera_height_m /
-median(h_i), spread = MAD(h) / median(h).
+median(h_i), spread = MAD(h) / median(h); the held-out check reads each half's heights on their own.
 """
 
 from __future__ import annotations
@@ -39,6 +49,15 @@ TRIM_ROUNDS, TRIM_MAD = 3, 3.0
 #: The frames the first fit starts from: those whose median distance ratio to the others is within this fraction of
 #: the median over all pairs (a glitch's ratios are all off).
 START_TOLERANCE = 0.25
+#: The Durbin-Watson statistic of the positions fit's residuals (consecutive frames) below which the track is read as
+#: dead-reckoned, its errors accumulating from step to step (white errors give about 2), and its scale taken from its
+#: steps.
+DEAD_RECKONED_DW = 1.0
+#: A step counts as straight when the track turns by less than this (degrees) from the step before and to the step
+#: after it, and as a move when it is at least this fraction of the track's median step.
+STRAIGHT_DEG, MOVE_FRACTION = 10.0, 0.5
+#: Straight moving steps the steps' scale needs (fewer: the positions fit's).
+MIN_STEPS = 8
 
 
 def similarity_align(src: np.ndarray, dst: np.ndarray, reflection: bool = False
@@ -72,6 +91,11 @@ class TrackFit:
     """Registered frames with a position."""
     mirrored: bool
     """Whether the positions' axes are a mirror image of the reconstruction's (a log's x, y seen from below)."""
+    estimator: str
+    """"positions" (the similarity's scale) or "steps" (the median ratio of the straight steps: a dead-reckoned
+    track, :func:`step_scale`)."""
+    durbin_watson: float
+    """The Durbin-Watson statistic of the positions fit's residuals over consecutive kept frames."""
 
 
 def _in_plane(centres: np.ndarray, dims: int) -> np.ndarray:
@@ -82,8 +106,28 @@ def _in_plane(centres: np.ndarray, dims: int) -> np.ndarray:
     return (centres - centres.mean(0)) @ vt[:dims].T
 
 
-def fit_track(centres: np.ndarray, positions: np.ndarray) -> TrackFit:
-    """The robust similarity of the module docstring between camera centres (N,3) and positions (N,2|3)."""
+def step_scale(src: np.ndarray, positions: np.ndarray) -> tuple[float, float, int]:
+    """(median, MAD / median, count) of |P_i+1 - P_i| / |C_i+1 - C_i| over the straight moving steps between
+    consecutive frames (``STRAIGHT_DEG``, ``MOVE_FRACTION``; ``src``: the centres as the fit takes them); count 0 and
+    NaNs when there are fewer than ``MIN_STEPS``."""
+    d_pos, d_src = np.diff(positions, axis=0), np.diff(src, axis=0)
+    length = np.linalg.norm(d_pos, axis=1)
+    unit = d_pos / np.maximum(length, 1e-12)[:, None]
+    turn = np.degrees(np.arccos(np.clip((unit[1:] * unit[:-1]).sum(1), -1.0, 1.0)))
+    turn = np.maximum(np.r_[0.0, turn], np.r_[turn, 0.0])
+    moved = np.linalg.norm(d_src, axis=1) > 0
+    ok = (turn < STRAIGHT_DEG) & (length >= MOVE_FRACTION * np.median(length)) & moved
+    if ok.sum() < MIN_STEPS:
+        return float("nan"), float("nan"), 0
+    ratios = length[ok] / np.linalg.norm(d_src[ok], axis=1)
+    median = float(np.median(ratios))
+    return median, float(np.median(np.abs(ratios - median)) / median), int(ok.sum())
+
+
+def fit_track(centres: np.ndarray, positions: np.ndarray, estimator: str | None = None) -> TrackFit:
+    """The robust similarity of the module docstring between camera centres (N,3) and positions (N,2|3), in time
+    order; its scale from the positions or, for a dead-reckoned track, from the steps (``estimator``: None chooses
+    by the residuals' Durbin-Watson statistic, ``DEAD_RECKONED_DW``)."""
     positions = np.asarray(positions, float)
     if len(positions) < 5:
         raise UserInputError(f"only {len(positions)} registered frames have a position: the track scale needs 5")
@@ -105,22 +149,33 @@ def fit_track(centres: np.ndarray, positions: np.ndarray) -> TrackFit:
             break
         keep = new
     s, R, t = similarity_align(src[keep], positions[keep], reflection=True)
-    residual = np.linalg.norm(src[keep] @ (s * R).T + t - positions[keep], axis=1)
+    offsets = src[keep] @ (s * R).T + t - positions[keep]
+    residual = np.linalg.norm(offsets, axis=1)
+    durbin_watson = float(np.sum(np.diff(offsets, axis=0) ** 2) / max(np.sum(offsets**2), 1e-300))
     i, j = np.triu_indices(int(keep.sum()), 1)
     d_pos = np.linalg.norm(positions[keep][i] - positions[keep][j], axis=1)
     d_sfm = np.linalg.norm(src[keep][i] - src[keep][j], axis=1)
     far = (d_pos >= 0.1 * d_pos.max()) & (d_sfm > 0)
     ratios = d_pos[far] / d_sfm[far]
     spread = float(np.median(np.abs(ratios - np.median(ratios))) / np.median(ratios)) if far.any() else float("nan")
+    chosen = estimator or ("steps" if durbin_watson < DEAD_RECKONED_DW else "positions")
+    if chosen == "steps":
+        step, step_spread, count = step_scale(src, positions)
+        if count:
+            s, spread = step, step_spread
+        else:
+            chosen = "positions"
     return TrackFit(scale=float(s), spread=spread, residual_m=float(np.sqrt(np.mean(residual**2))),
-                    kept=int(keep.sum()), used=len(src), mirrored=bool(np.linalg.det(R) < 0))
+                    kept=int(keep.sum()), used=len(src), mirrored=bool(np.linalg.det(R) < 0), estimator=chosen,
+                    durbin_watson=durbin_watson)
 
 
-def track_halves(centres: np.ndarray, positions: np.ndarray) -> dict:
-    """The held-out check: the similarity fitted on the first half of the frames (time order) and on the second
-    alone; ``heldout_pct`` = 100 |s_first / s_second - 1|."""
+def track_halves(centres: np.ndarray, positions: np.ndarray, estimator: str | None = None) -> dict:
+    """The held-out check: the track's scale fitted on the first half of the frames (time order) and on the second
+    alone, by ``estimator`` (the whole track's: :func:`fit_track`); ``heldout_pct`` = 100 |s_first / s_second - 1|."""
     half = len(positions) // 2
-    first, second = fit_track(centres[:half], positions[:half]), fit_track(centres[half:], positions[half:])
+    first, second = (fit_track(centres[part], positions[part], estimator)
+                     for part in (slice(0, half), slice(half, None)))
     return {"first": round(first.scale, 6), "second": round(second.scale, 6),
             "heldout_pct": round(100 * abs(first.scale / second.scale - 1), 2)}
 
@@ -159,12 +214,25 @@ def floor_plane(points: np.ndarray, centres: np.ndarray, iterations: int = 500, 
     return refined, float(refined @ centre)
 
 
-def height_scale(points: np.ndarray, centres: np.ndarray, camera_height_m: float) -> tuple[float, float]:
-    """(s, spread) from a camera at a known height over a floor (see the module docstring)."""
+def height_scale(points: np.ndarray, centres: np.ndarray, camera_height_m: float) -> tuple[float, float, dict]:
+    """(s, spread, detail) from a camera at a known height over a floor (see the module docstring); detail: its
+    halves (:func:`height_halves`)."""
     n, d = floor_plane(points, centres)
     heights = centres @ n - d
     median = float(np.median(heights))
-    return camera_height_m / median, float(np.median(np.abs(heights - median)) / median)
+    detail = {"halves": height_halves(heights, camera_height_m)} if len(heights) >= 10 else {}
+    return camera_height_m / median, float(np.median(np.abs(heights - median)) / median), detail
+
+
+def height_halves(heights: np.ndarray, camera_height_m: float = 1.0) -> dict:
+    """The held-out check of a camera riding at a constant height: the scale camera_height_m / median(h) of the first
+    half of the frames (time order) and of the second, from the cameras' heights ``heights`` over the floor (model
+    units); ``heldout_pct`` = 100 |s_first / s_second - 1|. The model's own scale drift between the halves, whatever
+    gave the model its scale."""
+    half = len(heights) // 2
+    first, second = (camera_height_m / float(np.median(h)) for h in (heights[:half], heights[half:]))
+    return {"first": round(first, 6), "second": round(second, 6),
+            "heldout_pct": round(100 * abs(first / second - 1), 2)}
 
 
 def survey_frame(points: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -324,7 +392,8 @@ def track_scale(tracks: Tracks, survey: dict, survey_path: Path) -> tuple[float,
     centres = tracks.world_from_cam[index, :3, 3]
     xy = np.array([positions[str(tracks.image_names[k])] for k in index], float)
     fit = fit_track(centres, xy)
-    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept, "mirrored": fit.mirrored}
+    detail = {"residual_m": round(fit.residual_m, 4), "used": fit.used, "kept": fit.kept, "mirrored": fit.mirrored,
+              "estimator": fit.estimator, "durbin_watson": round(fit.durbin_watson, 3)}
     if len(index) >= 10:
-        detail["halves"] = track_halves(centres, xy)
+        detail["halves"] = track_halves(centres, xy, fit.estimator)
     return fit.scale, fit.spread, detail

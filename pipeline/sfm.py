@@ -181,7 +181,7 @@ class SfmResult:
     """Wall time of each step: "features", "matching", "mapping", "survey_frame" (scale and tracks) and "writing"."""
     scale_detail: dict = field(default_factory=dict)
     """The track scale's residual (m), frames used and kept, and its halves (:func:`pipeline.scale.track_halves`);
-    empty for the other sources."""
+    the camera height's halves (:func:`pipeline.scale.height_halves`); empty for the other sources."""
     still_features: dict = field(default_factory=dict)
     """Features that stay still while the scene moves, without a scene mask (:func:`pipeline.overlay.still_features`:
     the box to mask, the matches, the moving pairs); empty: none."""
@@ -575,7 +575,7 @@ def _choose_scale(cfg: SfmConfig, tracks: Tracks, images_dir: Path, cam: dict | 
         elif method == "height":
             if "camera_height_m" in survey:
                 centres = tracks.world_from_cam[tracks.registered, :3, 3]
-                return ("height", *height_scale(points, centres, float(survey["camera_height_m"])), {})
+                return ("height", *height_scale(points, centres, float(survey["camera_height_m"])))
             if cfg.scale == "height":
                 raise UserInputError(f"height scale needs camera_height_m (the camera's height over the floor, "
                                      f"metres) in {survey_path}")

@@ -519,3 +519,18 @@ def test_the_first_screen_says_what_the_survey_cannot_pin():
     assert "b_inf in G/B" in note and "eta" not in note and "0.031 / 0.033 / 0.035 at 1.2 m" in note
     params["backscatter.b_inf"]["high"] = [0.3, 0.99, 0.99]
     assert unpinned_note(params, veil) == ""
+
+
+def test_the_first_screen_says_where_the_scale_came_from_and_how_its_halves_agree():
+    from types import SimpleNamespace
+
+    from pipeline.report import camera_and_scale_lines
+
+    track = SimpleNamespace(scale_method="track", scale_spread=0.048, scale_detail={
+        "kept": 76, "used": 80, "residual_m": 0.074, "estimator": "steps", "durbin_watson": 0.115,
+        "halves": {"first": 1.15, "second": 1.22, "heldout_pct": 5.45}})
+    (line,) = camera_and_scale_lines(None, track)
+    assert "straight steps" in line and "Durbin-Watson 0.12" in line and "differ by 5.5 %" in line
+    height = SimpleNamespace(scale_method="height", scale_spread=0.02, scale_detail={"halves": {"heldout_pct": 3.1}})
+    (line,) = camera_and_scale_lines(None, height)
+    assert "camera's height over the floor" in line and "differ by 3.1 %" in line

@@ -220,8 +220,19 @@ def test_track_scale_recovers_the_positions_scale_despite_a_glitch(sfm, tmp_path
     assert "residual" in result.summary()
     tracks = Tracks.load(ws.path(record.tracks))
     altitude = float(np.median(json.loads((survey / "survey.json").read_text())["nav_altitude_m"]))
-    s, spread = height_scale(tracks.xyz / 3.7, tracks.world_from_cam[:, :3, 3] / 3.7, altitude)
+    s, spread, detail = height_scale(tracks.xyz / 3.7, tracks.world_from_cam[:, :3, 3] / 3.7, altitude)
     assert s == pytest.approx(3.7, rel=0.1) and spread < 0.1
+    assert detail["halves"]["first"] == pytest.approx(3.7, rel=0.1) and detail["halves"]["heldout_pct"] < 10
+
+
+def test_the_height_halves_read_a_models_scale_drift():
+    """A model whose second half is 5 % smaller (its camera 5 % lower over the floor) gives halves 5.3 % apart."""
+    from pipeline.scale import height_halves
+
+    heights = np.r_[np.full(20, 0.30), np.full(20, 0.285)] * (1 + 0.01 * np.sin(np.arange(40)))
+    halves = height_halves(heights, camera_height_m=0.3)
+    assert halves["first"] == pytest.approx(1.0, rel=0.01)
+    assert halves["heldout_pct"] == pytest.approx(100 * (1 / 0.95 - 1), abs=1.0)
 
 
 def test_an_unscaled_model_has_the_median_depth_as_its_unit(sfm, tmp_path):
@@ -263,6 +274,49 @@ def test_similarity_align_recovers_a_known_transform():
     R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     s, R_est, t = similarity_align(src, 2.5 * src @ R.T + [1, 2, 3])
     assert s == pytest.approx(2.5) and np.allclose(R_est, R) and np.allclose(t, [1, 2, 3])
+
+
+def _lawnmower_centres(rng: np.random.Generator) -> np.ndarray:
+    """60 camera centres (model units) along three 2-unit legs joined by turns, at a constant height, with the
+    model's noise."""
+    legs = [np.c_[np.linspace(0, 2, 20), np.full(20, y)] for y in (0.0, 0.6, 1.2)]
+    legs[1] = legs[1][::-1]
+    plane = np.concatenate(legs)
+    return np.c_[plane, np.full(len(plane), 1.5)] + rng.normal(0, 0.003, (len(plane), 3))
+
+
+def test_a_dead_reckoned_track_takes_its_scale_from_its_straight_steps():
+    """A log whose errors accumulate (an odometer's walk, and two gaps in the recording across which it advances one
+    ordinary step while the camera moves three: three gaps
+    on the first leg) bends the positions' similarity; its residuals follow each other, so
+    the scale is read from the straight steps, within 3 % of the truth, as are both halves'."""
+    from pipeline.scale import fit_track, track_halves
+
+    rng = np.random.default_rng(3)
+    centres = _lawnmower_centres(rng)
+    truth = centres[:, :2] * 0.4
+    steps = np.diff(truth, axis=0) * (1 + rng.normal(0, 0.02, (len(truth) - 1, 1)))
+    steps[[4, 8, 12]] /= 3.0
+    logged = np.concatenate([truth[:1], truth[0] + np.cumsum(steps, axis=0)])
+    fit = fit_track(centres, logged)
+    assert fit.estimator == "steps" and fit.durbin_watson < 1.0
+    assert fit.scale == pytest.approx(0.4, rel=0.03)
+    halves = track_halves(centres, logged, fit.estimator)
+    assert halves["first"] == pytest.approx(0.4, rel=0.03) and halves["second"] == pytest.approx(0.4, rel=0.03)
+    assert track_halves(centres, logged, "positions")["heldout_pct"] > 5  # what the similarity alone would say
+
+
+def test_a_track_with_white_errors_keeps_the_positions_scale():
+    """Positions with independent errors (a USBL fix per frame, 2 cm) keep the similarity's scale, which averages
+    them, not the steps', which they would bias."""
+    from pipeline.scale import fit_track
+
+    rng = np.random.default_rng(4)
+    centres = _lawnmower_centres(rng)
+    logged = centres[:, :2] * 0.4 + rng.normal(0, 0.02, (len(centres), 2))
+    fit = fit_track(centres, logged)
+    assert fit.estimator == "positions" and fit.durbin_watson > 1.0
+    assert fit.scale == pytest.approx(0.4, rel=0.01)
 
 
 def test_too_few_registered_images_is_a_clear_error(tmp_path):
