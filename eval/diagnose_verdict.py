@@ -56,8 +56,9 @@ def why_implausible(name: str, params: dict) -> str:
 def form_conflict(name: str, form: str, fields: dict | None) -> str:
     """Why candidate ``name`` of this ``form`` (:func:`effect_form`) does not fit the water's fields over the image
     (``fields``: water.json's, :func:`eval.fields.field_summary`), "" when it does or there is nothing to compare:
-    an image-position candidate must have the fields' form (multiplicative or additive) to explain them."""
-    if not fields or get(name).axis != "image_position" or fields.get("form") not in ("multiplicative", "additive"):
+    a candidate that would explain them (one on image position, or one whose fit flattens that axis: the caller
+    decides) must have the fields' form (multiplicative or additive)."""
+    if not fields or fields.get("form") not in ("multiplicative", "additive"):
         return ""
     if form in (fields["form"], "both"):
         return ""

@@ -55,7 +55,8 @@ Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, p
 each replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a
 bias that every subset shares, so the fit is repeated under ``spec_alternatives`` (by default the board weighted 10x
 less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each
-parameter's largest change is added in quadrature: interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2 [+ (1.96
+parameter's largest change is added in quadrature (each alternative's own change is kept beside it,
+``specification_by``): interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2 [+ (1.96
 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
 (:func:`eval.intervals.on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not
 pin it. Pairs of parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs
@@ -465,6 +466,12 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              if np.shape(fit.get(key)) == np.shape(value)], 0, initial=0.0)
                 for key, value in named.items()}
         params, tradeoffs = describe_intervals(stack, named, named_samples, fixed, spec, config.range_scale_sd)
+        for key, value in named.items():  # each alternative's own change, for the report's words on trust
+            if "specification" in params[key]:
+                params[key]["specification_by"] = {
+                    json.dumps(dict(change), sort_keys=True): np.round(np.abs(fit[key] - value), 6).tolist()
+                    for change, fit in zip(alternatives, spec_fits, strict=True)
+                    if np.shape(fit.get(key)) == np.shape(value)}
         veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred)
         cover_the_valley(params, veil)
         return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,

@@ -182,6 +182,40 @@ def unpinned_note(params: dict, veil: dict | None) -> str:
             f"the water's attenuation length, to separate them from what they trade with.{pinned}")
 
 
+#: A specification alternative moves eta "more than the noise" when its change exceeds this many times the
+#: bootstrap's 95 % half-width in some channel.
+STRUCTURE_OVER_NOISE = 2.0
+#: The specification alternatives in words, by the setting they change.
+ALTERNATIVE_WORDS = {
+    "frame_gain_off_range": "the gains per frame free to follow the frames' ranges (a camera's auto exposure or "
+                            "white balance)",
+    "board_weight": "the board weighted less",
+    "loss_scale": "a wider robust loss",
+    "image_field.additive_level": "the light fixed in the image left in the veil",
+}
+
+
+def structure_note(params: dict) -> str:
+    """How far to trust the water's attenuation where the survey's structure, not its noise, sets its interval: the
+    specification alternative (water.json's ``specification_by``) that moves eta most, when its change exceeds
+    ``STRUCTURE_OVER_NOISE`` times the bootstrap's 95 % half-width in some channel; "" otherwise."""
+    entry = params.get("attenuation.eta_per_m", {})
+    by = entry.get("specification_by") or {}
+    if not by or "std" not in entry:
+        return ""
+    value = np.maximum(np.abs(np.asarray(entry["value"], float)), 1e-9)
+    noise = 1.96 * np.asarray(entry["std"], float)
+    label, change = max(((k, np.asarray(v, float)) for k, v in by.items()), key=lambda kv: float((kv[1] / value).max()))
+    if not (change > STRUCTURE_OVER_NOISE * noise).any():
+        return ""
+    words = "; ".join(ALTERNATIVE_WORDS.get(key, f"{key} = {v}") for key, v in json.loads(label).items())
+    pct = " / ".join(f"{100 * c:.0f}" for c in change / value)
+    return (f" Its attenuation is set by the model's structure more than by the survey's noise: with {words}, eta "
+            f"moves by {pct} % (R / G / B), against +- {' / '.join(f'{100 * n:.0f}' for n in noise / value)} % from "
+            f"resampling; its intervals include that change, and a survey with more range within each frame (relief, "
+            f"a tilted view) pins it.")
+
+
 def camera_and_scale_lines(survey, sfm) -> list[str]:
     """The first screen's lines on a camera calibrated on the survey and on where the scale came from (or that there is
     none: everything in SfM units)."""
@@ -235,7 +269,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         trust = ("its intervals are 95 %" if not water.at_bounds else
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
         lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}."
-                     + unpinned_note(record.params, record.veil))
+                     + unpinned_note(record.params, record.veil) + structure_note(record.params))
         fields = record.fields
         if fields:
             size = field_size(fields)

@@ -675,7 +675,8 @@ def test_a_candidate_of_another_form_than_the_fields_is_not_accepted():
     assert "multiplicative while the water's fields over the image carry additive" in reason and "6.1 %" in reason
     assert form_conflict("vignetting_offcentre", "multiplicative", {**additive, "form": "multiplicative"}) == ""
     assert form_conflict("vignetting_offcentre", "multiplicative", None) == ""
-    assert form_conflict("backscatter", "additive", {**additive, "form": "multiplicative"}) == ""  # not image axis
+    assert form_conflict("artificial_light", "both", additive) == ""  # a form that has the fields' part
+    assert "multiplicative while" in form_conflict("artificial_light", "multiplicative", additive)
 
 
 def test_the_verdict_reads_the_water_gains_per_frame():

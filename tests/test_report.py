@@ -534,3 +534,16 @@ def test_the_first_screen_says_where_the_scale_came_from_and_how_its_halves_agre
     height = SimpleNamespace(scale_method="height", scale_spread=0.02, scale_detail={"halves": {"heldout_pct": 3.1}})
     (line,) = camera_and_scale_lines(None, height)
     assert "camera's height over the floor" in line and "differ by 3.1 %" in line
+
+
+def test_the_first_screen_says_when_the_models_structure_sets_the_attenuation():
+    from pipeline.report import structure_note
+
+    eta = {"value": [0.38, 0.068, 0.146], "std": [0.0087, 0.0089, 0.0103],
+           "specification_by": {'{"board_weight": 1.0}': [0.002, 0.001, 0.003],
+                                '{"frame_gain_off_range": false}': [0.0375, 0.108, 0.0836]}}
+    note = structure_note({"attenuation.eta_per_m": eta})
+    assert "auto exposure or white balance" in note and "10 / 159 / 57 %" in note and "4 / 26 / 14 %" in note
+    quiet = dict(eta, specification_by={'{"board_weight": 1.0}': [0.002, 0.001, 0.003]})
+    assert structure_note({"attenuation.eta_per_m": quiet}) == ""
+    assert structure_note({"attenuation.eta_per_m": {"value": [0.4] * 3}}) == ""  # an older water.json

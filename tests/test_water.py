@@ -784,6 +784,9 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     assert ((wide_low <= truth) & (truth <= wide_high))[1:].all()
     assert wide_high[0] - high[0] > 0.2 * (truth[0] - high[0]) > 0
     assert {"frame_gain_off_range": False} in widened.alternatives
+    by = wide["specification_by"]  # each alternative's change; the interval's is the largest
+    np.testing.assert_allclose(np.max(list(by.values()), 0), wide["specification"], atol=2e-6)
+    assert max(by, key=lambda k: max(by[k])) == '{"frame_gain_off_range": false}'
     stack = build_stack(config, len(frames))
     decorrelate_frames(stack, widened.observations, off_range=False)
     q = stack["frame_gain"].param("orthogonal_to").numpy()

@@ -28,7 +28,8 @@ class WaterRecord:
 
     stack:     the fitted formation stack, {name, params} entries (:meth:`watergan.formation.Stack.to_config`).
     params:    {"effect.param": {"value", "units", "fitted", "pinned_by"; fitted ones also "low", "high", "std",
-               "specification", "on_bound", "p2_5", "p97_5"}}: the 95 % intervals (:class:`eval.water.WaterEstimate`).
+               "specification", "specification_by" (each alternative, as JSON, with its change), "on_bound", "p2_5",
+               "p97_5"}}: the 95 % intervals (:class:`eval.water.WaterEstimate`).
     fixed:     effects held at their values and why; ``held``: {"effect.param": why} held inside fitted effects.
     tradeoffs: [a, b, correlation] parameter components whose bootstrap |correlation| exceeds 0.95.
     n_points, n_observations, n_board, n_frames: sizes of the measurement table; ``rmse``: RMS residual of the
