@@ -457,8 +457,9 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
     """Refit with each candidate added; sorted by held-out change (best first), the image-position candidates among
     their places by how much of the water's fields they reproduce (:func:`order_by_fields`). ``fields``: the water's
     fields over the image; a candidate on image position, or one whose fit flattens that axis most (a light's
-    spot), of another form (:func:`form_conflict`), or one that reproduces less than ``FIELDS_EXPLAINED_MIN`` of
-    structured fields, is not accepted. ``fitted_fields``: the
+    spot), of another form (:func:`form_conflict`), or an image-position one that reproduces less than
+    ``FIELDS_EXPLAINED_MIN`` of structured fields, is not accepted (a light's share of them is no measure: its
+    pattern moves with the range and the surface). ``fitted_fields``: the
     fields themselves (:func:`water_field`; ``stack`` is then the water's without them): each image-position
     candidate says how much of them its fit reproduces (:func:`fields_explained`)."""
     results = []
@@ -480,7 +481,7 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         if not implausible and fields and on_image:
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
         explained = (fields_explained(fit.stack, stack, fitted_fields, probe)
-                     if fitted_fields is not None and on_image else None)
+                     if fitted_fields is not None and get(name).axis == "image_position" else None)
         if not implausible and structured and explained is not None and explained < FIELDS_EXPLAINED_MIN:
             implausible = (f"it flattens too little of them (under {FIELDS_EXPLAINED_MIN:.0%}): the structure on "
                            f"image position has another form than {name}'s")
