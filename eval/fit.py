@@ -567,7 +567,7 @@ def predict(stack: Stack, obs: Observations, rows: np.ndarray, albedo: np.ndarra
         return _render(stack, observation_state(obs, rows), torch.from_numpy(albedo[obs.point[rows]])).numpy()
 
 
-def _albedos(problem: Problem, init: np.ndarray | None) -> torch.Tensor:
+def fit_albedos(problem: Problem, init: np.ndarray | None) -> torch.Tensor:
     """Fit the albedos of ``problem``'s points (and its parameters, when it has any; module docstring): L-BFGS
     rounds, refinement and polish. Returns the (P_rows,3) albedos in ``problem.points`` order."""
     config = problem.config
@@ -645,6 +645,27 @@ def describe_params(stack: Stack, std: dict[str, np.ndarray], intervals: dict | 
     return out
 
 
+def test_sums(obs: Observations, split: Split, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sum of squared residuals, number of residual components) per held-out point of ``split``, from the (n,3)
+    ``residual`` of its test views (``split.holdout_test_obs``)."""
+    index = np.searchsorted(split.holdout_points, obs.point[split.holdout_test_obs])
+    return (np.bincount(index, (residual ** 2).sum(1), minlength=len(split.holdout_points)),
+            np.bincount(index, minlength=len(split.holdout_points)) * 3)
+
+
+def heldout_sums(stack: Stack, obs: Observations, split: Split, config: FitConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`test_sums` of a ``stack`` fitted elsewhere: each held-out point's albedo fitted to half its views
+    with the stack frozen, the other half predicted (the held-out error of :func:`fit_stack`)."""
+    stack = copy_stack(stack).to(torch.float64)
+    for p in stack.parameters():
+        p.requires_grad_(False)
+    albedo = np.full((obs.n_points, 3), np.nan)
+    held = Problem(stack, obs, config, [], split.holdout_fit_obs, board=False)
+    albedo[held.points] = fit_albedos(held, None).numpy()
+    test = split.holdout_test_obs
+    return test_sums(obs, split, obs.colour[test] - predict(stack, obs, test, albedo))
+
+
 def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig = FitConfig(),
               frozen: dict[str, tuple[str, ...]] | None = None, init_albedo: np.ndarray | None = None) -> FitResult:
     """Fit a copy of ``stack`` and the albedos to the training views (board rows not used), then measure the
@@ -656,9 +677,9 @@ def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig =
     start_inside_bounds(stack, names)
     train = Problem(stack, obs, config, names, split.train_obs, board=False)
     albedo = np.full((obs.n_points, 3), np.nan)
-    albedo[train.points] = _albedos(train, init_albedo).numpy()
+    albedo[train.points] = fit_albedos(train, init_albedo).numpy()
     held = Problem(stack, obs, config, [], split.holdout_fit_obs, board=False)
-    albedo[held.points] = _albedos(held, None).numpy()
+    albedo[held.points] = fit_albedos(held, None).numpy()
 
     direct = torch.from_numpy(albedo[obs.point[split.train_obs]]).view(-1, 3, 1, 1)
     std = laplace_std(stack, train.state, train.y, direct, names, config.loss_scale)
@@ -678,10 +699,7 @@ def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig =
     role = np.zeros(obs.n_obs, np.int8)
     role[split.holdout_fit_obs] = 1
     role[split.holdout_test_obs] = 2
-    test = split.holdout_test_obs
-    index = np.searchsorted(split.holdout_points, obs.point[test])
-    sq_sum = np.bincount(index, (residual[test] ** 2).sum(1), minlength=len(split.holdout_points))
-    count = np.bincount(index, minlength=len(split.holdout_points)) * 3
+    sq_sum, count = test_sums(obs, split, residual[split.holdout_test_obs])
     return FitResult(
         stack=stack, params=describe_params(stack, std, intervals), albedo=albedo, predicted=predicted,
         residual=residual, role=role, train_rmse=float(np.sqrt(np.mean(residual[split.train_obs] ** 2))),

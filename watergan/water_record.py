@@ -37,6 +37,8 @@ class WaterRecord:
     iterations, converged: the main fit's L-BFGS iterations and whether it converged.
     fields, frames, grid, veil: the fields over the image, the gains per frame, the fine grid and the veil at the
                views' median range (:mod:`eval.fields`, :func:`eval.intervals.veil_at_median_range`); None: none.
+    structure: each structure alternative's held-out test ({"alternative", "heldout_change_pct", "ci95_pct",
+               "counted"}: :func:`eval.water.structure_fits`); None: none tried.
     interval:  how the intervals were made, in words.
     plots:     {file name beside water.json: what it shows} of the plots the stage wrote; None: not named (not in
                the file; :func:`read_water` gives a file without them ``WATER_PLOTS``).
@@ -59,13 +61,14 @@ class WaterRecord:
     frames: dict | None = None
     grid: dict | None = None
     veil: dict | None = None
+    structure: list | None = None
     interval: str = ""
     plots: dict[str, str] | None = None
 
     def to_json(self) -> dict:
-        """The file's JSON: every field in order, the optional parts (fields, frames, grid, veil, plots) only when
-        set."""
-        optional = ("fields", "frames", "grid", "veil", "plots")
+        """The file's JSON: every field in order, the optional parts (fields, frames, grid, veil, structure, plots)
+        only when set."""
+        optional = ("fields", "frames", "grid", "veil", "structure", "plots")
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if f.name not in optional or getattr(self, f.name) is not None}
 
