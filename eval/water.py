@@ -49,9 +49,9 @@ What pins what (and what does not):
 - a camera that sets its gains from each frame's content makes them follow the frames' mean ranges, which the gains
   are kept off: ``structure_alternatives`` (by default the gains free of the ranges, ``frame_gain_off_range=False``)
   refits the water from its start under another structure (:func:`structure_fits`), and each parameter's change
-  counts in its interval as a specification alternative's, unless the survey rejects that structure: fitted with
-  and without it on four fifths of the points, it predicts the other fifth's views worse over the whole 95 %
-  interval of the paired change.
+  counts in its interval as a specification alternative's; fitted with and without it on four fifths of the
+  points, the other fifth's views say whether the survey prefers it (predicted better over the whole 95 % interval
+  of the paired change).
 
 Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, points and board patches resampled,
 each replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a
@@ -182,8 +182,9 @@ class WaterConfig:
     structure_alternatives: tuple[dict, ...] = ({"frame_gain_off_range": False},)
     """Changes of the model's structure (fields of this configuration) under which the water is fitted again
     from its start, without bootstrap: each parameter's change counts in its interval as a specification
-    alternative's does, unless its held-out test rejects it (:func:`structure_fits`). By default the gains per
-    frame free of the frames' ranges (a camera that sets them from each frame's content). Empty: none."""
+    alternative's does, and a held-out test says whether the survey prefers it (:func:`structure_fits`). By default
+    the gains per frame free of the frames' ranges (a camera that sets them from each frame's content). Empty:
+    none."""
     range_scale_sd: float = 0.0
     """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``).
     The intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
@@ -310,7 +311,7 @@ class WaterEstimate:
     frames: dict | None = None
     """The gains per frame measured, and fitted beside the stack when carried (:func:`frame_summary`); None: none."""
     structure: list = field(default_factory=list)
-    """Each structure alternative's held-out test and whether it counts in the intervals (:func:`structure_fits`)."""
+    """Each structure alternative's held-out test and whether the survey prefers it (:func:`structure_fits`)."""
     grid: dict | None = None
     """The fine fields over the image fitted after the water for the corrections, and whether ``stack`` carries
     them (:func:`fit_correction_grid`); None: none fitted."""
@@ -375,8 +376,8 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
     its start, no bootstrap, no alternatives of its own, no fine grid), and each change's held-out test: the water
     fitted with and without it on the points less ``STRUCTURE_HOLDOUT`` of them, the held-out points' views predicted
     (:func:`eval.fit.heldout_sums`), d = RMSE_change / RMSE_without - 1 with its bootstrap 95 % interval
-    (:func:`eval.bootstrap.paired_rmse_change`); ``counted`` unless the whole interval is above 0 (the survey
-    rejects that structure: it predicts the views it was not fitted to worse)."""
+    (:func:`eval.bootstrap.paired_rmse_change`); ``preferred`` where the whole interval is below 0 (the survey
+    predicts the views it was not fitted to better with that structure)."""
     if not changes:
         return [], []
     alone = replace(config, structure_alternatives=(), spec_alternatives=(), correction_grid=None,
@@ -392,7 +393,7 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
         params = fit_observations(obs, changed, lights).params
         fits.append({key: np.asarray(p["value"], float) for key, p in params.items() if p.get("fitted")})
         tests.append({"alternative": dict(change), "heldout_change_pct": round(100 * d, 2),
-                      "ci95_pct": [round(100 * ci[0], 2), round(100 * ci[1], 2)], "counted": bool(ci[0] <= 0)})
+                      "ci95_pct": [round(100 * ci[0], 2), round(100 * ci[1], 2)], "preferred": bool(ci[1] < 0)})
     return fits, tests
 
 
@@ -489,8 +490,8 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
             fields = field_summary(stack, range_r2, mean_signal)
         changes = [c for c in config.structure_alternatives if gain_names or not set(c) <= FRAME_SETTINGS]
         fits, structure = structure_fits(obs, config, lights, changes)
-        spec_fits += [fit for fit, test in zip(fits, structure, strict=True) if test["counted"]]
-        alternatives = (*alternatives, *(test["alternative"] for test in structure if test["counted"]))
+        spec_fits += fits
+        alternatives = (*alternatives, *changes)
         t_spec = time.perf_counter() - t0 - t_fit - t_boot
         corrected, grid = fit_correction_grid(stack, obs if grid_obs is None else grid_obs, config, range_r2)
         spec = {key: np.max([np.abs(fit[key] - value) for fit in spec_fits

@@ -195,25 +195,28 @@ ALTERNATIVE_WORDS = {
 }
 
 
-def structure_note(params: dict) -> str:
-    """How far to trust the water's attenuation where the survey's structure, not its noise, sets its interval: the
-    specification alternative (water.json's ``specification_by``) that moves eta most, when its change exceeds
-    ``STRUCTURE_OVER_NOISE`` times the bootstrap's 95 % half-width in some channel; "" otherwise."""
+def structure_note(params: dict, structure: list | None) -> str:
+    """How far to trust the water's attenuation where the survey prefers another structure: a structure alternative
+    whose held-out test says the survey predicts its views better with it (water.json's ``structure``,
+    ``preferred``) and whose change of eta (``specification_by``) exceeds ``STRUCTURE_OVER_NOISE`` times the
+    bootstrap's 95 % half-width in some channel; "" otherwise."""
     entry = params.get("attenuation.eta_per_m", {})
     by = entry.get("specification_by") or {}
-    if not by or "std" not in entry:
+    preferred = [t for t in structure or [] if t.get("preferred")
+                 and json.dumps(t["alternative"], sort_keys=True) in by]
+    if not preferred or "std" not in entry:
         return ""
     value = np.maximum(np.abs(np.asarray(entry["value"], float)), 1e-9)
     noise = 1.96 * np.asarray(entry["std"], float)
-    label, change = max(((k, np.asarray(v, float)) for k, v in by.items()), key=lambda kv: float((kv[1] / value).max()))
+    test = min(preferred, key=lambda t: t["heldout_change_pct"])
+    change = np.asarray(by[json.dumps(test["alternative"], sort_keys=True)], float)
     if not (change > STRUCTURE_OVER_NOISE * noise).any():
         return ""
-    words = "; ".join(ALTERNATIVE_WORDS.get(key, f"{key} = {v}") for key, v in json.loads(label).items())
-    pct = " / ".join(f"{100 * c:.0f}" for c in change / value)
-    return (f" Its attenuation is set by the model's structure more than by the survey's noise: with {words}, eta "
-            f"moves by {pct} % (R / G / B), against +- {' / '.join(f'{100 * n:.0f}' for n in noise / value)} % from "
-            f"resampling; its intervals include that change, and a survey with more range within each frame (relief, "
-            f"a tilted view) pins it.")
+    words = "; ".join(ALTERNATIVE_WORDS.get(key, f"{key} = {v}") for key, v in test["alternative"].items())
+    return (f" This survey predicts its views {-test['heldout_change_pct']:.0f} % better with {words} (held-out "
+            f"points), and eta then moves by {' / '.join(f'{100 * c:.0f}' for c in change / value)} % (R / G / B), "
+            f"against +- {' / '.join(f'{100 * n:.0f}' for n in noise / value)} % from resampling: its intervals "
+            f"include that change; a survey with more range within each frame (relief, a tilted view) pins it.")
 
 
 def camera_and_scale_lines(survey, sfm) -> list[str]:
@@ -269,7 +272,8 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         trust = ("its intervals are 95 %" if not water.at_bounds else
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
         lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}."
-                     + unpinned_note(record.params, record.veil) + structure_note(record.params))
+                     + unpinned_note(record.params, record.veil)
+                     + structure_note(record.params, record.structure))
         fields = record.fields
         if fields:
             size = field_size(fields)

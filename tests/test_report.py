@@ -536,14 +536,19 @@ def test_the_first_screen_says_where_the_scale_came_from_and_how_its_halves_agre
     assert "camera's height over the floor" in line and "differ by 3.1 %" in line
 
 
-def test_the_first_screen_says_when_the_models_structure_sets_the_attenuation():
+def test_the_first_screen_says_when_the_survey_prefers_another_structure():
     from pipeline.report import structure_note
 
+    free = '{"frame_gain_off_range": false}'
     eta = {"value": [0.38, 0.068, 0.146], "std": [0.0087, 0.0089, 0.0103],
-           "specification_by": {'{"board_weight": 1.0}': [0.002, 0.001, 0.003],
-                                '{"frame_gain_off_range": false}': [0.0375, 0.108, 0.0836]}}
-    note = structure_note({"attenuation.eta_per_m": eta})
-    assert "auto exposure or white balance" in note and "10 / 159 / 57 %" in note and "4 / 26 / 14 %" in note
-    quiet = dict(eta, specification_by={'{"board_weight": 1.0}': [0.002, 0.001, 0.003]})
-    assert structure_note({"attenuation.eta_per_m": quiet}) == ""
-    assert structure_note({"attenuation.eta_per_m": {"value": [0.4] * 3}}) == ""  # an older water.json
+           "specification_by": {'{"board_weight": 1.0}': [0.002, 0.001, 0.003], free: [0.0375, 0.108, 0.0836]}}
+    test = {"alternative": {"frame_gain_off_range": False}, "heldout_change_pct": -46.2, "ci95_pct": [-50.7, -41.9],
+            "preferred": True}
+    note = structure_note({"attenuation.eta_per_m": eta}, [test])
+    assert "46 % better" in note and "auto exposure or white balance" in note
+    assert "10 / 159 / 57 %" in note and "4 / 26 / 14 %" in note
+    rejected = dict(test, heldout_change_pct=6.4, ci95_pct=[5.1, 8.2], preferred=False)
+    assert structure_note({"attenuation.eta_per_m": eta}, [rejected]) == ""  # the survey predicts worse with it
+    small = dict(eta, specification_by={free: [0.002, 0.001, 0.003]})
+    assert structure_note({"attenuation.eta_per_m": small}, [test]) == ""  # within the bootstrap's spread
+    assert structure_note({"attenuation.eta_per_m": {"value": [0.4] * 3}}, None) == ""  # an older water.json
