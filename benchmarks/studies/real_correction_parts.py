@@ -52,11 +52,21 @@ def part_stack(stack: list[dict], keep: set[str]) -> list[dict]:
     return out
 
 
+def water_inputs(ws) -> tuple[Path, object, list[dict], object, list[str]]:
+    """(the survey's images folder, the water stage's result, its stack's configuration, the SfM tracks, the frame
+    names in the tracks' order) of a workspace ``ws``."""
+    from eval.tracks import Tracks
+
+    water = ws.result("water")
+    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
+    return (ws.stage_dir("survey") / "images", water, json.loads(ws.path(water.water_json).read_text())["stack"],
+            tracks, [str(n) for n in tracks.image_names])
+
+
 def main() -> None:
     from bench_real import tile_test
 
     from eval.colour import consistency
-    from eval.tracks import Tracks
     from pipeline.workspace import Workspace
     from watergan.formation.inverse import correct_physics
     from watergan.io import linear_to_srgb, read_image, read_millimetres, read_scene_mask
@@ -67,11 +77,7 @@ def main() -> None:
     parser.add_argument("--parts", default=",".join(PARTS))
     args = parser.parse_args()
     ws = Workspace(args.workspace)
-    images = ws.stage_dir("survey") / "images"
-    water = ws.result("water")
-    stack = json.loads(ws.path(water.water_json).read_text())["stack"]
-    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
-    names = [str(n) for n in tracks.image_names]
+    images, water, stack, tracks, names = water_inputs(ws)
     folders = {"raw": images}
     for part in args.parts.split(","):
         folder = args.out / part

@@ -19,7 +19,6 @@ On a ``bench_real.py`` workspace ``WS``:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
 
 RANGE_BINS_M = (0.3, 0.5, 0.7, 0.9, 1.2, 1.6, 2.2, 3.5)
 
@@ -40,8 +40,8 @@ def chromaticity_mean(pixels: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     from bench_real import FAR_ROWS, MIDDLE, NEAR_ROWS
+    from real_correction_parts import water_inputs
 
-    from eval.tracks import Tracks
     from pipeline.workspace import Workspace
     from watergan.formation.inverse import inverse_fields
     from watergan.io import read_image, read_millimetres, read_scene_mask
@@ -51,11 +51,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=4, help="every N-th frame for the veil's share")
     args = parser.parse_args()
     ws = Workspace(args.workspace)
-    images = ws.stage_dir("survey") / "images"
-    water = ws.result("water")
-    stack = json.loads(ws.path(water.water_json).read_text())["stack"]
-    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
-    names = [str(n) for n in tracks.image_names]
+    images, water, stack, tracks, names = water_inputs(ws)
     mask = read_scene_mask(ws.stage_dir("survey") / "scene_mask.png")
 
     factors = (1.0, 1.5, 2.0, 3.0)
