@@ -141,12 +141,10 @@ def model_height_halves(ws) -> dict:
     model's camera heights over its floor plane, the model's own scale drift between the halves, read without the
     track."""
     from eval.tracks import Tracks
-    from pipeline.scale import floor_plane, height_halves
+    from pipeline.scale import camera_heights, height_halves
 
     tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
-    centres = tracks.world_from_cam[tracks.registered, :3, 3]
-    n, d = floor_plane(tracks.xyz, centres)
-    return height_halves(centres @ n - d)
+    return height_halves(camera_heights(tracks.xyz, tracks.world_from_cam[tracks.registered, :3, 3]))
 
 
 def collect(ws, run_summary: dict) -> dict:

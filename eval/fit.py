@@ -645,7 +645,7 @@ def describe_params(stack: Stack, std: dict[str, np.ndarray], intervals: dict | 
     return out
 
 
-def test_sums(obs: Observations, split: Split, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def point_sums(obs: Observations, split: Split, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(sum of squared residuals, number of residual components) per held-out point of ``split``, from the (n,3)
     ``residual`` of its test views (``split.holdout_test_obs``)."""
     index = np.searchsorted(split.holdout_points, obs.point[split.holdout_test_obs])
@@ -654,7 +654,7 @@ def test_sums(obs: Observations, split: Split, residual: np.ndarray) -> tuple[np
 
 
 def heldout_sums(stack: Stack, obs: Observations, split: Split, config: FitConfig) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`test_sums` of a ``stack`` fitted elsewhere: each held-out point's albedo fitted to half its views
+    """:func:`point_sums` of a ``stack`` fitted elsewhere: each held-out point's albedo fitted to half its views
     with the stack frozen, the other half predicted (the held-out error of :func:`fit_stack`)."""
     stack = copy_stack(stack).to(torch.float64)
     for p in stack.parameters():
@@ -663,7 +663,7 @@ def heldout_sums(stack: Stack, obs: Observations, split: Split, config: FitConfi
     held = Problem(stack, obs, config, [], split.holdout_fit_obs, board=False)
     albedo[held.points] = fit_albedos(held, None).numpy()
     test = split.holdout_test_obs
-    return test_sums(obs, split, obs.colour[test] - predict(stack, obs, test, albedo))
+    return point_sums(obs, split, obs.colour[test] - predict(stack, obs, test, albedo))
 
 
 def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig = FitConfig(),
@@ -699,7 +699,7 @@ def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig =
     role = np.zeros(obs.n_obs, np.int8)
     role[split.holdout_fit_obs] = 1
     role[split.holdout_test_obs] = 2
-    sq_sum, count = test_sums(obs, split, residual[split.holdout_test_obs])
+    sq_sum, count = point_sums(obs, split, residual[split.holdout_test_obs])
     return FitResult(
         stack=stack, params=describe_params(stack, std, intervals), albedo=albedo, predicted=predicted,
         residual=residual, role=role, train_rmse=float(np.sqrt(np.mean(residual[split.train_obs] ** 2))),

@@ -103,7 +103,7 @@ from watergan.formation import Counts, Stack, get
 from watergan.formation.effects.image_field import n_terms
 from watergan.formation.inverse import needs_normals
 from watergan.formation.rig import held_rig, rig_settings
-from watergan.water_record import WaterRecord
+from watergan.water_record import WaterRecord, alternative_key
 
 from .bootstrap import bootstrap, inverse_hessian, newton_refit, paired_rmse_change
 from .fields import (
@@ -501,7 +501,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         for key, value in named.items():  # each alternative's own change, for the report's words on trust
             if "specification" in params[key]:
                 params[key]["specification_by"] = {
-                    json.dumps(dict(change), sort_keys=True): np.round(np.abs(fit[key] - value), 6).tolist()
+                    alternative_key(change): np.round(np.abs(fit[key] - value), 6).tolist()
                     for change, fit in zip(alternatives, spec_fits, strict=True)
                     if np.shape(fit.get(key)) == np.shape(value)}
         veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred)

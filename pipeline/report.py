@@ -36,7 +36,7 @@ import numpy as np
 
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json, atomic_write_text, frame_file
-from watergan.water_record import read_water
+from watergan.water_record import alternative_key, read_water
 
 from .workspace import Workspace
 
@@ -202,14 +202,13 @@ def structure_note(params: dict, structure: list | None) -> str:
     bootstrap's 95 % half-width in some channel; "" otherwise."""
     entry = params.get("attenuation.eta_per_m", {})
     by = entry.get("specification_by") or {}
-    preferred = [t for t in structure or [] if t.get("preferred")
-                 and json.dumps(t["alternative"], sort_keys=True) in by]
+    preferred = [t for t in structure or [] if t.get("preferred") and alternative_key(t["alternative"]) in by]
     if not preferred or "std" not in entry:
         return ""
     value = np.maximum(np.abs(np.asarray(entry["value"], float)), 1e-9)
     noise = 1.96 * np.asarray(entry["std"], float)
     test = min(preferred, key=lambda t: t["heldout_change_pct"])
-    change = np.asarray(by[json.dumps(test["alternative"], sort_keys=True)], float)
+    change = np.asarray(by[alternative_key(test["alternative"])], float)
     if not (change > STRUCTURE_OVER_NOISE * noise).any():
         return ""
     words = "; ".join(ALTERNATIVE_WORDS.get(key, f"{key} = {v}") for key, v in test["alternative"].items())

@@ -214,11 +214,17 @@ def floor_plane(points: np.ndarray, centres: np.ndarray, iterations: int = 500, 
     return refined, float(refined @ centre)
 
 
+def camera_heights(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N,) the cameras' (``centres``, N,3) distances to the floor of the sparse ``points`` (:func:`floor_plane`),
+    model units."""
+    n, d = floor_plane(points, centres)
+    return centres @ n - d
+
+
 def height_scale(points: np.ndarray, centres: np.ndarray, camera_height_m: float) -> tuple[float, float, dict]:
     """(s, spread, detail) from a camera at a known height over a floor (see the module docstring); detail: its
     halves (:func:`height_halves`)."""
-    n, d = floor_plane(points, centres)
-    heights = centres @ n - d
+    heights = camera_heights(points, centres)
     median = float(np.median(heights))
     detail = {"halves": height_halves(heights, camera_height_m)} if len(heights) >= 10 else {}
     return camera_height_m / median, float(np.median(np.abs(heights - median)) / median), detail

@@ -31,7 +31,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     from eval.tracks import Tracks
     from pipeline.correct import CorrectStage
     from pipeline.dense import DenseConfig
-    from pipeline.scale import floor_plane
+    from pipeline.scale import camera_heights
     from pipeline.sfm import SfmConfig
     from pipeline.survey import SurveyConfig
     from pipeline.water import WaterStage
@@ -57,8 +57,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     assert sfm.scale_method == "track" and sfm.scale_detail["residual_m"] < 0.1
     tracks = Tracks.load(ws.path(sfm.tracks))
     centres = tracks.world_from_cam[tracks.registered, :3, 3]
-    normal, offset = floor_plane(tracks.xyz, centres)
-    height_m = float(np.median(centres @ normal - offset))
+    height_m = float(np.median(camera_heights(tracks.xyz, centres)))
     assert 0.1 < height_m < 0.6  # the crawler's camera, "a few tens of cm" over the floor
 
     dense = ws.run("dense", DenseConfig(progress=False))

@@ -10,6 +10,7 @@ default.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -71,6 +72,12 @@ class WaterRecord:
         optional = ("fields", "frames", "grid", "veil", "structure", "plots")
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if f.name not in optional or getattr(self, f.name) is not None}
+
+
+def alternative_key(change: dict) -> str:
+    """The label of a specification or structure alternative (a change of the water's configuration) in
+    water.json's ``specification_by``: its JSON, keys sorted."""
+    return json.dumps(dict(change), sort_keys=True)
 
 
 def write_water(path: str | Path, record: WaterRecord) -> None:
