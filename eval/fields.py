@@ -92,7 +92,14 @@ def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str
         return 0
     field_index = str(stack.names.index(FIELD_EFFECT))
     first = Problem(stack, obs, fit, [n for n in names if n.split(".")[1] != field_index])
-    return first.coarse_start() + first.converge()[0]
+    return first.coarse_start(trust_region_names(stack, first.names)) + first.converge()[0]
+
+
+def trust_region_names(stack: Stack, names: list[str]) -> list[str]:
+    """The fitted raw parameters ``names`` that the coarse start's trust region refines: all but the gains per frame
+    and the fine grid (hundreds of columns each, which L-BFGS alone moves); the trust region follows the water's
+    flat directions."""
+    return [n for n in names if stack.effects[int(n.split(".")[1])].name not in (FRAME_EFFECT, GRID_EFFECT)]
 
 
 #: Fields whose multiplicative and additive parts both stay under this (per cent of the signal) read as flat.
@@ -185,7 +192,7 @@ def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig,
     the corrections are those of the water. Where image position explains more than ``config.field_max_range_r2``
     of the views' range variance (``range_r2``: a camera looking ahead over a floor, its rows its ranges) the grid is
     measured but not carried (``range_r2`` in the summary): there it would take the water's fall with range."""
-    if config.correction_grid is None:
+    if config.correction_grid is None or GRID_EFFECT in stack.names:  # none, or fitted with the water
         return stack, None
     rows, cols = config.correction_grid
     t0 = time.perf_counter()

@@ -52,6 +52,11 @@ What pins what (and what does not):
   counts in its interval as a specification alternative's; fitted with and without it on four fifths of the
   points, the other fifth's views say whether the survey prefers it (predicted better over the whole 95 % interval
   of the paired change).
+- a falloff or a veil whose shape the smooth fields do not share (a clipped ring, a spot) leaves its rest to eta
+  and the veil: the second structure alternative fits fine fields over the image (``image_grid``, ``field_grid``
+  nodes, a curvature penalty) jointly with the water, so that only what the same point at different ranges and
+  image positions says pins eta; what a survey at one altitude over a flat floor cannot separate (image position
+  then explains range) stays with the smooth fields' decorrelation.
 
 Uncertainty: the fitter's bootstrap (:func:`eval.bootstrap.bootstrap`: frames, points and board patches resampled,
 each replicate refitted from the full fit by a Newton step and a few L-BFGS iterations). Resampling cannot see a
@@ -110,6 +115,7 @@ from .fields import (
     FIELD_EFFECT,
     FRAME_CARRY_PCT,
     FRAME_EFFECT,
+    GRID_EFFECT,
     decorrelate_fields,
     decorrelate_frames,
     field_summary,
@@ -118,6 +124,7 @@ from .fields import (
     measure_frame_gains,
     set_light_level,
     stack_first,
+    trust_region_names,
 )
 from .fit import (
     DEFAULT_EFFECTS,
@@ -168,6 +175,11 @@ class WaterConfig:
     from the frames' ranges. False: the gains are free apart from their mean and carried whatever their size, and eta
     comes from the range differences within the points that frames share (a camera that sets its gains from each
     frame's content)."""
+    field_grid: tuple[int, int] | None = None
+    """Nodes (rows x cols, at least 3 x 3) of fine fields over the image (``image_grid``) fitted jointly with the
+    water beside the smooth ones: they follow a falloff or a veil of any smooth shape, so that its form does not
+    bend the water (eta is then pinned by the same point at different ranges and image positions alone). None: none
+    (the structure alternative of ``structure_alternatives`` sets them)."""
     correction_grid: tuple[int, int] | None = (13, 17)
     """Nodes (rows x cols, at least 3 x 3) of the fine fields over the image (``image_grid``) fitted after the water
     with every other parameter held, and carried for the corrections where they exceed ``eval.fields.FIELD_FLAT_PCT``
@@ -179,12 +191,13 @@ class WaterConfig:
     """Changes of the fit's configuration (e.g. ``{"board_weight": 1.0}``) under which the fit is repeated.
     Each parameter's largest change widens its interval (in quadrature with the bootstrap). None: board weight / 10
     with a board, else loss scale x 3."""
-    structure_alternatives: tuple[dict, ...] = ({"frame_gain_off_range": False},)
+    structure_alternatives: tuple[dict, ...] = ({"frame_gain_off_range": False}, {"field_grid": (13, 17)})
     """Changes of the model's structure (fields of this configuration) under which the water is fitted again
     from its start, without bootstrap: each parameter's change counts in its interval as a specification
     alternative's does, and a held-out test says whether the survey prefers it (:func:`structure_fits`). By default
-    the gains per frame free of the frames' ranges (a camera that sets them from each frame's content). Empty:
-    none."""
+    the gains per frame free of the frames' ranges (a camera that sets them from each frame's content) and fine
+    fields over the image fitted with the water (a falloff or a veil of a shape the smooth fields do not share).
+    Empty: none."""
     range_scale_sd: float = 0.0
     """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``).
     The intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
@@ -220,6 +233,10 @@ def build_stack(config: WaterConfig, n_frames: int | None = None, lights: list[d
         zeros = np.zeros((3, n_terms(config.field_degree))).tolist()
         given[FIELD_EFFECT] = {"multiplicative": zeros, "additive": zeros, "orthogonal_to": zeros[0],
                                **given.get(FIELD_EFFECT, {})}
+    if config.field_grid is not None:
+        names += [GRID_EFFECT] if GRID_EFFECT not in names else []
+        zeros = np.zeros((3, *config.field_grid)).tolist()
+        given[GRID_EFFECT] = {"multiplicative": zeros, "additive": zeros, **given.get(GRID_EFFECT, {})}
     if config.frame_gain and n_frames and not any(get(n).varies_by_frame() for n in names):
         names.append(FRAME_EFFECT)
     if lights and not any(get(n).rig_params for n in names):
@@ -366,6 +383,8 @@ def _key(stack: Stack, raw_name: str) -> str:
     return f"{stack.effects[int(raw_name.split('.')[1])].name}.{raw_name.rsplit('.', 1)[1]}"
 
 
+#: The attenuation's key in the fits' {"effect.param": value}.
+ETA = "attenuation.eta_per_m"
 #: The configuration fields that only matter where the stack carries gains per frame.
 FRAME_SETTINGS = frozenset({"frame_gain_off_range"})
 
@@ -377,7 +396,7 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
     fitted with and without it on the points less ``STRUCTURE_HOLDOUT`` of them, the held-out points' views predicted
     (:func:`eval.fit.heldout_sums`), d = RMSE_change / RMSE_without - 1 with its bootstrap 95 % interval
     (:func:`eval.bootstrap.paired_rmse_change`); ``preferred`` where the whole interval is below 0 (the survey
-    predicts the views it was not fitted to better with that structure)."""
+    predicts the views it was not fitted to better with that structure); ``eta_per_m``: that fit's attenuation."""
     if not changes:
         return [], []
     alone = replace(config, structure_alternatives=(), spec_alternatives=(), correction_grid=None,
@@ -392,7 +411,8 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
         d, ci, _ = paired_rmse_change(base_sq, cand_sq, count, STRUCTURE_TEST_RESAMPLES, config.fit.seed)
         params = fit_observations(obs, changed, lights).params
         fits.append({key: np.asarray(p["value"], float) for key, p in params.items() if p.get("fitted")})
-        tests.append({"alternative": dict(change), "heldout_change_pct": round(100 * d, 2),
+        tests.append({"alternative": dict(change), "eta_per_m": np.round(fits[-1].get(ETA, []), 6).tolist(),
+                      "heldout_change_pct": round(100 * d, 2),
                       "ci95_pct": [round(100 * ci[0], 2), round(100 * ci[1], 2)], "preferred": bool(ci[1] < 0)})
     return fits, tests
 
@@ -402,9 +422,9 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
     """Fit the stack to a measurement table, bootstrap it and repeat it under the specification alternatives (see
     the module docstring). ``lights``: the light rig survey.json declares (see :func:`build_stack`); ``grid_obs``:
     the table the fine grid is fitted to (:func:`fit_correction_grid`; None: ``obs``)."""
-    if config.correction_grid is not None and min(config.correction_grid) < 3:
-        raise UserInputError("correction_grid {}x{}: the fine fields need at least 3 x 3 nodes (or none)".format(
-            *config.correction_grid))
+    for label, grid in (("field_grid", config.field_grid), ("correction_grid", config.correction_grid)):
+        if grid is not None and min(grid) < 3:
+            raise UserInputError(f"{label} {grid[0]}x{grid[1]}: the fine fields need at least 3 x 3 nodes (or none)")
     t0 = time.perf_counter()
     threads = torch.get_num_threads()
     torch.set_num_threads(config.fit.threads or threads)
@@ -429,7 +449,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
         x_start = problem.flat()
         iterations = stack_first(stack, obs, config.fit, names)
         problem.take_gradients()
-        iterations += problem.coarse_start() if not iterations else 0
+        iterations += problem.coarse_start(trust_region_names(stack, names)) if not iterations else 0
         frame_gains = None
         if gain_names:
             frame_gains = measure_frame_gains(problem, gain_names, frames)
@@ -439,8 +459,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                 names += gain_names
                 first = stack_first(stack, obs, config.fit, names)
                 problem = Problem(stack, obs, config.fit, names)
-                # the trust region follows the water's flat directions; the gains (hundreds of columns) only L-BFGS
-                iterations += first or problem.coarse_start([n for n in names if n not in gain_names])
+                iterations += first or problem.coarse_start(trust_region_names(stack, names))
             else:
                 fixed[FRAME_EFFECT] = (f"the frames' gains are small (up to {max(frame_gains['largest_pct']):.1f} %, "
                                        f"under {FRAME_CARRY_PCT:.0f} %): held at 1")

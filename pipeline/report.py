@@ -189,9 +189,16 @@ STRUCTURE_OVER_NOISE = 2.0
 ALTERNATIVE_WORDS = {
     "frame_gain_off_range": "the gains per frame free to follow the frames' ranges (a camera's auto exposure or "
                             "white balance)",
+    "field_grid": "fine fields over the image fitted with the water (a falloff or a veil of any smooth shape)",
     "board_weight": "the board weighted less",
     "loss_scale": "a wider robust loss",
     "image_field.additive_level": "the light fixed in the image left in the veil",
+}
+#: What kind of survey pins eta between the default and each structure alternative, by the setting it changes.
+STRUCTURE_PINNED_BY = {
+    "frame_gain_off_range": "a survey with more range within each frame (relief, a tilted view)",
+    "field_grid": "a survey that sees the same points at more ranges from one image position (frames at several "
+                  "altitudes)",
 }
 
 
@@ -212,10 +219,11 @@ def structure_note(params: dict, structure: list | None) -> str:
     if not (change > STRUCTURE_OVER_NOISE * noise).any():
         return ""
     words = "; ".join(ALTERNATIVE_WORDS.get(key, f"{key} = {v}") for key, v in test["alternative"].items())
+    pins = " and ".join(STRUCTURE_PINNED_BY[key] for key in test["alternative"] if key in STRUCTURE_PINNED_BY)
     return (f" This survey predicts its views {-test['heldout_change_pct']:.0f} % better with {words} (held-out "
             f"points), and eta then moves by {' / '.join(f'{100 * c:.0f}' for c in change / value)} % (R / G / B), "
             f"against +- {' / '.join(f'{100 * n:.0f}' for n in noise / value)} % from resampling: its intervals "
-            f"include that change; a survey with more range within each frame (relief, a tilted view) pins it.")
+            f"include that change" + (f"; {pins} pins it." if pins else "."))
 
 
 def camera_and_scale_lines(survey, sfm) -> list[str]:
