@@ -552,3 +552,10 @@ def test_the_first_screen_says_when_the_survey_prefers_another_structure():
     small = dict(eta, specification_by={free: [0.002, 0.001, 0.003]})
     assert structure_note({"attenuation.eta_per_m": small}, [test]) == ""  # within the bootstrap's spread
     assert structure_note({"attenuation.eta_per_m": {"value": [0.4] * 3}}, None) == ""  # an older water.json
+    grid = '{"field_grid": [13, 17]}'  # the fine fields preferred by more: the note speaks of them
+    both = dict(eta, specification_by={**eta["specification_by"], grid: [0.05, 0.01, 0.02]})
+    finer = {"alternative": {"field_grid": [13, 17]}, "heldout_change_pct": -60.0, "ci95_pct": [-67.0, -52.0],
+             "preferred": True}
+    note = structure_note({"attenuation.eta_per_m": both}, [test, finer])
+    assert "60 % better with fine fields over the image" in note and "13 / 15 / 14 %" in note
+    assert "several altitudes" in note and "auto exposure" not in note

@@ -40,11 +40,12 @@ BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
 
 def water_config(base: WaterStage | None = None, **flat) -> WaterStage:
     """``base`` (default: the water stage's configuration without the fine grid after the water, which only
-    serves the corrections: the tests that need it ask for it) changed by flat field names: those of the measurement
+    serves the corrections, and without the fine fields' structure alternative, which doubles a fit's time: the
+    tests that need them ask for them) changed by flat field names: those of the measurement
     (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to its nested configurations."""
     from dataclasses import fields, replace
 
-    base = base or WaterStage(correction_grid=None)
+    base = base or WaterStage(correction_grid=None, structure_alternatives=({"frame_gain_off_range": False},))
     nested = {}
     for name, cls in (("measure", DenseMeasureConfig), ("fit", FitConfig)):
         own = {k: flat.pop(k) for k in [f.name for f in fields(cls)] if k in flat}
@@ -695,6 +696,36 @@ def test_a_fine_grid_after_the_water_takes_a_veil_the_fields_cannot_follow(surve
     assert errors[1] < 0.5 * errors[0]
 
 
+@pytest.mark.slow
+def test_fine_fields_fitted_with_the_water_hold_eta_under_a_falloff_clipped_into_a_ring(survey):
+    """A colour-dependent falloff flat in the middle and clipped into a ring towards the corners (down to 40 / 55 /
+    70 %) has a shape the degree-2 fields do not share. The water fitted again jointly with fine fields over the image
+    (the structure alternative ``{"field_grid": (13, 17)}``) lands closer to the truth (within 3 %; the default
+    within 5 %, measured 1.1 and 4.5), the survey predicts its held-out views better with them (by 59 %, measured),
+    and their change counts in eta's interval."""
+    from dataclasses import replace
+
+    truth = np.array([0.45, 0.14, 0.2])
+    frames, board = survey
+    ys, xs = np.mgrid[0:H, 0:W]
+    radius = np.hypot(xs / W - 0.55, ys / H - 0.45) / 0.5
+    ring = 1 - np.clip((radius - 0.45) / 0.35, 0, 1)[..., None] * np.array([0.6, 0.45, 0.3])
+    fallen = [replace(f, image=np.clip(f.image * ring, 0, 1).astype(np.float32)) for f in frames]
+    config = water_config(samples_per_frame=80, bootstrap=4, margin_px=4, min_points=100,
+                          structure_alternatives=({"field_grid": (13, 17)},))
+    estimate = estimate_water(fallen, K, board=board, config=config)
+    (test,) = estimate.structure
+    assert test["preferred"] and test["heldout_change_pct"] < -20
+    default = np.asarray(_value(estimate, "attenuation.eta_per_m"))
+    fine = np.asarray(test["eta_per_m"])
+    np.testing.assert_allclose(fine, truth, rtol=0.03)
+    assert np.abs(fine / truth - 1).max() < np.abs(default / truth - 1).max()
+    eta = estimate.params["attenuation.eta_per_m"]
+    np.testing.assert_allclose(eta["specification_by"]['{"field_grid": [13, 17]}'], np.abs(fine - default), atol=2e-6)
+    assert (np.asarray(eta["low"]) <= fine).all() and (fine <= np.asarray(eta["high"])).all()
+    assert "image_grid" not in estimate.stack.names  # the estimate's stack stays the default structure's
+
+
 def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     """A broad light fixed in the image (a reflection in the port, a Gaussian glow off-centre) reads as additive
     fields; its level is set where the field is least over the views, 0 there, and taken from the veil
@@ -752,9 +783,8 @@ def test_gains_per_frame_keep_the_water_when_the_exposure_changes(survey):
     fitted = np.log(np.asarray(held.frames["gain"]))
     np.testing.assert_allclose(fitted, np.repeat(expected[:, None], 3, 1), atol=0.03)
     assert held.frames["carried"] and not held.frames["flat"] and bent.frames is None
-    # the gains free of the ranges tried; no gains per frame: no fit with them free (the fine fields' fit only)
-    test = next(t for t in held.structure if t["alternative"] == {"frame_gain_off_range": False})
-    assert [t["alternative"] for t in bent.structure] == [{"field_grid": (13, 17)}]
+    (test,) = held.structure  # the gains free of the ranges tried; no gains per frame: no fit with them free
+    assert test["alternative"] == {"frame_gain_off_range": False} and not bent.structure
     assert test["alternative"] in held.alternatives and not test["preferred"]  # the exposures do not follow range
 
 
@@ -786,8 +816,7 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     assert ((wide_low <= truth) & (truth <= wide_high))[1:].all()
     assert wide_high[0] - high[0] > 0.2 * (truth[0] - high[0]) > 0
     assert {"frame_gain_off_range": False} in widened.alternatives
-    # the survey predicts its held-out views better with the gains free of the ranges
-    test = next(t for t in widened.structure if t["alternative"] == {"frame_gain_off_range": False})
+    (test,) = widened.structure  # the survey predicts its held-out views better with the gains free of the ranges
     assert test["preferred"] and test["heldout_change_pct"] < 0
     by = wide["specification_by"]  # each alternative's change; the interval's is the largest
     np.testing.assert_allclose(np.max(list(by.values()), 0), wide["specification"], atol=2e-6)
