@@ -5,7 +5,8 @@ value)^2 for coefficients in 1/m]), clipped to the bounds; a component on a boun
 parameter's whole range; pairs of components whose bootstrap correlation exceeds 0.95 are trade-offs
 (:func:`describe_intervals`). The veil B_inf (1 - exp(-beta r)) at the views' median range with its interval
 (:func:`veil_at_median_range`), and B_inf's interval widened along the valley the veil and beta leave it in
-(:func:`cover_the_valley`). Which measurement pins each parameter: ``PINNED_BY``.
+(:func:`cover_the_valley`). Every interval also covers each structure alternative's estimate with the estimate's
+sampling spread around it (:func:`cover_the_structures`). Which measurement pins each parameter: ``PINNED_BY``.
 """
 
 from __future__ import annotations
@@ -105,15 +106,48 @@ def describe_intervals(stack: Stack, best: dict, samples: list[dict], fixed: dic
     return params, tradeoffs
 
 
+def cover_the_structures(stack: Stack, params: dict, structures: list[dict], range_scale_sd: float) -> None:
+    """Widen each fitted parameter's interval (``params``' entries, in place) to cover every structure alternative's
+    estimate (``structures``: their fits, {"effect.param": value}) with the estimate's own sampling spread around
+    it: [min_k v_k - h_k, max_k v_k + h_k] over the estimate and the alternatives, h_k = sqrt((1.96 std)^2 [+ (1.96
+    range_scale_sd v_k)^2 for coefficients in 1/m]), clipped to the bounds. A structure alternative is another model
+    of the survey, not a perturbation of this one: where the two disagree, either may hold, each with the survey's
+    sampling spread (the union of their 95 % intervals; ``structures`` in the entry: True where that widened it)."""
+    for key, entry in params.items():
+        if entry.get("low") is None or "std" not in entry:
+            continue
+        value = np.asarray(entry["value"], float)
+        fits = [np.asarray(f[key], float) for f in structures if np.shape(f.get(key)) == value.shape]
+        if not fits:
+            continue
+        name, param = key.split(".", 1)
+        p = stack[name]._spec(param)
+        std = np.asarray(entry["std"], float)
+
+        def half(v: np.ndarray) -> np.ndarray:
+            scale = range_scale_sd * np.abs(v) if p.units == "1/m" else np.zeros_like(v)
+            return np.sqrt((1.96 * std) ** 2 + (1.96 * scale) ** 2)
+
+        low = np.clip(np.min([v - half(v) for v in fits], 0), p.lower, p.upper)
+        high = np.clip(np.max([v + half(v) for v in fits], 0), p.lower, p.upper)
+        old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
+        entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
+                     high=np.round(np.maximum(high, old_high), 6).tolist(),
+                     structures=((low < old_low) | (high > old_high)).tolist())
+
+
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
-                         alternatives: tuple[dict, ...] = (), light_at_centre: dict | None = None) -> dict | None:
+                         alternatives: tuple[dict, ...] = (), light_at_centre: dict | None = None,
+                         structures: tuple[dict, ...] = ()) -> dict | None:
     """The veil B(r) = B_inf (1 - exp(-beta r)) at the views' median range ``range_m`` per channel, with a 95 %
     interval from the bootstrap replicates ``samples`` ({"effect.param": value}) of B_inf and beta jointly (what a
     survey pins when its range span leaves B_inf and beta trading: the veil over its ranges) and, as every
     parameter's, the largest change under the specification ``alternatives`` (their fits, {"effect.param": value})
     added in quadrature (no range-scale term: the veil at a measured range is a level of colour, whatever the
-    range's scale); with ``light_at_centre`` (the fit before :func:`set_light_level`) also the veil it had. None
-    without the ``backscatter`` effect. Without replicates the interval is None."""
+    range's scale); with ``light_at_centre`` (the fit before :func:`set_light_level`) also the veil it had. The
+    interval then covers each structure alternative's veil (``structures``: their fits) with the bootstrap's spread
+    around it, as :func:`cover_the_structures` does the parameters'. None without the ``backscatter`` effect. Without
+    replicates the interval is None."""
     if "backscatter" not in stack.names:
         return None
     effect = stack["backscatter"]
@@ -130,8 +164,12 @@ def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
         values = np.stack([veil(s[keys[0]], s[keys[1]]) for s in samples])
         shifts = [np.abs(veil(a[keys[0]], a[keys[1]]) - value) for a in alternatives if all(k in a for k in keys)]
         shift = np.max(shifts, 0) if shifts else np.zeros_like(value)
-        half = np.sqrt((1.96 * values.std(0, ddof=1)) ** 2 + shift ** 2)
-        entry.update(low=np.round(np.clip(value - half, 0, None), 6).tolist(), high=np.round(value + half, 6).tolist())
+        spread = 1.96 * values.std(0, ddof=1)
+        half = np.sqrt(spread ** 2 + shift ** 2)
+        others = [veil(a[keys[0]], a[keys[1]]) for a in structures if all(k in a for k in keys)]
+        low = np.min([value - half, *(v - spread for v in others)], 0)
+        high = np.max([value + half, *(v + spread for v in others)], 0)
+        entry.update(low=np.round(np.clip(low, 0, None), 6).tolist(), high=np.round(high, 6).tolist())
     return entry
 
 

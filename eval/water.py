@@ -64,7 +64,10 @@ bias that every subset shares, so the fit is repeated under ``spec_alternatives`
 less; refitted from the full fit by the same Newton step and ``SPEC_ITERATIONS`` L-BFGS iterations) and each
 parameter's largest change is added in quadrature (each alternative's own change is kept beside it,
 ``specification_by``): interval = estimate +- sqrt((1.96 sd_boot)^2 + change^2 [+ (1.96
-range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A component on a bound
+range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A structure alternative is another model
+of the survey rather than a perturbation of this one, so the interval also covers each one's estimate with the
+same sampling spread around it (:func:`eval.intervals.cover_the_structures`: the union of their 95 % intervals,
+the veil's alike). A component on a bound
 (:func:`eval.intervals.on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not
 pin it. Pairs of parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs
 (:func:`eval.intervals.describe_intervals`). Where B_inf and beta trade (a short range span), what the survey pins
@@ -136,7 +139,7 @@ from .fit import (
     make_split,
     start_inside_bounds,
 )
-from .intervals import cover_the_valley, describe_intervals, veil_at_median_range
+from .intervals import cover_the_structures, cover_the_valley, describe_intervals, veil_at_median_range
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 
@@ -349,7 +352,8 @@ class WaterEstimate:
             structure=self.structure or None,
             interval="95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x range scale sd x "
                      "value)^2 for 1/m]); bootstrap over frames and points; specification: largest change of the "
-                     "estimate under the specification alternatives " + json.dumps(self.alternatives),
+                     "estimate under the specification alternatives " + json.dumps(self.alternatives) + "; widened "
+                     "to cover each structure alternative's estimate +- the same spread (structures)",
             plots=plots)
 
     def to_json(self) -> dict:
@@ -517,13 +521,14 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                              if np.shape(fit.get(key)) == np.shape(value)], 0, initial=0.0)
                 for key, value in named.items()}
         params, tradeoffs = describe_intervals(stack, named, named_samples, fixed, spec, config.range_scale_sd)
+        cover_the_structures(stack, params, fits, config.range_scale_sd)
         for key, value in named.items():  # each alternative's own change, for the report's words on trust
             if "specification" in params[key]:
                 params[key]["specification_by"] = {
                     alternative_key(change): np.round(np.abs(fit[key] - value), 6).tolist()
                     for change, fit in zip(alternatives, spec_fits, strict=True)
                     if np.shape(fit.get(key)) == np.shape(value)}
-        veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred)
+        veil = veil_at_median_range(stack, named_samples, range_m, tuple(spec_fits), centred, tuple(fits))
         cover_the_valley(params, veil)
         return WaterEstimate(stack=corrected, params=params, fixed=fixed, held=held, tradeoffs=tradeoffs,
                              n_points=obs.n_points,

@@ -352,6 +352,36 @@ def test_the_veils_interval_holds_its_bootstrap_spread_and_the_specification_cha
     change = np.maximum(0.05 * veil, np.abs(b_inf * -np.expm1(-0.9 * beta * r) - veil))
     wider = veil_at_median_range(stack, samples, r, tuple(shifted))
     np.testing.assert_allclose(np.array(wider["high"]) - veil, np.hypot(spread, change), rtol=1e-3, atol=2e-6)
+    # a structure alternative 20 % higher: the interval reaches its veil plus the bootstrap's spread
+    other = {"backscatter.b_inf": b_inf * 1.2, "backscatter.beta_per_m": beta}
+    covered = veil_at_median_range(stack, samples, r, tuple(shifted), structures=(other,))
+    np.testing.assert_allclose(covered["high"], 1.2 * veil + spread, rtol=1e-3, atol=2e-6)
+    np.testing.assert_allclose(covered["low"], wider["low"], rtol=1e-6)
+
+
+def test_the_intervals_cover_each_structure_alternatives_estimate_with_the_surveys_spread():
+    """A structure alternative's estimate outside the interval: the interval reaches it plus the bootstrap's 1.96 sd
+    (and the range scale's term for coefficients in 1/m) on its side, is kept on the other, and stays inside the
+    parameter's bounds; an alternative inside the interval changes nothing."""
+    from eval.intervals import cover_the_structures
+
+    stack = Stack.from_config(TRUE)
+    params = {"attenuation.eta_per_m": {"value": [0.45, 0.14, 0.2], "std": [0.01, 0.01, 0.01],
+                                        "low": [0.42, 0.12, 0.18], "high": [0.48, 0.16, 0.22]}}
+    alternative = np.array([0.3, 0.13, 0.3])
+    cover_the_structures(stack, params, [{"attenuation.eta_per_m": alternative}], 0.05)
+    eta = params["attenuation.eta_per_m"]
+    half = np.hypot(1.96 * 0.01, 1.96 * 0.05 * alternative)
+    np.testing.assert_allclose(eta["low"], [0.3 - half[0], 0.13 - half[1], 0.18], atol=2e-6)
+    np.testing.assert_allclose(eta["high"], [0.48, 0.16, 0.3 + half[2]], atol=2e-6)
+    assert eta["structures"] == [True, True, True]
+    inside = {"attenuation.eta_per_m": dict(params["attenuation.eta_per_m"])}
+    cover_the_structures(stack, inside, [{"attenuation.eta_per_m": np.array([0.45, 0.14, 0.2])}], 0.0)
+    assert inside["attenuation.eta_per_m"]["low"] == eta["low"] and inside["attenuation.eta_per_m"]["structures"] == \
+        [False] * 3
+    bounded = {"attenuation.eta_per_m": {"value": [0.45] * 3, "std": [0.01] * 3, "low": [0.4] * 3, "high": [0.5] * 3}}
+    cover_the_structures(stack, bounded, [{"attenuation.eta_per_m": np.array([0.001, 0.45, 0.45])}], 0.0)
+    assert bounded["attenuation.eta_per_m"]["low"][0] >= stack["attenuation"]._spec("eta_per_m").lower
 
 
 def test_b_infs_interval_covers_the_valley_the_veil_and_beta_leave_it_in():
