@@ -122,14 +122,10 @@ def cover_the_structures(stack: Stack, params: dict, structures: list[dict], ran
             continue
         name, param = key.split(".", 1)
         p = stack[name]._spec(param)
-        std = np.asarray(entry["std"], float)
-
-        def half(v: np.ndarray) -> np.ndarray:
-            scale = range_scale_sd * np.abs(v) if p.units == "1/m" else np.zeros_like(v)
-            return np.sqrt((1.96 * std) ** 2 + (1.96 * scale) ** 2)
-
-        low = np.clip(np.min([v - half(v) for v in fits], 0), p.lower, p.upper)
-        high = np.clip(np.max([v + half(v) for v in fits], 0), p.lower, p.upper)
+        std, per_value = np.asarray(entry["std"], float), range_scale_sd if p.units == "1/m" else 0.0
+        halves = [1.96 * np.hypot(std, per_value * np.abs(v)) for v in fits]
+        low = np.clip(np.min([v - h for v, h in zip(fits, halves, strict=True)], 0), p.lower, p.upper)
+        high = np.clip(np.max([v + h for v, h in zip(fits, halves, strict=True)], 0), p.lower, p.upper)
         old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
         entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
                      high=np.round(np.maximum(high, old_high), 6).tolist(),
