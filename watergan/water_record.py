@@ -38,8 +38,8 @@ class WaterRecord:
     iterations, converged: the main fit's L-BFGS iterations and whether it converged.
     fields, frames, grid, veil: the fields over the image, the gains per frame, the fine grid and the veil at the
                views' median range (:mod:`eval.fields`, :func:`eval.intervals.veil_at_median_range`); None: none.
-    structure: each structure alternative's held-out test ({"alternative", "heldout_change_pct", "ci95_pct",
-               "preferred"}: :func:`eval.water.structure_fits`); None: none tried.
+    structure: each structure alternative's held-out test and attenuation ({"alternative", "eta_per_m",
+               "heldout_change_pct", "ci95_pct", "preferred"}: :func:`eval.water.structure_fits`); None: none tried.
     interval:  how the intervals were made, in words.
     plots:     {file name beside water.json: what it shows} of the plots the stage wrote; None: not named (not in
                the file; :func:`read_water` gives a file without them ``WATER_PLOTS``).
