@@ -645,17 +645,24 @@ def describe_params(stack: Stack, std: dict[str, np.ndarray], intervals: dict | 
     return out
 
 
-def point_sums(obs: Observations, split: Split, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def point_sums(obs: Observations, split: Split, residual: np.ndarray,
+               per_channel: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(sum of squared residuals, number of residual components) per held-out point of ``split``, from the (n,3)
-    ``residual`` of its test views (``split.holdout_test_obs``)."""
+    ``residual`` of its test views (``split.holdout_test_obs``). ``per_channel``: (H, 3) sums, one per channel, and
+    each point's number of test views."""
     index = np.searchsorted(split.holdout_points, obs.point[split.holdout_test_obs])
-    return (np.bincount(index, (residual ** 2).sum(1), minlength=len(split.holdout_points)),
-            np.bincount(index, minlength=len(split.holdout_points)) * 3)
+    h = len(split.holdout_points)
+    views = np.bincount(index, minlength=h)
+    if per_channel:
+        return np.stack([np.bincount(index, residual[:, c] ** 2, minlength=h) for c in range(3)], 1), views
+    return np.bincount(index, (residual ** 2).sum(1), minlength=h), views * 3
 
 
-def heldout_sums(stack: Stack, obs: Observations, split: Split, config: FitConfig) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`point_sums` of a ``stack`` fitted elsewhere: each held-out point's albedo fitted to half its views
-    with the stack frozen, the other half predicted (the held-out error of :func:`fit_stack`)."""
+def heldout_sums(stack: Stack, obs: Observations, split: Split, config: FitConfig,
+                 per_channel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_sums` (``per_channel`` alike) of a ``stack`` fitted elsewhere: each held-out point's albedo
+    fitted to half its views with the stack frozen, the other half predicted (the held-out error of
+    :func:`fit_stack`)."""
     stack = copy_stack(stack).to(torch.float64)
     for p in stack.parameters():
         p.requires_grad_(False)
@@ -663,7 +670,7 @@ def heldout_sums(stack: Stack, obs: Observations, split: Split, config: FitConfi
     held = Problem(stack, obs, config, [], split.holdout_fit_obs, board=False)
     albedo[held.points] = fit_albedos(held, None).numpy()
     test = split.holdout_test_obs
-    return point_sums(obs, split, obs.colour[test] - predict(stack, obs, test, albedo))
+    return point_sums(obs, split, obs.colour[test] - predict(stack, obs, test, albedo), per_channel)
 
 
 def fit_stack(stack: Stack, obs: Observations, split: Split, config: FitConfig = FitConfig(),

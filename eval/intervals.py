@@ -132,6 +132,21 @@ def cover_the_structures(stack: Stack, params: dict, structures: list[dict], ran
                      structures=((low < old_low) | (high > old_high)).tolist())
 
 
+def cover_the_profiles(params: dict, key: str, profiles: list[dict]) -> None:
+    """Widen parameter ``key``'s interval (its entry of ``params``, in place) to cover each of ``profiles``'
+    [low, high] (per component: the values a held-out profile accepts, :func:`eval.eta_profile.eta_profile`);
+    ``profile`` in the entry: True where that widened it."""
+    entry = params.get(key)
+    if not profiles or entry is None or entry.get("low") is None:
+        return
+    old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
+    low = np.min([np.asarray(p["low"], float) for p in profiles], 0)
+    high = np.max([np.asarray(p["high"], float) for p in profiles], 0)
+    entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
+                 high=np.round(np.maximum(high, old_high), 6).tolist(),
+                 profile=((low < old_low) | (high > old_high)).tolist())
+
+
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
                          alternatives: tuple[dict, ...] = (), light_at_centre: dict | None = None,
                          structures: tuple[dict, ...] = ()) -> dict | None:

@@ -67,7 +67,10 @@ parameter's largest change is added in quadrature (each alternative's own change
 range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds. A structure alternative is another model
 of the survey rather than a perturbation of this one, so the interval also covers each one's estimate with the
 same sampling spread around it (:func:`eval.intervals.cover_the_structures`: the union of their 95 % intervals,
-the veil's alike). A component on a bound
+the veil's alike). Where the survey prefers gains per frame free of the ranges, eta's loss is nearly flat (a gain
+per frame takes its effect on each frame's mean range) and the resampling spread far narrower than where eta may
+go: its interval also covers what the held-out views accept along eta under them (:mod:`eval.eta_profile`,
+:func:`eval.intervals.cover_the_profiles`). A component on a bound
 (:func:`eval.intervals.on_bound`) gets its parameter's whole range: the data pushed it out of the model and do not
 pin it. Pairs of parameter components whose bootstrap correlation exceeds 0.95 are reported as trade-offs
 (:func:`eval.intervals.describe_intervals`). Where B_inf and beta trade (a short range span), what the survey pins
@@ -114,6 +117,7 @@ from watergan.formation.rig import held_rig, rig_settings
 from watergan.water_record import WaterRecord, alternative_key
 
 from .bootstrap import bootstrap, inverse_hessian, newton_refit, paired_rmse_change
+from .eta_profile import eta_profile
 from .fields import (
     FIELD_EFFECT,
     FRAME_CARRY_PCT,
@@ -139,7 +143,13 @@ from .fit import (
     make_split,
     start_inside_bounds,
 )
-from .intervals import cover_the_structures, cover_the_valley, describe_intervals, veil_at_median_range
+from .intervals import (
+    cover_the_profiles,
+    cover_the_structures,
+    cover_the_valley,
+    describe_intervals,
+    veil_at_median_range,
+)
 from .observations import DenseMeasureConfig, Observations, SparseTracks, WaterFrame, measure_frames
 
 
@@ -212,6 +222,8 @@ class WaterConfig:
 RIG_EFFECT = "artificial_light"
 #: The share of the points a structure alternative's held-out test leaves out, and its bootstrap's resamples.
 STRUCTURE_HOLDOUT, STRUCTURE_TEST_RESAMPLES = 0.2, 500
+#: The profile's entries a structure test keeps (:func:`structure_fits`).
+PROFILE_KEYS = ("low", "high", "open_low", "open_high")
 #: L-BFGS iterations of each specification alternative's refit after its Newton step from the full fit.
 SPEC_ITERATIONS = 30
 
@@ -393,6 +405,22 @@ ETA = "attenuation.eta_per_m"
 FRAME_SETTINGS = frozenset({"frame_gain_off_range"})
 
 
+def water_names(stack: Stack, obs: Observations, config: WaterConfig,
+                lights: list[dict] | None) -> tuple[list[str], dict[str, str], dict[str, str]]:
+    """(the raw parameters of ``stack`` the water's fit moves, {effect: why} of the effects it holds (``gain``
+    without a board), {"effect.param": why} of the parameters it holds inside fitted effects
+    (:func:`held_parameters`))."""
+    fixed = {name: "held at its configured value" for name in config.fit.fixed_effects}
+    if len(obs.board_colour) == 0 and "gain" in stack.names:
+        fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
+    held = held_parameters(stack, config, lights)
+    by_effect: dict[str, tuple[str, ...]] = {}
+    for key in held:
+        name, param = key.split(".", 1)
+        by_effect[name] = (*by_effect.get(name, ()), param)
+    return fitted_names(stack, tuple(fixed), by_effect), fixed, held
+
+
 def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | None,
                    changes: Sequence[dict]) -> tuple[list[dict], list[dict]]:
     """(fits, tests): {"effect.param": value} of the water fitted under each of the ``changes`` of ``config`` (from
@@ -400,7 +428,10 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
     fitted with and without it on the points less ``STRUCTURE_HOLDOUT`` of them, the held-out points' views predicted
     (:func:`eval.fit.heldout_sums`), d = RMSE_change / RMSE_without - 1 with its bootstrap 95 % interval
     (:func:`eval.bootstrap.paired_rmse_change`); ``preferred`` where the whole interval is below 0 (the survey
-    predicts the views it was not fitted to better with that structure); ``eta_per_m``: that fit's attenuation."""
+    predicts the views it was not fitted to better with that structure); ``eta_per_m``: that fit's attenuation.
+    Where the survey prefers gains per frame free of the frames' ranges, ``eta_profile``: eta's held-out profile
+    under them (:func:`eval.eta_profile.eta_profile`; "low" / "high": eta at its bounds, "open_low" / "open_high":
+    per channel, where the survey accepted the profile's last step)."""
     if not changes:
         return [], []
     alone = replace(config, structure_alternatives=(), spec_alternatives=(), correction_grid=None,
@@ -411,13 +442,19 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
     fits, tests = [], []
     for change in changes:
         changed = replace(alone, **change)
-        cand_sq, _ = heldout_sums(fit_observations(train, changed, lights).stack, obs, split, config.fit)
+        trained = fit_observations(train, changed, lights).stack
+        cand_sq, _ = heldout_sums(trained, obs, split, config.fit)
         d, ci, _ = paired_rmse_change(base_sq, cand_sq, count, STRUCTURE_TEST_RESAMPLES, config.fit.seed)
         params = fit_observations(obs, changed, lights).params
         fits.append({key: np.asarray(p["value"], float) for key, p in params.items() if p.get("fitted")})
         tests.append({"alternative": dict(change), "eta_per_m": np.round(fits[-1].get(ETA, []), 6).tolist(),
                       "heldout_change_pct": round(100 * d, 2),
                       "ci95_pct": [round(100 * ci[0], 2), round(100 * ci[1], 2)], "preferred": bool(ci[1] < 0)})
+        if tests[-1]["preferred"] and change.get("frame_gain_off_range") is False and ETA in fits[-1]:
+            profile = eta_profile(trained, train, obs, split, changed.fit, water_names(trained, train, changed,
+                                  lights)[0], STRUCTURE_TEST_RESAMPLES)
+            tests[-1]["eta_profile"] = {key: np.round(profile[key], 6).tolist() if key in ("low", "high") else
+                                        np.asarray(profile[key]).tolist() for key in PROFILE_KEYS}
     return fits, tests
 
 
@@ -435,15 +472,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
     try:
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
         stack = build_stack(config, obs.n_frames or int(frames.max()) + 1, lights)
-        fixed = {name: "held at its configured value" for name in config.fit.fixed_effects}
-        if len(obs.board_colour) == 0 and "gain" in stack.names:
-            fixed["gain"] = "no board: degenerate with the albedo scale (and B_inf's level), held at its value"
-        held = held_parameters(stack, config, lights)
-        by_effect: dict[str, tuple[str, ...]] = {}
-        for key in held:
-            name, param = key.split(".", 1)
-            by_effect[name] = (*by_effect.get(name, ()), param)
-        names = fitted_names(stack, tuple(fixed), by_effect)
+        names, fixed, held = water_names(stack, obs, config, lights)
         gain_names = [n for n in names if stack.effects[int(n.split(".")[1])].name == FRAME_EFFECT]
         names = [n for n in names if n not in gain_names]
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
@@ -522,6 +551,7 @@ def fit_observations(obs: Observations, config: WaterConfig = WaterConfig(),
                 for key, value in named.items()}
         params, tradeoffs = describe_intervals(stack, named, named_samples, fixed, spec, config.range_scale_sd)
         cover_the_structures(stack, params, fits, config.range_scale_sd)
+        cover_the_profiles(params, ETA, [test["eta_profile"] for test in structure if "eta_profile" in test])
         for key, value in named.items():  # each alternative's own change, for the report's words on trust
             if "specification" in params[key]:
                 params[key]["specification_by"] = {

@@ -226,6 +226,20 @@ def structure_note(params: dict, structure: list | None) -> str:
             f"include that change" + (f"; {pins} pins it." if pins else "."))
 
 
+def profile_note(structure: list | None) -> str:
+    """Where the survey prefers gains per frame free of the frames' ranges: the eta its held-out views accept under
+    them (water.json's ``structure``, ``eta_profile``; :func:`eval.eta_profile.eta_profile`); "" otherwise."""
+    test = next((t for t in structure or [] if t.get("preferred") and "eta_profile" in t), None)
+    if test is None:
+        return ""
+    p = test["eta_profile"]
+    spans = [f"{'<=' if open_low else ''}{low:.3f}-{high:.3f}{'+' if open_high else ''}"
+             for low, high, open_low, open_high in zip(p["low"], p["high"], p["open_low"], p["open_high"], strict=True)]
+    return (f" With the gains per frame free, only the range differences within the points that frames share pin "
+            f"eta: the held-out views accept {' / '.join(spans)} 1/m (R / G / B; <= and +: accepted as far as the "
+            f"profile went), and its intervals include that.")
+
+
 def camera_and_scale_lines(survey, sfm) -> list[str]:
     """The first screen's lines on a camera calibrated on the survey and on where the scale came from (or that there is
     none: everything in SfM units)."""
@@ -280,7 +294,7 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
         lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}."
                      + unpinned_note(record.params, record.veil)
-                     + structure_note(record.params, record.structure))
+                     + structure_note(record.params, record.structure) + profile_note(record.structure))
         fields = record.fields
         if fields:
             size = field_size(fields)

@@ -559,3 +559,16 @@ def test_the_first_screen_says_when_the_survey_prefers_another_structure():
     note = structure_note({"attenuation.eta_per_m": both}, [test, finer])
     assert "60 % better with fine fields over the image" in note and "13 / 15 / 14 %" in note
     assert "several altitudes" in note and "auto exposure" not in note
+
+
+def test_the_first_screen_gives_the_eta_the_held_out_views_accept_under_free_gains():
+    from pipeline.report import profile_note
+
+    profile = {"low": [0.351, 0.1268, 0.1869], "high": [0.636, 0.2343, 0.3207], "open_low": [False, True, False],
+               "open_high": [True, False, False]}
+    test = {"alternative": {"frame_gain_off_range": False}, "heldout_change_pct": -1.0, "preferred": True,
+            "eta_profile": profile}
+    note = profile_note([test])
+    assert "accept 0.351-0.636+ / <=0.127-0.234 / 0.187-0.321 1/m" in note
+    assert profile_note([dict(test, preferred=False)]) == "" and profile_note(None) == ""
+    assert profile_note([{k: v for k, v in test.items() if k != "eta_profile"}]) == ""

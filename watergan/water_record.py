@@ -39,7 +39,8 @@ class WaterRecord:
     fields, frames, grid, veil: the fields over the image, the gains per frame, the fine grid and the veil at the
                views' median range (:mod:`eval.fields`, :func:`eval.intervals.veil_at_median_range`); None: none.
     structure: each structure alternative's held-out test and attenuation ({"alternative", "eta_per_m",
-               "heldout_change_pct", "ci95_pct", "preferred"}: :func:`eval.water.structure_fits`); None: none tried.
+               "heldout_change_pct", "ci95_pct", "preferred"}, and "eta_profile" where the survey prefers gains
+               per frame free of the ranges: :func:`eval.water.structure_fits`); None: none tried.
     interval:  how the intervals were made, in words.
     plots:     {file name beside water.json: what it shows} of the plots the stage wrote; None: not named (not in
                the file; :func:`read_water` gives a file without them ``WATER_PLOTS``).
