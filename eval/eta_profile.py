@@ -19,7 +19,7 @@ asks the survey directly:
    eta_0 than the step before). A channel that accepts f moves on to the next step; one that accepts the last step
    is bounded there and ``open`` on that side (the survey accepts at least that far).
 
-The bounds [f_low eta_0, f_high eta_0] then widen eta's interval (:func:`eval.intervals.cover_the_profile`).
+The bounds [f_low eta_0, f_high eta_0] then widen eta's interval (:func:`eval.intervals.cover_the_profiles`).
 """
 
 from __future__ import annotations
@@ -71,8 +71,8 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
                 names: list[str], resamples: int) -> dict:
     """The held-out profile of eta (see the module docstring) of ``stack`` fitted on ``train`` (the points of
     ``obs`` less ``split``'s held-out ones) with the raw parameters ``names``; ``stack`` is left polished (in place).
-    Returns {"eta_per_m": eta_0, "low" / "high": eta at the bounds, "open_low" / "open_high": per channel, where the
-    last step was accepted, "steps": [{"factor", "change_pct": (3, 3) d, lo, hi per channel}]}."""
+    Returns (JSON-ready) {"eta_per_m": eta_0, "low" / "high": eta at the bounds, "open_low" / "open_high": per
+    channel, where the last step was accepted, "steps": [{"factor", "change_pct": per channel d, lo, hi}]}."""
     config = replace(fit, **PROFILE_FIT)
     Problem(stack, train, config, names).converge()
     polished = [p.detach().clone() for p in stack.parameters()]
@@ -80,7 +80,7 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
     raw = f"effects.{stack.names.index(ATTENUATION)}.raw.{ETA}"
     held_names = [n for n in names if n != raw]
     base_sq, count = heldout_sums(stack, obs, split, fit, per_channel=True)
-    out = {"eta_per_m": eta0, "steps": []}
+    out = {"eta_per_m": np.round(eta0, 6).tolist(), "steps": []}
     for side, steps in zip(("low", "high"), PROFILE_STEPS, strict=True):
         factors, accepted, previous = np.ones(3), np.ones(3, bool), 1.0
         restore(stack, polished)
@@ -98,7 +98,7 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
                 factors[c] = bound(factor, d, lo, previous) if rejected else factor
                 accepted[c] = not rejected
             previous = factor
-        out[side], out[f"open_{side}"] = eta0 * factors, accepted
+        out[side], out[f"open_{side}"] = np.round(eta0 * factors, 6).tolist(), accepted.tolist()
     restore(stack, polished)
     return out
 

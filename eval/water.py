@@ -211,6 +211,9 @@ class WaterConfig:
     the gains per frame free of the frames' ranges (a camera that sets them from each frame's content) and fine
     fields over the image fitted with the water (a falloff or a veil of a shape the smooth fields do not share).
     Empty: none."""
+    eta_profile: bool = True
+    """Where the survey prefers the gains per frame free of the frames' ranges, widen eta's interval to what its
+    held-out views accept along eta under them (:mod:`eval.eta_profile`; up to five fits more). False: not asked."""
     range_scale_sd: float = 0.0
     """Relative 1-sigma uncertainty of the range maps' metric scale (e.g. the SfM stage's ``scale_spread``).
     The intervals of coefficients in 1/m widen by 1.96 x this x value, in quadrature."""
@@ -222,8 +225,6 @@ class WaterConfig:
 RIG_EFFECT = "artificial_light"
 #: The share of the points a structure alternative's held-out test leaves out, and its bootstrap's resamples.
 STRUCTURE_HOLDOUT, STRUCTURE_TEST_RESAMPLES = 0.2, 500
-#: The profile's entries a structure test keeps (:func:`structure_fits`).
-PROFILE_KEYS = ("low", "high", "open_low", "open_high")
 #: L-BFGS iterations of each specification alternative's refit after its Newton step from the full fit.
 SPEC_ITERATIONS = 30
 
@@ -430,8 +431,8 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
     (:func:`eval.bootstrap.paired_rmse_change`); ``preferred`` where the whole interval is below 0 (the survey
     predicts the views it was not fitted to better with that structure); ``eta_per_m``: that fit's attenuation.
     Where the survey prefers gains per frame free of the frames' ranges, ``eta_profile``: eta's held-out profile
-    under them (:func:`eval.eta_profile.eta_profile`; "low" / "high": eta at its bounds, "open_low" / "open_high":
-    per channel, where the survey accepted the profile's last step)."""
+    under them (:func:`eval.eta_profile.eta_profile`: "low" / "high", eta at its bounds; "open_low" / "open_high",
+    per channel, where the survey accepted the profile's last step; eta_0 and each step's held-out changes)."""
     if not changes:
         return [], []
     alone = replace(config, structure_alternatives=(), spec_alternatives=(), correction_grid=None,
@@ -450,11 +451,10 @@ def structure_fits(obs: Observations, config: WaterConfig, lights: list[dict] | 
         tests.append({"alternative": dict(change), "eta_per_m": np.round(fits[-1].get(ETA, []), 6).tolist(),
                       "heldout_change_pct": round(100 * d, 2),
                       "ci95_pct": [round(100 * ci[0], 2), round(100 * ci[1], 2)], "preferred": bool(ci[1] < 0)})
-        if tests[-1]["preferred"] and change.get("frame_gain_off_range") is False and ETA in fits[-1]:
-            profile = eta_profile(trained, train, obs, split, changed.fit, water_names(trained, train, changed,
-                                  lights)[0], STRUCTURE_TEST_RESAMPLES)
-            tests[-1]["eta_profile"] = {key: np.round(profile[key], 6).tolist() if key in ("low", "high") else
-                                        np.asarray(profile[key]).tolist() for key in PROFILE_KEYS}
+        if config.eta_profile and tests[-1]["preferred"] and change.get("frame_gain_off_range") is False \
+                and ETA in fits[-1]:
+            tests[-1]["eta_profile"] = eta_profile(trained, train, obs, split, changed.fit, water_names(
+                trained, train, changed, lights)[0], STRUCTURE_TEST_RESAMPLES)
     return fits, tests
 
 
