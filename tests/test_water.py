@@ -40,12 +40,14 @@ BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
 
 def water_config(base: WaterStage | None = None, **flat) -> WaterStage:
     """``base`` (default: the water stage's configuration without the fine grid after the water, which only
-    serves the corrections, and without the fine fields' structure alternative, which doubles a fit's time: the
-    tests that need them ask for them) changed by flat field names: those of the measurement
-    (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to its nested configurations."""
+    serves the corrections, without the fine fields' structure alternative, which doubles a fit's time, and without
+    eta's profile under the free gains, up to five fits more: the tests that need them ask for them) changed by flat
+    field names: those of the measurement (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to
+    its nested configurations."""
     from dataclasses import fields, replace
 
-    base = base or WaterStage(correction_grid=None, structure_alternatives=({"frame_gain_off_range": False},))
+    base = base or WaterStage(correction_grid=None, structure_alternatives=({"frame_gain_off_range": False},),
+                              eta_profile=False)
     nested = {}
     for name, cls in (("measure", DenseMeasureConfig), ("fit", FitConfig)):
         own = {k: flat.pop(k) for k in [f.name for f in fields(cls)] if k in flat}
@@ -875,7 +877,7 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     log_gain = 0.1 * (altitude - altitude.mean())
     exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
                for f, g in zip(frames, log_gain, strict=True)]
-    config = water_config(samples_per_frame=80, bootstrap=8, margin_px=4, min_points=100)
+    config = water_config(samples_per_frame=80, bootstrap=8, margin_px=4, min_points=100, eta_profile=True)
     alone = estimate_water(exposed, K, board=board, config=water_config(config, structure_alternatives=()))
     widened = estimate_water(exposed, K, board=board, config=config)
     eta, low, high = (np.asarray(alone.params["attenuation.eta_per_m"][k]) for k in ("value", "low", "high"))
