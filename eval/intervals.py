@@ -126,10 +126,16 @@ def cover_the_structures(stack: Stack, params: dict, structures: list[dict], ran
         halves = [1.96 * np.hypot(std, per_value * np.abs(v)) for v in fits]
         low = np.clip(np.min([v - h for v, h in zip(fits, halves, strict=True)], 0), p.lower, p.upper)
         high = np.clip(np.max([v + h for v, h in zip(fits, halves, strict=True)], 0), p.lower, p.upper)
-        old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
-        entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
-                     high=np.round(np.maximum(high, old_high), 6).tolist(),
-                     structures=((low < old_low) | (high > old_high)).tolist())
+        widen(entry, low, high, "structures")
+
+
+def widen(entry: dict, low: np.ndarray, high: np.ndarray, flag: str) -> None:
+    """Widen a parameter's interval (``entry``, in place) to cover [low, high] per component; ``entry[flag]``: True
+    where that widened it."""
+    old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
+    entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
+                 high=np.round(np.maximum(high, old_high), 6).tolist(),
+                 **{flag: ((low < old_low) | (high > old_high)).tolist()})
 
 
 def cover_the_profiles(params: dict, key: str, profiles: list[dict]) -> None:
@@ -139,12 +145,8 @@ def cover_the_profiles(params: dict, key: str, profiles: list[dict]) -> None:
     entry = params.get(key)
     if not profiles or entry is None or entry.get("low") is None:
         return
-    old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
-    low = np.min([np.asarray(p["low"], float) for p in profiles], 0)
-    high = np.max([np.asarray(p["high"], float) for p in profiles], 0)
-    entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
-                 high=np.round(np.maximum(high, old_high), 6).tolist(),
-                 profile=((low < old_low) | (high > old_high)).tolist())
+    widen(entry, np.min([np.asarray(p["low"], float) for p in profiles], 0),
+          np.max([np.asarray(p["high"], float) for p in profiles], 0), "profile")
 
 
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,

@@ -366,7 +366,8 @@ class WaterEstimate:
             interval="95 %: estimate +- sqrt((1.96 x bootstrap std)^2 + specification^2 [+ (1.96 x range scale sd x "
                      "value)^2 for 1/m]); bootstrap over frames and points; specification: largest change of the "
                      "estimate under the specification alternatives " + json.dumps(self.alternatives) + "; widened "
-                     "to cover each structure alternative's estimate +- the same spread (structures)",
+                     "to cover each structure alternative's estimate +- the same spread (structures), and eta's to "
+                     "what the held-out views accept under the free gains (profile)",
             plots=plots)
 
     def to_json(self) -> dict:
