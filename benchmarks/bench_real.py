@@ -2,7 +2,10 @@
 user of that camera would run it, with only the image size known.
 
     .venv/bin/python benchmarks/bench_real.py [--out DIR] [--width 1280] [--frames 80] [--json PATH]
-                                              [extra `watergan run` options...]
+                                              [--measure-only] [extra `watergan run` options...]
+
+``--measure-only`` skips the run and measures the finished workspace ``OUT/ws`` again (minutes, not the run's
+twenty).
 
 The survey folder it writes (``OUT/survey``): ``images/`` (links to the frames, or copies resized to ``--width``),
 ``camera.json`` holding only the image size and the burned-in timestamp's rectangle (``mask_rects_px``), and
@@ -27,6 +30,16 @@ What it measures, with the keys of ``benchmarks/results/real.json``:
   Y_near (Y = 0.2126 R + 0.7152 G + 0.0722 B).
   ``black_pixels`` counts the
   corrected frames' pixels at 0 in every channel outside the mask;
+  Table II again at patch sizes of 5, 15 and 31 px (``consistency_by_patch_px``: patch side -> R, G, B), these
+  methods measured together on the same observations, so its 5 px values can differ a little from ``consistency``
+  (the eval stage pools every one of its methods); at 5 px the measure follows the tile/grout texture;
+- per labelled object (``benchmarks/data/subvo_objects.json``, drawn by ``benchmarks/draw_objects.py``; regions mapped
+  into the workspace's undistorted frames) and method, under ``methods.<method>.objects.<name>``: the mean linear
+  colour per frame, its range per frame (the water stage's range maps) and median range, the chromaticity spread
+  across its frames ``object_chromaticity_spread`` (sum over channels of max - min of c = RGB / (R + G + B)) and
+  the slope of c against ln range (:mod:`eval.objects`); ``methods.<method>.objects_median_spread``, the median
+  over objects; ``objects``: the labels, their counts and each method's median spread over raw's; the figure
+  ``real_objects.png`` beside the JSON (each object's chromaticity against range, raw beside each correction);
 - seconds per stage and the run's peak memory (``ru_maxrss`` of the children).
 
 The data's notice (its README: source, licence, attribution) is copied beside everything written from it.
@@ -41,6 +54,7 @@ import resource
 import shutil
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +66,12 @@ DATA = ROOT.parent / "shared" / "data" / "subvo-pool"
 TIMESTAMP_PX = (0, 0, 430, 45)
 #: The tile test's bands: rows as fractions of the frame's height, and the middle fraction of its width.
 FAR_ROWS, NEAR_ROWS, MIDDLE = (0.50, 0.62), (0.88, 1.00), 0.70
+#: The labelled objects of the footage (full-size pixels of the original frames).
+OBJECT_LABELS = ROOT / "benchmarks" / "data" / "subvo_objects.json"
+#: Table II's patch sizes, pixels of the workspace's frames.
+PATCHES_PX = (5, 15, 31)
+#: The methods the per-object and per-patch measures take, in this order.
+OBJECT_METHODS = ("raw", "physics", "restorer", "gray_world", "seathru")
 
 
 def prepare_survey(out: Path, width: int, n_frames: int) -> Path:
@@ -136,6 +156,127 @@ def method_folders(ws) -> dict[str, Path]:
     return {m: f for m, f in folders.items() if f.is_dir()}
 
 
+class _Frames(Mapping):
+    """Frame name -> array, read on access (:func:`eval.objects.object_colours` visits each frame once)."""
+
+    def __init__(self, names: list[str], read):
+        self.names, self.read = list(names), read
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self.names:
+            raise KeyError(name)
+        return self.read(name)
+
+    def __contains__(self, name) -> bool:
+        return name in self.names
+
+    def __iter__(self):
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def label_warp(ws):
+    """The labels' masks (drawn on the original frames) into the workspace's undistorted frames: the survey stage's
+    undistortion (:func:`watergan.lens.undistort_image`) applied to the mask, as to the scene mask; None without a
+    lens."""
+    from watergan.lens import camera_matrix, distortion_of, undistort_image
+
+    camera = json.loads((ws.folder("survey") / "camera.json").read_text())
+    lens = distortion_of(camera.get("undistorted", {})) if camera.get("undistorted") else None
+    if lens is None:
+        return None
+    K = camera_matrix(camera)
+    return lambda mask: undistort_image(mask.astype(np.uint8) * 255, K, lens) > 127
+
+
+def range_maps(ws, names: list[str]) -> _Frames | None:
+    """Each frame's range (metres, NaN: none) from the water stage's range maps; None without the water stage."""
+    from watergan.io import read_millimetres
+
+    water = ws.result("water")
+    if water is None:
+        return None
+    folder = ws.path(water.range_dir)
+
+    def read(name: str) -> np.ndarray | None:
+        path = folder / f"{Path(name).stem}.png"
+        if not path.is_file():
+            return None
+        r = read_millimetres(path) / 1000.0
+        return np.where(r > 0, r, np.nan)
+
+    return _Frames(names, read)
+
+
+def object_constancy(ws, folders: dict[str, Path], names: list[str], labels_path: Path = OBJECT_LABELS) -> dict:
+    """Per method of ``folders``, :func:`eval.objects.measure_objects` of the labelled objects in its frames, with the
+    water stage's ranges: ``{method: {"objects": {...}, "objects_median_spread": S}}``."""
+    from eval.objects import load_object_labels, measure_objects, object_pixels
+    from watergan.io import frame_file, read_image
+
+    labels = load_object_labels(labels_path, names)
+    ranges = range_maps(ws, names)
+    warp = label_warp(ws)
+    pixels: dict[tuple, dict] = {}
+    out = {}
+    for method, folder in folders.items():
+        images = _Frames(names, lambda name, folder=folder: read_image(frame_file(folder, name)))
+        shape = images[labels.frames()[0]].shape[:2] if labels.frames()[0] in images else None
+        if shape is None:
+            continue
+        if shape not in pixels:
+            pixels[shape] = object_pixels(labels, shape, names, warp)
+        out[method] = measure_objects(images, labels, pixels[shape], ranges)
+    return out
+
+
+def consistency_by_patch(ws, folders: dict[str, Path], patches=PATCHES_PX) -> dict[str, dict[str, list]]:
+    """Table II (:func:`eval.colour.consistency`, at least 3 views) of ``folders`` at each patch size, the views the
+    physics correction gave no measured range left out of all as the eval stage does: method -> patch -> R, G, B."""
+    from eval.colour import consistency, observation_colours
+    from eval.tracks import Tracks
+    from pipeline.evaluate import measured_views
+
+    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
+    correct = ws.result("correct")
+    unmeasured = None
+    if "physics" in folders and correct is not None and correct.physics_mask and ws.path(correct.physics_mask).is_dir():
+        unmeasured = ~measured_views(tracks, ws.path(correct.physics_mask))
+    out: dict[str, dict[str, list]] = {m: {} for m in folders}
+    for patch in patches:
+        colours = {m: observation_colours(tracks, f, patch) for m, f in folders.items()}
+        if unmeasured is not None:
+            for values in colours.values():
+                values[unmeasured] = np.nan
+        result = consistency(tracks, folders, patch, 3, colours=colours)
+        for method, score in result.scores.items():
+            out[method][str(patch)] = [round(v, 8) for v in score.variance]
+    return out
+
+
+def objects_summary(per_method: dict, labels_path: Path = OBJECT_LABELS) -> dict:
+    """The labels' counts and each method's ``objects_median_spread`` over raw's, and over raw's per object."""
+    from eval.objects import load_object_labels
+
+    labels = load_object_labels(labels_path)
+    raw = per_method.get("raw", {})
+    summary = {"labels": str(labels_path.relative_to(ROOT)), "n_objects": len(labels.objects),
+               "n_object_frames": labels.n_object_frames(),
+               "objects_median_spread": {m: e["objects_median_spread"] for m, e in per_method.items()}}
+    if raw.get("objects_median_spread"):
+        summary["median_spread_over_raw"] = {m: round(e["objects_median_spread"] / raw["objects_median_spread"], 4)
+                                             for m, e in per_method.items() if e["objects_median_spread"] is not None}
+        summary["spread_over_raw_per_object"] = {
+            m: {name: round(o["object_chromaticity_spread"] / raw["objects"][name]["object_chromaticity_spread"], 4)
+                for name, o in e["objects"].items()
+                if o["object_chromaticity_spread"] is not None and raw["objects"].get(name, {}).get(
+                    "object_chromaticity_spread")}
+            for m, e in per_method.items()}
+    return summary
+
+
 def model_height_halves(ws) -> dict:
     """The crawler's camera rides at a constant height over the floor: :func:`pipeline.scale.height_halves` of the
     model's camera heights over its floor plane, the model's own scale drift between the halves, read without the
@@ -178,13 +319,21 @@ def collect(ws, run_summary: dict) -> dict:
     evaluate = ws.result("eval")
     consistency = evaluate.consistency_variance if evaluate is not None else {}
     methods = {}
-    for method, folder in method_folders(ws).items():
+    folders = method_folders(ws)
+    for method, folder in folders.items():
         entry = tile_test(folder, names, mask)
         key = {"physics": "physics", "restorer": "ours"}.get(method, method)
         if key in consistency:
             entry["consistency"] = [float(v) for v in consistency[key]]
         methods[method] = entry
+    measured = {m: folders[m] for m in OBJECT_METHODS if m in folders}
+    for method, by_patch in consistency_by_patch(ws, measured).items():
+        methods[method]["consistency_by_patch_px"] = by_patch
+    per_object = object_constancy(ws, measured, names)
+    for method, entry in per_object.items():
+        methods[method].update(entry)
     figures["methods"] = methods
+    figures["objects"] = objects_summary(per_object)
     figures["seconds"] = {t["stage"]: t["seconds"] for t in run_summary.get("stages", [])}
     figures["seconds"]["total"] = run_summary.get("seconds")
     return figures
@@ -211,6 +360,12 @@ def targets(figures: dict) -> dict:
             out[f"{method}_consistency_below_raw"] = all(a < b for a, b in zip(entry["consistency"],
                                                                                  raw["consistency"], strict=True))
         out[f"{method}_no_black"] = entry["black_pixels"] == 0
+        spread, raw_spread = entry.get("objects_median_spread"), raw.get("objects_median_spread")
+        if spread is not None and raw_spread:
+            out[f"{method}_objects_spread_half_of_raw"] = spread <= 0.5 * raw_spread
+            per_object = figures.get("objects", {}).get("spread_over_raw_per_object", {}).get(method, {})
+            out[f"{method}_objects_below_raw_every_object"] = bool(per_object) and all(v < 1 for v in
+                                                                                       per_object.values())
     return out
 
 
@@ -220,7 +375,10 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=1280, help="frame width (1280: the data's own size)")
     parser.add_argument("--frames", type=int, default=80, help="the first N frames")
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "real.json"))
+    parser.add_argument("--measure-only", action="store_true",
+                        help="skip the run: measure the finished workspace OUT/ws again")
     args, extra = parser.parse_known_args()
+    from eval.objects import chromaticity_figure
     from pipeline.workspace import Workspace
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -229,13 +387,14 @@ def main() -> None:
     survey = prepare_survey(out, args.width, args.frames)
     ws_dir = out / "ws"
     command = [sys.executable, "-m", "pipeline.cli", "run", str(survey), "--workspace", str(ws_dir), *extra]
-    print("$ " + " ".join(command[2:]), flush=True)
-    subprocess.run(command, check=True, cwd=ROOT)
+    if not args.measure_only:
+        print("$ " + " ".join(command[2:]), flush=True)
+        subprocess.run(command, check=True, cwd=ROOT)
     peak_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
     ws = Workspace(ws_dir)
     shutil.copy(survey / "NOTICE.md", ws_dir / "NOTICE.md")
     figures = collect(ws, json.loads((ws_dir / "run_summary.json").read_text()))
-    figures["peak_memory_gib"] = round(peak_gib, 2)
+    figures["peak_memory_gib"] = None if args.measure_only else round(peak_gib, 2)
     figures["targets"] = targets(figures)
     figures["command"] = "benchmarks/bench_real.py " + " ".join(sys.argv[1:])
     figures["commit"] = commit
@@ -243,12 +402,16 @@ def main() -> None:
                          "github.com/A8neyestani/SUBVO; see ../shared/data/subvo-pool/README.md")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(figures, indent=1) + "\n")
+    figure = Path(args.json).parent / f"{Path(args.json).stem}_objects.png"
+    chromaticity_figure({m: e["objects"] for m, e in figures["methods"].items() if "objects" in e}, figure,
+                        note="Frames: SUBVO dataset (A. Neyestani et al., IEEE I2MTC 2025), CC BY 4.0, "
+                             "github.com/A8neyestani/SUBVO; labels: benchmarks/data/subvo_objects.json")
     print(json.dumps({k: figures[k] for k in ("registered", "frames", "reprojection_px", "focal_halves_pct",
                                               "scale_heldout_pct", "targets")}, indent=1))
     for method, entry in figures["methods"].items():
         print(f"{method:10} tile distance {entry['tile_chromaticity_distance']:.4f}  far/near "
               f"{entry['tile_luminance_ratio']:.3f}  consistency {entry.get('consistency')}  "
-              f"black {entry['black_pixels']}")
+              f"black {entry['black_pixels']}  objects' median spread {entry.get('objects_median_spread')}")
 
 
 if __name__ == "__main__":

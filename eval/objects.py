@@ -8,10 +8,11 @@ cone, a dark block, a patch of tiles), each with one region per frame in which i
                   "frames": {"frame_01.jpg": {"box_px": [x0, y0, x1, y1]},
                              "frame_02.jpg": {"polygon_px": [[x, y], [x, y], [x, y], ...]}}}]}
 
-Coordinates are pixels of the frames as given (before any undistortion or resizing), OpenCV convention (pixel (i, j)
-centred at x = i, y = j); a region holds the pixels ``cv2.fillPoly`` fills (a box: its four corners). ``kind`` is one
-of :data:`KINDS`. :func:`load_object_labels` refuses a file with a region outside the frame, an empty box, an unknown
-kind or frame name, with a one-line message naming the object and the frame.
+Coordinates are pixels of the frames as given (before any undistortion or resizing), pixel (i, j) covering
+[i, i + 1] x [j, j + 1] (a frame spans 0..W, 0..H); a region holds the pixels whose centres lie inside it (a box
+[x0, y0, x1, y1]: columns x0 .. x1 - 1 for integer corners). ``kind`` is one of :data:`KINDS`.
+:func:`load_object_labels` refuses a file with a region outside the frame, an empty box, an unknown kind or frame
+name, with a one-line message naming the object and the frame.
 
 Measures, per object and method, from the method's frames (linear RGB) and, where there is one, each frame's range
 map (metres, NaN or 0 = none), both in the frames' geometry after the labels are mapped into it
@@ -31,6 +32,7 @@ map (metres, NaN or 0 = none), both in the frames' geometry after the labels are
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,7 +55,8 @@ class LabelledObject:
     """One of :data:`KINDS`."""
     description: str
     regions: dict[str, np.ndarray]
-    """Frame file name -> (N,2) polygon corners in pixels of the labelled frames (a box as its four corners)."""
+    """Frame file name -> (N,2) polygon corners in pixels of the labelled frames (a box as its four corners; pixel
+    (i, j) covers [i, i + 1] x [j, j + 1])."""
 
 
 @dataclass(frozen=True)
@@ -163,13 +166,21 @@ def apparent_size_ratio(obj: LabelledObject) -> float:
 
 def region_mask(polygon: np.ndarray, shape_hw: tuple[int, int], scale_xy: tuple[float, float] = (1.0, 1.0)
                 ) -> np.ndarray:
-    """(H,W) bool: the pixels ``cv2.fillPoly`` fills inside ``polygon`` (pixels) scaled by ``scale_xy``."""
-    import cv2
+    """(H,W) bool: the pixels whose centres (i + 0.5, j + 0.5) lie inside ``polygon`` (pixels) scaled by
+    ``scale_xy``."""
+    from matplotlib.path import Path as Outline
 
-    mask = np.zeros(shape_hw, np.uint8)
-    points = np.rint(np.asarray(polygon, float) * np.asarray(scale_xy) * 16).astype(np.int32)
-    cv2.fillPoly(mask, [points], 1, lineType=cv2.LINE_8, shift=4)
-    return mask.astype(bool)
+    h, w = shape_hw
+    points = np.asarray(polygon, float) * np.asarray(scale_xy, float)
+    mask = np.zeros((h, w), bool)
+    x0, y0 = np.maximum(np.floor(points.min(0)).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(points.max(0)).astype(int), [w, h])
+    if x1 <= x0 or y1 <= y0:
+        return mask
+    jj, ii = np.mgrid[y0:y1, x0:x1]
+    centres = np.stack([ii.ravel() + 0.5, jj.ravel() + 0.5], 1)
+    mask[y0:y1, x0:x1] = Outline(points).contains_points(centres).reshape(jj.shape)
+    return mask
 
 
 def object_pixels(labels: ObjectLabels, shape_hw: tuple[int, int], frame_names: Iterable[str] | None = None,
@@ -312,10 +323,12 @@ def measure_objects(images: Mapping[str, np.ndarray], labels: ObjectLabels,
     return {"objects": per_object, "objects_median_spread": objects_median_spread(per_object)}
 
 
-def chromaticity_figure(per_method: Mapping[str, Mapping[str, dict]], path: str | Path, title: str = "") -> None:
+def chromaticity_figure(per_method: Mapping[str, Mapping[str, dict]], path: str | Path, title: str = "",
+                        note: str = "") -> None:
     """A PNG of each object's chromaticity (red share above, blue share below) against its range (log axis), one
     column per method (``per_method``: method -> :func:`measure_objects`' ``objects``), raw first: a method that
-    keeps an object's colour draws it flat. Frames without a range are left out of the figure."""
+    keeps an object's colour draws it flat. Frames without a range are left out of the figure. ``note``: a line
+    written under it (the data's notice)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -350,9 +363,9 @@ def chromaticity_figure(per_method: Mapping[str, Mapping[str, dict]], path: str 
     if names:
         fig.legend(loc="lower center", ncol=min(len(names), 6), fontsize=7)
     fig.suptitle(title or "Labelled objects' chromaticity against range (flat: the colour kept)", fontsize=9)
-    fig.tight_layout(rect=(0, 0.08, 1, 0.96))
-    import io
-
+    if note:
+        fig.text(0.5, 0.005, note, ha="center", va="bottom", fontsize=6)
+    fig.tight_layout(rect=(0, 0.1, 1, 0.96))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
