@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from eval.colour import Board
-from eval.fields import fit_correction_grid
 from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
 from eval.fit import FitConfig
 from eval.observations import DenseMeasureConfig, SparseTracks, WaterFrame, WaterInputError, measure_frames
-from eval.water import build_stack, estimate_water
+from eval.water import ALTERNATIVE_PRESETS, build_stack, estimate_water
+from eval.water.fields import fit_correction_grid
 from pipeline.stages import STAGES
 from pipeline.water import WaterStage
 from watergan.formation import FormationState, Stack, pixel_grid
@@ -39,15 +39,13 @@ BOARD_RGB = np.random.default_rng(3).uniform(0.03, 0.9, (24, 3))
 
 
 def water_config(base: WaterStage | None = None, **flat) -> WaterStage:
-    """``base`` (default: the water stage's configuration without the fine grid after the water, which only
-    serves the corrections, without the fine fields' structure alternative, which doubles a fit's time, and without
-    eta's profile under the free gains, up to five fits more: the tests that need them ask for them) changed by flat
-    field names: those of the measurement (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to
-    its nested configurations."""
+    """``base`` (default: the water stage's own configuration, its alternatives included, without the fine grid
+    after the water, which serves the corrections alone: the tests that check it ask for it) changed by flat field
+    names: those of the measurement (:class:`DenseMeasureConfig`) and of the fit (:class:`FitConfig`) go to its
+    nested configurations."""
     from dataclasses import fields, replace
 
-    base = base or WaterStage(correction_grid=None, structure_alternatives=({"frame_gain_off_range": False},),
-                              eta_profile=False)
+    base = base or WaterStage(correction_grid=None)
     nested = {}
     for name, cls in (("measure", DenseMeasureConfig), ("fit", FitConfig)):
         own = {k: flat.pop(k) for k in [f.name for f in fields(cls)] if k in flat}
@@ -141,7 +139,7 @@ def falloff_error(fitted: Stack, truth: Stack) -> np.ndarray:
 
 
 def _value(estimate, key):
-    return np.asarray(estimate.params[key]["value"], float)
+    return np.asarray(estimate.params[key].value, float)
 
 
 def test_estimate_recovers_the_rendered_water(survey):
@@ -156,14 +154,14 @@ def test_estimate_recovers_the_rendered_water(survey):
     # the falloff over the image (the vignetting's coefficients trade among themselves and with the fields)
     assert falloff_error(est.stack, Stack.from_config(TRUE)).max() < 0.02
     eta = est.params["attenuation.eta_per_m"]
-    assert all(lo <= v <= hi for lo, v, hi in zip(eta["low"], eta["value"], eta["high"], strict=True))
-    assert all(h > lo for lo, h in zip(eta["low"], eta["high"], strict=True))
+    assert all(lo <= v <= hi for lo, v, hi in zip(eta.low, eta.value, eta.high, strict=True))
+    assert all(h > lo for lo, h in zip(eta.low, eta.high, strict=True))
     # the coarse start's trust region takes red B_inf along its valley with beta to the floor: the intervals cover
     # the truth (measured without it, coarse_refine_evaluations=0: red B_inf +7 % and beta -13 %, both missed)
     assert est.converged
     for key, truth in (("backscatter.b_inf", [0.03, 0.16, 0.19]), ("backscatter.beta_per_m", [0.45, 0.32, 0.32])):
         p = est.params[key]
-        assert all(lo <= t <= hi for lo, t, hi in zip(p["low"], truth, p["high"], strict=True)), (key, p)
+        assert all(lo <= t <= hi for lo, t, hi in zip(p.low, truth, p.high, strict=True)), (key, p)
     assert set(est.fixed) == {"frame_gain"} and not est.frames["carried"]  # the frames differ by nothing
     assert "eta" in est.summary()
 
@@ -173,7 +171,7 @@ def test_without_a_board_the_gain_is_held_and_said(survey):
     config = water_config(samples_per_frame=150, bootstrap=0, margin_px=4, iterations=80, footprint_m=FOOTPRINT_M,
                          initial=({"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}},))
     est = estimate_water(frames, K, config=config)
-    assert "gain" in est.fixed and not est.params["gain.k"]["fitted"]
+    assert "gain" in est.fixed and not est.params["gain.k"].fitted
     np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), [0.45, 0.14, 0.2], rtol=0.05)
 
 
@@ -255,19 +253,21 @@ def test_too_little_input_is_refused_with_what_to_give(survey):
 @pytest.fixture(scope="module")
 def water_workspace():
     """The session's small simulated stereo survey (tests/test_sfm.py: 10 frames of 320x240, real pycolmap SfM)
-    with the dense stage and the water stage run on it."""
+    with the dense, range and water stages run on it."""
     from test_sfm import survey_and_sfm
 
     from pipeline.dense import DenseConfig
+    from pipeline.range import RangeConfig
 
     survey, ws, _ = survey_and_sfm()
     ws.run("dense", DenseConfig(progress=False))
+    ws.run("range", RangeConfig(progress=False))
     return survey, ws, ws.run("water", water_config(bootstrap=8, progress=False))
 
 
 def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspace, capsys):
-    """The water stage estimates the water and writes each pixel's range; `watergan correct --workspace WS` (the
-    correct stage, here without a restorer) inverts the estimate with them into its physics/ folder."""
+    """The water stage estimates the water; `watergan correct --workspace WS` (the correct stage, here without a
+    restorer) inverts the estimate with the range stage's maps into its physics/ folder."""
     import argparse
     import json
 
@@ -281,18 +281,19 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
              for k, v in e["params"].items()}
     for key in ("attenuation.eta_per_m", "backscatter.b_inf"):
         p = water.params[key]
-        assert all(lo < v < hi for lo, v, hi in zip(p["low"], p["value"], p["high"], strict=True)), key
+        assert all(lo < v < hi for lo, v, hi in zip(p.low, p.value, p.high, strict=True)), key
         # 10 frames of 320x240 at one altitude, with the fields over the image: measured 8-23 % off for eta and 26-32 %
         # for red B_inf over runs (along its valley with beta, which this survey's range span hardly pins; SfM's points
         # differ from run to run; the demo: <= 2 % and 15 %); WaterGAN's eta was 43 % off in green on the demo. What
         # the survey pins is the veil, checked below.
         rtol = np.array([0.4, 0.3, 0.3] if key == "backscatter.b_inf" else [0.3, 0.3, 0.3])
-        assert (np.abs(np.array(p["value"]) / truth[key] - 1) <= rtol).all(), (key, p["value"], truth[key])
+        assert (np.abs(np.array(p.value) / truth[key] - 1) <= rtol).all(), (key, p.value, truth[key])
     veil = water.veil  # what the survey pins of the backscatter: the veil at its median range, within 10 %
     true_veil = np.array(truth["backscatter.b_inf"]) * -np.expm1(-np.array(truth["backscatter.beta_per_m"])
                                                                    * veil["range_m"])
     np.testing.assert_allclose(veil["value"], true_veil, rtol=0.15)
-    assert result.board and result.summary.startswith("water: eta_per_m") and result.range_missing < 0.2
+    ranges = ws.result("range")
+    assert result.board and result.summary.startswith("water: eta_per_m") and ranges.range_missing < 0.2
     assert result.at_bounds == []  # nothing hidden: the stack fits
     from eval.observations import Observations  # the table the estimate was fitted to, for the diagnosis
 
@@ -300,7 +301,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     assert len(obs.colour) == result.n_observations == water.n_observations and obs.n_points == water.n_points
     assert obs.points_world.shape == obs.normals_world.shape == (obs.n_points, 3) and obs.normals_cam is not None
     names = sorted(p.name for p in (survey / "images").iterdir())
-    assert sorted(p.name for p in ws.path(result.range_dir).iterdir()) == names  # the range maps: the water's
+    assert sorted(p.name for p in ws.path(ranges.range_dir).iterdir()) == names  # the range maps: the range stage's
     assert (ws.path(result.water_json).parent / "residuals.png").stat().st_size > 0 and "residuals.png" in water.plots
 
     parser = argparse.ArgumentParser()
@@ -312,7 +313,7 @@ def test_the_water_stage_estimates_and_corrects_from_the_workspace(water_workspa
     assert correct.physics == f"{STAGES['correct'].folder}/physics" and correct.restorer == "" and correct.mode == ""
     assert correct.mesh_images == correct.physics_images  # no restorer: the physics correction
     # no range: ranged from the neighbours or at the far limit
-    assert result.range_missing == pytest.approx(correct.filled_fraction + correct.far_fraction, abs=1e-6)
+    assert ranges.range_missing == pytest.approx(correct.filled_fraction + correct.far_fraction, abs=1e-6)
     assert correct.far_fraction < 0.2
     assert sorted(p.name for p in ws.path(correct.physics_images).iterdir()) == names
     frame = cv2.imread(str(ws.path(correct.physics_images) / names[0]), cv2.IMREAD_UNCHANGED)
@@ -337,7 +338,7 @@ def test_the_evaluation_measures_the_physics_correction(water_workspace):
 def test_the_veils_interval_holds_its_bootstrap_spread_and_the_specification_change():
     """The veil at the median range: B_inf (1 - exp(-beta r)); its interval's half width is the bootstrap's 1.96 sd
     and the largest change under the specification alternatives in quadrature (as every parameter's)."""
-    from eval.intervals import veil_at_median_range
+    from eval.water.intervals import veil_at_median_range
 
     stack = Stack.from_config(TRUE)
     b_inf, beta, r = np.array(TRUE[1]["params"]["b_inf"]), np.array(TRUE[1]["params"]["beta_per_m"]), 3.0
@@ -361,49 +362,71 @@ def test_the_veils_interval_holds_its_bootstrap_spread_and_the_specification_cha
     np.testing.assert_allclose(covered["low"], wider["low"], rtol=1e-6)
 
 
-def test_the_intervals_cover_each_structure_alternatives_estimate_with_the_surveys_spread():
-    """A structure alternative's estimate outside the interval: the interval reaches it plus the bootstrap's 1.96 sd
-    (and the range scale's term for coefficients in 1/m) on its side, is kept on the other, and stays inside the
-    parameter's bounds; an alternative inside the interval changes nothing."""
-    from eval.intervals import cover_the_structures
+def _alternative_fit(alternative, values=None, profile=None):
+    from eval.water.alternatives import AlternativeFit
+
+    return AlternativeFit(alternative, {k: np.asarray(v, float) for k, v in (values or {}).items()}, profile=profile)
+
+
+def _eta_interval(stack, results, std=0.01, range_scale_sd=0.0):
+    """combine() on a stack at TRUE's eta with 30 replicates of spread ``std`` about it, and ``results``."""
+    from eval.water.intervals import combine
+
+    eta = np.array([0.45, 0.14, 0.2])
+    rng = np.random.default_rng(0)
+    draws = rng.normal(size=(30, 3))
+    draws = (draws - draws.mean(0)) / draws.std(0, ddof=1)
+    samples = [{"attenuation.eta_per_m": eta + std * d} for d in draws]
+    params, _, _ = combine(stack, {"attenuation.eta_per_m": eta}, samples, results, range_scale_sd, 2.0)
+    return params["attenuation.eta_per_m"]
+
+
+def test_one_rule_widens_the_interval_by_each_alternatives_rule_and_names_it():
+    """combine(): a "quadrature" alternative's change adds in quadrature to the bootstrap's 1.96 sd; a "cover" one's
+    estimate outside the interval is reached plus the bootstrap's 1.96 sd (and the range scale's term for 1/m) on
+    its side, the other side kept, inside the parameter's bounds; a "bounds" one's accepted span is covered; each
+    alternative leaves a row saying where it widened the interval."""
+    from eval.water.alternatives import BoardWeight, FineFields, Profile
 
     stack = Stack.from_config(TRUE)
-    params = {"attenuation.eta_per_m": {"value": [0.45, 0.14, 0.2], "std": [0.01, 0.01, 0.01],
-                                        "low": [0.42, 0.12, 0.18], "high": [0.48, 0.16, 0.22]}}
-    alternative = np.array([0.3, 0.13, 0.3])
-    cover_the_structures(stack, params, [{"attenuation.eta_per_m": alternative}], 0.05)
-    eta = params["attenuation.eta_per_m"]
-    half = np.hypot(1.96 * 0.01, 1.96 * 0.05 * alternative)
-    np.testing.assert_allclose(eta["low"], [0.3 - half[0], 0.13 - half[1], 0.18], atol=2e-6)
-    np.testing.assert_allclose(eta["high"], [0.48, 0.16, 0.3 + half[2]], atol=2e-6)
-    assert eta["structures"] == [True, True, True]
-    inside = {"attenuation.eta_per_m": dict(params["attenuation.eta_per_m"])}
-    cover_the_structures(stack, inside, [{"attenuation.eta_per_m": np.array([0.45, 0.14, 0.2])}], 0.0)
-    assert inside["attenuation.eta_per_m"]["low"] == eta["low"] and inside["attenuation.eta_per_m"]["structures"] == \
-        [False] * 3
-    bounded = {"attenuation.eta_per_m": {"value": [0.45] * 3, "std": [0.01] * 3, "low": [0.4] * 3, "high": [0.5] * 3}}
-    cover_the_structures(stack, bounded, [{"attenuation.eta_per_m": np.array([0.001, 0.45, 0.45])}], 0.0)
-    assert bounded["attenuation.eta_per_m"]["low"][0] >= stack["attenuation"]._spec("eta_per_m").lower
+    eta = np.array([0.45, 0.14, 0.2])
+    alone = _eta_interval(stack, [])
+    np.testing.assert_allclose(np.array(alone.high) - eta, 1.96 * 0.01, atol=2e-6)
+    assert alone.widenings == []
+    weighted = _eta_interval(stack, [_alternative_fit(BoardWeight(), {"attenuation.eta_per_m": eta + 0.03})])
+    np.testing.assert_allclose(np.array(weighted.high) - eta, np.hypot(1.96 * 0.01, 0.03), atol=2e-6)
+    (row,) = weighted.widenings
+    assert (row.alternative, row.rule, row.widened) == ("board_weight", "quadrature", [True] * 3)
+
+    other = np.array([0.3, 0.14, 0.3])  # a structure alternative: in quadrature and covered
+    covered = _eta_interval(stack, [_alternative_fit(FineFields(), {"attenuation.eta_per_m": other})], 0.01, 0.05)
+    half = np.hypot(1.96 * 0.01, 1.96 * 0.05 * other)
+    assert covered.low[0] == pytest.approx(0.3 - half[0], abs=2e-6)
+    assert covered.high[2] == pytest.approx(0.3 + half[2], abs=2e-6)
+    cover = covered.widening("fine_fields")
+    assert cover.rule == "quadrature" and [w.rule for w in covered.widenings] == ["quadrature", "cover"]
+    assert covered.widenings[1].widened == [True, False, True]  # green's alternative is the estimate itself
+    low_bound = stack["attenuation"]._spec("eta_per_m").lower
+    floor = _eta_interval(stack, [_alternative_fit(FineFields(), {"attenuation.eta_per_m": [0.001, 0.14, 0.2]})])
+    assert floor.low[0] >= low_bound
+
+    profile = {"param": "attenuation.eta_per_m", "low": [0.3, 0.13, 0.19], "high": [0.5, 0.15, 0.3]}
+    profiled = _eta_interval(stack, [_alternative_fit(Profile(), profile=profile)])
+    assert profiled.low == [0.3, pytest.approx(0.14 - 1.96 * 0.01, abs=2e-6), pytest.approx(0.2 - 1.96 * 0.01,
+                                                                                              abs=2e-6)]
+    assert profiled.high[2] == 0.3 and profiled.widening("eta_profile").widened == [True, False, True]
 
 
-def test_the_profiles_bound_is_where_the_changes_lower_bound_reaches_zero_and_widens_the_interval():
+def test_the_profiles_bound_is_where_the_changes_lower_bound_reaches_zero():
     """A rejected step's bound: with the held-out change d = a (f - 1)^2 and its interval's half-width b |f - 1|,
-    lo = d - b |f - 1| reaches 0 at |f - 1| = b / a, read from the one step (no nearer 1 than the step before it).
-    The profile's [low, high] widens eta's interval where it reaches past it, and ``profile`` says where."""
-    from eval.eta_profile import bound
-    from eval.intervals import cover_the_profiles
+    lo = d - b |f - 1| reaches 0 at |f - 1| = b / a, read from the one step (no nearer 1 than the step before it)."""
+    from eval.water.profile import bound
 
     a, b = 40.0, 3.0  # lo = 0 at |f - 1| = 0.075
     for factor in (0.8, 0.6, 1.25, 1.6):
         d = a * (factor - 1) ** 2
         assert bound(factor, d, d - b * abs(factor - 1), 1.0) == pytest.approx(1 + np.sign(factor - 1) * b / a)
     assert bound(1.6, a * 0.36, a * 0.36 - b * 0.6, 1.25) == 1.25  # the step before was accepted: no nearer
-    params = {"attenuation.eta_per_m": {"value": [0.45, 0.14, 0.2], "low": [0.42, 0.12, 0.18],
-                                        "high": [0.48, 0.16, 0.22]}}
-    cover_the_profiles(params, "attenuation.eta_per_m", [{"low": [0.3, 0.13, 0.19], "high": [0.5, 0.15, 0.3]}])
-    eta = params["attenuation.eta_per_m"]
-    assert eta["low"] == [0.3, 0.12, 0.18] and eta["high"] == [0.5, 0.16, 0.3]
-    assert eta["profile"] == [True, False, True]
 
 
 def test_held_out_sums_per_channel_add_up_to_the_sums_over_the_channels():
@@ -429,18 +452,19 @@ def test_b_infs_interval_covers_the_valley_the_veil_and_beta_leave_it_in():
     """B_inf's interval widens to B_inf = V / (1 - exp(-beta r)) over the veil V's interval and beta's: a narrow
     bootstrap interval of B_inf in a wide valley of beta becomes the valley's span; with beta's interval reaching 0
     it reaches B_inf's upper bound; where the valley is narrower than B_inf's own interval nothing changes."""
-    from eval.intervals import cover_the_valley
+    from eval.water.intervals import cover_the_valley
+    from watergan.water_record import ParamInterval
 
     r = 3.0
     veil = {"range_m": r, "low": [0.02, 0.09, 0.115], "high": [0.024, 0.1, 0.118]}
-    params = {"backscatter.b_inf": {"low": [0.028, 0.15, 0.18], "high": [0.032, 0.17, 0.2]},
-              "backscatter.beta_per_m": {"low": [0.2, 0.0, 0.31], "high": [0.6, 0.4, 0.33]}}
+    params = {"backscatter.b_inf": ParamInterval([0.03, 0.16, 0.19], low=[0.028, 0.15, 0.18], high=[0.032, 0.17, 0.2]),
+              "backscatter.beta_per_m": ParamInterval([0.4, 0.2, 0.32], low=[0.2, 0.0, 0.31], high=[0.6, 0.4, 0.33])}
     cover_the_valley(params, veil)
     b_inf = params["backscatter.b_inf"]
-    np.testing.assert_allclose(b_inf["low"], [0.02 / -np.expm1(-0.6 * r), 0.09 / -np.expm1(-0.4 * r), 0.18],
+    np.testing.assert_allclose(b_inf.low, [0.02 / -np.expm1(-0.6 * r), 0.09 / -np.expm1(-0.4 * r), 0.18],
                                rtol=1e-4)
-    np.testing.assert_allclose(b_inf["high"], [0.024 / -np.expm1(-0.2 * r), 1.0, 0.2], rtol=1e-4)
-    assert b_inf["valley"] == [True, True, False]
+    np.testing.assert_allclose(b_inf.high, [0.024 / -np.expm1(-0.2 * r), 1.0, 0.2], rtol=1e-4)
+    assert b_inf.widening("valley").widened == [True, True, False]
 
 
 def test_a_parameter_at_a_bound_is_reported(survey):
@@ -456,7 +480,7 @@ def test_a_parameter_at_a_bound_is_reported(survey):
                                                                       frame_gain=False))
     assert "backscatter.beta_per_m[1]" in at_bounds(wrong)
     beta = wrong.params["backscatter.beta_per_m"]
-    assert beta["on_bound"][1] and (beta["low"][1], beta["high"][1]) == (0.0, 5.0)
+    assert beta.on_bound[1] and (beta.low[1], beta.high[1]) == (0.0, 5.0)
     assert at_bounds(estimate_water(frames, K, board=board, config=water_config(bootstrap=0))) == []
 
 
@@ -493,99 +517,6 @@ def test_a_long_survey_lifts_a_bounded_number_of_points_from_every_frame(survey)
                                                                  min_points=20))
     assert 200 <= bounded.n_points <= 240 < full.n_points
     assert len(np.unique(bounded.frame)) == len(frames)
-
-
-def test_the_water_stage_reads_its_frames_on_demand(water_workspace, monkeypatch):
-    """The water stage's frames are read when indexed and only the last CACHED_FRAMES kept: a long survey's frames
-    are never all in memory, and what is read is what water_frame reads."""
-    import pipeline.water as water
-    from eval.tracks import Tracks
-
-    survey, ws, _ = water_workspace
-    tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
-    depth = ws.path(ws.result("dense").depth_dir)
-    monkeypatch.setattr(water, "CACHED_FRAMES", 2)
-    frames = water.water_frames(tracks, ws.stage_dir("survey") / "images", depth)
-    assert len(frames) == len(tracks.image_names) > 2
-    first = frames[0]
-    assert frames[0] is first and frames[-1] is frames[len(frames) - 1]
-    for f in frames:
-        assert f.image.shape[:2] == f.range_m.shape
-    assert frames[0] is not first  # pushed out of the cache by the loop, read again
-    alone = water.water_frame(tracks, 0, ws.stage_dir("survey") / "images", depth)
-    np.testing.assert_array_equal(frames[0].image, alone.image)
-    np.testing.assert_array_equal(frames[0].range_m, alone.range_m)
-    with pytest.raises(IndexError):
-        frames[len(frames)]
-
-
-def test_the_correction_range_prefers_the_fused_mesh_where_the_dense_range_disagrees(tmp_path):
-    """Dense range kept where the fused mesh agrees within 1 %; the mesh's range where the dense range is missing
-    or off (an outlier); a frame without a pose keeps its dense range. The fine grid's frames take the mesh's range
-    only where the dense range is missing."""
-    import open3d as o3d
-
-    from pipeline.water import MeshFilledFrames, correction_range, mesh_range
-
-    plane = o3d.geometry.TriangleMesh()  # the seafloor z = 0 under the camera, 4 m x 4 m
-    plane.vertices = o3d.utility.Vector3dVector(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], float))
-    plane.triangles = o3d.utility.Vector3iVector(np.array([[0, 1, 2], [0, 2, 3]]))
-    mesh_ply = tmp_path / "fused_mesh.ply"
-    o3d.io.write_triangle_mesh(str(mesh_ply), plane)
-    m = pose(0.0, 0.0, 2.0)
-    _, true_range, _ = render(m, Stack.from_config(TRUE))
-    dense = true_range * 1.004  # agrees within 1 %
-    dense[:10] = np.nan  # no dense range
-    dense[30:40, 30:40] *= 1.1  # an outlier patch
-    frame = WaterFrame(name="a.png", image=np.zeros((H, W, 3), np.float32), range_m=dense.astype(np.float32),
-                       world_from_cam=m)
-    r, from_mesh, _ = correction_range(frame, K, mesh_ply, agreement=0.01)
-    kept = np.ones((H, W), bool)
-    kept[:10] = False
-    kept[30:40, 30:40] = False
-    np.testing.assert_allclose(r[kept], dense[kept], rtol=1e-6)
-    np.testing.assert_allclose(r[~kept], true_range[~kept], rtol=1e-4)
-    np.testing.assert_array_equal(from_mesh, ~kept)
-    no_pose = WaterFrame(name="b.png", image=frame.image, range_m=frame.range_m, world_from_cam=None)
-    r, from_mesh, _ = correction_range(no_pose, K, mesh_ply, agreement=0.01)
-    assert not from_mesh.any() and np.isnan(r[:10]).all()
-
-    # the fine grid's frames: the mesh only where the dense range has none (the outlier patch stays), with normals
-    filled = MeshFilledFrames([frame, no_pose], K, mesh_ply, smooth_px=4.0)
-    assert MeshFilledFrames([frame], K, mesh_ply, None)[0].normals_cam is None  # a stack that reads none
-    np.testing.assert_allclose(filled[0].range_m[10:], dense[10:], rtol=1e-6)
-    np.testing.assert_allclose(filled[0].range_m[:10], true_range[:10], rtol=1e-4)
-    assert filled[0].normals_cam.shape == (H, W, 3) and np.isfinite(filled[0].normals_cam).all()
-    assert filled[1] is no_pose and MeshFilledFrames([frame], K, None, 4.0)[0] is frame
-    some = np.zeros((H, W), bool)
-    some[5, 7] = some[40, 3] = True  # rays cast for these pixels only
-    cast, _ = mesh_range(mesh_ply, frame, K, filled.scene, where=some)
-    np.testing.assert_allclose(cast[some], true_range[some], rtol=1e-4)
-    assert np.isnan(cast[~some]).all()
-
-
-def test_the_correction_takes_its_normals_from_the_dense_range_not_across_the_mesh_seams():
-    """Where the correction's range switched to the mesh with a 2 % step, the normals of that range tilt along
-    the seam; the correction's normals are the dense range's, and the mesh range's only where the dense has none."""
-    from pipeline.water import correction_normals
-    from watergan.formation.inverse import normals_from_range
-
-    _, true_range, _ = render(pose(0.0, 0.0, 2.0), Stack.from_config(TRUE))  # a level floor 2 m below
-    dense = true_range.copy()
-    dense[:, :20] = np.nan  # no dense range: the mesh fills it
-    combined = true_range.copy()
-    combined[25:50, 35:65] *= 1.02  # the mesh's range where it disagreed with the dense by 2 %
-    frame = WaterFrame(name="a.png", image=np.zeros((H, W, 3), np.float32), range_m=dense.astype(np.float32),
-                       world_from_cam=None)
-    floor = np.array([0.0, 0.0, -1.0])  # facing the camera
-
-    def tilt_deg(normals):
-        return np.degrees(np.arccos(np.clip(normals @ floor, -1.0, 1.0)))
-
-    assert tilt_deg(normals_from_range(combined, K, 4)).max() > 5.0  # the seam
-    normals = correction_normals(frame, combined, K, 4)
-    assert np.isfinite(normals).all()
-    assert tilt_deg(normals).max() < 0.5
 
 
 def test_a_fit_stopped_before_convergence_says_so(survey):
@@ -631,7 +562,7 @@ def test_a_per_frame_effect_is_sized_by_the_survey_and_inverted_frame_by_frame(s
                          initial=(TRUE[0],), samples_per_frame=250, bootstrap=0, margin_px=4,
                          footprint_m=FOOTPRINT_M)
     est = estimate_water(exposed, K, board=board, config=config)
-    fitted = np.asarray(est.params["water_test_exposure.log_gain"]["value"], float)
+    fitted = np.asarray(est.params["water_test_exposure.log_gain"].value, float)
     assert fitted.shape == (12,)
     np.testing.assert_allclose(fitted - fitted.mean(), log_gain - log_gain.mean(), atol=0.02)
     k = int(np.argmax(log_gain))
@@ -677,13 +608,13 @@ def test_a_declared_strobe_rig_is_modelled_and_the_water_recovered(lit_survey):
     np.testing.assert_allclose(light.param("beam_deg").numpy(), [lt["beam_deg"] for lt in LIGHTS], atol=1e-6)
     # one water: the light's path takes the attenuation's eta
     np.testing.assert_allclose(light.param("eta_per_m").numpy(), est.stack["attenuation"].param("eta_per_m").numpy())
-    assert not est.params["artificial_light.offset_m"]["fitted"] and "artificial_light.power" in est.held
-    assert est.params["artificial_light.ambient"]["fitted"]
+    assert not est.params["artificial_light.offset_m"].fitted and "artificial_light.power" in est.held
+    assert est.params["artificial_light.ambient"].fitted
     # measured 0.3 % off without the fields over the image, 1.4-2.1 % with them (the beams' pattern over the image
     # trades a little with the fields)
     np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), LIT_ETA, rtol=0.03)
     eta = est.params["attenuation.eta_per_m"]
-    assert all(lo < v < hi for lo, v, hi in zip(eta["low"], eta["value"], eta["high"], strict=True))
+    assert all(lo < v < hi for lo, v, hi in zip(eta.low, eta.value, eta.high, strict=True))
     assert est.converged  # 1200 L-BFGS iterations crawled along B_inf against beta before the coarse trust region
     # the rig's power is held at the truth's (the effect's initial value, 4): the gain is then the truth's too
     np.testing.assert_allclose(_value(est, "gain.k"), [1.5] * 3, rtol=0.05)
@@ -782,25 +713,24 @@ def test_fine_fields_fitted_with_the_water_hold_eta_under_a_falloff_clipped_into
     radius = np.hypot(xs / W - 0.55, ys / H - 0.45) / 0.5
     ring = 1 - np.clip((radius - 0.45) / 0.35, 0, 1)[..., None] * np.array([0.6, 0.45, 0.3])
     fallen = [replace(f, image=np.clip(f.image * ring, 0, 1).astype(np.float32)) for f in frames]
-    config = water_config(samples_per_frame=80, bootstrap=4, margin_px=4, min_points=100,
-                          structure_alternatives=({"field_grid": (13, 17)},))
+    config = water_config(samples_per_frame=80, bootstrap=4, margin_px=4, min_points=100)
     estimate = estimate_water(fallen, K, board=board, config=config)
-    (test,) = estimate.structure
-    assert test["preferred"] and test["heldout_change_pct"] < -20
+    test = next(a for a in estimate.alternatives if a.key == "fine_fields")
+    assert test.preferred and test.heldout_change_pct < -20
     default = np.asarray(_value(estimate, "attenuation.eta_per_m"))
-    fine = np.asarray(test["eta_per_m"])
+    fine = np.asarray(test.values["attenuation.eta_per_m"])
     np.testing.assert_allclose(fine, truth, rtol=0.03)
     assert np.abs(fine / truth - 1).max() < np.abs(default / truth - 1).max()
     eta = estimate.params["attenuation.eta_per_m"]
-    np.testing.assert_allclose(eta["specification_by"]['{"field_grid": [13, 17]}'], np.abs(fine - default), atol=2e-6)
-    assert (np.asarray(eta["low"]) <= fine).all() and (fine <= np.asarray(eta["high"])).all()
+    np.testing.assert_allclose(eta.widening("fine_fields").change, np.abs(fine - default), atol=2e-6)
+    assert (np.asarray(eta.low) <= fine).all() and (fine <= np.asarray(eta.high)).all()
     assert "image_grid" not in estimate.stack.names  # the estimate's stack stays the default structure's
 
 
 def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     """A broad light fixed in the image (a reflection in the port, a Gaussian glow off-centre) reads as additive
     fields; its level is set where the field is least over the views, 0 there, and taken from the veil
-    (:func:`eval.fields.set_light_level`), so the veil at the views' median range is the water's: within 10 % of the
+    (:func:`eval.water.fields.set_light_level`), so the veil at the views' median range is the water's: within 10 % of the
     truth in every channel where the fit, which holds the light at 0 at the image's centre (the estimate's
     ``light_at_centre``), leaves its level in the veil (over 10 % too large in some channel). Every interval takes
     the change between the two, so the veil's covers the truth."""
@@ -854,22 +784,22 @@ def test_gains_per_frame_keep_the_water_when_the_exposure_changes(survey):
     fitted = np.log(np.asarray(held.frames["gain"]))
     np.testing.assert_allclose(fitted, np.repeat(expected[:, None], 3, 1), atol=0.03)
     assert held.frames["carried"] and not held.frames["flat"] and bent.frames is None
-    (test,) = held.structure  # the gains free of the ranges tried; no gains per frame: no fit with them free
-    assert test["alternative"] == {"frame_gain_off_range": False} and not bent.structure
-    assert test["alternative"] in held.alternatives and not test["preferred"]  # the exposures do not follow range
+    test = next(a for a in held.alternatives if a.key == "free_gains")  # no gains per frame: no fit with them free
+    assert "free_gains" not in [a.key for a in bent.alternatives]
+    assert not test.preferred  # the exposures do not follow range
 
 
 @pytest.mark.slow
 def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(survey):
     """A camera that sets its exposure from what it sees brightens the frames flown higher: the gains follow the
     frames' mean ranges, which the gains per frame are kept off, so eta is bent (by more than 10 % in a channel).
-    The structure alternative with the gains free of the ranges (``structure_alternatives``'s default) leaves the
+    The alternative with the gains free of the ranges (one of the default alternatives) leaves the
     estimate where it was and widens eta's interval: to the truth in green and blue, where the free fit lands within
     10 %; red's free fit stays short of it, and eta's held-out profile under the free gains (the survey prefers
     them) carries red's interval to the truth."""
     from dataclasses import replace
 
-    from eval.fields import decorrelate_frames
+    from eval.water.fields import decorrelate_frames
 
     truth = np.array([0.45, 0.14, 0.2])
     frames, board = survey
@@ -877,24 +807,25 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     log_gain = 0.1 * (altitude - altitude.mean())
     exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
                for f, g in zip(frames, log_gain, strict=True)]
-    config = water_config(samples_per_frame=80, bootstrap=8, margin_px=4, min_points=100, eta_profile=True)
-    alone = estimate_water(exposed, K, board=board, config=water_config(config, structure_alternatives=()))
+    config = water_config(samples_per_frame=80, bootstrap=8, margin_px=4, min_points=100)
+    alone = estimate_water(exposed, K, board=board, config=water_config(config,
+                                                                        alternatives=ALTERNATIVE_PRESETS["none"]))
     widened = estimate_water(exposed, K, board=board, config=config)
-    eta, low, high = (np.asarray(alone.params["attenuation.eta_per_m"][k]) for k in ("value", "low", "high"))
+    eta, low, high = (np.asarray(getattr(alone.params["attenuation.eta_per_m"], k)) for k in ("value", "low", "high"))
     assert np.abs(eta / truth - 1).max() > 0.1 and not ((low <= truth) & (truth <= high)).all()
     wide = widened.params["attenuation.eta_per_m"]
-    np.testing.assert_allclose(wide["value"], eta, rtol=1e-6)
-    wide_low, wide_high = np.asarray(wide["low"]), np.asarray(wide["high"])
+    np.testing.assert_allclose(wide.value, eta, rtol=1e-6)
+    wide_low, wide_high = np.asarray(wide.low), np.asarray(wide.high)
     assert ((wide_low <= truth) & (truth <= wide_high)).all()
-    assert {"frame_gain_off_range": False} in widened.alternatives
-    (test,) = widened.structure  # the survey predicts its held-out views better with the gains free of the ranges
-    assert test["preferred"] and test["heldout_change_pct"] < 0
-    profile = test["eta_profile"]  # red: the free fit short of the truth, the profile past it
-    assert np.abs(test["eta_per_m"][0] / truth[0] - 1) > 0.1 and profile["low"][0] <= truth[0] <= profile["high"][0]
-    assert wide["profile"][0] and wide_high[0] == pytest.approx(profile["high"][0])
-    by = wide["specification_by"]  # each alternative's change; the interval's is the largest
-    np.testing.assert_allclose(np.max(list(by.values()), 0), wide["specification"], atol=2e-6)
-    assert max(by, key=lambda k: max(by[k])) == '{"frame_gain_off_range": false}'
+    test = widened.to_record().alternative("free_gains")  # the survey predicts its held-out views better with them
+    assert test.preferred and test.heldout_change_pct < 0
+    profile = widened.to_record().alternative("eta_profile").profile  # red: the free fit short, the profile past it
+    assert np.abs(test.values["attenuation.eta_per_m"][0] / truth[0] - 1) > 0.1
+    assert profile["low"][0] <= truth[0] <= profile["high"][0]
+    assert wide.widening("eta_profile").widened[0] and wide_high[0] == pytest.approx(profile["high"][0])
+    rows = [w for w in wide.widenings if w.rule == "quadrature"]  # each alternative's change; the largest counts
+    np.testing.assert_allclose(np.max([w.change for w in rows], 0), wide.specification, atol=2e-6)
+    assert max(rows, key=lambda w: max(w.change)).alternative == "free_gains"
     stack = build_stack(config, len(frames))
     decorrelate_frames(stack, widened.observations, off_range=False)
     q = stack["frame_gain"].param("orthogonal_to").numpy()
@@ -906,8 +837,8 @@ def test_the_hessian_perturbs_the_three_channels_of_a_parameter_together(survey)
     """The loss is a sum over the colour channels, so perturbing the three channels of eta, B_inf, the fields and
     the gains per frame together gives the Hessian that perturbing each entry gives (to the finite differences'
     accuracy) from a third of the gradients; a stack that mixes the channels is differentiated entry by entry."""
-    from eval.fields import decorrelate_frames
-    from eval.fit import Problem, channels_separate, fitted_names, start_inside_bounds
+    from eval.fit import Problem
+    from eval.water.fields import decorrelate_frames, channels_separate, fitted_names, start_inside_bounds
     from watergan.formation import RANK_SENSOR, Effect, register
 
     frames, board = survey

@@ -91,10 +91,10 @@ def read_site_water(water_json: str | Path) -> SiteWaterStack:
     prior = []
     for key, info in record.params.items():
         name, _, param = key.partition(".")
-        if name not in kept or not info.get("fitted") or "low" not in info or "high" not in info:
+        if name not in kept or not info.fitted or info.low is None or info.high is None:
             continue
-        value = torch.as_tensor(info["value"], dtype=torch.float64)
-        sd = (torch.as_tensor(info["high"], dtype=torch.float64) - torch.as_tensor(info["low"], dtype=torch.float64))
+        value = torch.as_tensor(info.value, dtype=torch.float64)
+        sd = (torch.as_tensor(info.high, dtype=torch.float64) - torch.as_tensor(info.low, dtype=torch.float64))
         prior.append(PriorTerm(name, param, value, (sd / (2 * Z95)).clamp_min(1e-9)))
     return SiteWaterStack(config, prior, left_out)
 

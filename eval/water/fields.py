@@ -11,8 +11,8 @@
 - the fine fields for the corrections (``GRID_EFFECT``, :mod:`watergan.formation.effects.image_grid`), fitted after
   the water with every other parameter held (:func:`fit_correction_grid`).
 
-Why each is there and what it pins: :mod:`eval.water`'s docstring. They are fitted by the one fitter
-(:mod:`eval.fit`); :func:`eval.water.fit_observations` calls them in order.
+Why each is there and what it pins: docs/water.md. They are fitted by the one fitter (:mod:`eval.fit`);
+:func:`eval.water.fit_water.fit_water` calls them in order.
 """
 
 from __future__ import annotations
@@ -26,11 +26,11 @@ import torch
 from watergan.formation import Stack, get
 from watergan.formation.effects.image_field import field_basis
 
-from .fit import FitConfig, Problem, insert_by_rank
-from .observations import Observations
+from ..fit import FitConfig, Problem, insert_by_rank
+from ..observations import Observations
 
 if TYPE_CHECKING:
-    from .water import WaterConfig
+    from .config import WaterConfig
 
 #: The nuisance fields over the image (``WaterConfig.field_degree``).
 FIELD_EFFECT = "image_field"
@@ -179,6 +179,15 @@ def set_light_level(stack: Stack, obs: Observations, form: str, range_m: float) 
     return factor
 
 
+def split_light(stack: Stack, obs: Observations, range_r2: float) -> np.ndarray | None:
+    """:func:`set_light_level` where the fields' form (:func:`field_summary`) says a light fixed in the image, at the
+    views' median range (``stack`` in place). Returns B_inf's factor per channel, None where nothing changed."""
+    fields = field_summary(stack, range_r2, obs.colour.mean(0))
+    if not fields:
+        return None
+    return set_light_level(stack, obs, fields["form"], float(np.median(obs.range_m)))
+
+
 def fit_correction_grid(stack: Stack, obs: Observations, config: WaterConfig,
                         range_r2: float = 0.0) -> tuple[Stack, dict | None]:
     """The fine fields over the image (``image_grid`` on ``config.correction_grid`` nodes) fitted to the table with
@@ -230,7 +239,7 @@ def frame_summary(stack: Stack, frames: np.ndarray, carried: bool | None = None)
     """JSON-ready: the stack's gains per frame g' (``frame_gain``) over the ``frames`` with views: per channel the
     largest |exp(g') - 1| and the standard deviation of g' in per cent, whether that is flat (under
     ``FIELD_FLAT_PCT``), whether the water carries them (``carried``; default: whether a frame's reaches
-    ``FRAME_CARRY_PCT``, the rule :func:`fit_observations` carries them by), the frames and each one's gain
+    ``FRAME_CARRY_PCT``, the rule :func:`eval.water.fit_water.cold_start` carries them by), the frames and each one's gain
     exp(g')."""
     with torch.no_grad():
         gains = stack[FRAME_EFFECT].gains().numpy()[frames]

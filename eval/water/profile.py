@@ -19,7 +19,8 @@ asks the survey directly:
    eta_0 than the step before). A channel that accepts f moves on to the next step; one that accepts the last step
    is bounded there and ``open`` on that side (the survey accepts at least that far).
 
-The bounds [f_low eta_0, f_high eta_0] then widen eta's interval (:func:`eval.intervals.cover_the_profiles`).
+The bounds [f_low eta_0, f_high eta_0] then widen eta's interval (:func:`eval.water.intervals.combine`, rule
+"bounds").
 """
 
 from __future__ import annotations
@@ -31,9 +32,9 @@ import torch
 
 from watergan.formation import Stack
 
-from .bootstrap import paired_rmse_change
-from .fit import FitConfig, Problem, Split, heldout_sums
-from .observations import Observations
+from ..bootstrap import paired_rmse_change
+from ..fit import FitConfig, Problem, Split, heldout_sums
+from ..observations import Observations
 
 #: Factors on eta_0 of the profile's steps below and above it, nearest first.
 PROFILE_STEPS = ((0.8, 0.6), (1.25, 1.6))

@@ -1,12 +1,14 @@
-"""The water estimate's intervals (see :mod:`eval.water`'s docstring, "Uncertainty").
+"""The water's intervals: one rule, :func:`combine`, from the bootstrap and the alternatives' fits.
 
-Each fitted parameter's 95 % interval: estimate +- sqrt((1.96 sd_boot)^2 + change^2 [+ (1.96 range_scale_sd
-value)^2 for coefficients in 1/m]), clipped to the bounds; a component on a bound (:func:`on_bound`) gets its
-parameter's whole range; pairs of components whose bootstrap correlation exceeds 0.95 are trade-offs
-(:func:`describe_intervals`). The veil B_inf (1 - exp(-beta r)) at the views' median range with its interval
-(:func:`veil_at_median_range`), and B_inf's interval widened along the valley the veil and beta leave it in
-(:func:`cover_the_valley`). Every interval also covers each structure alternative's estimate with the estimate's
-sampling spread around it (:func:`cover_the_structures`). Which measurement pins each parameter: ``PINNED_BY``.
+Each fitted parameter's 95 % interval starts as estimate +- sqrt((1.96 sd_boot)^2 + change^2 [+ (1.96
+range_scale_sd value)^2 for coefficients in 1/m]), clipped to the bounds, where change is the largest change of the
+estimate under the alternatives of rule "quadrature"; a component on a bound (:func:`on_bound`) gets its
+parameter's whole range. The interval then covers each "cover" alternative's value with the same sampling spread
+around it, and each "bounds" alternative's accepted span; B_inf's also the valley the veil and beta leave it in
+(:func:`cover_the_valley`). Every alternative that moved an interval leaves a row (:class:`Widening`). Pairs of
+components whose bootstrap correlation exceeds 0.95 are trade-offs (:func:`tradeoffs`); the veil B_inf (1 -
+exp(-beta r)) at the views' median range has its own interval (:func:`veil_at_median_range`). Which measurement
+pins each parameter: ``PINNED_BY``.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from watergan.formation import Stack, get
+
+from watergan.water_record import ParamInterval, Widening
 
 from .fields import veil_at
 
@@ -57,96 +61,107 @@ def on_bound(key: str, p, value: np.ndarray) -> np.ndarray:
     return low | (np.abs(p.upper - value) <= BOUND_TOLERANCE * span)
 
 
-def describe_intervals(stack: Stack, best: dict, samples: list[dict], fixed: dict, spec: dict,
-                       range_scale_sd: float) -> tuple[dict, list]:
-    """The parameters' entries (see :class:`WaterEstimate`) and the trade-offs. A component on a bound
-    (:func:`on_bound`) gets its parameter's whole range as interval: the data pushed it out of the model, so they do
-    not pin it (its bootstrap, all on the bound, would say 0 wide)."""
+def _rounded(a) -> list:
+    return np.round(np.asarray(a, float), 6).tolist()
+
+
+def describe(stack: Stack, best: dict, samples: list[dict], spec: dict, range_scale_sd: float) -> dict:
+    """{"effect.param": :class:`ParamInterval`} of every parameter of ``stack``: the fitted ones (``best``) with
+    the bootstrap ``samples`` and the largest "quadrature" change ``spec`` (see the module docstring)."""
     params = {}
     for effect in stack.effects:
         for p in effect.params:
             key = f"{effect.name}.{p.name}"
             value = effect.param(p.name).detach().numpy()
-            entry = {"value": np.round(value, 6).tolist(), "units": p.units, "fitted": key in best,
-                     "pinned_by": PINNED_BY.get(key, "")}
+            entry = ParamInterval(value=_rounded(value), units=p.units, fitted=key in best,
+                                  pinned_by=PINNED_BY.get(key, ""))
             if key in best and samples:
-                stack_s = np.stack([s[key] for s in samples])
-                std = stack_s.std(0, ddof=1) if len(samples) > 1 else np.zeros_like(value)
+                stacked = np.stack([s[key] for s in samples])
+                std = stacked.std(0, ddof=1) if len(samples) > 1 else np.zeros_like(value)
                 shift = spec.get(key, np.zeros_like(value))
                 scale = range_scale_sd * np.abs(value) if p.units == "1/m" else np.zeros_like(value)
                 half = np.sqrt((1.96 * std) ** 2 + shift ** 2 + (1.96 * scale) ** 2)
                 bound = on_bound(key, p, value).reshape(np.shape(value))
-                low = np.where(bound, p.lower, np.clip(value - half, p.lower, p.upper))
-                high = np.where(bound, p.upper, np.clip(value + half, p.lower, p.upper))
-                entry.update(std=np.round(std, 6).tolist(), specification=np.round(shift, 6).tolist(),
-                             low=np.round(low, 6).tolist(), high=np.round(high, 6).tolist(),
-                             on_bound=bound.tolist(),
-                             p2_5=np.round(np.percentile(stack_s, 2.5, 0), 6).tolist(),
-                             p97_5=np.round(np.percentile(stack_s, 97.5, 0), 6).tolist())
+                entry.low = _rounded(np.where(bound, p.lower, np.clip(value - half, p.lower, p.upper)))
+                entry.high = _rounded(np.where(bound, p.upper, np.clip(value + half, p.lower, p.upper)))
+                entry.std, entry.specification, entry.on_bound = _rounded(std), _rounded(shift), bound.tolist()
+                entry.p2_5 = _rounded(np.percentile(stacked, 2.5, 0))
+                entry.p97_5 = _rounded(np.percentile(stacked, 97.5, 0))
             params[key] = entry
-    tradeoffs = []
-    if len(samples) > 2:
-        keys = sorted(best)
-        cols, labels = [], []
-        for key in keys:
-            flat = np.stack([np.atleast_1d(s[key]).ravel() for s in samples])
-            for i in range(flat.shape[1]):
-                cols.append(flat[:, i])
-                labels.append(f"{key}[{i}]" if flat.shape[1] > 1 else key)
-        mat = np.stack(cols, 1)
-        sd = mat.std(0)
-        ok = sd > 1e-12
-        if ok.sum() > 1:
-            corr = np.corrcoef(mat[:, ok].T)
-            lab = [lab for lab, keep in zip(labels, ok, strict=True) if keep]
-            for i in range(len(lab)):
-                for j in range(i + 1, len(lab)):
-                    if abs(corr[i, j]) > 0.95:
-                        tradeoffs.append([lab[i], lab[j], round(float(corr[i, j]), 3)])
-    return params, tradeoffs
+    return params
 
 
-def cover_the_structures(stack: Stack, params: dict, structures: list[dict], range_scale_sd: float) -> None:
-    """Widen each fitted parameter's interval (``params``' entries, in place) to cover every structure alternative's
-    estimate (``structures``: their fits, {"effect.param": value}) with the estimate's own sampling spread around
-    it: [min_k v_k - h_k, max_k v_k + h_k] over the estimate and the alternatives, h_k = sqrt((1.96 std)^2 [+ (1.96
-    range_scale_sd v_k)^2 for coefficients in 1/m]), clipped to the bounds. A structure alternative is another model
-    of the survey, not a perturbation of this one: where the two disagree, either may hold, each with the survey's
-    sampling spread (the union of their 95 % intervals; ``structures`` in the entry: True where that widened it)."""
+def tradeoffs(best: dict, samples: list[dict]) -> list:
+    """[a, b, correlation] of the fitted parameter components whose bootstrap |correlation| exceeds 0.95."""
+    if len(samples) <= 2:
+        return []
+    cols, labels = [], []
+    for key in sorted(best):
+        flat = np.stack([np.atleast_1d(s[key]).ravel() for s in samples])
+        for i in range(flat.shape[1]):
+            cols.append(flat[:, i])
+            labels.append(f"{key}[{i}]" if flat.shape[1] > 1 else key)
+    mat = np.stack(cols, 1)
+    ok = mat.std(0) > 1e-12
+    if ok.sum() <= 1:
+        return []
+    corr = np.corrcoef(mat[:, ok].T)
+    lab = [label for label, keep in zip(labels, ok, strict=True) if keep]
+    return [[lab[i], lab[j], round(float(corr[i, j]), 3)] for i in range(len(lab)) for j in range(i + 1, len(lab))
+            if abs(corr[i, j]) > 0.95]
+
+
+def widen(entry: ParamInterval, low: np.ndarray, high: np.ndarray, alternative: str, rule: str,
+          change: np.ndarray) -> None:
+    """Widen ``entry``'s interval (in place) to cover [low, high] per component, with a :class:`Widening` row."""
+    old_low, old_high = np.asarray(entry.low, float), np.asarray(entry.high, float)
+    widened = (low < old_low - 1e-6) | (high > old_high + 1e-6)
+    entry.low, entry.high = _rounded(np.minimum(low, old_low)), _rounded(np.maximum(high, old_high))
+    entry.widenings.append(Widening(alternative, rule, _rounded(change), np.atleast_1d(widened).tolist()))
+
+
+def combine(stack: Stack, best: dict, samples: list[dict], results: list, range_scale_sd: float,
+            range_m: float) -> tuple[dict, list, dict | None]:
+    """(params, trade-offs, veil): the intervals of the fitted ``best`` ({"effect.param": value}) from the bootstrap
+    ``samples`` and the alternatives' fits ``results`` (:class:`eval.water.alternatives.AlternativeFit`, each with its
+    alternative's ``rules``), as the module docstring says; the veil at the views' median range ``range_m``."""
+    def by_rule(rule: str) -> list:
+        return [r for r in results if rule in r.alternative.rules]
+
+    def shape_ok(r, key):
+        return np.shape(r.values.get(key)) == np.shape(best[key])
+
+    quadrature = by_rule("quadrature")
+    spec = {key: np.max([np.abs(r.values[key] - v) for r in quadrature if shape_ok(r, key)], 0, initial=0.0)
+            for key, v in best.items()}
+    params = describe(stack, best, samples, spec, range_scale_sd)
     for key, entry in params.items():
-        if entry.get("low") is None or "std" not in entry:
+        if entry.low is None:
             continue
-        value = np.asarray(entry["value"], float)
-        fits = [np.asarray(f[key], float) for f in structures if np.shape(f.get(key)) == value.shape]
-        if not fits:
-            continue
+        value = np.asarray(entry.value, float)
+        for r in quadrature:
+            if shape_ok(r, key):
+                change = np.abs(r.values[key] - value)
+                entry.widenings.append(Widening(r.alternative.key, "quadrature", _rounded(change),
+                                                np.atleast_1d((change > 0) & (change >= spec[key])).tolist()))
         name, param = key.split(".", 1)
         p = stack[name]._spec(param)
-        std, per_value = np.asarray(entry["std"], float), range_scale_sd if p.units == "1/m" else 0.0
-        halves = [1.96 * np.hypot(std, per_value * np.abs(v)) for v in fits]
-        low = np.clip(np.min([v - h for v, h in zip(fits, halves, strict=True)], 0), p.lower, p.upper)
-        high = np.clip(np.max([v + h for v, h in zip(fits, halves, strict=True)], 0), p.lower, p.upper)
-        widen(entry, low, high, "structures")
-
-
-def widen(entry: dict, low: np.ndarray, high: np.ndarray, flag: str) -> None:
-    """Widen a parameter's interval (``entry``, in place) to cover [low, high] per component; ``entry[flag]``: True
-    where that widened it."""
-    old_low, old_high = np.asarray(entry["low"], float), np.asarray(entry["high"], float)
-    entry.update(low=np.round(np.minimum(low, old_low), 6).tolist(),
-                 high=np.round(np.maximum(high, old_high), 6).tolist(),
-                 **{flag: ((low < old_low) | (high > old_high)).tolist()})
-
-
-def cover_the_profiles(params: dict, key: str, profiles: list[dict]) -> None:
-    """Widen parameter ``key``'s interval (its entry of ``params``, in place) to cover each of ``profiles``'
-    [low, high] (per component: the values a held-out profile accepts, :func:`eval.eta_profile.eta_profile`);
-    ``profile`` in the entry: True where that widened it."""
-    entry = params.get(key)
-    if not profiles or entry is None or entry.get("low") is None:
-        return
-    widen(entry, np.min([np.asarray(p["low"], float) for p in profiles], 0),
-          np.max([np.asarray(p["high"], float) for p in profiles], 0), "profile")
+        per_value = range_scale_sd if p.units == "1/m" else 0.0
+        for r in by_rule("cover"):
+            if shape_ok(r, key):
+                v = np.asarray(r.values[key], float)
+                half = 1.96 * np.hypot(np.asarray(entry.std, float), per_value * np.abs(v))
+                widen(entry, np.clip(v - half, p.lower, p.upper), np.clip(v + half, p.lower, p.upper),
+                      r.alternative.key, "cover", np.abs(v - value))
+        for r in by_rule("bounds"):
+            if r.profile and r.profile.get("param") == key:
+                low, high = np.asarray(r.profile["low"], float), np.asarray(r.profile["high"], float)
+                widen(entry, low, high, r.alternative.key, "bounds", np.maximum(value - low, high - value))
+    light = next((r.values for r in results if r.alternative.key == "light_level"), None)
+    veil = veil_at_median_range(stack, samples, range_m, tuple(r.values for r in quadrature), light,
+                                tuple(r.values for r in by_rule("cover")))
+    cover_the_valley(params, veil)
+    return params, tradeoffs(best, samples), veil
 
 
 def veil_at_median_range(stack: Stack, samples: list[dict], range_m: float,
@@ -191,17 +206,15 @@ def cover_the_valley(params: dict, veil: dict | None) -> None:
     span pins the veil V at the median range r but hardly beta, B_inf = V / (1 - exp(-beta r)) runs along the
     valley; over the veil's interval and beta's (each 95 %), B_inf spans [V_low / (1 - exp(-beta_high r)),
     V_high / (1 - exp(-beta_low r))] (beta_low at 0: up to B_inf's bound). The interval becomes its union with
-    that span (``valley``: True where that widened it); nothing without the veil's or beta's interval."""
+    that span (a "valley" row); nothing without the veil's or beta's interval."""
     b_inf, beta = params.get("backscatter.b_inf"), params.get("backscatter.beta_per_m")
-    if not veil or veil.get("low") is None or not b_inf or not beta or b_inf.get("low") is None \
-            or beta.get("low") is None:
+    if not veil or veil.get("low") is None or b_inf is None or beta is None or b_inf.low is None or beta.low is None:
         return
     r = veil["range_m"]
     with np.errstate(divide="ignore"):
-        low = np.asarray(veil["low"]) / -np.expm1(-np.asarray(beta["high"]) * r)
-        high = np.asarray(veil["high"]) / -np.expm1(-np.asarray(beta["low"]) * r)
+        low = np.asarray(veil["low"]) / -np.expm1(-np.asarray(beta.high) * r)
+        high = np.asarray(veil["high"]) / -np.expm1(-np.asarray(beta.low) * r)
     upper = next(p.upper for p in get("backscatter").params if p.name == "b_inf")
-    widened = (low < b_inf["low"]) | (np.minimum(high, upper) > b_inf["high"])
-    b_inf.update(low=np.round(np.minimum(low, b_inf["low"]), 6).tolist(),
-                 high=np.round(np.minimum(np.maximum(high, b_inf["high"]), upper), 6).tolist(),
-                 valley=widened.tolist())
+    value = np.asarray(b_inf.value, float)
+    high = np.minimum(high, upper)
+    widen(b_inf, low, high, "valley", "valley", np.maximum(value - low, high - value))
