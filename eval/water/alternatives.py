@@ -1,0 +1,301 @@
+"""The alternatives the water's intervals take in: other readings of the survey that resampling cannot see.
+
+An alternative is a small frozen dataclass with a ``key``, the ``words`` the report prints, what kind of survey
+would pin it (``pinned_by``), the ``rules`` by which its values widen an interval (:func:`eval.water.intervals.combine`:
+"quadrature", "cover", "bounds"), ``applies(ctx)`` and ``refit(ctx) -> AlternativeFit | None``. They run in the order
+of ``WaterConfig.alternatives`` on one :class:`Context`, which holds the estimate, the bootstrap's replicates and
+inverse Hessian, and (made once, on first use) the held-out split and the estimate's structure fitted to the
+training points. Adding one is a class here and a test. The built-ins:
+
+- :class:`BoardWeight`, :class:`LossScale`: the weighting perturbed (the board weighted 10x less; without a board
+  the robust loss 3x wider), refitted from the estimate by a Newton step and a few L-BFGS iterations.
+- :class:`LightLevel`: where the fields over the image are additive alone (a light fixed in the image), the veil is
+  split between the water and the light (:func:`eval.water.fields.set_light_level`); the fit before the split is
+  the alternative, and the split applies to the replicates and the alternatives made before it.
+- :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges; fine
+  fields over the image fitted with the water), fitted warm from the estimate on the training points; that one fit
+  gives its values and its held-out test against the estimate's structure on the same points.
+- :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
+  (:func:`eval.water.profile.eta_profile`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+
+from watergan.water_record import AlternativeRecord
+
+from ..bootstrap import newton_refit, paired_rmse_change
+from ..fit import copy_stack, heldout_sums, make_split
+from .fields import FRAME_EFFECT, split_light
+
+if TYPE_CHECKING:
+    import torch
+
+    from ..observations import Observations
+    from .config import WaterConfig
+    from .fit_water import Fit
+
+#: The attenuation's key in the fits' {"effect.param": value}.
+ETA = "attenuation.eta_per_m"
+#: The share of the points the held-out tests leave out, and their bootstrap's resamples.
+HOLDOUT_FRACTION, TEST_RESAMPLES = 0.2, 500
+#: The survey prefers a structure when it predicts its held-out views better with it by at least this share of the
+#: held-out RMSE over the whole 95 % interval: a structure with more freedom predicts them better by a hair everywhere.
+PREFERRED_CHANGE = 0.01
+#: An alternative's record keeps the values of the parameters of at most this many components.
+RECORD_COMPONENTS = 9
+
+
+@dataclass
+class AlternativeFit:
+    """What an alternative found: its ``values`` ({"effect.param": value} of the fitted parameters), its held-out
+    test (``change``: d = RMSE_alternative / RMSE_estimate - 1 on the held-out points, ``ci``: its 95 % interval),
+    a profile's span, its wall time; ``fit``: its own fit where a later alternative reads it."""
+
+    alternative: Alternative
+    values: dict[str, np.ndarray]
+    change: float | None = None
+    ci: tuple[float, float] | None = None
+    profile: dict | None = None
+    seconds: float = 0.0
+    fit: Fit | None = None
+
+    @property
+    def preferred(self) -> bool:
+        """The survey predicts its held-out views better with it (the whole interval of the change below
+        -``PREFERRED_CHANGE``)."""
+        return self.ci is not None and self.ci[1] < -PREFERRED_CHANGE
+
+    def record(self) -> AlternativeRecord:
+        a = self.alternative
+        return AlternativeRecord(
+            key=a.key, words=a.words, pinned_by=a.pinned_by, seconds=round(self.seconds, 2), profile=self.profile,
+            values={k: np.round(v, 6).tolist() for k, v in self.values.items() if np.size(v) <= RECORD_COMPONENTS},
+            heldout_change_pct=None if self.change is None else round(100 * self.change, 2),
+            ci95_pct=None if self.ci is None else [round(100 * self.ci[0], 2), round(100 * self.ci[1], 2)],
+            preferred=None if self.ci is None else self.preferred)
+
+
+@dataclass
+class Context:
+    """What the alternatives share (see the module docstring). ``fit``: the estimate; ``samples``: the bootstrap's
+    replicates ({"effect.param": value}); ``inv``: the inverse Hessian of the Newton steps (None: no replicates);
+    ``results``: the alternatives' fits so far, by key."""
+
+    fit: Fit
+    obs: Observations
+    config: WaterConfig
+    lights: list[dict] | None
+    samples: list[dict]
+    inv: torch.Tensor | None
+    results: dict[str, AlternativeFit] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.x_best = self.fit.problem.flat()
+        self.start = copy_stack(self.fit.stack)  # the estimate before anything moves it (the light's split)
+
+    @cached_property
+    def split(self):
+        return make_split(self.obs, replace(self.config.fit, holdout_fraction=HOLDOUT_FRACTION))
+
+    @cached_property
+    def train(self) -> Observations:
+        return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
+
+    @cached_property
+    def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """The held-out sums of the estimate's structure fitted warm to the training points."""
+        from .fit_water import fit_water
+
+        base = fit_water(self.train, self.config, self.lights, start=self.start)
+        return heldout_sums(base.stack, self.obs, self.split, self.config.fit)
+
+    def heldout_change(self, fit: Fit) -> tuple[float, tuple[float, float]]:
+        """(d, 95 % interval) of ``fit``'s held-out error against the estimate's structure's, on the same points."""
+        base_sq, count = self.base_sums
+        cand_sq, _ = heldout_sums(fit.stack, self.obs, self.split, self.config.fit)
+        d, ci, _ = paired_rmse_change(base_sq, cand_sq, count, TEST_RESAMPLES, self.config.fit.seed)
+        return d, ci
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """The base of the alternatives (see the module docstring)."""
+
+    key: ClassVar[str] = ""
+    words: ClassVar[str] = ""
+    pinned_by: ClassVar[str] = ""
+    rules: ClassVar[tuple[str, ...]] = ("quadrature",)
+
+    def applies(self, ctx: Context) -> bool:
+        return True
+
+    def refit(self, ctx: Context) -> AlternativeFit | None:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Reweight(Alternative):
+    """The estimate refitted with the fit's configuration changed by ``change()``: a Newton step from the estimate
+    with its inverse Hessian, then ``iterations`` L-BFGS iterations; the estimate is restored after."""
+
+    iterations: int = 30
+
+    def change(self, ctx: Context) -> dict:
+        raise NotImplementedError
+
+    def applies(self, ctx: Context) -> bool:
+        return ctx.inv is not None
+
+    def refit(self, ctx: Context) -> AlternativeFit:
+        problem = ctx.fit.problem
+        problem.config = replace(ctx.config.fit, **self.change(ctx))
+        try:
+            newton_refit(problem, ctx.x_best, ctx.inv, self.iterations)
+            return AlternativeFit(self, ctx.fit.values())
+        finally:
+            problem.config = ctx.config.fit
+            problem.set_flat(ctx.x_best)
+
+
+@dataclass(frozen=True)
+class BoardWeight(Reweight):
+    key: ClassVar[str] = "board_weight"
+    words: ClassVar[str] = "the board weighted 10x less"
+    factor: float = 0.1
+
+    def applies(self, ctx: Context) -> bool:
+        return super().applies(ctx) and ctx.fit.problem.has_board
+
+    def change(self, ctx: Context) -> dict:
+        return {"board_weight": ctx.config.fit.board_weight * self.factor}
+
+
+@dataclass(frozen=True)
+class LossScale(Reweight):
+    key: ClassVar[str] = "loss_scale"
+    words: ClassVar[str] = "a robust loss 3x wider"
+    factor: float = 3.0
+
+    def applies(self, ctx: Context) -> bool:
+        return super().applies(ctx) and not ctx.fit.problem.has_board
+
+    def change(self, ctx: Context) -> dict:
+        return {"loss_scale": ctx.config.fit.loss_scale * self.factor}
+
+
+@dataclass(frozen=True)
+class LightLevel(Alternative):
+    key: ClassVar[str] = "light_level"
+    words: ClassVar[str] = "the light fixed in the image left in the veil"
+
+    def refit(self, ctx: Context) -> AlternativeFit | None:
+        before = ctx.fit.values()
+        if "backscatter.b_inf" not in before:
+            return None
+        factor = split_light(ctx.fit.stack, ctx.obs, ctx.fit.range_r2)
+        if factor is None:
+            return None
+        for values in (*ctx.samples, *(r.values for r in ctx.results.values())):  # made from the unsplit estimate
+            values["backscatter.b_inf"] = values["backscatter.b_inf"] * factor
+        return AlternativeFit(self, before)
+
+
+@dataclass(frozen=True)
+class Structure(Alternative):
+    """Another structure of the model (``changed(config)``), fitted warm from the estimate on the training points:
+    its values (with its own light split) and its held-out test against the estimate's structure. Its values widen
+    the intervals both ways: in quadrature, and covered with the bootstrap's spread around them."""
+
+    rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
+
+    def changed(self, config: WaterConfig) -> WaterConfig:
+        raise NotImplementedError
+
+    def refit(self, ctx: Context) -> AlternativeFit:
+        from .fit_water import fit_water
+
+        trained = fit_water(ctx.train, self.changed(ctx.config), ctx.lights, start=ctx.start)
+        change, ci = ctx.heldout_change(trained)
+        values = trained.values()
+        factor = split_light(copy_stack(trained.stack), ctx.train, trained.range_r2) \
+            if "backscatter.b_inf" in values else None
+        if factor is not None:
+            values["backscatter.b_inf"] = values["backscatter.b_inf"] * factor
+        return AlternativeFit(self, values, change=change, ci=ci, fit=trained)
+
+
+@dataclass(frozen=True)
+class FreeGains(Structure):
+    key: ClassVar[str] = "free_gains"
+    words: ClassVar[str] = ("the gains per frame free to follow the frames' ranges (a camera's auto exposure or white "
+                            "balance)")
+    pinned_by: ClassVar[str] = "a survey with more range within each frame (relief, a tilted view)"
+
+    def applies(self, ctx: Context) -> bool:
+        return FRAME_EFFECT in ctx.fit.stack.names and ctx.config.frame_gain_off_range
+
+    def changed(self, config: WaterConfig) -> WaterConfig:
+        return replace(config, frame_gain_off_range=False)
+
+
+@dataclass(frozen=True)
+class FineFields(Structure):
+    key: ClassVar[str] = "fine_fields"
+    words: ClassVar[str] = "fine fields over the image fitted with the water (a falloff or a veil of any smooth shape)"
+    pinned_by: ClassVar[str] = ("a survey that sees the same points at more ranges from one image position (frames at "
+                                "several altitudes)")
+    nodes: tuple[int, int] = (13, 17)
+
+    def applies(self, ctx: Context) -> bool:
+        return ctx.config.field_grid is None
+
+    def changed(self, config: WaterConfig) -> WaterConfig:
+        return replace(config, field_grid=self.nodes)
+
+
+@dataclass(frozen=True)
+class Profile(Alternative):
+    """Where the survey prefers the structure ``under`` (the free gains), eta's held-out profile under it: the
+    interval covers what its held-out views accept."""
+
+    key: ClassVar[str] = "eta_profile"
+    words: ClassVar[str] = "eta as far as the held-out views accept it with the gains per frame free"
+    pinned_by: ClassVar[str] = "a survey with more range within each frame (relief, a tilted view)"
+    rules: ClassVar[tuple[str, ...]] = ("bounds",)
+    under: str = FreeGains.key
+
+    def applies(self, ctx: Context) -> bool:
+        result = ctx.results.get(self.under)
+        return result is not None and result.preferred and ETA in result.values
+
+    def refit(self, ctx: Context) -> AlternativeFit:
+        from .profile import eta_profile
+
+        trained = ctx.results[self.under].fit
+        profile = eta_profile(trained.stack, ctx.train, ctx.obs, ctx.split, trained.config.fit, trained.names,
+                              TEST_RESAMPLES)
+        return AlternativeFit(self, {}, profile={"param": ETA, **profile})
+
+
+def run_alternatives(ctx: Context, announce=None) -> list[AlternativeFit]:
+    """Each of ``ctx.config.alternatives`` that applies, in order, refitted (``announce(i, n, alternative)`` before
+    each, for the progress line). Returns their fits (the ones that found something), also in ``ctx.results``."""
+    todo = list(ctx.config.alternatives)
+    for i, alternative in enumerate(todo):
+        if not alternative.applies(ctx):
+            continue
+        if announce is not None:
+            announce(i, len(todo), alternative)
+        began = time.perf_counter()
+        result = alternative.refit(ctx)
+        if result is not None:
+            result.seconds = time.perf_counter() - began
+            ctx.results[alternative.key] = result
+    return list(ctx.results.values())
