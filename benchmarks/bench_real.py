@@ -216,16 +216,18 @@ def object_constancy(ws, folders: dict[str, Path], names: list[str], labels_path
     from eval.objects import load_object_labels, measure_objects, object_pixels
     from watergan.io import frame_file, read_image
 
-    labels = load_object_labels(labels_path, names)
+    data_frames = sorted(p.name for p in (DATA / "images").iterdir()) if (DATA / "images").is_dir() else None
+    labels = load_object_labels(labels_path, data_frames)  # a survey of fewer frames measures the labels it holds
     ranges = range_maps(ws, names)
     warp = label_warp(ws)
     pixels: dict[tuple, dict] = {}
     out = {}
     for method, folder in folders.items():
         images = _Frames(names, lambda name, folder=folder: read_image(frame_file(folder, name)))
-        shape = images[labels.frames()[0]].shape[:2] if labels.frames()[0] in images else None
-        if shape is None:
+        first = next((f for f in labels.frames() if f in images), None)
+        if first is None:
             continue
+        shape = images[first].shape[:2]
         if shape not in pixels:
             pixels[shape] = object_pixels(labels, shape, names, warp)
         out[method] = measure_objects(images, labels, pixels[shape], ranges)

@@ -333,13 +333,15 @@ def chromaticity_figure(per_method: Mapping[str, Mapping[str, dict]], path: str 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
     from watergan.io import atomic_write_bytes
 
     methods = list(per_method)
-    fig, axes = plt.subplots(2, len(methods), figsize=(3.2 * len(methods), 5.6), sharex=True, sharey="row",
+    fig, axes = plt.subplots(2, len(methods), figsize=(max(3.2 * len(methods), 6.4), 6.2), sharex=True, sharey="row",
                              squeeze=False)
-    names = sorted({n for objects in per_method.values() for n in objects})
+    names = sorted({n for objects in per_method.values() for n, e in objects.items()
+                    if any(r is not None for r in e["range_m"])})
     colours = plt.get_cmap("tab10")
     for j, method in enumerate(methods):
         for i, name in enumerate(names):
@@ -357,15 +359,18 @@ def chromaticity_figure(per_method: Mapping[str, Mapping[str, dict]], path: str 
         axes[1, j].set_xlabel("range (m)")
         for row in range(2):
             axes[row, j].set_xscale("log")
+            axes[row, j].xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            axes[row, j].xaxis.set_major_formatter(FormatStrFormatter("%g"))
+            axes[row, j].xaxis.set_minor_formatter(NullFormatter())
             axes[row, j].grid(alpha=0.3)
     axes[0, 0].set_ylabel("R / (R+G+B)")
     axes[1, 0].set_ylabel("B / (R+G+B)")
     if names:
-        fig.legend(loc="lower center", ncol=min(len(names), 6), fontsize=7)
+        fig.legend(loc="lower center", bbox_to_anchor=(0.5, 0.03), ncol=min(len(names), 5), fontsize=7)
     fig.suptitle(title or "Labelled objects' chromaticity against range (flat: the colour kept)", fontsize=9)
     if note:
         fig.text(0.5, 0.005, note, ha="center", va="bottom", fontsize=6)
-    fig.tight_layout(rect=(0, 0.1, 1, 0.96))
+    fig.tight_layout(rect=(0, 0.16, 1, 0.96))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
