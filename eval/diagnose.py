@@ -58,7 +58,16 @@ from watergan.io import atomic_write_json, atomic_write_text
 
 from .bootstrap import paired_rmse_change
 from .diagnose_measure import GeometrySource, MeasureConfig, check_survey_folder, measure_survey
-from .diagnose_residuals import ResidualConfig, amplitudes, analyse, plot_residuals, scores, write_residual_ply
+from .diagnose_residuals import (
+    ResidualConfig,
+    amplitudes,
+    analyse,
+    orientations_line,
+    plot_residuals,
+    scores,
+    surface_orientations,
+    write_residual_ply,
+)
 from .diagnose_verdict import (
     added_form_misfit,
     form_conflict,
@@ -177,6 +186,9 @@ class DiagnoseResult:
     measurements: str = ""
     """Which measurement table the fit and the ranking used, with its size (e.g. "water stage (scale: stereo)
     (03_water/observations.npz): 25403 observations of 4560 points; its 214 board rows not used ...")."""
+    surfaces: dict = field(default_factory=dict)
+    """The orientations of the surfaces the points lie on (:func:`eval.diagnose_residuals.surface_orientations`;
+    {} when the table holds no normals)."""
 
 
 #: Hidden parameters of the small survey other than the effects' ``simulation_params``: caustics' cell
@@ -577,10 +589,11 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
     base = fit_stack(stack, meas, split, config.fit, frozen_settings(stack, meas))
     analysis = analyse(meas, base.predicted, base.residual, config.residuals)
     base_scores = scores(analysis)
+    surfaces = surface_orientations(meas)
     atomic_write_json(out / "fit.json", {**base.summary(), "n_points": meas.n_points, "n_obs": meas.n_obs,
                                          "patch_px": meas.patch_px, "geometry_source": meas.source,
                                          "measurements": described,
-                                         "clipped_obs_dropped": meas.clipped_obs,
+                                         "clipped_obs_dropped": meas.clipped_obs, "surfaces": surfaces,
                                          "degeneracy": f"effects {list(config.fit.fixed_effects)} are held at "
                                                        f"their configured values: a gain and the albedos' "
                                                        f"scale are exactly degenerate"})
@@ -614,6 +627,8 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
         verdict += ("\nnote: the reconstruction has no metric scale (sfm scale 'none'): ranges are in SfM units, so "
                     "per-metre parameters and the declared light positions are not physical; give sfm a stereo rig, "
                     "a board or navigation altitudes")
+    if surfaces:
+        verdict += f"\n{orientations_line(surfaces)}"
     ranking_json = [{**r.__dict__, "ci95": list(r.ci95)} for r in ranking]
     atomic_write_json(out / "ranking.json", {"measurements": described,
                                              "base_heldout_rmse": base.heldout_rmse, "base_scores": base_scores,
@@ -625,4 +640,4 @@ def _diagnose(survey: Path, out: Path, ledger_dir: Path, config: DiagnoseConfig,
                           n_points=meas.n_points, n_obs=meas.n_obs, verdict=verdict,
                           best=best.name if best else None, ranking=ranking_json, skipped=skipped,
                           unexplained_axes=unexplained, scores=base_scores, geometry=meas.source,
-                          seconds=time.perf_counter() - start, measurements=described)
+                          seconds=time.perf_counter() - start, measurements=described, surfaces=surfaces)

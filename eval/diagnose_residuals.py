@@ -50,7 +50,47 @@ def axis_values(meas: Observations, predicted: np.ndarray) -> dict[str, np.ndarr
     }
     if meas.light_distance_m.shape[1]:
         values["light_distance"] = meas.light_distance_m.min(1)
+    if meas.normals_cam is not None:
+        values["incidence_angle"] = incidence_angle_deg(meas.points_cam, meas.normals_cam)
     return values
+
+
+def incidence_angle_deg(points_cam: np.ndarray, normals_cam: np.ndarray) -> np.ndarray:
+    """(N,) acos(|n . X| / |X|) in degrees: the angle between each view's unit normal n and the ray from its point X
+    (camera frame) back to the camera; 0 head-on, 90 grazing (the normal's sign does not matter)."""
+    cosine = np.abs((normals_cam * points_cam).sum(1)) / np.maximum(np.linalg.norm(points_cam, axis=1), 1e-9)
+    return np.degrees(np.arccos(np.clip(cosine, 0.0, 1.0)))
+
+
+#: Edges (degrees from up) of the histogram of the surfaces' orientations.
+ORIENTATION_EDGES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0, 105.0, 120.0, 135.0, 150.0, 165.0, 180.0)
+#: Angle from up (degrees) of the floor-like, wall-like and ceiling-like classes: [lo, hi).
+ORIENTATION_CLASSES = {"floor": (0.0, 30.0), "wall": (60.0, 120.0), "ceiling": (150.0, 180.1)}
+
+
+def surface_orientations(meas: Observations) -> dict:
+    """The orientations of the surfaces the table's points lie on: {"edges_deg", "count"} (the histogram of each
+    point's world normal's angle from up, ``ORIENTATION_EDGES_DEG``), the points per class of
+    ``ORIENTATION_CLASSES`` and their share, "other" for the rest; {} when the table holds no world normals."""
+    if meas.normals_world is None or not len(meas.normals_world):
+        return {}
+    up = np.degrees(np.arccos(np.clip(meas.normals_world[:, 2], -1.0, 1.0)))
+    count, _ = np.histogram(up, bins=np.asarray(ORIENTATION_EDGES_DEG))
+    classes = {name: int(((up >= lo) & (up < hi)).sum()) for name, (lo, hi) in ORIENTATION_CLASSES.items()}
+    classes["other"] = len(up) - sum(classes.values())
+    return {"edges_deg": list(ORIENTATION_EDGES_DEG), "count": count.tolist(), "points": classes,
+            "share": {k: round(v / len(up), 3) for k, v in classes.items()}}
+
+
+def orientations_line(orientations: dict) -> str:
+    """One line on the surfaces seen, e.g. "surfaces: 97% floor-like, 2% wall-like, 0% ceiling-like (normals within
+    30 degrees of up; 60-120 degrees)"; "" without normals."""
+    if not orientations:
+        return ""
+    share = orientations["share"]
+    return (f"surfaces: {share['floor']:.0%} floor-like, {share['wall']:.0%} wall-like, {share['ceiling']:.0%} "
+            f"ceiling-like, {share['other']:.0%} other (normals within 30 degrees of up, 60-120, beyond 150) of "
+            f"{sum(orientations['points'].values())} points")
 
 
 def _bin_stats(index: np.ndarray, n_bins: int, residual: np.ndarray) -> dict:
@@ -126,7 +166,8 @@ def amplitudes(analysis: dict) -> dict[str, float]:
 
 AXIS_LABELS = {"range": "range (m)", "intensity": "predicted intensity (linear)", "height": "world height z (m)",
                "spatial_frequency": "log10 gradient energy", "frame": "frame index",
-               "light_distance": "distance to nearest light (m)"}
+               "light_distance": "distance to nearest light (m)",
+               "incidence_angle": "incidence angle at the surface (degrees)"}
 
 
 def plot_residuals(analysis: dict, out_dir: Path, title: str) -> list[Path]:

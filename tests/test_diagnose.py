@@ -74,6 +74,17 @@ NOT_IDENTIFIABLE = {
     "ambient_depth": "not a candidate: the light reaching a point is the same in all its views, so the per-point "
                      "albedo absorbs it (view-dependent change 0.0006 RMS); it needs known albedos (a board at "
                      "several heights), not multi-view colour",
+    "tone_curve": "found (ranks first, significant) but the cut is -32%, not -50%: on one exposure per frame the "
+                  "refitted albedos, attenuation and backscatter take most of a curve between the sensor and the "
+                  "sRGB written, as they take sensor_response's gamma; exposures that change from frame to frame "
+                  "pin a curve, and this survey's camera has one exposure",
+    "black_level": "-1.1% (not significant): an offset per channel at the sensor is the refitted backscatter's veil, "
+                   "which has saturated at the survey's ranges (beta up to 5 /m over 2.4-3.2 m); only the vignetting, "
+                   "which scales the veil and not the offset, tells them apart",
+    "specular_gloss": "found (ranks first, significant, flattens the incidence_angle axis) but the cut is -41%, not "
+                      "-50%: the held-out error falls from 0.0058 to 0.0034, the survey's floor (0.0035), so no model "
+                      "cuts half; the fitted gloss (0.03, 0.08, 0.07) is below the hidden 0.15 (the views' normals "
+                      "from the depth maps and the 5 px patches blur the lobe, and the refitted water takes part)",
     "marine_snow": "not a candidate (needs whole images): particles are random per frame, not a function of the "
                    "geometry (view-dependent change 0.0036 RMS); with patches holding clipped pixels dropped they "
                    "leave a held-out error of 0.0041 and structure along spatial_frequency (see "
@@ -292,6 +303,27 @@ def test_no_hidden_effect_gives_no_verdict(diagnosed):
     result = diagnosed()
     assert result.best is None
     assert result.verdict.startswith("no significant missing effect"), result.verdict
+
+
+def test_no_gloss_is_accepted_without_gloss_and_the_angle_axis_is_binned(diagnosed):
+    """On the survey with nothing hidden the glossy-surface candidate is fitted (its inputs, the views' points and
+    normals, are in the table) and not accepted; the residuals are binned along the incidence angle, without
+    structure, and the surfaces seen are the floor."""
+    result = diagnosed()
+    gloss = next(r for r in result.ranking if r["name"] == "specular_gloss")
+    assert not gloss["significant"] and gloss["change"] > -0.03, result.verdict
+    assert 0 < result.scores["incidence_angle"] < 3, result.scores
+    assert result.surfaces["share"]["floor"] > 0.9 and "surfaces: " in result.verdict
+
+
+def test_hidden_gloss_is_found_on_the_incidence_angle_axis(diagnosed):
+    """A glossy floor (specular_gloss at its simulated strength) ranks first, significant, and flattens the angle axis
+    (that it does not cut half: NOT_IDENTIFIABLE)."""
+    result = diagnosed("specular_gloss")
+    top = result.ranking[0]
+    assert top["name"] == "specular_gloss" and top["significant"] and top["change"] < -0.3, result.verdict
+    assert top["flattened"] == "incidence_angle" and result.scores["incidence_angle"] > 5, result.scores
+    assert result.verdict.startswith("missing: specular_gloss"), result.verdict
 
 
 def test_two_hidden_effects_are_found_one_per_round(surveys):

@@ -58,7 +58,7 @@ def test_plugin_example_registers_through_the_cli(tmp_path):
     out = subprocess.run([sys.executable, "-m", "pipeline.cli", "--plugin", str(path), "effects"],
                          capture_output=True, text=True, check=True).stdout
     assert "green_tint: a uniform green cast" in out
-    assert "18 registered effects" in out
+    assert "21 registered effects" in out
 
 
 DOC_BLOCKS = [pytest.param(block, id=f"{doc.name}-{i}") for doc in DOCS for i, block in enumerate(python_blocks(doc))]

@@ -30,7 +30,7 @@ class Effect(nn.Module):
     name:        registered name (snake case), used in JSON stacks and on the command line.
     summary:     one line: what the effect does physically.
     signature:   one line: the residual it explains (by image position, range, intensity,
-                 light distance, height, spatial frequency, frame).
+                 light distance, height, spatial frequency, frame, incidence angle).
     axis:        the residual axis of that signature, one of AXES (the diagnosis bins along it).
     params:      the bounded parameters.
     neutral:     parameter values that make the effect the identity (tests rely on it).
@@ -55,6 +55,7 @@ class Effect(nn.Module):
 
     AXES: ClassVar[tuple[str, ...]] = (
         "image_position", "range", "intensity", "light_distance", "height", "spatial_frequency", "frame",
+        "incidence_angle",
     )
 
     name: ClassVar[str] = ""
