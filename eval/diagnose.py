@@ -103,7 +103,7 @@ class DiagnoseConfig:
     one its estimate was fitted to: a workspace only), "sfm" (the sfm stage's tracks, sampled and measured
     here), "truth" (the simulator's depth maps and poses) or "auto" (water when the workspace's water stage
     saved its table, else sfm when the workspace has tracks, else truth when the survey is simulated). On the
-    water's table the ``measure`` options other than ``patch_px`` (the gradient-energy patch) do not apply."""
+    water's table the measurement options other than the patch's size (the gradient-energy patch) do not apply."""
     effects: tuple[str, ...] = ()
     """Effects of the current model (empty: the survey's visible stack from truth/effects.json when
     simulated, with its parameters as the starting point, else attenuation,backscatter,vignetting,gain)."""
@@ -124,7 +124,7 @@ class DiagnoseConfig:
     bootstrap: int = 2000
     """Bootstrap resamples of the held-out points."""
     structure_threshold: float = 3.0
-    """Structure score above which an axis is reported as unexplained (with ``structure_fraction``)."""
+    """Structure score above which an axis is reported as unexplained (with the structure fraction, next)."""
     structure_fraction: float = 0.1
     """... and the least amplitude of the structure (RMS of the bin means about their centre) as a
     fraction of the residual RMSE: with many observations tiny biases (a few 1e-4 in the darkest

@@ -51,19 +51,19 @@ class MeasureConfig:
     """How points are sampled and observations measured."""
 
     n_points: int = 3000
-    """Candidate 3D points to sample (those seen in fewer than ``min_views`` frames are dropped)."""
+    """Candidate 3D points to sample (those seen in fewer than the least views, next, are dropped)."""
     min_views: int = 3
     """Frames a point must be seen in to be kept."""
     patch_px: int = 5
     """Side of the square patch whose mean is a point's observed colour, pixels (odd).
-    With ``same_footprint``, the patch the farthest view of each point averages (a Gaussian of the same standard
-    deviation, patch_px / sqrt(12) pixels); also the margin kept from the image border."""
+    With the same footprint (the default), the patch the farthest view of each point averages (a Gaussian of the
+    same standard deviation, patch_px / sqrt(12) pixels); also the margin kept from the image border."""
     same_footprint: bool = True
-    """Read every view of a point over the same patch of surface; False: the ``patch_px`` box mean in every view.
+    """Read every view of a point over the same patch of surface; off: the patch's box mean in every view.
     A view at camera depth d is blurred by a Gaussian of sigma = patch_px / sqrt(12) x d_far / d pixels, d_far the
     depth of the point's farthest view (sigma is interpolated between 8 blur levels 1.5x apart, so views nearer
     than d_far / 17 are blurred less than that). A box mean in pixels averages more texture in a far view, which
-    biases the attenuation (see the module docstring)."""
+    biases the attenuation."""
     depth_tol_m: float = 0.02
     """Occlusion test: largest difference between a point's camera z and the frame's depth there, metres."""
     seed: int = 0

@@ -94,8 +94,8 @@ class DenseMeasureConfig:
     samples_per_frame: int = 300
     """Pixels lifted to 3D per frame (dense correspondences)."""
     max_points: int = 20000
-    """Pixels lifted to 3D over the whole survey at most: a survey of more than ``max_points / samples_per_frame``
-    usable frames lifts ``max_points / frames`` per frame (at least one), so that the table, and the fit and the
+    """Pixels lifted to 3D over the whole survey at most: a survey with more usable frames than this over the samples
+    per frame lifts this over its frame count per frame (at least one), so that the table, and the fit and the
     diagnosis that read it, stay bounded as the survey grows while every frame still takes part."""
     dark_fraction: float = 0.25
     """Fraction of those samples drawn among the frame's darkest 5 % of pixels (the dark-pixel prior)."""
@@ -103,7 +103,7 @@ class DenseMeasureConfig:
     """Smallest Gaussian blur (sigma, pixels) of the images colours are read from (0: no blur)."""
     footprint_m: float = 0.015
     """Sigma on the surface (metres) of the blur colours are read through; 0: blur_px everywhere.
-    That is fx x this / depth pixels, clamped to the blur pyramid (blur_px x 1.5^0..5, ``PYRAMID_LEVELS``)."""
+    That is fx x this / depth pixels, clamped to the blur pyramid (the blur in pixels x 1.5^0..5)."""
     margin_px: int = 6
     """Projections closer than this to the image border are not used."""
     range_tolerance: float = 0.02

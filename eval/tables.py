@@ -79,9 +79,9 @@ class EvaluateConfig:
     survey_dir: str = ""
     """The survey folder (images/, camera.json, and truth/ when simulated); empty: the workspace's survey."""
     images_dir: str = ""
-    """The raw frames SfM ran on; empty: ``<survey>/images``."""
+    """The raw frames SfM ran on; empty: the survey's images/ folder."""
     methods: tuple[str, ...] = tuple(BASELINES)
-    """Baselines to run (names of eval.baselines.BASELINES)."""
+    """Baselines to run (the default: every one)."""
     ours_dir: str = ""
     """The restorer's corrected frames; empty: the correct stage's images when it ran."""
     range_source: RangeChoice = RangeChoice.auto
@@ -90,7 +90,7 @@ class EvaluateConfig:
     """A formation-stack JSON ([{name, params}]) with the Jaffe-McGlamery coefficients.
     Empty: the simulated survey's true (full) stack."""
     board_json: str = ""
-    """A board file with per-image pixel corners (eval.colour.load_board_json).
+    """A board file with per-image pixel corners of the board's patches (docs/water.md, the colour board).
     Empty: the simulated survey's board."""
     patch_px: int = 5
     """Side of the square patch averaged at each SfM observation, pixels (odd)."""

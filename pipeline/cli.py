@@ -31,6 +31,7 @@ from pathlib import Path
 
 from eval.synth.presets import PRESETS
 
+from .cli_help import grouped_commands
 from .cliargs import add_config, config_from_args
 
 PLUGIN_HELP = "a Python file that registers effects with @watergan.formation.register (repeatable)"
@@ -107,11 +108,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     plugin = _plugin_parent()
-    parser = argparse.ArgumentParser(prog="watergan",
-                                     description="Underwater survey colour correction, 3D and physics diagnosis.")
+    parser = argparse.ArgumentParser(prog="watergan", usage="watergan [--plugin FILE.py] COMMAND [OPTIONS]",
+                                     description="Underwater survey colour correction, 3D and physics diagnosis.\n\n"
+                                                 "Start with: watergan demo, or watergan run SURVEY --workspace WS.",
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--plugin", dest="plugin_first", action="append", default=[], metavar="FILE.py",
                         help=PLUGIN_HELP)
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help=argparse.SUPPRESS,
+                                prog="watergan")  # the commands are listed by group in the epilog
 
     p = sub.add_parser("effects", parents=[plugin], help="list registered effects")
     p.set_defaults(func=cmd_effects)
@@ -128,6 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     cli_diagnose.add_commands(sub, [plugin])
     cli_report.add_commands(sub, [plugin])
     cli_run.add_commands(sub, [plugin])
+    parser.epilog = (grouped_commands(sub) + "\n\nwatergan COMMAND --help: a command's options (watergan run "
+                     "--help: the common ones, and how to see each stage's).")
     return parser
 
 

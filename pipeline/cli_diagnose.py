@@ -1,9 +1,9 @@
 """The diagnosis commands of the `watergan` console script (options:
 :class:`eval.diagnose.DiagnoseConfig`, nested ones prefixed: ``--measure-n-points``, ``--fit-iterations``).
 
-    watergan diagnose WORKSPACE_OR_SURVEY [--geometry auto|water|sfm|truth] [--effects A,B,...] [--add NAME[,NAME]]
+    watergan diagnose FOLDER [--geometry auto|water|sfm|truth] [--effects A,B,...] [--add NAME[,NAME]] [--threads N]
                       [--candidates A,B,...] [--measure-n-points N] [--fit-iterations N] [--no-plots] [--force]
-    watergan ledger WORKSPACE_OR_SURVEY
+    watergan ledger FOLDER                (FOLDER: a workspace or a survey folder)
 
 ``pipeline/cli.py`` adds them with ``add_commands(sub, parents)``; ``--plugin FILE.py`` (from the
 parents) registers a user's effects first, which then take part as candidates or via ``--add``.
@@ -19,9 +19,12 @@ from .cliargs import add_config, config_from_args
 def cmd_diagnose(args: argparse.Namespace) -> int:
     from eval.diagnose import DiagnoseConfig
     from pipeline.diagnose import run_diagnose
+    from watergan.progress import activity
+    from watergan.threads import use_threads
 
     config = config_from_args(DiagnoseConfig, args)
-    result = run_diagnose(args.target, config, force=args.force)
+    with use_threads(args.threads), activity("diagnose", config.progress is not False):
+        result = run_diagnose(args.target, config, force=args.force)
     print(f"model: {' -> '.join(result.stack)}")
     print(f"{result.n_points} points, {result.n_obs} observations (geometry: {result.geometry}); "
           f"held-out RMSE {result.heldout_rmse:.5f} (linear)")
@@ -65,14 +68,17 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
 
     p = sub.add_parser("diagnose", parents=parents,
                        help="fit the formation model to multi-view measurements and name the missing effect")
-    p.add_argument("target", metavar="WORKSPACE_OR_SURVEY",
+    p.add_argument("target", metavar="FOLDER",
                    help="a workspace (its survey; output in its diagnose stage's folder) or a survey folder "
                         "(output in SURVEY/diagnose/)")
     p.add_argument("--force", action="store_true", help="rerun in a workspace even when done with the same options")
+    p.add_argument("--threads", type=int, default=0, metavar="N",
+                   help="threads of the numerical work (torch, OpenCV); 0: the cores no other job keeps busy "
+                        "(default: 0)")
     add_config(p, DiagnoseConfig)
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("ledger", parents=parents, help="print the model ledger and plot the error per model version")
-    p.add_argument("workspace", metavar="WORKSPACE_OR_SURVEY",
-                   help="workspace (or survey folder) that `watergan diagnose` wrote to")
+    p.add_argument("workspace", metavar="FOLDER",
+                   help="workspace (or survey folder) that watergan diagnose wrote to")
     p.set_defaults(func=cmd_ledger)

@@ -1,6 +1,6 @@
 """The evaluation and report subcommands of the `watergan` console script (wired in by pipeline.cli):
 
-    watergan evaluate --workspace WS [--survey-dir DIR] [--images-dir DIR] [--range-source auto|truth|dense]
+    watergan evaluate --workspace WS [--survey DIR] [--images-dir DIR] [--range-source auto|truth|dense]
                       [--methods raw,histeq,...] [--ours-dir DIR] [--jaffe-stack FILE] [--board-json FILE] [--force]
     watergan report --workspace WS
 

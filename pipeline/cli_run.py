@@ -77,19 +77,33 @@ def cmd_frames(args: argparse.Namespace) -> int:
 
 
 def _common(p: argparse.ArgumentParser, exclude: tuple[str, ...] = ()) -> None:
+    """The options ``run`` and ``demo`` share: the common ones shown, the video's and each stage's behind
+    ``--help-video``, ``--help-STAGE`` and ``--help-all`` (all accepted, shown or not)."""
+    from .cli_help import add_sections, hide
     from .run import RunOptions, run_default_keys, stage_options
+    from .stages import STAGES
 
-    p.add_argument("--config", metavar="FILE.toml", help="options file (keys: the options below with _ for -, "
-                   "e.g. gan_budget_min = 5); the command line wins")
+    p.add_argument("--config", metavar="FILE.toml", help="options file (keys: the options, stages' ones included, "
+                   "with _ for -, e.g. gan_budget_min = 5); the command line wins")
     p.add_argument("--force", **list_option("rerun finished stages (and those after them that read them); "
                                             "'all' for every stage", "STAGE"), default=[])
-    add_options(p, options(RunOptions, (*_POSITIONAL, *exclude)))
+    common = options(RunOptions, (*_POSITIONAL, *exclude))
+    add_options(p, [o for o in common if o.path[0] != "video"])
+    sections: dict[str, tuple[str, str, list]] = {}
+    video = [o for o in common if o.path[0] == "video"]
+    if video:
+        sections["video"] = ("video options", "how frames are taken from a video given as the survey",
+                             hide(add_options(p, video)))
     groups: dict[str, list] = {}
     for group, o in stage_options():
         groups.setdefault(group, []).append(o)
     for group, opts in groups.items():
-        section = p.add_argument_group(f"{group} options")
-        add_options(section, opts, prefix=group, defaults=run_default_keys())
+        sections[group] = (f"{group} options", STAGES[group].help,
+                           hide(add_options(p, opts, prefix=group, defaults=run_default_keys())))
+    add_sections(p, sections, "each stage's options",
+                 "Every option of every stage is an option of this command too, named --STAGE-FIELD (e.g. "
+                 "--gan-budget-min 4, or gan_budget_min = 4 in the --config file). One stage's: --help-STAGE "
+                 "below; all of them: --help-all.")
 
 
 def print_survey(ws, r) -> None:
@@ -107,15 +121,26 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
     from .cli_stage import add_stage_command
 
     add_stage_command(sub, parents, "survey", print_survey)
-    p = sub.add_parser("run", parents=parents, help="every stage on a survey folder (resumable)")
-    p.add_argument("survey", help="survey folder: images/, optional right/, camera.json, optional rgbd/; or a video "
-                                  "file, or a folder of video clips (frames extracted into WORKSPACE/video_frames)")
-    p.add_argument("--workspace", required=True, help="run folder")
+    from .stages import STAGES
+
+    p = sub.add_parser("run", parents=parents, help="every stage on a survey folder (resumable)",
+                       description=f"Every stage on a survey folder, in order ({', '.join(STAGES)}), into the "
+                                   f"workspace WS; a second run skips the stages already finished with the same "
+                                   f"options and inputs.",
+                       usage="watergan run SURVEY --workspace WS [--config FILE.toml] [--force STAGE] [OPTIONS] "
+                             "[--STAGE-FIELD VALUE ...]")
+    p.add_argument("survey", metavar="SURVEY", help="survey folder: images/, optional right/, camera.json, optional "
+                   "rgbd/; or a video file, or a folder of video clips (frames extracted into WS/video_frames)")
+    p.add_argument("--workspace", required=True, metavar="WS", help="the run folder (created; the stages write "
+                                                                   "only there)")
     _common(p)
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("demo", parents=parents, help="simulate the built-in survey and run every stage on it")
-    p.add_argument("--out", default="demo_out", help="workspace folder (default: demo_out)")
+    p = sub.add_parser("demo", parents=parents, help="simulate the built-in survey and run every stage on it",
+                       description="Simulate the built-in survey (one effect hidden from the visible model, for the "
+                                   "diagnosis to find) and run every stage on it, as watergan run does.",
+                       usage="watergan demo [--out DIR] [--preset NAME] [OPTIONS] [--STAGE-FIELD VALUE ...]")
+    p.add_argument("--out", default="demo_out", metavar="DIR", help="workspace folder (default: demo_out)")
     from eval.synth.presets import PRESETS
 
     p.add_argument("--preset", choices=list(PRESETS), default="demo",

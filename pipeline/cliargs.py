@@ -179,20 +179,25 @@ def _or_none(convert):
     return parse
 
 
-def add_options(parser: argparse.ArgumentParser, opts: list[Option], prefix: str = "",
-                defaults: dict[str, Any] | None = None) -> None:
-    """Add ``opts`` to ``parser`` (flags ``--PREFIX-FIELD``). ``defaults`` (by key) replaces the
-    dataclass's default in the help where a caller (``watergan run``) applies its own."""
+def add_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup, opts: list[Option], prefix: str = "",
+                defaults: dict[str, Any] | None = None) -> list[argparse.Action]:
+    """Add ``opts`` to ``parser`` (flags ``--PREFIX-FIELD``; their help the fields' docstrings as plain text,
+    :func:`pipeline.cli_help.clean_help`); returns the actions added. ``defaults`` (by key) replaces the
+    dataclass's default in the help where a caller (``watergan run``) applies its own; an empty default
+    (the docstring says what empty means) is not shown."""
+    from .cli_help import clean_help
+
     defaults = defaults or {}
+    actions = []
     for o in opts:
         key = o.key(prefix)
         default = defaults.get(key, o.default)
         hint, optional = _unoptional(o.hint)
-        text = o.help or key.replace("_", " ")
+        text = clean_help(o.help) or key.replace("_", " ")
         kwargs: dict[str, Any] = {"dest": key, "default": argparse.SUPPRESS}
         if default is _REQUIRED:
             kwargs["required"] = True
-        elif hint is not bool:
+        elif hint is not bool and default not in ("", ()):
             text += f" (default: {_format_default(default)})"
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
@@ -207,7 +212,8 @@ def add_options(parser: argparse.ArgumentParser, opts: list[Option], prefix: str
             kwargs["type"] = _or_none(hint) if optional else hint
             kwargs["metavar"] = {int: "N", float: "X", Path: "PATH"}.get(hint, key.rsplit("_", 1)[-1].upper())
         kwargs.setdefault("help", text.replace("%", "%%"))
-        parser.add_argument(o.flag(prefix), **kwargs)
+        actions.append(parser.add_argument(o.flag(prefix), **kwargs))
+    return actions
 
 
 def convert(o: Option, value: Any, where: str) -> Any:
@@ -290,6 +296,6 @@ def config_from_args(cls: type, args: argparse.Namespace, exclude: tuple[str, ..
     return build(cls, given(args, options(cls, exclude)), **fixed)
 
 
-def add_config(parser: argparse.ArgumentParser, cls: type, exclude: tuple[str, ...] = ()) -> None:
-    """Every option of the configuration dataclass ``cls`` (but ``exclude``) on ``parser``."""
-    add_options(parser, options(cls, exclude))
+def add_config(parser: argparse.ArgumentParser, cls: type, exclude: tuple[str, ...] = ()) -> list[argparse.Action]:
+    """Every option of the configuration dataclass ``cls`` (but ``exclude``) on ``parser``; returns their actions."""
+    return add_options(parser, options(cls, exclude))

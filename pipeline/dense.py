@@ -101,9 +101,9 @@ class DenseConfig:
     """Dense depth and fusion options."""
 
     images_dir: str = ""
-    """Images to match (raw or corrected; same names as SfM's); empty: ``00_survey/images``."""
+    """Images to match (raw or corrected; same names as SfM's); empty: the workspace's survey images."""
     right_dir: str = ""
-    """The stereo rig's right frames; empty: ``right`` beside the images folder when it exists."""
+    """The stereo rig's right frames; empty: right/ beside the images folder when it exists."""
     method: DenseMethod = DenseMethod.auto
     """'sgbm' (OpenCV, CPU), 'patch_match' (pycolmap, needs CUDA) or 'auto' (patch_match when pycolmap has CUDA)."""
     pairs: PairSource = PairSource.auto
@@ -131,7 +131,7 @@ class DenseConfig:
     forward_max_angle_deg: float = 45.0
     """Neighbour pairs whose baseline lies within this angle of the frame's view direction (a camera moving along its
     view: the epipole in the frame, nothing for rectified stereo to match along) take the frame's depth from the
-    sparse points it sees instead (:mod:`pipeline.sparse_depth`); 0: never."""
+    sparse points it sees instead; 0: never."""
     far_limit_ratio: float = 3.0
     """A depth beyond this multiple of the 99th percentile of the sparse depths the frame sees (the survey's for a
     frame with fewer than 10 sparse points; at most 65.535, what the 16-bit millimetre PNG holds) is dropped as no

@@ -111,7 +111,7 @@ class RestorerStage:
     range_input: bool | None = None
     """RGB-D mode (each pixel's range); auto: when the water stage wrote each frame's range maps."""
     site_depth_steps: int = 2000
-    """Steps of the site depth net (:mod:`pipeline.site_depth`: monocular depth learned from the survey's dense depth,
+    """Steps of the site depth net (monocular depth learned from the survey's dense depth,
     taken by monocular correction where it beats the flat seafloor on held-out frames); 0: none."""
 
 

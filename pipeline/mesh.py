@@ -85,8 +85,8 @@ class MeshConfig:
     """Meshing, texturing and mosaic options."""
 
     images_dir: str = ""
-    """Images that colour the texture (raw or corrected; SfM's names); empty: the set the correct stage's result
-    names (``mesh_images``)."""
+    """Images that colour the texture (raw or corrected; SfM's names); empty: the set the correct stage names
+    for the mesh."""
     source: PointSource = PointSource.auto
     """Points to mesh: 'dense' (02_dense/fused_points.ply), 'sparse' (SfM points) or 'auto' (dense when present)."""
     cell_m: float = 0.0

@@ -15,7 +15,9 @@ Options: the common ones of :class:`RunOptions` (each sets the field of that nam
 configuration, nested ones included, but the stage's ``local`` ones), and every other option of each
 stage's configuration, named ``STAGE_FIELD`` (``gan_budget_min``, ``restorer_head``,
 ``diagnose_measure_n_points``; on the command line ``--gan-budget-min``...), see :func:`stage_options`.
-The same keys work in a TOML file (``--config run.toml``).
+The same keys work in a TOML file (``--config run.toml``). The run sets its threads first
+(:func:`watergan.threads.use_threads`, ``--threads``; 0: the cores not busy) and runs each stage inside a heartbeat
+(:func:`watergan.progress.activity`: a line every 30 s unless a progress bar printed).
 
 A survey argument that is a video file or a folder of video clips is extracted into the workspace's
 ``video_frames`` folder first (:func:`pipeline.video.video_survey`, the ``video`` options), and the run goes on
@@ -35,6 +37,8 @@ from typing import TYPE_CHECKING, Any
 
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json
+from watergan.progress import activity
+from watergan.threads import threads_line, use_threads
 
 from .cliargs import Option, build, convert, field_paths, options
 from .video import VideoConfig, video_survey
@@ -55,8 +59,8 @@ class RunOptions:
     workspace: str
     """The run folder (created); stages write only here."""
     rgbd_dir: str = ""
-    """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: ``<survey>/rgbd``, else a generic
-    seafloor set rendered by the simulator into the workspace."""
+    """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: the survey's rgbd/ folder, else a generic seafloor set
+    rendered by the simulator into the workspace."""
     add: tuple[str, ...] = ()
     """Effects added to the water's stack, to WaterGAN's generator and to the diagnosed model (e.g. what
     `diagnose` found)."""
@@ -67,11 +71,14 @@ class RunOptions:
     force: tuple[str, ...] = ()
     """Stages to rerun even when finished ('all': every stage)."""
     progress: bool = True
-    """Progress bars."""
+    """Progress bars, and a line at least every 30 s saying what a long stage is doing."""
+    threads: int = field(default=0, metadata={"hash": False})
+    """Threads of the stages' numerical work (torch, OpenCV); 0: the cores no other job keeps busy (the cores less
+    the machine's load average), at least 1."""
     video: VideoConfig = field(default_factory=VideoConfig)
-    """How frames are taken from a video given as the survey (:mod:`pipeline.video`); ``progress`` is the run's."""
+    """How frames are taken from a video given as the survey; its progress is the run's."""
     stages: Mapping[str, Mapping[tuple[str, ...], Any]] = field(default_factory=dict)
-    """Per stage, the options given (field path -> value): see :func:`stage_options`."""
+    """Per stage, the options given (field path -> value), by the keys of stage_options()."""
 
 
 #: RunOptions fields that are not options (of a file or of the command line): the stages' own are given by key, and
@@ -181,7 +188,16 @@ def run_all(opts: RunOptions) -> dict:
     unknown = sorted(set(opts.force) - set(STAGES) - {"all"})
     if unknown:
         raise UserInputError(f"--force: unknown stage(s) {', '.join(unknown)}; stages: {', '.join(STAGES)}, all")
-    given = opts
+    with use_threads(opts.threads) as threads:
+        print(threads_line(threads, opts.threads), flush=True)
+        return _run_stages(opts)
+
+
+def _run_stages(given: RunOptions) -> dict:
+    """run_all's work once the threads are set."""
+    from .stages import STAGES
+
+    opts = given
     frames = video_survey(Path(opts.survey_dir), Path(opts.workspace),
                           dataclasses.replace(opts.video, progress=opts.progress))
     if frames is not None:
@@ -194,9 +210,11 @@ def run_all(opts: RunOptions) -> dict:
     for k, stage in enumerate(STAGES):
         config = stage_config(stage, opts)
         done = stage not in forced and ws.is_done(stage, config)
-        print(f"[{k + 1}/{len(STAGES)}] {stage}: {'finished earlier, skipped' if done else 'running'}", flush=True)
+        label = f"[{k + 1}/{len(STAGES)}] {stage}"
+        print(f"{label}: {'finished earlier, skipped' if done else 'running'}", flush=True)
         started = time.perf_counter()
-        ws.run(stage, config, force=stage in forced)
+        with activity(label, opts.progress and not done):
+            ws.run(stage, config, force=stage in forced)
         seconds = time.perf_counter() - started
         timings.append({"stage": stage, "skipped": done, "seconds": round(seconds, 2)})
         if not done:

@@ -53,6 +53,7 @@ from eval.tracks import Tracks
 from watergan.data import read_nav_altitudes
 from watergan.errors import UserInputError
 from watergan.lens import OPENCV, Lens
+from watergan.progress import say
 from watergan.survey_files import image_files, read_camera_json, read_survey_json
 
 from .colmap import build_tracks, camera_matrix, colmap_errors_only, refined_k1
@@ -101,15 +102,15 @@ class SfmConfig:
     """Structure-from-motion options."""
 
     images_dir: str = ""
-    """Folder of the raw images; empty: the workspace's ``00_survey/images``."""
+    """Folder of the raw images; empty: the workspace's survey images."""
     camera_json: str = ""
     """Intrinsics (fx, fy, cx, cy in OpenCV pixel convention, width, height[, baseline_m]); empty:
-    ``camera.json`` beside the images folder. Missing file: intrinsics are estimated."""
+    camera.json beside the images folder. Missing file: intrinsics are estimated."""
     fix_intrinsics: bool = True
     """Hold the known PINHOLE intrinsics fixed (True) or refine them in bundle adjustment."""
     matching: Matching = Matching.auto
     """'sequential' (ordered sequence, quadratic overlap), 'exhaustive' (all pairs), or 'auto':
-    exhaustive up to ``exhaustive_max_images`` images, else sequential."""
+    exhaustive up to the exhaustive-max-images option's count of images, else sequential."""
     sequential_overlap: int = 10
     """Sequential matching with quadratic overlap: each image is matched with the images 1, 2, 4, ...,
     2^(overlap - 1) ahead, which reaches neighbouring survey lines (so an image has log2(images) pairs at most)."""
@@ -134,17 +135,17 @@ class SfmConfig:
     """Metric scale from 'stereo', 'board' (known board size), 'altitude' (navigation), 'track' (positions per frame),
     'height' (camera_height_m), 'none', or 'auto' (the first of these the survey has, in that order)."""
     board_json: str = ""
-    """Board file for the 'board' scale: ``{"images": {file name: [[x, y] x 4] outer corners, or per patch
-    [[x, y] x 4] | null}, "width_m", "height_m" | "patch_side_m", ...}`` (pixels, OpenCV convention;
-    eval.colour's board files qualify once they carry the size). Empty: no board."""
+    """Board file for the 'board' scale: JSON {"images": {file name: [[x, y] x 4] outer corners, or per patch
+    [[x, y] x 4] | null}, "width_m", "height_m" | "patch_side_m", ...} (pixels, OpenCV convention; the
+    evaluation's colour-board files qualify once they carry the size). Empty: no board."""
     board_width_m: float = 0.0
     """True board (or patch) extent along corners 0-1 and 2-3, metres; 0: from the board file."""
     board_height_m: float = 0.0
-    """True extent along corners 1-2 and 3-0, metres; 0: from the board file (or ``board_width_m``)."""
+    """True extent along corners 1-2 and 3-0, metres; 0: from the board file (or the width's option)."""
     right_dir: str = ""
-    """Folder of the stereo rig's right frames (same names); empty: ``right`` beside the images folder."""
+    """Folder of the stereo rig's right frames (same names); empty: right/ beside the images folder."""
     survey_json: str = ""
-    """Navigation file with ``nav_altitude_m`` per frame; empty: ``survey.json`` beside the images folder."""
+    """Navigation file with nav_altitude_m per frame; empty: survey.json beside the images folder."""
     seed: int = 0
     """Random seed of COLMAP's RANSAC and mapper."""
     progress: bool = field(default=True, metadata={"hash": False})
@@ -304,10 +305,13 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
         phases[phase], mark = round(now - mark, 2), now
 
     with colmap_errors_only():
+        say(f"extracting the features of {len(names)} frames")
         _extract_features(database, images_dir, names, cam, cfg, mask_png=scene_mask)
         lap("features")
+        say("matching the features")
         matching = _match_features(database, names, cfg)
         lap("matching")
+        say(f"mapping ({Mapper(cfg.mapper).value}): registering the frames, bundle adjustment")
         raw_dir = out_dir / "colmap_raw"
         mapping = {Mapper.incremental: _map_incrementally, Mapper.hierarchical: _map_hierarchically,
                    Mapper.global_: _map_globally}[Mapper(cfg.mapper)]
@@ -316,6 +320,7 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
         camera = rec.cameras[next(iter(rec.cameras))]
         still = still_features(database, camera.width, camera.height) if scene_mask is None else None
         lap("mapping")
+    say("the survey frame and its scale")
     tracks, method, scale, spread, detail = _to_survey_frame(rec, names, images_dir, cam, cfg)
     lap("survey_frame")
     model_dir = _write_sfm(rec, tracks, out_dir, raw_dir)

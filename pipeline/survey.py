@@ -119,7 +119,7 @@ class SurveyConfig:
     survey_dir: str
     """The survey folder (images/, optional right/, camera.json, optional survey.json and rgbd/)."""
     rgbd_dir: str = ""
-    """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: ``<survey>/rgbd``, else a generic
+    """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: the survey's rgbd/ folder, else a generic
     seafloor set rendered by the simulator into the workspace."""
     seed: int = 0
     """Seed of the generic RGB-D set (and of the lens's estimation)."""

@@ -72,10 +72,10 @@ class WaterStage(WaterConfig):
     reads and writes (the options are the same, flat)."""
 
     add: tuple[str, ...] = ()
-    """Effects added to ``effects`` (``watergan run --add``: e.g. what the diagnosis found)."""
+    """Effects added to the stack's (as watergan run --add does: e.g. what the diagnosis found)."""
     board_json: str = ""
-    """A colour-board file (:func:`eval.colour.load_board_json`). Empty: the simulated survey's board when there is
-    one, else none (then the gain is held)."""
+    """A colour-board file (per-image pixel corners of the board's patches). Empty: the simulated survey's board
+    when there is one, else none (then the gain is held)."""
     range_agreement: float = 0.01
     """The range maps: a pixel keeps its dense range where the fused mesh agrees within this fraction.
     Else it takes the mesh's (the estimate itself reads the dense range)."""

@@ -66,9 +66,9 @@ class GenerateConfig:
     """Options of ``generate`` (and of ``watergan generate``)."""
 
     model_dir: Path
-    """A ``train_gan`` output folder (checkpoint.pt and stack.json)."""
+    """A watergan train-gan output folder (checkpoint.pt and stack.json)."""
     rgbd_dir: Path
-    """In-air RGB-D folder (``rgb/`` + ``depth/``, see :mod:`watergan.data`)."""
+    """In-air RGB-D folder (rgb/ + depth/, the same names in each)."""
     out_dir: Path
     """Where the paired dataset is written."""
     size_hw: tuple[int, int] | None = None
@@ -82,7 +82,8 @@ class GenerateConfig:
     skip_bad: bool = False
     """Skip (and report) bad or unpaired files instead of stopping with an error."""
     recolour_fraction: float = 0.5
-    """Fraction of the in-air images recoloured (:func:`recolour`, seeded) before rendering; 0: none."""
+    """Fraction of the in-air images recoloured (a random, seeded change of their colours) before rendering; 0:
+    none."""
     device: Device = field(default=Device.auto, metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = field(default=True, metadata={"hash": False})

@@ -131,22 +131,22 @@ class CorrectOptions:
     stage (:class:`pipeline.correct.CorrectStage`) share."""
 
     batch_size: int = 0
-    """Images per batch of the restorer; 0: one on a CPU, four on CUDA (:func:`batch_for`)."""
+    """Images per batch of the restorer; 0: one on a CPU, four on CUDA."""
     mode: CorrectMode = CorrectMode.auto
     """How the physics correction and a restorer trained in RGB-D mode get each pixel's range: auto (rgb-d where there
-    are range maps: the water stage's, or --range-dir; else monocular), rgb-d (the range maps), or monocular (a flat
-    seafloor at each frame's navigation altitude, times the site depth net's factor where it beat the flat seafloor,
-    as for frames without range; needs camera.json)."""
+    are range maps, else monocular), rgb-d (the range maps), or monocular (a flat seafloor at each frame's navigation
+    altitude, times the site depth net's factor where it beat the flat seafloor, as for frames without range; needs
+    camera.json)."""
     image_format: ImageFormat = ImageFormat.input
     """The corrected frames' format: input (each frame's own, its bit depth kept; a JPEG's as PNG), png, tiff, or
     jpeg (8 bits, quality 95)."""
     fill_px: float = FILL_PX
     """A hole in a frame's range (a connected region of pixels without range) lying everywhere within this many
     pixels of measured range takes the range interpolated from around it; a larger one (open water, a far wall stereo
-    did not match) takes the survey's far range (``far_range_pct``)."""
+    did not match) takes the survey's far range (next)."""
     far_range_pct: float = FAR_RANGE_PCT
     """The survey's far range, this percentile of the measured ranges of every frame, is the range of pixels in holes
-    larger than ``fill_px``: the veil is removed and the attenuation compensated as at that range."""
+    larger than the fill distance (above): the veil is removed and the attenuation compensated as at that range."""
     far_max_gain: float = FAR_MAX_GAIN
     """At pixels given the far range, the correction's gain (exp(g) of J = exp(g) I + o per channel: exp(eta r) / (k V)
     for the default stack) is held at this, J = min(exp(g), G) (I - C): open water (pure backscatter, I ~ C) stays

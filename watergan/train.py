@@ -92,7 +92,7 @@ class GanConfig:
     """Options of ``train_gan`` (and of ``watergan train-gan``)."""
 
     rgbd_dir: Path
-    """In-air RGB-D folder (``rgb/`` + ``depth/``, see :mod:`watergan.data`)."""
+    """In-air RGB-D folder (rgb/ + depth/, the same names in each)."""
     underwater_dir: Path
     """Folder of the survey's underwater images (PNG, JPEG or TIFF)."""
     out_dir: Path
@@ -116,52 +116,54 @@ class GanConfig:
     """Adam learning rate of every effect's bounded physical parameters (eta, vignetting, gain...).
     At 2e-4 these few parameters move too slowly for a minutes-long CPU run; at 1e-2 Adam's normalised steps turn
     any small persistent bias of the discriminator into a steady drift. The learned layers (backscatter_conv) keep
-    ``lr``, since a fast rate on them grows the z mask into texture. Set it to ``lr`` for the paper's single rate."""
+    the nets' learning rate, since a fast rate on them grows the z mask into texture. Set it to the nets' rate for
+    the paper's single rate."""
     veil_lr: float | None = 2e-3
-    """Adam learning rate of ``backscatter_conv``'s batch-norm shift (the veil's level per channel); None: ``lr``.
-    ``lr`` is the paper's; at it the veil moves too little in the few hundred iterations a CPU allows in minutes
+    """Adam learning rate of backscatter_conv's batch-norm shift (the veil's level per channel); none: the nets'
+    learning rate, the paper's; at it the veil moves too little in the few hundred iterations a CPU allows in minutes
     (measurements: benchmarks/RESULTS/gan.md)."""
     veil_spread_lr: float | None = None
-    """Adam learning rate of ``backscatter_conv``'s batch-norm scale (the veil's spread per channel); None: ``lr``.
+    """Adam learning rate of backscatter_conv's batch-norm scale (the veil's spread per channel); none: the nets'
+    learning rate.
     Backscatter is smooth, and a fast-growing spread lets the z mask stand in for texture contrast, a random
     pattern the restorer cannot undo."""
     site_water: Path | None = None
-    """The water stage's ``water.json``, whose stack at its estimate is the generator's physical effects.
-    ``effects`` adds what it lacks (``backscatter_conv``; see :mod:`watergan.site_water`); None: the stack of
-    ``effects`` learned from the colour statistics, started by ``init_from_data``."""
+    """The water stage's water.json, whose stack at its estimate is the generator's physical effects; the effects
+    option adds what it lacks (backscatter_conv). None: the stack of the effects option, learned from the colour
+    statistics and started from them (init-from-data)."""
     site_water_mode: SiteWater = SiteWater.held
-    """How the site water enters the generator: "held", "prior" or "learned" (see :mod:`watergan.site_water`).
-    With ``site_water``: "held" (the estimate is fixed; the discriminator trains the learned scattering alone) or
+    """How the site water enters the generator: "held", "prior" or "learned".
+    With a site water: "held" (the estimate is fixed; the discriminator trains the learned scattering alone) or
     "prior" (the physical parameters train under the colour-statistics term and a Gaussian prior of the estimate's
-    intervals). "learned" (no site_water): the paper's way, the water learned from the colour statistics
-    (``watergan run`` then gives no site water)."""
+    intervals). "learned" (no site water): the paper's way, the water learned from the colour statistics
+    (watergan run then gives no site water)."""
     site_water_scattering: bool = False
-    """With ``site_water``: keep the learned G-II scattering (``backscatter_conv``) beside the analytic backscatter.
+    """With a site water: keep the learned G-II scattering (backscatter_conv) beside the analytic backscatter.
     Off by default: the discriminator grows its per-image veil (trained by it) into a spread larger than the
     backscatter itself, which the restorer cannot undo (measurements: benchmarks/RESULTS/gan.md)."""
     gain_channels: int = 1
-    """Values of the generator's ``gain``: 1 (one exposure factor, the paper's camera model) or 3 (a white balance).
+    """Values of the generator's gain: 1 (one exposure factor, the paper's camera model) or 3 (a white balance).
     A per-channel gain and a per-channel attenuation explain a frame's colour cast equally well; only the weak
     change of colour with range tells them apart, so with 3 the learned eta is poorly determined."""
     init_from_data: bool = True
     """Start the water at the linear map from the in-air set's colour statistics to the frames' (else initial values).
     The attenuation's channel differences, the veil's level and the gain are set so that the in-air set's
-    per-channel mean and fine-texture contrast map onto the real frames' (:func:`init_from_data`), so training
+    per-channel mean and fine-texture contrast map onto the real frames', so training
     starts near the site's brightness, contrast and cast."""
     moment_weight: float = 1000.0
     """Weight of a colour-statistics term added to the generator loss; 0: the paper's loss alone.
-    The term: the squared differences of the per-channel mean and texture contrast
-    (:func:`~watergan.gan_statistics.texture_contrast`) of a generated and a real batch (linear), a form of feature
+    The term: the squared differences of the per-channel mean and texture contrast (the spread of the fine
+    detail) of a generated and a real batch (linear), a form of feature
     matching (Salimans et al. 2016) on the raw colours. Texture contrast, not the standard deviation: the
     transmission scales fine texture alone, while the spread of whole frames also holds how much the in-air scenes
     and the site vary from metre to metre, which no water changes."""
     adversarial_physics: bool = False
     """Let the discriminator's loss move the physical parameters (bounded values, veil level and spread), as the paper.
     False: they follow the colour-statistics term alone, which holds the data-driven start, while the
-    discriminator trains the learned veil pattern (``backscatter_conv``'s layers); the adversarial gradient pushed
+    discriminator trains the learned veil pattern (backscatter_conv's layers); the adversarial gradient pushed
     eta away from that start in every setting tried (measurements: benchmarks/RESULTS/gan.md)."""
     settle_steps: int = 100
-    """Full-batch steps of the colour-statistics term alone after training (:func:`settle_statistics`; 0: none).
+    """Full-batch steps of the colour-statistics term alone after training (0: none).
     Every in-air view against every real frame at once: minibatch training leaves the generated means off the
     real ones by the noise of its batches, which the restorer would learn as water."""
     gen_steps_per_disc_step: int = 2
@@ -177,7 +179,8 @@ class GanConfig:
     physical stage can change."""
     disc_augment: bool = True
     """Randomly flip and shift every discriminator input, real and generated alike (differentiable augmentation).
-    Flips left-right and up-down, shifts up to ``image_hw / 8`` pixels with a reflected border (Zhao et al. 2020).
+    Flips left-right and up-down, shifts up to an eighth of the training image size with a reflected border (Zhao
+    et al. 2020).
     A survey gives few frames; without it the discriminator memorises them and its gradients push the physical
     parameters off. The augmentations change neither colour nor the radial vignetting, so the generator is not
     taught to imitate them."""
@@ -211,7 +214,7 @@ class GanConfig:
     sample_every: int = 250
     """Iterations between sample grids (one is always written at the end)."""
     resume: bool = False
-    """Continue from ``out_dir/checkpoint.pt`` when it exists."""
+    """Continue from the model folder's checkpoint.pt when it exists."""
     device: Device = field(default=Device.auto, metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = field(default=True, metadata={"hash": False})

@@ -75,7 +75,7 @@ class RestorerConfig:
     """Options of ``train_restorer`` (and of ``watergan train-restorer``)."""
 
     data_dir: Path
-    """A ``watergan generate`` output folder (underwater/, inair/, depth/)."""
+    """A watergan generate output folder (underwater/, inair/, depth/)."""
     out_dir: Path
     """Model folder: checkpoint, log, restorer.pt and validation tables go here."""
     widths: WidthPreset = WidthPreset.cpu
@@ -85,18 +85,18 @@ class RestorerConfig:
     them the nets cost a third as much per frame and the corrections were as good on the surveys measured)."""
     head: Head = Head.affine
     """What the colour core outputs: "affine" (gain and offset fields applied to the image) or "direct" (colours).
-    "affine": per-channel fields, :func:`watergan.nets.restorer.apply_affine`; "direct": as the paper."""
+    "affine": per-channel gain and offset at each pixel; "direct": as the paper."""
     altitude: bool = True
     """The colour net takes each image's altitude in metres; False: the image alone, as the paper.
-    Here the median of its depth map; when correcting, the navigation's ``nav_altitude_m``."""
+    Here the median of its depth map; when correcting, the navigation's altitude (nav_altitude_m)."""
     range_input: bool = False
     """RGB-D mode: the colour net takes each pixel's range in metres; False: the monocular restorer.
-    Here the paired set's ``range/``; when correcting, the water stage's range maps (from the dense stage and the
-    fused mesh). The monocular restorer takes the image, and the altitude with ``altitude``."""
+    Here the paired set's range/; when correcting, the water stage's range maps (from the dense stage and the
+    fused mesh). The monocular restorer takes the image, and the altitude with the altitude option."""
     water: bool = True
     """RGB-D mode: the colour net starts from the exact inverse of the water the pairs were rendered with.
-    That water is the ``generate`` folder's ``manifest.json`` stack, at each pixel's range (see
-    :mod:`watergan.nets.restorer`); the net learns what it does not hold. False: it learns the whole inverse
+    That water is the stack in the paired set's manifest.json, at each pixel's range; the net learns what it does
+    not hold. False: it learns the whole inverse
     (ignored in monocular mode)."""
     factor: int = 4
     """Average-pool factor from full resolution to the colour core (even)."""
@@ -112,11 +112,11 @@ class RestorerConfig:
     lr: float = 1e-3
     """Adam learning rate."""
     lr_decay: bool = True
-    """Cosine decay of the learning rate over each stage, to 0 at its end; False: a constant ``lr`` after the warm-up.
+    """Cosine decay of the learning rate over each stage, to 0 at its end; False: a constant rate after the warm-up.
     The end: its iterations, or its share of the budget when that ends it first."""
     warmup_iterations: int = 20
-    """Iterations at the start of each stage over which the learning rate rises linearly to ``lr`` (0: none).
-    Each stage starts a fresh Adam, whose first steps move every weight by about ``lr`` whatever its gradient:
+    """Iterations at the start of each stage over which the learning rate rises linearly to its value (0: none).
+    Each stage starts a fresh Adam, whose first steps move every weight by about the rate whatever its gradient:
     without the warm-up the colour loss that stage 1 reached jumps at the start of stage 2 and takes many
     iterations to come back."""
     stage1_iterations: int = 2000
@@ -124,7 +124,7 @@ class RestorerConfig:
     stage2_iterations: int = 1000
     """Iterations of stage 2 (full-resolution crops)."""
     budget_min: float | None = None
-    """Wall-clock budget of this run, minutes (None: none); stage 1 may use ``stage1_budget_share`` of it."""
+    """Wall-clock budget of this run, minutes (None: none); stage 1 may use its share of it (stage1-budget-share)."""
     stage1_min_iterations: int = 0
     """Iterations stage 1 runs at least, past its share of the budget if need be (a machine busy with other work
     must not cut a budgeted training to a handful of steps); its learning rate's decay then follows them."""
@@ -139,7 +139,7 @@ class RestorerConfig:
     checkpoint_every: int = 100
     """Iterations between checkpoints (one is always written at the end of each stage)."""
     resume: bool = False
-    """Continue from ``out_dir/checkpoint.pt`` when it exists."""
+    """Continue from the model folder's checkpoint.pt when it exists."""
     device: Device = field(default=Device.auto, metadata={"hash": False})
     """"auto" (CUDA when available, else CPU), "cpu" or "cuda"."""
     progress: bool = field(default=True, metadata={"hash": False})

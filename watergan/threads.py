@@ -1,0 +1,54 @@
+"""How many threads this process's numerical work takes (torch's and OpenCV's pools), chosen for the machine's load.
+
+``with use_threads(n):`` around a run (``watergan run --threads N``, a stage command's ``--threads N``) sets
+both pools to ``n`` threads, or with 0 to the cores no other job keeps busy (:func:`free_cores`): on a machine
+shared with another job, a pool with a thread per core has one thread waiting for a busy core at every
+parallel step, and every other thread waits for it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from collections.abc import Iterator
+
+from watergan.errors import UserInputError
+
+
+def free_cores() -> int:
+    """The cores this process may use that no other job keeps busy: its cores (its CPU affinity) less the
+    machine's load over the last minute (os.getloadavg, rounded to the nearest whole job), at least 1."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        busy = math.floor(os.getloadavg()[0] + 0.5)
+    except OSError:  # no load average on this system
+        busy = 0
+    return max(1, min(cores, (os.cpu_count() or cores) - busy))
+
+
+@contextlib.contextmanager
+def use_threads(threads: int = 0) -> Iterator[int]:
+    """Within the block, torch's and OpenCV's threads set to ``threads`` (0: :func:`free_cores`), the count
+    yielded; their earlier counts are set back after it. A negative count is a UserInputError."""
+    if threads < 0:
+        raise UserInputError(f"--threads must be 0 (auto: the cores not busy) or a positive count, got {threads}")
+    import cv2
+    import torch
+
+    count = threads or free_cores()
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    torch.set_num_threads(count)
+    cv2.setNumThreads(count)
+    try:
+        yield count
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
+def threads_line(count: int, given: int) -> str:
+    """The line a run prints about its threads."""
+    cores = os.cpu_count() or 1
+    how = "--threads" if given else "the cores not busy; --threads N to choose"
+    return f"threads: {count} of {cores} cores ({how})"
