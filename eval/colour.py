@@ -37,16 +37,12 @@ import numpy as np
 
 from watergan.data import srgb_to_linear
 from watergan.errors import UserInputError
-from watergan.io import frame_file, read_json
+from watergan.io import frame_file, read_json, read_pixels
 
 
 def read_rgb(path: str | Path, linear: bool = True) -> np.ndarray:
     """An 8- or 16-bit RGB image as float32 0..1 (sRGB-decoded to linear when ``linear``)."""
-    import cv2
-
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise UserInputError(f"cannot read image {path}")
+    raw = read_pixels(Path(path))
     if raw.ndim == 2:
         raw = np.repeat(raw[..., None], 3, axis=2)
     rgb = raw[..., 2::-1].astype(np.float32) / (65535.0 if raw.dtype == np.uint16 else 255.0)

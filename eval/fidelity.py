@@ -91,11 +91,9 @@ def marked_share(mask_dir: Path, names: list[str]) -> float:
 
 
 def _mask(path: Path, hw: tuple[int, int] | None) -> np.ndarray:
-    import cv2
+    from watergan.io import read_grey8
 
-    mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if mask is None:
-        raise FileNotFoundError(f"mask {path} is missing or unreadable")
+    mask = read_grey8(path, "mask")
     if hw is not None and mask.shape != hw:
         raise ValueError(f"mask {path} is {mask.shape[1]}x{mask.shape[0]}, the frame {hw[1]}x{hw[0]}")
     return mask > 0

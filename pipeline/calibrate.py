@@ -10,7 +10,11 @@ RADIAL: f, k1, k2) starting from OPENCV's values, and the simplest model whose m
 ``MODEL_TOLERANCE`` of OPENCV's is kept (a coefficient that lowers the error by less than that is not pinned by the
 survey). How well it is pinned: each half of the registered frames is bundle-adjusted on its own, its focal length
 started a tenth away from the whole survey's (:func:`_halves`), and the two halves' focal lengths are recorded beside
-the whole survey's.
+the whole survey's; halves more than ``HALVES_WARN_PCT`` apart are a warning (the survey does not pin the focal
+length). The same frames give the same calibration run to run: every RANSAC is seeded (the matches' two-view
+geometry included, which otherwise draws from whichever worker thread's generator verifies the pair) and the
+mapper and every bundle adjustment run on one thread (a multi-threaded solve sums in a varying order, and the
+incremental mapper amplifies those last bits into another model).
 
 A lens the survey cannot hold is refused (:func:`check_plausible`): a tangential coefficient beyond
 ``MAX_TANGENTIAL``, a horizontal field of view outside ``HFOV_RANGE_DEG``, fx and fy differing by more than
@@ -46,6 +50,9 @@ HFOV_RANGE_DEG = (10.0, 150.0)
 MAX_ASPECT_DIFF = 0.1
 #: The principal point must lie in the middle fraction of the image, in each axis.
 PRINCIPAL_BOX = 0.4
+#: Halves' focal lengths further apart than this (per cent of their mean) are a warning: the survey does not pin the
+#: focal length.
+HALVES_WARN_PCT = 5.0
 #: Camera models tried, simplest first: COLMAP's name and its parameters after the intrinsics.
 MODELS = {"SIMPLE_RADIAL": ("k1",), "RADIAL": ("k1", "k2"), "OPENCV": ("k1", "k2", "p1", "p2")}
 
@@ -80,12 +87,20 @@ def camera_json_of(model: str, params: list[float], width: int, height: int) -> 
             **{k: float(coefficients.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")}}
 
 
-def _distorted_radius(r: np.ndarray, k1: float, k2: float) -> np.ndarray:
-    return r * (1 + k1 * r**2 + k2 * r**4)
+def distorted_radius(camera: dict, r: np.ndarray) -> np.ndarray:
+    """The normalised radius at which the lens of a camera.json dict shows the pinhole radius ``r``
+    (:mod:`watergan.lens`): opencv r c(r) (its rational form), fisheye theta_d(atan r); tangential terms aside."""
+    k = [float(camera.get(key, 0.0)) for key in ("k1", "k2", "k3", "k4", "k5", "k6")]
+    if camera.get("lens_model") == "fisheye":
+        theta = np.arctan(r)
+        return theta * (1 + k[0] * theta**2 + k[1] * theta**4 + k[2] * theta**6 + k[3] * theta**8)
+    return r * (1 + k[0] * r**2 + k[1] * r**4 + k[2] * r**6) / (1 + k[3] * r**2 + k[4] * r**4 + k[5] * r**6)
 
 
-def check_plausible(camera: dict) -> None:
-    """Refuse a lens that cannot be a camera's (see the module docstring), with what was found and what to do."""
+def lens_problems(camera: dict) -> list[str]:
+    """What makes a camera.json dict's intrinsics and lens implausible (see the module docstring), each with its value;
+    empty for a plausible camera. Folding: the distorted radius must grow with the pinhole one (over the pinhole
+    angles 0 to 90 deg) until it reaches the image's farthest corner."""
     w, h = camera["width"], camera["height"]
     fx, fy, cx, cy = camera["fx"], camera["fy"], camera["cx"], camera["cy"]
     problems = []
@@ -94,24 +109,37 @@ def check_plausible(camera: dict) -> None:
         problems.append(f"a tangential coefficient of {p:.3f} (a real lens gives under {MAX_TANGENTIAL})")
     hfov = math.degrees(2 * math.atan(w / 2 / fx))
     if not HFOV_RANGE_DEG[0] <= hfov <= HFOV_RANGE_DEG[1]:
-        problems.append(f"fx {fx:.0f} px, a horizontal field of view of {hfov:.0f} deg (plausible: "
+        problems.append(f"fx {fx:.0f} px, a horizontal field of view of {hfov:.0f} deg on {w:g} px (plausible: "
                         f"{HFOV_RANGE_DEG[0]:g}-{HFOV_RANGE_DEG[1]:g})")
     if abs(fx / fy - 1) > MAX_ASPECT_DIFF:
         problems.append(f"fx {fx:.0f} and fy {fy:.0f} px differ by {100 * abs(fx / fy - 1):.0f} %")
     if abs(cx - (w - 1) / 2) > PRINCIPAL_BOX / 2 * w or abs(cy - (h - 1) / 2) > PRINCIPAL_BOX / 2 * h:
-        problems.append(f"the principal point ({cx:.0f}, {cy:.0f}) far from the image's centre")
+        problems.append(f"the principal point ({cx:.0f}, {cy:.0f}) far from the image's centre "
+                        f"({(w - 1) / 2:.0f}, {(h - 1) / 2:.0f})")
     corner = math.hypot(max(cx, w - 1 - cx) / fx, max(cy, h - 1 - cy) / fy)  # distorted, normalised
-    r = np.linspace(0, 3 * corner, 3001)
-    rd = _distorted_radius(r, camera.get("k1", 0.0), camera.get("k2", 0.0))
+    rd = distorted_radius(camera, np.tan(np.radians(np.linspace(0.0, 89.9, 9000))))
     reach = np.flatnonzero(rd >= corner)
-    growing = np.diff(rd) > 0
-    if not len(reach) or not growing[:reach[0]].all():
-        problems.append(f"k1 {camera.get('k1', 0):+.3f}, k2 {camera.get('k2', 0):+.3f} fold the image before its "
-                        f"corner")
-    if problems:
-        raise UserInputError("the lens SfM found on the survey is not plausible: " + "; ".join(problems) + ". Check "
-                             "that the frames are one camera's and overlap; give a starting focal length (fx, or "
-                             "hfov_deg, in camera.json) or the calibrated intrinsics with \"calibrated\": true")
+    if not len(reach) or not (np.diff(rd[:reach[0] + 1]) > 0).all():
+        named = ", ".join(f"{k} {camera[k]:+.3f}" for k in ("k1", "k2", "k3", "k4", "k5", "k6") if camera.get(k))
+        problems.append(f"{named or 'the lens'} fold the image before its corner (the distortion stops growing "
+                        f"outwards)")
+    return problems
+
+
+def check_plausible(camera: dict, given: Path | None = None) -> None:
+    """Refuse a lens that cannot be a camera's (:func:`lens_problems`), with what was found and what to do: the lens
+    SfM found on the survey, or ``given``'s (a camera.json the user wrote, held fixed)."""
+    problems = lens_problems(camera)
+    if not problems:
+        return
+    if given is not None:
+        raise UserInputError(f"camera file {given} is not a plausible camera: " + "; ".join(problems) + ". Give the "
+                             f"calibration of these {camera['width']}x{camera['height']} frames (pixels as stored; "
+                             f"COLMAP's params in its order), or drop fx, fy, cx, cy and the lens (or set "
+                             f"\"calibrated\": false) so that SfM calibrates the camera on the survey")
+    raise UserInputError("the lens SfM found on the survey is not plausible: " + "; ".join(problems) + ". Check "
+                         "that the frames are one camera's and overlap; give a starting focal length (fx, or "
+                         "hfov_deg, in camera.json) or the calibrated intrinsics with \"calibrated\": true")
 
 
 def _reprojection_with(rec, model: str, start: dict) -> tuple[float, list[float]]:
@@ -140,6 +168,7 @@ def _adjust_all(rec):
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = True
     options.print_summary = False
+    options.ceres.solver_options.num_threads = 1  # reproducible: see the module docstring
     with stderr_to_null():
         pycolmap.bundle_adjustment(rec, options)
     return rec.cameras[next(iter(rec.cameras))]
@@ -167,6 +196,7 @@ def _map(database: Path, images_dir: Path, out_dir: Path, names: list[str], seed
     out_dir.mkdir(parents=True)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
+    options.num_threads = 1  # reproducible: see the module docstring
     options.multiple_models = True  # a first pair that stalls is not the end: the mapper starts again elsewhere
     options.min_model_size = 3
     options.image_names = names
@@ -210,6 +240,18 @@ def _halves(rec, registered: list[str], w: int, h: int) -> dict:
     return halves
 
 
+def halves_warning(halves: dict) -> str:
+    """The warning when the halves' focal lengths (:func:`_halves`) are more than ``HALVES_WARN_PCT`` apart, with
+    what to do; empty when they agree."""
+    if halves["focal_diff_pct"] <= HALVES_WARN_PCT:
+        return ""
+    return (f"survey: warning: the two halves of the frames give focal lengths {halves['first']['focal_px']:.1f} and "
+            f"{halves['second']['focal_px']:.1f} px, {halves['focal_diff_pct']:.1f} % apart (more than "
+            f"{HALVES_WARN_PCT:g} %): the survey does not pin the focal length, and the scale, depths and water "
+            f"inherit its error; give fx (or hfov_deg) in camera.json, or frames seen from more varied positions "
+            f"(turns, changes of height)")
+
+
 def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: Path, seed: int = 0,
                    mask: np.ndarray | None = None) -> tuple[dict, dict]:
     """The survey's intrinsics and lens by SfM (see the module docstring), starting from camera.json's focal guess
@@ -219,10 +261,10 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
 
     Returns camera.json's keys of the chosen model (:func:`camera_json_of`) and a summary: frames, registered,
     reprojection_px, model, models (each model's reprojection error), halves (each half's registered frames and
-    focal length, and their difference in per cent), focal_guess_px, seconds."""
+    focal length, and their difference in per cent), warning (:func:`halves_warning`), focal_guess_px, seconds."""
     import pycolmap
 
-    from .colmap import colmap_errors_only
+    from .colmap import colmap_errors_only, seeded_verification
 
     started = time.perf_counter()
     w, h = int(camera["width"]), int(camera["height"])
@@ -247,7 +289,8 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                                       extraction_options=extraction, device=pycolmap.Device.cpu)
             pairing = pycolmap.SequentialPairingOptions(overlap=10, quadratic_overlap=True)
-            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+            pycolmap.match_sequential(database, pairing_options=pairing, verification_options=seeded_verification(seed),
+                                      device=pycolmap.Device.cpu)
             rec, n_reg = None, 0
             for factor in FOCAL_TRIES:  # a start far from the focal length can stall the mapper after its first pair
                 _set_camera(database, [f0 * factor, f0 * factor, cx0, cy0, 0, 0, 0, 0])
@@ -274,6 +317,6 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
         shutil.rmtree(work_dir, ignore_errors=True)
     summary = {"frames": len(subset), "registered": n_reg, "reprojection_px": round(errors[chosen], 4),
                "model": chosen, "models": {m: round(e, 4) for m, e in errors.items()}, "halves": halves,
-               "focal_guess_px": round(guess, 2) if guess is not None else None,
+               "warning": halves_warning(halves), "focal_guess_px": round(guess, 2) if guess is not None else None,
                "seconds": round(time.perf_counter() - started, 1)}
     return found, summary

@@ -48,6 +48,16 @@ def stderr_to_null():
         os.close(saved)
 
 
+def seeded_verification(seed: int):
+    """COLMAP's two-view geometry options with every RANSAC seeded by ``seed``: the matches' verification is then the
+    same run to run (unseeded, each pair draws from the generator of whichever worker thread verifies it)."""
+    import pycolmap
+
+    options = pycolmap.TwoViewGeometryOptions()
+    options.ransac.random_seed = seed
+    return options
+
+
 def camera_matrix(rec) -> tuple[np.ndarray, int, int]:
     """The model's (first) camera as an OpenCV pinhole K (pixel centres at integers) and its width, height."""
     cam_model = rec.cameras[next(iter(rec.cameras))]

@@ -74,7 +74,15 @@ from pathlib import Path
 import numpy as np
 
 from watergan.errors import UserInputError
-from watergan.io import MAX_DEPTH_PNG_M, depth_within, read_scene_mask, write_depth_png, write_failed
+from watergan.io import (
+    MAX_DEPTH_PNG_M,
+    DataError,
+    depth_within,
+    read_bgr8,
+    read_scene_mask,
+    write_depth_png,
+    write_failed,
+)
 from watergan.survey_files import read_camera_json
 
 from .sparse_depth import pair_is_forward, sparse_depth
@@ -384,16 +392,13 @@ def pair_depth(job: PairJob) -> tuple[float, float, np.ndarray | None]:
     """Depth of ``job.left`` from its pair, kept and written by :func:`write_frame_depth` to ``job.depth_png``:
     (coverage, share dropped as too far, depth (H,W), NaN = invalid); (0, share, None) when the rig's right frame is
     unreadable or no pixel got a depth (nothing written)."""
-    import cv2
-
-    left = cv2.imread(str(job.left), cv2.IMREAD_COLOR)
-    if left is None:
-        raise UserInputError(f"cannot read {job.left}")
-    right = cv2.imread(str(job.right), cv2.IMREAD_COLOR)
-    if right is None:
+    left = read_bgr8(job.left)
+    try:
+        right = read_bgr8(job.right)
+    except DataError:
         if job.partner == "rig":
             return 0.0, 0.0, None
-        raise UserInputError(f"cannot read {job.right}")
+        raise
     depth = rectified_pair_depth(left[..., ::-1], right[..., ::-1], job.K, job.world_from_left,
                                  job.world_from_right, job.depth_range, job.cfg)
     depth, cover, too_far = write_frame_depth(job.depth_png, depth, job.far_limit_m, read_scene_mask(job.scene_mask))
@@ -497,7 +502,6 @@ def fuse_depths(depths: dict[str, np.ndarray], poses: dict[str, np.ndarray], K: 
                 out_dir: Path, voxel: float, weight_threshold: float, depth_max: float) -> tuple[str, str, int]:
     """TSDF fusion of coloured depth maps with open3d's tensor VoxelBlockGrid (truncation 4 voxels);
     writes ``fused_points.ply`` and ``fused_mesh.ply``. Returns their paths and the point count."""
-    import cv2
     import open3d as o3d
 
     device = o3d.core.Device("CPU:0")
@@ -508,7 +512,7 @@ def fuse_depths(depths: dict[str, np.ndarray], poses: dict[str, np.ndarray], K: 
     intrinsic = o3d.core.Tensor(K, o3d.core.float64)
     for name, depth in depths.items():
         depth_img = o3d.t.geometry.Image(np.nan_to_num(depth, nan=0.0).astype(np.float32))
-        colour = cv2.imread(str(images_dir / name), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+        colour = read_bgr8(images_dir / name)[..., ::-1].astype(np.float32) / 255.0
         colour_img = o3d.t.geometry.Image(np.ascontiguousarray(colour))
         extrinsic = o3d.core.Tensor(np.linalg.inv(poses[name]), o3d.core.float64)
         blocks = grid.compute_unique_block_coordinates(depth_img, intrinsic, extrinsic, 1.0, depth_max, 4.0)

@@ -133,15 +133,15 @@ def _method_folders(ws: Workspace, cfg: EvaluateConfig, survey: Path, images: Pa
 def measured_views(tracks, mask_dir: Path) -> np.ndarray:
     """(M,) bool: whether each observation of ``tracks`` falls on a pixel the physics correction corrected at its
     measured range (nonzero in ``mask_dir/<stem>.png``; nearest pixel)."""
-    import cv2
-
+    from watergan.io import DataError, read_grey8
     from watergan.parallel import rows_by_label
 
     keep = np.zeros(len(tracks.obs_xy), bool)
     images = np.unique(tracks.obs_image)
     for k, rows in zip(images, rows_by_label(tracks.obs_image, images), strict=True):
-        mask = cv2.imread(str(mask_dir / f"{Path(str(tracks.image_names[k])).stem}.png"), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
+        try:
+            mask = read_grey8(mask_dir / f"{Path(str(tracks.image_names[k])).stem}.png", "mask")
+        except DataError:  # no measured range for this frame
             continue
         ij = np.rint(tracks.obs_xy[rows]).astype(int)
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < mask.shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < mask.shape[0])

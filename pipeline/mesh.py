@@ -61,7 +61,7 @@ import numpy as np
 
 from eval.sampling import bilinear
 from watergan.errors import UserInputError
-from watergan.io import frame_file
+from watergan.io import frame_file, read_bgr8
 
 
 class PointSource(StrEnum):
@@ -272,9 +272,7 @@ def orthophoto(mesh: HeightMesh, texel_m: float, tracks, images_dir: Path, blend
         if rows.start >= rows.stop or cols.start >= cols.stop:
             continue
         path = frame_file(images_dir, str(tracks.image_names[k]))
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if image is None:
-            raise UserInputError(f"cannot read {path}")
+        image = read_bgr8(path)
         pc = (surface[rows, cols] - pose[:3, 3]) @ pose[:3, :3]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[0, 0] * pc[..., 0] / pc[..., 2] + K[0, 2]
@@ -510,9 +508,7 @@ def atlas_texture(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, size:
         if not len(idx):
             continue
         path = frame_file(images_dir, str(tracks.image_names[k]))
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if image is None:
-            raise UserInputError(f"cannot read {path}")
+        image = read_bgr8(path)
         rho2 = ((u[idx] - centre[0]) ** 2 + (v[idx] - centre[1]) ** 2) / half_diag**2
         to_cam = pose[:3, 3] - points[idx]
         cos = np.abs(np.einsum("ni,ni->n", normals[idx], to_cam)) / np.linalg.norm(to_cam, axis=1)

@@ -42,7 +42,7 @@ import numpy as np
 
 from eval.tracks import Tracks
 from watergan.errors import UserInputError
-from watergan.io import read_json
+from watergan.io import DataError, read_grey8, read_json
 
 #: Robust refits of the track's similarity, and the residual (in robust standard deviations) that drops a frame.
 TRIM_ROUNDS, TRIM_MAD = 3, 3.0
@@ -287,9 +287,9 @@ def stereo_scale(tracks: Tracks, images_dir: Path, right_dir: Path, baseline_m: 
     for k in registered[np.linspace(0, len(registered) - 1, min(max_images, len(registered))).astype(int)]:
         name = str(tracks.image_names[k])
         right_path = right_dir / name
-        left = cv2.imread(str(images_dir / name), cv2.IMREAD_GRAYSCALE)
-        right = cv2.imread(str(right_path), cv2.IMREAD_GRAYSCALE)
-        if left is None or right is None:
+        try:
+            left, right = read_grey8(images_dir / name), read_grey8(right_path)
+        except DataError:
             continue
         obs = np.flatnonzero(tracks.obs_image == k)
         obs = obs[np.linspace(0, len(obs) - 1, min(max_obs, len(obs))).astype(int)] if len(obs) else obs

@@ -56,7 +56,7 @@ from watergan.lens import OPENCV, Lens
 from watergan.progress import say
 from watergan.survey_files import image_files, read_camera_json, read_survey_json
 
-from .colmap import build_tracks, camera_matrix, colmap_errors_only, refined_k1
+from .colmap import build_tracks, camera_matrix, colmap_errors_only, refined_k1, seeded_verification
 from .overlay import overlay_warning, still_features
 from .scale import (
     altitude_scale,
@@ -268,6 +268,7 @@ def estimate_lens(images_dir: Path, names: list[str], camera: dict, start: Lens 
             _match_features(work_dir / "lens.db", subset, cfg)
             options = _incremental_options(camera, cfg)
             options.ba_refine_extra_params = options.mapper.abs_pose_refine_extra_params = True
+            options.num_threads = 1  # the same lens run to run (pipeline.calibrate's module docstring)
             models = pycolmap.incremental_mapping(work_dir / "lens.db", images_dir, work_dir / "raw", options)
             rec, n_reg = _largest_model(models, subset, cfg)
     except UserInputError as exc:
@@ -391,10 +392,12 @@ def _match_features(database: Path, names: list[str], cfg: SfmConfig) -> str:
     if matching == "auto":
         matching = "exhaustive" if len(names) <= cfg.exhaustive_max_images else "sequential"
     if matching == "exhaustive":
-        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(database, verification_options=seeded_verification(cfg.seed),
+                                  device=pycolmap.Device.cpu)
     elif matching == "sequential":
         pairing = pycolmap.SequentialPairingOptions(overlap=cfg.sequential_overlap, quadratic_overlap=True)
-        pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(database, pairing_options=pairing, verification_options=seeded_verification(cfg.seed),
+                                  device=pycolmap.Device.cpu)
     else:
         raise UserInputError(f"matching must be 'auto', 'sequential' or 'exhaustive', not '{cfg.matching}'")
     return matching

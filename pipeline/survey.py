@@ -18,17 +18,20 @@ import numpy as np
 from watergan.data import IMAGE_SUFFIXES, DataError, list_files, read_image
 from watergan.errors import UserInputError
 from watergan.io import (
+    EXIF_TURNS,
     SCENE_MASK_PNG,
     atomic_write_bytes,
     atomic_write_json,
+    exif_orientation,
     read_json,
+    read_pixels,
     scene_mask_from,
     write_scene_mask,
 )
 from watergan.lens import LENS_KEYS, Lens, camera_matrix, distortion_of, undistort_image
 from watergan.survey_files import read_camera_json, read_survey_json
 
-from .calibrate import check_plausible, needs_calibration, self_calibrate
+from .calibrate import check_plausible, focal_guess_px, lens_problems, needs_calibration, self_calibrate
 from .navigation import NAVIGATION_CSV, navigation_from_log
 from .workspace import Workspace
 
@@ -73,7 +76,10 @@ def check_survey(survey_dir: Path) -> dict:
                              + "\n  ".join(bad))
     if len(sizes) > 1:
         listing = "; ".join(f"{w}x{h}: {len(n)} (e.g. {n[0]})" for (h, w), n in sizes.items())
-        raise UserInputError(f"images in {images_dir} have different sizes ({listing}); one camera per survey")
+        first, second, *_ = sizes
+        turned = " (some turned a quarter: keep every frame's pixels as the camera stored them; an EXIF orientation " \
+            "tag may say how to show them)" if len(sizes) == 2 and second == first[::-1] else ""
+        raise UserInputError(f"images in {images_dir} have different sizes ({listing}); one camera per survey{turned}")
     right_dir = survey_dir / "right"
     stereo = right_dir.is_dir()
     if stereo:
@@ -90,8 +96,13 @@ def check_survey(survey_dir: Path) -> dict:
     cam = read_camera_json(survey_dir / "camera.json", partial=True)
     (h, w), = sizes
     if (cam["width"], cam["height"]) != (w, h):
+        oriented = exif_oriented(files)
+        why = (f" as stored ({len(oriented)} carry an EXIF orientation that shows them turned, e.g. "
+               f"{next(iter(oriented))}; every stage reads the stored pixels, as SfM does: give camera.json for "
+               f"them)") if oriented and (cam["width"], cam["height"]) == (h, w) else ""
         raise UserInputError(f"camera file {survey_dir / 'camera.json'} is for {cam['width']}x{cam['height']} images; "
-                             f"the images in {images_dir} are {w}x{h}")
+                             f"the images in {images_dir} are {w}x{h}{why}")
+    check_given_camera(survey_dir / "camera.json", cam)
     survey_scene_mask(survey_dir, cam)
     declared = survey_navigation(survey_dir, [p.name for p in files])
     if (survey_dir / "survey.json").is_file():
@@ -110,6 +121,30 @@ def check_survey(survey_dir: Path) -> dict:
                 raise UserInputError(f"survey file {survey_dir / 'survey.json'}: lights: {exc}") from exc
     return {"n_images": len(files), "width": w, "height": h, "stereo": stereo,
             "simulated": (survey_dir / "truth" / "effects.json").is_file()}
+
+
+def exif_oriented(files: list[Path]) -> dict[str, int]:
+    """{name: EXIF orientation} of the frames whose tag asks a viewer to turn or mirror them (not 1;
+    :func:`watergan.io.exif_orientation`). Every stage reads the pixels as stored (:func:`watergan.io.read_pixels`),
+    as COLMAP does, so one camera model holds for every frame whatever the tag."""
+    return {p.name: o for p in files if (o := exif_orientation(p)) != 1}
+
+
+def check_given_camera(path: Path, camera: dict) -> None:
+    """Refuse the intrinsics camera.json gives when no camera has them (:func:`pipeline.calibrate.lens_problems`, the
+    check SfM's lenses pass): a calibration held fixed in full, a starting focal length by its field of view alone."""
+    if not needs_calibration(camera):
+        check_plausible(camera, given=path)
+        return
+    guess = focal_guess_px(camera)
+    if guess is not None:
+        w, h = camera["width"], camera["height"]
+        problems = lens_problems({"width": w, "height": h, "fx": guess, "fy": guess, "cx": (w - 1) / 2,
+                                  "cy": (h - 1) / 2})
+        if problems:
+            raise UserInputError(f"camera file {path}: the starting focal length is not a camera's: {problems[0]}. "
+                                 f"Give fx in pixels of these {w}x{h} frames, or hfov_deg, or neither (SfM then "
+                                 f"tries its own start)")
 
 
 @dataclass(frozen=True)
@@ -195,7 +230,7 @@ def undistort_frames(survey: Path, target: Path, camera: dict, lens: Lens, progr
         (target / folder).mkdir(exist_ok=True)
         for path in tqdm(list_files(survey / folder, IMAGE_SUFFIXES), desc=f"undistort {folder}", unit="frame",
                          disable=not progress):
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            image = read_pixels(path)
             ok, data = cv2.imencode(path.suffix, undistort_image(image, K, lens))
             if not ok:
                 raise DataError(f"cannot encode the undistorted {path}")
@@ -250,6 +285,8 @@ def calibrated_camera(survey: Path, names: list[str], camera: dict, target: Path
           + ", ".join(f"{k} {camera[k]:+.4f}" for k in ("k1", "k2", "p1", "p2"))
           + f" (reprojection {calibration['reprojection_px']:.3f} px; the halves' focal lengths differ by "
           f"{halves['focal_diff_pct']:.1f} %)", file=sys.stderr, flush=True)
+    if calibration["warning"]:
+        print(calibration["warning"], file=sys.stderr, flush=True)
     return camera, lens, calibration
 
 
@@ -272,6 +309,13 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
     render a generic in-air RGB-D set when none is given."""
     survey, target = Path(cfg.survey_dir).resolve(), ws.stage_dir("survey").resolve()
     summary = check_survey(survey)
+    oriented = exif_oriented(list_files(survey / "images", IMAGE_SUFFIXES))
+    if oriented:
+        first, turn = next(iter(oriented.items()))
+        print(f"survey: {len(oriented)} frame(s) carry an EXIF orientation that asks a viewer to turn or mirror them "
+              f"(e.g. {first}: {turn}, {EXIF_TURNS[turn]}); every stage reads the pixels as the camera stored them, as "
+              f"SfM does, so one camera model holds for every frame; the corrected frames are written as stored",
+              file=sys.stderr, flush=True)
     logged = (survey / NAVIGATION_CSV).is_file()
     camera = read_camera_json(survey / "camera.json", partial=True)
     calibrate = needs_calibration(camera)

@@ -202,19 +202,91 @@ def read_image(path: Path, encoding: str = "srgb", dtype: type = np.float64) -> 
     return stored_as(read_stored(path), encoding, dtype)
 
 
-def _decode(path: Path, kind: str, formats: str) -> np.ndarray:
-    """OpenCV's array of a whole image file as stored (its channels and bit depth); DataErrors name the ``kind`` of
-    file (image, depth) and the ``formats`` it should be in."""
+#: The first bytes of each image format the pipeline reads, and of others a user may bring (named in the error).
+_MAGIC = ((PNG_SIGNATURE, "PNG"), (b"\xff\xd8\xff", "JPEG"), (b"II*\x00", "TIFF"), (b"MM\x00*", "TIFF"),
+          (b"II+\x00", "TIFF"), (b"MM\x00+", "TIFF"), (b"GIF8", "GIF"), (b"BM", "BMP"))
+#: Each format's file name suffixes.
+_FORMAT_SUFFIXES = {"PNG": (".png",), "JPEG": (".jpg", ".jpeg"), "TIFF": (".tif", ".tiff")}
+#: How :func:`read_pixels` decodes: as stored (its channels and bit depth), 8-bit BGR, 8-bit grey.
+_READ_FLAGS = {"stored": cv2.IMREAD_UNCHANGED, "bgr8": cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION,
+               "grey8": cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION}
+
+
+def image_format(data: bytes) -> str | None:
+    """An image file's format by its first bytes (PNG, JPEG, TIFF; GIF, BMP, WebP, HEIF named too); None when
+    they are none of these."""
+    for magic, name in _MAGIC:
+        if data.startswith(magic):
+            return name
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return "WebP"
+    if data[4:8] == b"ftyp" and data[8:12] in (b"heic", b"heix", b"mif1", b"msf1", b"avif"):
+        return "HEIF"
+    return None
+
+
+def read_pixels(path: Path, form: str = "stored", kind: str = "image", formats: str = "PNG, JPEG or TIFF"
+                ) -> np.ndarray:
+    """The one reading of an image file, every stage's: OpenCV's array of its pixels as stored, never turned by an
+    EXIF orientation tag (the camera's own pixel grid, the one COLMAP reads and a camera.json describes). ``form``:
+    stored (its channels and bit depth), bgr8 (8-bit BGR), grey8 (8-bit grey). DataErrors name the ``kind`` of file
+    (image, mask) and the ``formats`` it should be in: a file whose first bytes are another format's than its name
+    says (a JPEG named .png) is named as what it is."""
+    path = Path(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise DataError(f"cannot read {kind} {path}: {exc}") from exc
+    found = image_format(data)
+    named = next((f for f, suffixes in _FORMAT_SUFFIXES.items() if path.suffix.lower() in suffixes), None)
+    if found is None:
+        what = "empty" if not data else f"not a readable {formats} file (it starts with {data[:8]!r})"
+        raise DataError(f"{kind} {path} is {what}; re-export or remove it")
+    if found != named:
+        fix = (f"rename it to {path.stem}{_FORMAT_SUFFIXES[found][0]}" if found in formats else
+               f"save it as {formats} (e.g. mogrify -format {_FORMAT_SUFFIXES[named or 'PNG'][0][1:]} {path.name})")
+        raise DataError(f"{kind} {path} is a {found} file named {path.suffix or 'without a suffix'}: {fix}")
     if not is_complete(path, data):
         raise DataError(f"{kind} {path} is truncated (no end marker); re-export or remove it")
-    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), _READ_FLAGS[form])
     if decoded is None:
         raise DataError(f"{kind} {path} is not a readable {formats} file")
     return decoded
+
+
+def _decode(path: Path, kind: str, formats: str) -> np.ndarray:
+    """:func:`read_pixels` as stored."""
+    return read_pixels(path, "stored", kind, formats)
+
+
+def read_bgr8(path: Path) -> np.ndarray:
+    """(H,W,3) uint8 BGR of an image file (a 16-bit one scaled to 8 bits, grey made colour), as stored
+    (:func:`read_pixels`)."""
+    return read_pixels(path, "bgr8")
+
+
+def read_grey8(path: Path, kind: str = "image") -> np.ndarray:
+    """(H,W) uint8 grey of an image file (a mask, or a frame for matching), as stored (:func:`read_pixels`)."""
+    return read_pixels(path, "grey8", kind)
+
+
+EXIF_ORIENTATION_TAG = 0x0112
+#: What each EXIF orientation other than 1 asks a viewer to do to the stored pixels.
+EXIF_TURNS = {2: "mirror", 3: "turn 180 deg", 4: "flip", 5: "transpose", 6: "turn 90 deg clockwise",
+              7: "transverse", 8: "turn 90 deg anticlockwise"}
+
+
+def exif_orientation(path: Path) -> int:
+    """An image file's EXIF orientation (1 to 8; 1, the stored pixels upright, without a tag or a readable header).
+    Read from the header alone; :func:`read_pixels` never applies it."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            value = image.getexif().get(EXIF_ORIENTATION_TAG, 1)
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError):
+        return 1
+    return value if value in range(1, 9) else 1
 
 
 def read_stored(path: Path) -> np.ndarray:
@@ -276,11 +348,12 @@ def output_bits(path: str | Path, bit_depth: int) -> int:
 
 
 def is_complete(path: Path, data: bytes) -> bool:
-    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker (truncated)."""
-    suffix = path.suffix.lower()
-    if suffix == ".png":
+    """False for a PNG without its IEND chunk or a JPEG without its end-of-image marker (truncated); the format
+    by the file's first bytes (:func:`image_format`)."""
+    found = image_format(data)
+    if found == "PNG":
         return data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82")
-    if is_jpeg(path):
+    if found == "JPEG":
         return data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9")
     return True
 
@@ -322,19 +395,6 @@ def encode_png(image: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
-def bit_depth(path: Path, image: np.ndarray | None = None) -> int:
-    """8 or 16: a PNG's IHDR bit depth (byte 24), 8 for JPEG; a TIFF's from its decoded type."""
-    suffix = path.suffix.lower()
-    if suffix == ".png":
-        with path.open("rb") as f:
-            header = f.read(25)
-        return 16 if len(header) == 25 and header[24] == 16 else 8
-    if is_jpeg(path):
-        return 8
-    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    return 16 if decoded is not None and decoded.dtype == np.uint16 else 8
-
-
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """An (H,W) or (H,W,3) RGB uint8/uint16 array as a PNG file, atomically."""
     atomic_write_bytes(path, encode_png(image))
@@ -342,9 +402,7 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
 
 def read_png(path: str | Path) -> np.ndarray:
     """A PNG as written by :func:`write_png` (RGB order, its own bit depth)."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise FileNotFoundError(f"could not read image {path}")
+    image = read_pixels(Path(path), kind="image", formats="PNG")
     return image[..., ::-1].copy() if image.ndim == 3 else image
 
 
