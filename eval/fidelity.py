@@ -54,8 +54,15 @@ def fidelity(folder: Path, truth_dir: Path, names: list[str], mask_dir: Path | N
 
 def fidelities(folders: dict[str, Path], truth_dir: Path, names: list[str],
                mask_dirs: dict[str, Path | None] | None = None, threads: int = 2) -> dict[str, tuple[float, float]]:
-    """:func:`fidelity` of each method's folder, each truth frame read once, ``threads`` frames at a time (OpenCV's
-    decoding and filters release the GIL)."""
+    """:func:`fidelity` of each method's folder (the means of :func:`frame_fidelities`)."""
+    per_frame = frame_fidelities(folders, truth_dir, names, mask_dirs, threads)
+    return {m: (float(np.mean(v[:, 0])), float(np.mean(v[:, 1]))) for m, v in per_frame.items()}
+
+
+def frame_fidelities(folders: dict[str, Path], truth_dir: Path, names: list[str],
+                     mask_dirs: dict[str, Path | None] | None = None, threads: int = 2) -> dict[str, np.ndarray]:
+    """Each method's (PSNR, SSIM) per frame, (N,2) in the order of ``names``, each truth frame read once, ``threads``
+    frames at a time (OpenCV's decoding and filters release the GIL)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from eval.colour import read_rgb
@@ -80,8 +87,7 @@ def fidelities(folders: dict[str, Path], truth_dir: Path, names: list[str],
 
     with ThreadPoolExecutor(max(1, threads)) as pool:
         per_frame = list(pool.map(frame, names))
-    return {m: (float(np.mean([f[m][0] for f in per_frame])), float(np.mean([f[m][1] for f in per_frame])))
-            for m in folders}
+    return {m: np.array([f[m] for f in per_frame], float).reshape(-1, 2) for m in folders}
 
 
 def marked_share(mask_dir: Path, names: list[str]) -> float:

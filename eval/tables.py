@@ -282,29 +282,56 @@ def table_html(table: dict) -> str:
     return f"{title}<table><tr><th></th>{head}</tr>{''.join(body)}</table>{note}"
 
 
-def verdict_lines(metrics: list[tuple[str, dict[str, float], str]], methods: list[str]) -> list[str]:
-    """Plain sentences: each metric on which ours loses to another method, then what ours beats.
-    ``metrics``: (name, method -> value, 'lower' | 'higher')."""
+#: Two methods tie on a measurement when their paired difference (item by item: a point, a patch, a frame) lies
+#: within this many standard errors of its mean from 0 (95 %).
+TIE_STANDARD_ERRORS = 1.96
+#: Without items to pair (a single number per method), values within this share of the larger one tie.
+TIE_RELATIVE = 0.01
+
+
+def within_noise(mine: float, other: float, paired: np.ndarray | None = None) -> bool:
+    """Whether ``mine`` and ``other`` tie: |mean d| <= ``TIE_STANDARD_ERRORS`` sd(d) / sqrt(n) over the paired items'
+    differences d (``paired``, NaN left out; at least 3), else |mine - other| <= ``TIE_RELATIVE`` max(|mine|, |other|)."""
+    if paired is not None:
+        d = np.asarray(paired, float).ravel()
+        d = d[np.isfinite(d)]
+        if len(d) >= 3:
+            return bool(abs(d.mean()) <= TIE_STANDARD_ERRORS * d.std(ddof=1) / np.sqrt(len(d)))
+    return abs(mine - other) <= TIE_RELATIVE * max(abs(mine), abs(other))
+
+
+def verdict_lines(metrics: list[tuple], methods: list[str]) -> list[str]:
+    """Plain sentences: each metric on which ours loses to another method, those on which it ties with others
+    (:func:`within_noise`: the difference is within the measurement's own spread), then what ours beats.
+    ``metrics``: (name, method -> value, 'lower' | 'higher'[, method -> the per-item values the value is the mean
+    of, paired across methods]); a difference within the spread is a tie, neither a loss nor a win."""
     if OURS not in methods:
         return []
-    losses, wins = [], []
-    for name, values, better in metrics:
+    losses, ties, wins = [], [], []
+    for name, values, better, *items in metrics:
+        samples = items[0] if items else {}
         mine = values.get(OURS)
         if mine is None or not np.isfinite(mine):
             continue
-        beaten = []
+        beaten, tied = [], []
         for m in methods:
             v = values.get(m)
             if m == OURS or v is None or not np.isfinite(v):
                 continue
-            worse = mine > v if better == "lower" else mine < v
-            if worse:
+            paired = (np.asarray(samples[OURS], float) - np.asarray(samples[m], float)
+                      if OURS in samples and m in samples else None)
+            if v == mine or within_noise(mine, v, paired):
+                tied.append(f"{LABELS.get(m, m)} ({v:.3g})")
+            elif (mine > v) if better == "lower" else (mine < v):
                 losses.append(f"ours loses to {LABELS.get(m, m)} on {name}: {mine:.3g} vs {v:.3g}")
-            elif v != mine:
+            else:
                 beaten.append(LABELS.get(m, m))
+        if tied:
+            spread = "the measurement's own spread" if samples else f"{100 * TIE_RELATIVE:g} %"
+            ties.append(f"ours ties with {', '.join(tied)} on {name} ({mine:.3g}: a difference within {spread})")
         if beaten:
             wins.append(f"ours beats {', '.join(beaten)} on {name} ({mine:.3g})")
-    return losses + wins
+    return losses + ties + wins
 
 
 def board_table(board_results: dict, methods: list[str], reference: tuple[str, ...]) -> dict:

@@ -140,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from watergan.errors import UserInputError
     from watergan.formation import UnknownEffectError, load_plugin
+    from watergan.io import WriteError
 
     args = build_parser().parse_args(argv)
     try:
@@ -147,15 +148,24 @@ def main(argv: list[str] | None = None) -> int:
             names = load_plugin(path)
             print(f"plugin {path}: registered {', '.join(names)}", file=sys.stderr)
         return args.func(args)
+    # exit codes: 2 the input (or the command line) is wrong, 3 an output cannot be written, 130 interrupted
+    except WriteError as exc:
+        print(f"watergan: error: {exc}", file=sys.stderr)
+        return 3
     except (UserInputError, UnknownEffectError) as exc:
         print(f"watergan: error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:  # a full disk under a writer that is not ours (open3d, SQLite, matplotlib)
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+    except OSError as exc:  # a full disk or a read-only place under a writer that is not ours (open3d, SQLite)
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS):
             raise
-        print(f"watergan: error: cannot write {exc.filename or 'an output'}: {exc.strerror}; free some space and "
-              f"rerun (finished stages are kept, the one that failed runs again)", file=sys.stderr)
-        return 2
+        fix = "free some space" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "check the folder can be written"
+        print(f"watergan: error: cannot write {exc.filename or 'an output'}: {exc.strerror}; {fix} and rerun "
+              f"(finished stages are kept, the one that failed runs again)", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print("\nwatergan: interrupted: finished stages are kept (every file is written whole or not at all); the "
+              "same command goes on from the stage that was running", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

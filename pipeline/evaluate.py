@@ -20,7 +20,7 @@ from eval.baseline_runs import TIMED_FRAMES, method_inputs, run_baselines
 from eval.baselines import BASELINES
 from eval.colour import ColourEvalConfig, ColourEvalResult
 from eval.depth import DepthCompareConfig, DepthCompareResult, Navigation, compare_depth_folders
-from eval.fidelity import fidelities, marked_share
+from eval.fidelity import frame_fidelities, marked_share
 from eval.tables import (
     INAIR,
     LABELS,
@@ -194,17 +194,25 @@ def _tables(ws: Workspace, f: _Folders, cons, board_results: dict, board_note: s
     return tables
 
 
-def _verdict(ws: Workspace, f: _Folders, cons, board_results: dict, fid: dict, ranges) -> list[str]:
+def _verdict(ws: Workspace, f: _Folders, cons, board_results: dict, fid: dict, ranges, items: dict) -> list[str]:
+    """The verdict's sentences (:func:`eval.tables.verdict_lines`), each measurement with the per-item values it is
+    the mean of (``items``: "points", each point's variance; "frames", each frame's PSNR and SSIM; the board's
+    patches), so that a difference within their spread reads as a tie."""
     methods, skipped = f.methods, f.skipped
+    points, frames = items.get("points", {}), items.get("frames", {})
     metrics = []
     if board_results:
-        metrics += [("mean board distance", {m: board_results[m].mean_distance for m in methods}, "lower"),
-                    ("mean board CIEDE2000", {m: board_results[m].mean_ciede2000 for m in methods}, "lower")]
-    metrics += [(f"{ch} consistency", {m: cons.scores[m].variance[k] for m in methods}, "lower")
-                for k, ch in enumerate("RGB")]
+        patches = {key: {m: [getattr(p, key) for p in board_results[m].patches] for m in methods}
+                   for key in ("distance", "ciede2000")}
+        metrics += [("mean board distance", {m: board_results[m].mean_distance for m in methods}, "lower",
+                     patches["distance"]),
+                    ("mean board CIEDE2000", {m: board_results[m].mean_ciede2000 for m in methods}, "lower",
+                     patches["ciede2000"])]
+    metrics += [(f"{ch} consistency", {m: cons.scores[m].variance[k] for m in methods}, "lower",
+                 {m: points[m][:, k] for m in methods if m in points}) for k, ch in enumerate("RGB")]
     if fid:
-        metrics += [("PSNR", {m: fid[m][0] for m in methods}, "higher"),
-                    ("SSIM", {m: fid[m][1] for m in methods}, "higher")]
+        metrics += [("PSNR", {m: fid[m][0] for m in methods}, "higher", {m: frames[m][:, 0] for m in frames}),
+                    ("SSIM", {m: fid[m][1] for m in methods}, "higher", {m: frames[m][:, 1] for m in frames})]
     verdict = verdict_lines(metrics, methods)
     if OURS in skipped:
         verdict.insert(0, f"ours not measured: {skipped[OURS]}")
@@ -257,19 +265,20 @@ def run_evaluate(ws: Workspace, cfg: EvaluateConfig) -> EvaluateResult:
         for values in colours.values():
             values[unmeasured] = np.nan
     cons = consistency(tracks, f.folders, cfg.patch_px, cfg.min_views, colours=colours)
+    variances = point_variances(tracks, f.folders, cfg.patch_px, cfg.min_views, colours)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in
-                                   point_variances(tracks, f.folders, cfg.patch_px, cfg.min_views, colours).items()})
+    np.savez_compressed(buffer, **{m: v.astype(np.float32) for m, v in variances.items()})
     atomic_write_bytes(out / "consistency_points.npz", buffer.getvalue())
     board, board_results, board_note = measure_board(cfg, survey, f.folders)
-    fid = fidelities({m: f.folders[m] for m in f.methods}, f.folders[INAIR], names,
-                     {m: f.masks[m][0] for m in f.methods if m in f.masks}) if f.reference else {}
+    per_frame = frame_fidelities({m: f.folders[m] for m in f.methods}, f.folders[INAIR], names,
+                                 {m: f.masks[m][0] for m in f.methods if m in f.masks}) if f.reference else {}
+    fid = {m: (float(np.mean(v[:, 0])), float(np.mean(v[:, 1]))) for m, v in per_frame.items()}
     depth_dir, depth_note = _depth_compare(ws, _correct_dirs(ws, cfg)[0])
     if depth_note:
         f.skipped["depth comparison"] = depth_note
 
     tables = _tables(ws, f, cons, board_results, board_note, fid, len(names))
-    verdict = _verdict(ws, f, cons, board_results, fid, ranges)
+    verdict = _verdict(ws, f, cons, board_results, fid, ranges, {"points": variances, "frames": per_frame})
     range_kind = ranges.kind if ranges is not None else "none"
     examples = example_frames(names, board, cfg.example_frames)
     correct = ws.result("correct") if not cfg.ours_dir else None

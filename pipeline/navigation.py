@@ -19,7 +19,9 @@ Columns (a header row; names case-insensitive, other columns ignored):
 
 :func:`navigation_from_log` returns the survey file's keys (``nav_altitude_m``, ``nav_depth_m``, ``nav_down_cam``,
 ``nav_easting_m``, ``nav_northing_m``, ``nav_position_m``) in the order of the frames; a frame the log does not reach
-(no row of its name, a time outside the log) is an error naming it, as is a row that is not numbers.
+(no row of its name, a time outside the log) is an error naming it, as is a cell that is empty, not a number, NaN or
+infinite, and a frame (or time) on two rows: each error names the log, the line and the frame. A spreadsheet's CSV
+reads as it is: a UTF-8 byte order mark is skipped, and ';' may separate the values.
 """
 
 from __future__ import annotations
@@ -50,40 +52,85 @@ def down_in_camera(roll_deg: np.ndarray, pitch_deg: np.ndarray) -> np.ndarray:
     return np.stack([body[:, 1], -body[:, 0], body[:, 2]], -1)
 
 
-def read_log(path: Path) -> dict[str, list[str]]:
-    """{column (lower case): its values as text} of a CSV file with a header row."""
+class Log:
+    """A navigation log's rows: ``columns`` {column (lower case): its values as text}, ``lines`` (each row's line in
+    the file, 1 the header), ``path``."""
+
+    def __init__(self, path: Path, columns: dict[str, list[str]], lines: list[int]) -> None:
+        self.path, self.columns, self.lines = path, columns, lines
+
+    def __contains__(self, column: str) -> bool:
+        return column in self.columns
+
+    def __getitem__(self, column: str) -> list[str]:
+        return self.columns[column]
+
+    def __iter__(self):
+        return iter(self.columns)
+
+    def row(self, i: int) -> str:
+        """Where row ``i`` is, for an error: its line and its frame (or time)."""
+        key = next((c for c in ("frame", "time_s") if c in self.columns), None)
+        return f"line {self.lines[i]}" + (f" ({key} {self.columns[key][i]})" if key else "")
+
+
+def read_log(path: Path) -> Log:
+    """The rows of a CSV file with a header row, as spreadsheets write it: a UTF-8 byte order mark (Excel's "CSV
+    UTF-8") is skipped, ';' separates the values when the header has no ',', blank rows are left out."""
     try:
-        with path.open(newline="") as f:
-            rows = list(csv.reader(f))
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
-        raise UserInputError(f"navigation log {path} cannot be read: {exc}") from exc
-    if len(rows) < 2:
+        raise UserInputError(f"navigation log {path} cannot be read: {exc}; save it as CSV (UTF-8)") from exc
+    first = text.split("\n", 1)[0]
+    rows = list(csv.reader(text.splitlines(), delimiter=";" if ";" in first and "," not in first else ","))
+    numbered = [(k + 2, r) for k, r in enumerate(rows[1:]) if any(c.strip() for c in r)]
+    if not rows or not numbered:
         raise UserInputError(f"navigation log {path} has no rows under its header")
     header = [h.strip().lower() for h in rows[0]]
-    short = [i + 2 for i, r in enumerate(rows[1:]) if len(r) != len(header) and any(c.strip() for c in r)]
+    short = [line for line, r in numbered if len(r) != len(header)]
     if short:
-        raise UserInputError(f"navigation log {path}: line {short[0]} has another number of values than the header")
-    body = [r for r in rows[1:] if any(c.strip() for c in r)]
-    return {h: [r[i].strip() for r in body] for i, h in enumerate(header)}
+        raise UserInputError(f"navigation log {path}: line {short[0]} has {len(dict(numbered)[short[0]])} values, the "
+                             f"header {len(header)} ({', '.join(header)})")
+    return Log(path, {h: [r[i].strip() for _, r in numbered] for i, h in enumerate(header)},
+               [line for line, _ in numbered])
 
 
-def _numbers(path: Path, log: dict[str, list[str]], column: str) -> np.ndarray:
-    try:
-        return np.array([float(v) for v in log[column]])
-    except ValueError:
-        bad = next(v for v in log[column] if not _is_float(v))
-        raise UserInputError(f"navigation log {path}: {column} holds {bad!r}, not a number") from None
+def _numbers(log: Log, column: str) -> np.ndarray:
+    """The column's values, each a finite number: an empty cell, text, NaN or an infinity is an error naming the
+    log, the line and the frame."""
+    for i, text in enumerate(log[column]):
+        if not _is_float(text):
+            what = ("is empty" if not text else f"holds {text!r}, not a number" if not _parses(text) else
+                    f"holds {text!r}, not a finite number")
+            raise UserInputError(f"navigation log {log.path}: {column} {what}, on {log.row(i)}: give every row a "
+                                 f"number there, or remove the row")
+    return np.array([float(v) for v in log[column]])
 
 
-def _is_float(text: str) -> bool:
+def _parses(text: str) -> bool:
     try:
         float(text)
-        return math.isfinite(float(text))
+        return True
     except ValueError:
         return False
 
 
-def _check_positions(path: Path, log: dict[str, list[str]]) -> None:
+def _is_float(text: str) -> bool:
+    return _parses(text) and math.isfinite(float(text))
+
+
+def _unique(log: Log, column: str, values: list) -> None:
+    """Each frame (or time) on one row only: a second row for it is an error naming both lines."""
+    seen: dict = {}
+    for i, value in enumerate(values):
+        if value in seen:
+            raise UserInputError(f"navigation log {log.path}: {column} {log[column][i]} is on line "
+                                 f"{log.lines[seen[value]]} and again on line {log.lines[i]}: keep one row per "
+                                 f"{'frame' if column == 'frame' else 'time'}")
+        seen[value] = i
+
+
+def _check_positions(path: Path, log: Log) -> None:
     """easting_m and northing_m come together, and with the ``crs`` of the survey file beside the log."""
     from watergan.survey_files import read_survey_json
 
@@ -114,8 +161,9 @@ def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float]
                              f"pitch_deg, easting_m + northing_m, x_m + y_m (its columns: {', '.join(log)})")
     _check_positions(path, log)
     columns = [COLUMNS[k] for k in given] + (["roll_deg", "pitch_deg"] if attitude else []) + local
-    values = {c: _numbers(path, log, c) for c in columns}
+    values = {c: _numbers(log, c) for c in columns}
     if "frame" in log:
+        _unique(log, "frame", log["frame"])
         index = {name: i for i, name in enumerate(log["frame"])}
         lacking = [f for f in frames if f not in index]
         if lacking:
@@ -126,7 +174,8 @@ def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float]
         if frame_time_s is None or len(frame_time_s) != len(frames):
             raise UserInputError(f"navigation log {path} is by time (time_s): survey.json must give frame_time_s, "
                                  f"one time per frame of its frames")
-        t = _numbers(path, log, "time_s")
+        t = _numbers(log, "time_s")
+        _unique(log, "time_s", t.tolist())
         order = np.argsort(t)
         times = np.asarray(frame_time_s, float)
         outside = [f for f, s in zip(frames, times, strict=True) if not t.min() <= s <= t.max()]
@@ -135,10 +184,12 @@ def navigation_from_log(path: Path, frames: list[str], frame_time_s: list[float]
                                  f"outside it (e.g. {outside[0]})")
         at = {c: np.interp(times, t[order], v[order]) for c, v in values.items()}
     else:
-        raise UserInputError(f"navigation log {path} needs a frame column (image file names) or a time_s column")
+        raise UserInputError(f"navigation log {path} needs a frame column (image file names) or a time_s column "
+                             f"(its columns: {', '.join(log)})")
     if "altitude_m" in at and not (at["altitude_m"] > 0).all():
         bad = frames[int(np.argmin(at["altitude_m"]))]
-        raise UserInputError(f"navigation log {path}: altitude_m is not positive for {bad}")
+        where = f" on line {log.lines[index[bad]]}" if "frame" in log else ""
+        raise UserInputError(f"navigation log {path}: altitude_m is not positive for {bad}{where}")
     out = {key: np.round(at[COLUMNS[key]], 4).tolist() for key in given}
     if attitude:
         out["nav_down_cam"] = np.round(down_in_camera(at["roll_deg"], at["pitch_deg"]), 6).tolist()

@@ -7,7 +7,7 @@ mesh, the full-size mosaic). Sections:
 
 1. verdict: where ours wins and loses (from the eval stage's ``tables.json``);
 2. the same frames side by side: raw, every baseline, ours, the oracle and the in-air truth
-   (paper Fig. 5);
+   (paper Fig. 5); the scene mask and the overlay SfM proposes to mask, drawn over a frame;
 3. the tables (paper Tables I-III, fidelity, depth, speed), best value in bold;
 4. per-patch board error as bar charts, per-point consistency as histograms;
 5. depth: monocular vs stereo error maps (the eval stage's ``depth/``);
@@ -28,6 +28,7 @@ import html
 import io
 import json
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -292,9 +293,9 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         record = read_water(ws.path(water.water_json))
         trust = ("its intervals are 95 %" if not water.at_bounds else
                  f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
-        lines.append(f"Water: {water.summary.removeprefix('water: ')}; {trust}."
-                     + unpinned_note(record.params, record.veil)
-                     + structure_note(record.params, record.structure) + profile_note(record.structure))
+        line = (f"Water: {water.summary.removeprefix('water: ')}; {trust}." + unpinned_note(record.params, record.veil)
+                + structure_note(record.params, record.structure) + profile_note(record.structure))
+        lines.append(in_sfm_units(line) if sfm is not None and sfm.scale_method == "none" else line)
         fields = record.fields
         if fields:
             size = field_size(fields)
@@ -327,15 +328,16 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         verdict = Path(diagnosed.out_dir) / "verdict.txt"
         if verdict.is_file():
             lines.append("Diagnosis: " + verdict.read_text().strip().splitlines()[0])
-        if diagnosed.best:
-            command = f"watergan run --workspace {ws.root} --add {diagnosed.best}"
+        command = after_diagnosis(command, diagnosed, ws.root)
     try:
         verdict_lines = _tables(ws).get("verdict", [])
     except NotRun:
         verdict_lines = []
     if verdict_lines:
         lose = [line for line in verdict_lines if " loses to " in line]
-        lines.append(f"Comparisons: {len(verdict_lines) - len(lose)} of {len(verdict_lines)} hold"
+        tie = [line for line in verdict_lines if " ties with " in line]
+        lines.append(f"Comparisons: {len(verdict_lines) - len(lose) - len(tie)} of {len(verdict_lines)} hold"
+                     + (f"; {len(tie)} tie (within the measurement's spread)" if tie else "")
                      + (f"; {len(lose)} lose (listed under Verdict)." if lose else "."))
     if sfm is not None and sfm.looks_distorted and not sfm.lens_source:  # the lens first: every stage after SfM
         survey = ws.result("survey")  # carries its error; what already ran is not proposed again
@@ -343,6 +345,25 @@ def found_lines(ws: Workspace) -> tuple[list[str], str]:
         command = (f"watergan run {folder} --workspace {ws.root}  # with \"calibrated\": false in its camera.json, "
                    f"so that SfM calibrates the camera")
     return lines, command
+
+
+def after_diagnosis(command: str, diagnosed, root: Path) -> str:
+    """The next step once the diagnosis ran (``diagnosed``, its result), never the diagnosis again: add the effect
+    it found; else, where the water still carries structure (``command``, what the first screen would advise without
+    the diagnosis) or the diagnosis names axes no effect explains, write that effect and add it; else nothing."""
+    if diagnosed.best:
+        return f"watergan run --workspace {root} --add {diagnosed.best}"
+    if command or diagnosed.unexplained_axes:
+        return (f"watergan --plugin FILE.py run --workspace {root} --add NAME  # no library effect explains it: write "
+                f"the effect NAME in FILE.py (docs/discovery.md) and add it")
+    return ""
+
+
+def in_sfm_units(line: str) -> str:
+    """A first-screen line of a run without a metric scale in the units it is in: eta per SfM unit, lengths in SfM
+    units (1 = the median sparse depth), not per metre and metres."""
+    line = line.replace("eta_per_m", "eta per SfM unit").replace(" 1/m", " per SfM unit")
+    return re.sub(r"(\d) m\b", r"\1 SfM units", line)
 
 
 def section_found(ws, out: Path) -> tuple[str, dict]:
@@ -398,6 +419,40 @@ def section_frames(ws, out: Path) -> tuple[str, dict]:
             f"<p class='note'>Frames downscaled to {THUMB_PX} px, in survey order; one of them is the frame with "
             f"the most board patches.</p>")
     return body, {"frames": frames, "columns": columns}
+
+
+def section_mask(ws, out: Path) -> tuple[str, dict]:
+    """The scene mask (the survey's mask.png and camera.json's mask_rects_px, in the workspace's frames) shaded red
+    and the overlay SfM proposes to mask (:func:`pipeline.overlay.still_features`) outlined in yellow, over the
+    survey's middle frame: a mask or a proposal on the scene is seen at once."""
+    import cv2
+
+    from watergan.io import read_scene_mask
+
+    survey, sfm = ws.result("survey"), ws.result("sfm")
+    mask = read_scene_mask(ws.path(survey.scene_mask)) if survey is not None and survey.scene_mask else None
+    found = sfm.still_features if sfm is not None else {}
+    boxes = (found.get("boxes_px") or [found["box_px"]]) if found else []
+    if mask is None and not boxes:
+        raise NotRun("no scene mask (mask.png, camera.json's mask_rects_px) and no overlay found by SfM")
+    images = ws.folder("survey") / "images"
+    names = sorted(p.name for p in images.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+                   ) if images.is_dir() else []
+    if not names:
+        raise NotRun("no survey frames to draw the mask over")
+    name = names[len(names) // 2]
+    rgb = read_display(images / name).astype(np.float32)
+    if mask is not None and mask.shape == rgb.shape[:2]:
+        rgb[~mask] = 0.45 * rgb[~mask] + 0.55 * np.array([255.0, 0.0, 0.0])
+    rgb = np.ascontiguousarray(rgb.clip(0, 255).astype(np.uint8))
+    for x0, y0, x1, y1 in boxes:
+        cv2.rectangle(rgb, (x0, y0), (x1 - 1, y1 - 1), (255, 220, 0), max(1, round(max(rgb.shape[:2]) / 300)))
+    masked = 100 * float((~mask).mean()) if mask is not None else 0.0
+    note = (f"<p class='note'>{_esc(name)}: red, the pixels the scene mask leaves out ({masked:.1f} % of the frame: "
+            f"never corrected, matched or measured)" + (f"; yellow, the overlay SfM proposes to mask "
+                                                       f"(mask_rects_px {boxes})" if boxes else "") + ".</p>")
+    return (_img(data_uri(rgb, "jpeg", MOSAIC_PX), f"scene mask over {name}", "wide") + note,
+            {"frame": name, "masked_pct": round(masked, 2), "overlay_px": boxes})
 
 
 def section_tables(ws, out: Path) -> tuple[str, dict]:
@@ -670,6 +725,7 @@ SECTIONS = (
     ("found", "What this run found", section_found),
     ("verdict", "Verdict", section_verdict),
     ("frames", "The same frames, every method", section_frames),
+    ("mask", "The scene mask over a frame", section_mask),
     ("tables", "Tables", section_tables),
     ("board", "Colour-board error per patch", section_board_chart),
     ("consistency", "Consistency across views", section_consistency),

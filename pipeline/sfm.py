@@ -319,7 +319,7 @@ def run_sfm_folder(images_dir: str | Path, out_dir: str | Path, cfg: SfmConfig,
         rec, n_reg = mapping(database, images_dir, raw_dir, names, cam, cfg)
         lens_k1 = refined_k1(rec) if cam is not None else None
         camera = rec.cameras[next(iter(rec.cameras))]
-        still = still_features(database, camera.width, camera.height) if scene_mask is None else None
+        still = still_features(database, camera.width, camera.height, images_dir) if scene_mask is None else None
         lap("mapping")
     say("the survey frame and its scale")
     tracks, method, scale, spread, detail = _to_survey_frame(rec, names, images_dir, cam, cfg)

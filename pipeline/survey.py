@@ -214,7 +214,9 @@ def survey_scene_mask(survey_dir: Path, camera: dict):
         return scene_mask_from(int(camera["width"]), int(camera["height"]), png if png.is_file() else None,
                                camera.get("mask_rects_px"))
     except DataError as exc:
-        raise UserInputError(f"survey {survey_dir}: {exc}") from None
+        rects = "rectangle" in str(exc) or "mask_rects_px" in str(exc)
+        raise UserInputError(f"camera file {survey_dir / 'camera.json'}: {exc}" if rects else
+                             f"survey {survey_dir}: {exc}") from None
 
 
 def undistort_frames(survey: Path, target: Path, camera: dict, lens: Lens, progress: bool = True) -> None:
@@ -357,7 +359,7 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
         if survey == target:
             raise UserInputError(f"{survey} holds a navigation log: run on the survey folder, not on a workspace's "
                                  f"{ws.stage('survey').folder}")
-        atomic_write_json(target / "survey.json", declared)
+        atomic_write_json(target / "survey.json", declared, finite=True)
     navigation = "nav_altitude_m" in declared
     inside = rgbd.resolve().is_relative_to(ws.root.resolve())
     return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),

@@ -45,6 +45,7 @@ import hashlib
 import json
 import math
 import shutil
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,7 @@ from watergan.io import (
     read_json,
     scene_mask_from,
     to_jsonable,
+    write_failed,
     write_png,
 )
 from watergan.survey_files import read_survey_json
@@ -384,7 +386,11 @@ def frames_from_video(videos: list[Path], out_dir: Path, cfg: VideoConfig = Vide
     if not videos:
         raise UserInputError("no video given")
     source = _source(videos, cfg)
-    _side_files(videos[0].parent, cfg)
+    camera, _ = _side_files(videos[0].parent, cfg)
+    if camera.is_file():  # before anything is written
+        width, height, _ = _probe(videos[0])
+        _check_camera(camera, width, height)
+    _writable(out_dir)
     record_path, images = out_dir / RECORD_JSON, out_dir / "images"
     record = read_json(record_path, "video record") if record_path.is_file() else None
     if record is None and images.is_dir() and any(images.iterdir()):
@@ -414,7 +420,10 @@ def _extract(videos: list[Path], out_dir: Path, cfg: VideoConfig) -> VideoFrames
     mask = scene_mask_from(width, height, mask_png) if mask_png.is_file() else None
     partial = out_dir / ".images.partial"
     shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    try:
+        partial.mkdir(parents=True)
+    except OSError as exc:
+        raise write_failed(partial, exc) from exc
     names: list[str] = []
     times_s: list[float] = []
     offset_s = 0.0
@@ -461,22 +470,38 @@ def _side_files(beside: Path, cfg: VideoConfig) -> tuple[Path, Path]:
     return camera, navigation
 
 
+def _check_camera(camera: Path, width: int, height: int) -> None:
+    """A camera.json for another frame size than the video's (``width`` x ``height``) is an error."""
+    declared = read_json(camera, "camera file")
+    size = (declared.get("width"), declared.get("height")) if isinstance(declared, dict) else None
+    if size is not None and None not in size and size != (width, height):
+        raise UserInputError(f"camera file {camera} is for {size[0]}x{size[1]} images; the video's frames are "
+                             f"{width}x{height}: give the camera.json of this video's camera and frame size")
+
+
+def _writable(out_dir: Path) -> None:
+    """``out_dir`` made (when missing) and checked writable, before the frames are extracted: a WriteError naming it
+    otherwise (a read-only place, a file where the folder should be)."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=out_dir, prefix=".write-test.")  # noqa: SIM115
+    except OSError as exc:
+        raise write_failed(out_dir, exc) from exc
+    probe.close()
+
+
 def _write_survey_files(beside: Path, out_dir: Path, cfg: VideoConfig, frames: VideoFrames) -> None:
     """survey.json, camera.json, navigation.csv and mask.png of the survey folder, from the files given or ``beside``
-    the video (module docstring); one no longer there is removed. A camera.json for another frame size is an error,
-    before anything is written."""
+    the video (module docstring); one no longer there is removed. A camera.json for another frame size is an error
+    (:func:`frames_from_video` checks it before anything is written)."""
     camera, navigation = _side_files(beside, cfg)
     if camera.is_file():
-        declared = read_json(camera, "camera file")
-        size = (declared.get("width"), declared.get("height")) if isinstance(declared, dict) else None
-        if size is not None and None not in size and size != (frames.width, frames.height):
-            raise UserInputError(f"camera file {camera} is for {size[0]}x{size[1]} images; the video's frames are "
-                                 f"{frames.width}x{frames.height}")
+        _check_camera(camera, frames.width, frames.height)
     survey: dict = {"frames": frames.frames, "frame_time_s": frames.frame_time_s}
     if (beside / "survey.json").is_file():
         declared = read_survey_json(beside / "survey.json")
         survey.update({k: declared[k] for k in SURVEY_WIDE_KEYS if k in declared})
-    atomic_write_json(out_dir / "survey.json", survey)
+    atomic_write_json(out_dir / "survey.json", survey, finite=True)
     if camera.is_file():
         atomic_write_bytes(out_dir / "camera.json", camera.read_bytes())
     else:

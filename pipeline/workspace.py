@@ -65,7 +65,11 @@ def lock_workspace(root: Path) -> None:
     """Take the workspace's lock for this process (kept until it ends; taking it again is a no-op). Raises
     :class:`UserInputError` naming the process that holds it."""
     root = root.resolve()
-    handle = open(root / ".lock", "a+")  # noqa: SIM115  held open: the lock lives as long as the file is open
+    try:
+        handle = open(root / ".lock", "a+")  # noqa: SIM115  held open: the lock lives as long as the file is open
+    except OSError as exc:
+        raise UserInputError(f"cannot write workspace {root} (its lock file {root / '.lock'}: {exc.strerror}): run "
+                             f"into a folder you can write to, or make this one writable") from None
     stat = os.fstat(handle.fileno())
     key = (stat.st_dev, stat.st_ino)
     if key in _LOCKS:
@@ -86,6 +90,15 @@ def lock_workspace(root: Path) -> None:
     _LOCKS[key] = handle
 
 
+def check_outside_survey(root: Path, survey_dir: str | Path) -> None:
+    """A workspace is never inside the survey folder it runs on (nor that folder itself): the survey is never
+    written to. A UserInputError saying where to put it otherwise."""
+    survey, inside = Path(survey_dir).resolve(), Path(root).resolve()
+    if inside == survey or survey in inside.parents:
+        raise UserInputError(f"workspace {root} is inside the survey folder {survey}, which is never written to: give "
+                             f"a workspace outside it (e.g. --workspace {survey.parent / (survey.name + '_ws')})")
+
+
 def release_workspaces() -> None:
     """Give up every workspace lock this process holds (a long-lived process, a test session, between runs)."""
     while _LOCKS:
@@ -100,6 +113,7 @@ class Workspace:
         self.root = Path(root)
         if self.root.exists() and not self.root.is_dir():
             raise UserInputError(f"workspace {self.root} exists and is not a folder: choose another path")
+        self._created = not self.root.exists()
         try:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -223,7 +237,16 @@ class Workspace:
     def run(self, stage: str, config: Any, force: bool = False) -> Any:
         """Run the stage's function ``fn(ws, config)`` unless it is already done with this configuration
         on the same upstream results; returns its typed result. The first stage a process runs takes the
-        workspace's lock (:func:`lock_workspace`); a stage whose files are gone reruns, saying which."""
+        workspace's lock (:func:`lock_workspace`); a stage whose files are gone reruns, saying which. A stage run
+        on a survey folder (its configuration's ``survey_dir``) that holds this workspace is refused before anything
+        is written (:func:`check_outside_survey`; the empty folder this object made is removed)."""
+        if getattr(config, "survey_dir", ""):
+            try:
+                check_outside_survey(self.root, config.survey_dir)
+            except UserInputError:
+                if self._created and self.root.is_dir() and not any(self.root.iterdir()):
+                    self.root.rmdir()
+                raise
         if force or not self.is_done(stage, config):
             lock_workspace(self.root)
             gone = self.missing(stage)

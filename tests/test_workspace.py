@@ -373,6 +373,6 @@ def test_a_full_disk_under_another_writer_is_one_line_from_the_command(monkeypat
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/ws/02_dense/fused_mesh.ply")
 
     monkeypatch.setattr(cli, "cmd_effects", full)
-    assert cli.main(["effects"]) == 2
+    assert cli.main(["effects"]) == 3  # an output cannot be written (2: the input is wrong)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot write /ws/02_dense/fused_mesh.ply: No space left on device" in err

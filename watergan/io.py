@@ -137,10 +137,10 @@ def to_jsonable(value: Any, for_hash: bool = False) -> Any:
 
 def from_jsonable(cls: Any, data: Any) -> Any:
     """Rebuild a value of type ``cls`` from :func:`to_jsonable`'s output: dataclasses (nested ones
-    too) from dicts, tuples from lists, paths and enums from strings. A dataclass given a key it
-    does not have is an error naming both (a result or configuration from another version)."""
+    too) from dicts, tuples from lists, paths and enums from strings, null in a float field as NaN. A dataclass
+    given a key it does not have is an error naming both (a result or configuration from another version)."""
     if data is None:
-        return None
+        return float("nan") if cls is float or cls == "float" else None  # a non-finite number, written as null
     if isinstance(cls, types.UnionType) or typing.get_origin(cls) is typing.Union:
         options = [h for h in typing.get_args(cls) if h is not type(None)]
         cls = options[0] if len(options) == 1 else Any
@@ -167,9 +167,40 @@ def from_jsonable(cls: Any, data: Any) -> Any:
     return data
 
 
-def atomic_write_json(path: str | Path, value: Any) -> None:
-    """JSON (dataclasses and paths converted) with sorted keys: the same value gives the same bytes."""
-    atomic_write_text(path, json.dumps(to_jsonable(value), indent=2, sort_keys=True) + "\n")
+def non_finite(value: Any, where: str = "") -> tuple[str, float] | None:
+    """The first (key path, value) of a NaN or infinite number in a JSON-ready value (:func:`to_jsonable`'s); None
+    when every number is finite."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return where or "the value", value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = non_finite(item, f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else key)
+        if found:
+            return found
+    return None
+
+
+def _null_for_non_finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _null_for_non_finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_null_for_non_finite(v) for v in value]
+    return value
+
+
+def atomic_write_json(path: str | Path, value: Any, finite: bool = False) -> None:
+    """JSON (dataclasses and paths converted) with sorted keys: the same value gives the same bytes. Always valid
+    JSON: a NaN or infinite number (a measurement with no value) is written as null, which :func:`from_jsonable`
+    reads back as NaN into a float field; ``finite``: such a number is a :class:`DataError` naming the file and the
+    key instead (a survey file, whose every value must be a number)."""
+    data = to_jsonable(value)
+    bad = non_finite(data) if finite else None
+    if bad:
+        raise DataError(f"cannot write {path}: {bad[0]} is {bad[1]}, not a finite number (from the input it was "
+                        f"read from: fix that value there)")
+    atomic_write_text(path, json.dumps(_null_for_non_finite(data), indent=2, sort_keys=True, allow_nan=False) + "\n")
 
 
 def read_json(path: str | Path, what: str = "file") -> Any:
@@ -614,10 +645,15 @@ SCENE_MASK_PNG = "mask.png"
 def scene_mask_from(width: int, height: int, mask_png: Path | None = None,
                     rects_px: list | None = None) -> np.ndarray | None:
     """(H,W) bool, True where a pixel is the scene: the mask image's nonzero pixels (any channel), less every
-    rectangle ``[x0, y0, x1, y1]`` (pixels, x1 and y1 excluded, clipped to the image). None when neither is given.
-    A mask of another size, an unreadable one or a rectangle that is not four numbers is a DataError naming it."""
-    if mask_png is None and not rects_px:
+    rectangle ``[x0, y0, x1, y1]`` (pixels, x1 and y1 excluded). None when neither is given. A mask of another size,
+    an unreadable one, ``rects_px`` that is not a list of rectangles, a rectangle that is not four numbers, one
+    with x1 <= x0 or y1 <= y0 (an [x, y, width, height] given for corners) and one reaching outside the frame are
+    DataErrors naming it."""
+    if mask_png is None and rects_px is None:
         return None
+    if rects_px is not None and not isinstance(rects_px, list | tuple):
+        raise DataError(f"mask_rects_px = {rects_px!r} is not a list of rectangles: give [[x0, y0, x1, y1], ...] in "
+                        f"pixels (x1, y1 excluded)")
     mask = np.ones((height, width), bool)
     if mask_png is not None:
         image = _decode(Path(mask_png), "mask", "PNG")
@@ -628,10 +664,16 @@ def scene_mask_from(width: int, height: int, mask_png: Path | None = None,
         if not (isinstance(rect, list | tuple) and len(rect) == 4 and all(is_number(v) for v in rect)):
             raise DataError(f"mask rectangle {rect!r} is not [x0, y0, x1, y1] in pixels")
         x0, y0, x1, y1 = (int(round(v)) for v in rect)
-        mask[max(0, y0):max(0, y1), max(0, x0):max(0, x1)] = False
+        if x1 <= x0 or y1 <= y0:
+            raise DataError(f"mask rectangle {list(rect)} has x1 <= x0 or y1 <= y0: give its corners [x0, y0, x1, y1] "
+                            f"(an [x, y, width, height] is [{x0}, {y0}, {x0 + x1}, {y0 + y1}])")
+        if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
+            raise DataError(f"mask rectangle {list(rect)} reaches outside the {width}x{height} frame (x 0-{width}, "
+                            f"y 0-{height}): give it in the frames' pixels")
+        mask[y0:y1, x0:x1] = False
     if not mask.any():
         raise DataError("the scene mask leaves no pixel of the scene: white (nonzero) marks the scene in mask.png")
-    return mask
+    return None if mask_png is None and not rects_px else mask
 
 
 def write_scene_mask(path: str | Path, mask: np.ndarray) -> None:
