@@ -9,9 +9,10 @@ A burned-in overlay has three signs at once, and the finder asks for all three:
   within ``STILL_PX`` while their pair's median match moves ``MOVING_PX`` or more;
 - it is text-like: those still pixels lie on sharp edges of the frames' median image (its gradient magnitude at
   least ``SHARP_TIMES`` its median over the frame; a low-contrast region that merely looks alike from frame to frame,
-  a far wall's tiles, has none), as strokes: at least ``MIN_STROKES`` separate pieces joined into one line by a
-  dilation of ``LINE_GAP`` of the frame's width (a character's spacing), the line at most ``MAX_LINE_SHARE`` of the
-  frame's height tall;
+  a far wall's tiles, has none), as strokes: joined into one line by a dilation of ``LINE_GAP`` of the frame's width
+  (a character's spacing), some row of the line crosses at least ``MIN_STROKES`` separate strokes (a long edge of the
+  scene is one), the line at most ``MAX_LINE_SHARE`` of the frame's height tall and ``MAX_LINE_WIDTH`` of its width
+  wide;
 - it sits in the frame's border: the line's box lies within ``BORDER_SHARE`` of the frame's height from its top or
   bottom, or of its width from its left or right.
 
@@ -70,21 +71,22 @@ def overlay_boxes(frames: list[np.ndarray]) -> list[list[int]]:
     by, bx = max(1, round(BORDER_SHARE * h)), max(1, round(BORDER_SHARE * w))
     border[:by], border[-by:], border[:, :bx], border[:, -bx:] = True, True, True, True
     strokes = ((spread < STILL_SHARE * max(float(np.median(spread)), 1e-6)) & sharp & border).astype(np.uint8)
-    n, _, _, centres = cv2.connectedComponentsWithStats(strokes, connectivity=8)
     kernel = np.ones((max(3, round(LINE_ACROSS * h)) | 1, max(3, round(LINE_GAP * w)) | 1), np.uint8)
     m, lines, boxes, _ = cv2.connectedComponentsWithStats(cv2.dilate(strokes, kernel), connectivity=8)
-    held = np.bincount(lines[np.round(centres[1:, 1]).astype(int), np.round(centres[1:, 0]).astype(int)],
-                       minlength=m) if n > 1 else np.zeros(m, int)
     found = []
     for j in range(1, m):
         x, y, bw, bh, _ = boxes[j]
         x1, y1 = x + bw, y + bh
         in_border = y1 <= by or y >= h - by or x1 <= bx or x >= w - bx
-        if held[j] < MIN_STROKES or bh > MAX_LINE_SHARE * h or bw > MAX_LINE_WIDTH * w or not in_border:
+        if bh > MAX_LINE_SHARE * h or bw > MAX_LINE_WIDTH * w or not in_border:
+            continue
+        row = (strokes[y:y1, x:x1] > 0) & (lines[y:y1, x:x1] == j)
+        held = int((row[:, :1].sum(1) + (row[:, 1:] & ~row[:, :-1]).sum(1)).max())  # strokes a row crosses
+        if held < MIN_STROKES:
             continue
         x0, y0, x1, y1 = _along_the_line(sharp, x, y, x1, y1)
         if x1 - x0 <= MAX_LINE_WIDTH * w:
-            found.append((int(held[j]), [max(0, int(np.floor(x0 / scale)) - PAD_PX),
+            found.append((held, [max(0, int(np.floor(x0 / scale)) - PAD_PX),
                                          max(0, int(np.floor(y0 / scale)) - PAD_PX),
                                          min(width, int(np.ceil(x1 / scale)) + PAD_PX),
                                          min(height, int(np.ceil(y1 / scale)) + PAD_PX)]))
