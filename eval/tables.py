@@ -291,7 +291,8 @@ TIE_RELATIVE = 0.01
 
 def within_noise(mine: float, other: float, paired: np.ndarray | None = None) -> bool:
     """Whether ``mine`` and ``other`` tie: |mean d| <= ``TIE_STANDARD_ERRORS`` sd(d) / sqrt(n) over the paired items'
-    differences d (``paired``, NaN left out; at least 3), else |mine - other| <= ``TIE_RELATIVE`` max(|mine|, |other|)."""
+    differences d (``paired``, NaN left out; at least 3), else |mine - other| <= ``TIE_RELATIVE`` max(|mine|,
+    |other|)."""
     if paired is not None:
         d = np.asarray(paired, float).ravel()
         d = d[np.isfinite(d)]

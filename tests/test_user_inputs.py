@@ -125,7 +125,8 @@ def test_the_overlay_finder_finds_the_pool_s_timestamp_and_nothing_else():
     frames = _pool(6)
     (x0, y0, x1, y1), = overlay_boxes(frames)
     assert x0 <= 15 and y0 <= 1 and 168 <= x1 <= 200 and 13 <= y1 <= 30
-    assert overlay_boxes([cv2.resize(f, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA) for f in frames])[0][2] < 100
+    half = [cv2.resize(f, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA) for f in frames]
+    assert overlay_boxes(half)[0][2] < 100
     assert overlay_boxes([f[30:] for f in frames]) == []
 
 
@@ -184,8 +185,9 @@ def test_ctrl_c_is_one_line_and_exit_130(monkeypatch, capsys):
 
 # ------------------------------------------------------------------------- checks before anything is written
 def test_a_camera_json_for_another_frame_size_is_refused_before_the_frames_are_written(tmp_path):
-    from pipeline.video import VideoConfig, frames_from_video
     from test_video import pan, write_video
+
+    from pipeline.video import VideoConfig, frames_from_video
 
     clip = write_video(tmp_path / "dive.mp4", pan(4.0, n=20))
     (tmp_path / "camera.json").write_text(json.dumps({"width": 320, "height": 240}))
