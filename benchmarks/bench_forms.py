@@ -20,8 +20,8 @@ Each draw picks a family and draws its shape (:func:`draw_effect`; the forms are
 
 and the survey: stereo or monocular, the demo's sandy floor or a rocky one (:func:`survey_config`: the demo's water
 and camera at 320x240, 3 lines of 6 frames at 2.5 m with a 0.5 m altitude wave). On each it runs the pipeline's SfM
-and dense stages, then the water stage itself (:func:`water_stage`: ``watergan water --workspace WS`` with its
-defaults, :class:`pipeline.water.WaterStage`; no tracks; the fine grid on the fused mesh's range) and measures its
+dense and range stages, then the water stage itself (:func:`water_stage`: ``watergan water --workspace WS`` with its
+defaults, :class:`pipeline.water.WaterStage`; no tracks; the fine grid on the range stage's maps) and measures its
 water.json with bench_water's helpers: eta, B_inf and the veil at the views' median range against the truth
 (relative error, 95 % interval covering it), and the physics correction's PSNR, consistency and affine-RMSE
 (:func:`affine_rmse`) beside the oracle's and raw's. Then the diagnosis stage as ``watergan run`` runs it after the
@@ -220,10 +220,11 @@ def workspace_name(draw: Draw) -> str:
 
 
 def prepare(root: Path, draw: Draw) -> Path:
-    """Simulate the draw's survey into ``root/draw_<k>_<seed>/00_survey`` and run SfM and dense (each skipped when
-    done); returns the workspace's root."""
+    """Simulate the draw's survey into ``root/draw_<k>_<seed>/00_survey`` and run SfM, dense and the range maps
+    (each skipped when done); returns the workspace's root."""
     from eval.synth import simulate_survey
     from pipeline.dense import DenseConfig
+    from pipeline.range import RangeConfig
     from pipeline.sfm import SfmConfig
     from pipeline.workspace import Workspace
 
@@ -237,6 +238,7 @@ def prepare(root: Path, draw: Draw) -> Path:
         ws.run("sfm", SfmConfig())
     if not (ws.stage_dir("dense") / "result.json").is_file():
         ws.run("dense", DenseConfig(progress=False))
+    ws.run("range", RangeConfig(progress=False))
     return ws.root
 
 
@@ -262,7 +264,7 @@ def affine_rmse(folder: Path, truth_dir: Path, names: list[str]) -> float:
 
 def water_stage(ws_root: Path):
     """The water stage on a prepared workspace, as ``watergan water --workspace WS`` runs it (its defaults: the SfM
-    scale's spread, no tracks, the fine grid on the fused mesh's range; skipped when done): (its result, its
+    scale's spread, no tracks, the fine grid on the range stage's maps; skipped when done): (its result, its
     configuration)."""
     from pipeline.water import WaterStage
     from pipeline.workspace import Workspace
@@ -325,6 +327,8 @@ def diagnose_only(ws_root: Path) -> dict:
 
 def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
     """Prepare, estimate, correct and measure one draw; its JSON record."""
+    from pipeline.range import RangeConfig
+
     seconds = {}
     t = time.perf_counter()
     ws_root = prepare(root, draw)
@@ -336,7 +340,7 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
     params = compare(water.params, truth)
     params.update(compare_veil(water.veil, truth))
     t = time.perf_counter()
-    corr = correct_folders(ws_root, frames, K, stack, ws_root / "forms_bench", config.range_agreement)
+    corr = correct_folders(ws_root, frames, K, stack, ws_root / "forms_bench", RangeConfig().agreement)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
     folders = {"raw": stage_folder(ws_root, "survey") / "images", **corr["folders"]}
@@ -348,8 +352,8 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
     seconds["correct"] = time.perf_counter() - t
     keep = ("attenuation.eta_per_m", "backscatter.b_inf", "veil")
     eta_truth = np.asarray(truth["attenuation.eta_per_m"], float)
-    structure = [{**test, "eta_rel_error": _round(np.asarray(test["eta_per_m"], float) / eta_truth - 1)}
-                 for test in water.structure or [] if test.get("eta_per_m")]
+    structure = [{**a.to_json(), "eta_rel_error": _round(np.asarray(a.values[eta], float) / eta_truth - 1)}
+                 for a in water.alternatives if (eta := "attenuation.eta_per_m") in a.values]
     record = {"truth": {**asdict(draw), "workspace": ws_root.name},
               "params": {k: params[k] for k in keep if k in params}, "structure": structure, "correction": correction,
               "diagnosis": None, "false_acceptance": False, "seconds": {k: round(v, 1) for k, v in seconds.items()}}
@@ -373,7 +377,7 @@ def draw_targets(record: dict) -> dict[str, bool]:
     def every(key: str, test) -> bool:
         return key in p and all(test(v) for v in np.ravel(p[key][("rel_error")]))
 
-    preferred = [t for t in record.get("structure", []) if t["preferred"]]
+    preferred = [t for t in record.get("structure", []) if t.get("preferred")]
     chosen = min(preferred, key=lambda t: t["heldout_change_pct"])["eta_rel_error"] if preferred else \
         p.get("attenuation.eta_per_m", {}).get("rel_error", [np.inf])
     return {"eta_within_10pct": every("attenuation.eta_per_m", lambda v: abs(v) <= 0.10),

@@ -3,8 +3,8 @@ dense stage's patch-match stereo (pycolmap built with CUDA).
 
     python3 benchmarks/bench_gpu.py --workspace WS [--copies N] [--pairs DIR] [--small SURVEY --small-sfm SFM_DIR]
 
-- ``--workspace``: a finished ``watergan run`` workspace (without ``--copies``, a folder holding its ``05_restorer``,
-  ``00_survey/images`` with ``camera.json`` and ``survey.json``, and ``03_water/range`` is enough): its frames
+- ``--workspace``: a finished ``watergan run`` workspace (without ``--copies``, a folder holding its ``06_restorer``,
+  ``00_survey/images`` with ``camera.json`` and ``survey.json``, and ``03_range/range`` is enough): its frames
   corrected on CUDA and on the CPU
   (best of 2 passes, file I/O and model load included), and the CUDA colours against the CPU's (levels of 8 bits);
   then in monocular mode on CUDA.
@@ -49,7 +49,7 @@ def correct_check(ws: Path, out: Path) -> dict:
         for _ in range(2):
             began = time.perf_counter()
             result = correct_folder(stage_folder(ws, "restorer"), stage_folder(ws, "survey") / "images", out / device,
-                                    force=True, progress=False, range_dir=stage_folder(ws, "water") / "range",
+                                    force=True, progress=False, range_dir=stage_folder(ws, "range") / "range",
                                     device=device)
             best = min(best, time.perf_counter() - began)
         record[device] = {"mode": result.mode, "frames": result.corrected, "best_s": best,
@@ -82,7 +82,7 @@ def rate_check(ws: Path, out: Path, copies: int) -> dict:
     from watergan.train_restorer import load_restorer
 
     replica = replicate_workspace(ws, out / "frames", copies)
-    images, ranges = stage_folder(replica, "survey") / "images", stage_folder(replica, "water") / "range"
+    images, ranges = stage_folder(replica, "survey") / "images", stage_folder(replica, "range") / "range"
     frames = len(list(images.iterdir()))
 
     def timed(passes: int = 2, **kwargs) -> float:

@@ -192,13 +192,13 @@ def label_warp(ws):
 
 
 def range_maps(ws, names: list[str]) -> _Frames | None:
-    """Each frame's range (metres, NaN: none) from the water stage's range maps; None without the water stage."""
+    """Each frame's range (metres, NaN: none) from the range stage's maps; None without the range stage."""
     from watergan.io import read_millimetres
 
-    water = ws.result("water")
-    if water is None:
+    ranges = ws.result("range")
+    if ranges is None:
         return None
-    folder = ws.path(water.range_dir)
+    folder = ws.path(ranges.range_dir)
 
     def read(name: str) -> np.ndarray | None:
         path = folder / f"{Path(name).stem}.png"

@@ -85,7 +85,7 @@ def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
     new = folder / "workspace"
     if new.exists():
         shutil.rmtree(new)
-    survey, ranges = stage_folder(new, "survey"), stage_folder(new, "water") / "range"
+    survey, ranges = stage_folder(new, "survey"), stage_folder(new, "range") / "range"
     images = survey / "images"
     for d in (images, ranges, stage_folder(new, "sfm"), stage_folder(new, "dense")):
         d.mkdir(parents=True)
@@ -95,7 +95,7 @@ def replicate_workspace(ws: Path, folder: Path, copies: int) -> Path:
         for name in frames:
             stem = Path(name).stem
             (images / f"{c:03d}_{name}").symlink_to((stage_folder(ws, "survey") / "images" / name).resolve())
-            (ranges / f"{c:03d}_{stem}.png").symlink_to((stage_folder(ws, "water") / "range" / f"{stem}.png").resolve())
+            (ranges / f"{c:03d}_{stem}.png").symlink_to((stage_folder(ws, "range") / "range" / f"{stem}.png").resolve())
     repeated = {"frames": [f"{c:03d}_{f}" for c in range(copies) for f in frames]}
     repeated.update({key: nav[key] * copies for key in ("nav_altitude_m", "nav_down_cam", "nav_depth_m")
                      if key in nav})
@@ -136,7 +136,7 @@ def correct_speed(ws: Path, repeats: int, out: Path, image_format: str = "input"
         ws = replicate_workspace(own, out / "replica", copies)
     workspace = Workspace(ws)
     images = stage_folder(ws, "survey") / "images"
-    ranges = stage_folder(ws, "water") / "range"
+    ranges = stage_folder(ws, "range") / "range"
     frames = len(list(images.glob("*.png")))
     passes = max(1, min(repeats, 3))
     fps: dict[str, dict[str, float]] = {"physics": {}, "restorer": {}}

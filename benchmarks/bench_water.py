@@ -8,9 +8,9 @@ without the right camera, scale from the navigation altitude, dense range from S
 with ``vignetting_offcentre`` hidden, estimated with it added, as after ``--add vignetting_offcentre``; ``auv0``:
 the auv preset, strobes declared in survey.json, the off-centre vignetting hidden; ``auv0_add``: it estimated with
 that effect added; ``--no-light-rig``: the declared lights left out of the stack) it simulates the
-survey, runs the pipeline's SfM and dense stages on it (reused when present), estimates the water with
+survey, runs the pipeline's SfM, dense and range stages on it (reused when present), estimates the water with
 :func:`eval.water.estimate_water` from the raw frames, the SfM poses, the dense range (its fine grid, as the water
-stage's, on the fused mesh's range where the dense has none: :class:`pipeline.water.MeshFilledFrames`) and the board
+stage's, on the range stage's maps where the dense has none: :class:`pipeline.range.MeshFilledFrames`) and the board
 (pixel quads from the SfM poses) and prints per parameter the estimate, the truth (``truth/effects.json``), the
 relative error and whether the 95 % interval covers the truth. Then it corrects every frame with
 :func:`watergan.formation.inverse.correct_physics` with the water stage's range (dense, the fused mesh where the
@@ -92,11 +92,13 @@ def load_robust_forms() -> None:
 
 
 def prepare(root: Path, name: str) -> Path:
-    """Simulate the survey ``name`` into ``root/name/00_survey`` and run SfM and dense (each skipped when done)."""
+    """Simulate the survey ``name`` into ``root/name/00_survey`` and run SfM, dense and the range maps (each skipped
+    when done)."""
     from eval.synth import make_config, simulate_survey
 
     load_robust_forms()
     from pipeline.dense import DenseConfig
+    from pipeline.range import RangeConfig
     from pipeline.sfm import SfmConfig
     from pipeline.workspace import Workspace
 
@@ -137,6 +139,7 @@ def prepare(root: Path, name: str) -> Path:
         ws.run("sfm", SfmConfig())
     if not (ws.stage_dir("dense") / "result.json").is_file():
         ws.run("dense", DenseConfig(progress=False))
+    ws.run("range", RangeConfig(progress=False))
     return ws.root
 
 
@@ -147,7 +150,7 @@ def load_inputs(ws_root: Path):
     from eval.colour import truth_board
     from eval.observations import SparseTracks
     from eval.tracks import Tracks
-    from pipeline.water import water_frames
+    from pipeline.range import water_frames
 
     survey = stage_folder(ws_root, "survey")
     tracks = Tracks.load(stage_folder(ws_root, "sfm") / "tracks.npz")
@@ -171,6 +174,7 @@ def compare(params: dict, truth: dict) -> dict:
     for key, p in params.items():
         if key not in truth:
             continue
+        p = p if isinstance(p, dict) else p.to_json()
         value, true = np.atleast_1d(p["value"]).astype(float), np.atleast_1d(truth[key]).astype(float)
         with np.errstate(divide="ignore", invalid="ignore"):
             rel = np.where(np.abs(true) > 1e-9, (value - true) / np.abs(true), np.nan)
@@ -187,7 +191,7 @@ def compare(params: dict, truth: dict) -> dict:
 def compare_veil(veil: dict | None, truth: dict) -> dict:
     """{"veil": row} as :func:`compare`'s for the estimate's veil at the views' median range r (water.json's
     ``veil``), its truth B_inf (1 - exp(-beta r)) from the true backscatter; {} without either."""
-    from eval.fields import veil_at
+    from eval.water.fields import veil_at
 
     if not veil or "backscatter.b_inf" not in truth:
         return {}
@@ -199,7 +203,7 @@ def compare_veil(veil: dict | None, truth: dict) -> dict:
 
 def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float) -> dict:
     """Every frame corrected three ways, written as 8-bit sRGB: the estimated water with the water stage's range
-    (:func:`pipeline.water.correction_range`: dense, the fused mesh where the dense range has none or disagrees;
+    (:func:`pipeline.range.correction_range`: dense, the fused mesh where the dense range has none or disagrees;
     'physics'), the true stack with that range ('true_water_dense_range') and the oracle (true stack, true
     geometry). Pixels with no range at all take the nearest pixel's (the stage writes them black; fractions
     reported)."""
@@ -207,7 +211,7 @@ def correct_folders(ws_root: Path, frames, K, stack, out: Path, agreement: float
 
     from eval.baseline_runs import OracleGeometry, fill_nearest
     from eval.baselines import oracle
-    from pipeline.water import correction_range
+    from pipeline.range import correction_range
     from watergan.data import write_srgb8
     from watergan.formation import Stack
     from watergan.formation.inverse import correct_physics
@@ -273,11 +277,12 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if add:
         config = replace(config, effects=tuple(config.effects) + tuple(add))
     t = time.perf_counter()
+    from pipeline.range import RangeConfig
     from pipeline.water import fine_grid_frames, survey_lights
 
     lights = survey_lights(stage_folder(ws_root, "survey"))
     estimate = estimate_water(frames, K, sparse if use_tracks else None, board, config, lights=lights,
-                              grid_frames=fine_grid_frames(frames, K, stage_folder(ws_root, "dense") / "fused_mesh.ply",
+                              grid_frames=fine_grid_frames(frames, K, stage_folder(ws_root, "range") / "range",
                                                            config, lights))
     water_seconds = time.perf_counter() - t
     truth = truth_params(stage_folder(ws_root, "survey"))
@@ -302,12 +307,12 @@ def run_survey(root: Path, name: str, config, use_tracks: bool) -> dict:
     if estimate.tradeoffs:
         print("   bootstrap trade-offs:", estimate.tradeoffs)
     if estimate.grid is not None:
-        from eval.fields import field_size
+        from eval.water.fields import field_size
 
         print(f"   fine grid after the water: {'carried' if estimate.grid['carried'] else 'flat, not carried'} "
               f"({field_size(estimate.grid)}, {estimate.grid['seconds']:.1f} s)")
     out = ws_root / f"water_bench_{name}"
-    corr = correct_folders(ws_root, frames, K, estimate.stack, out, config.range_agreement)
+    corr = correct_folders(ws_root, frames, K, estimate.stack, out, RangeConfig().agreement)
     names = [f.name for f in frames]
     metrics = measure_corrections(ws_root, tracks, board, corr["folders"], names)
     print(f"   correction ({100 * corr['mesh_fraction']:.1f} % of pixels ranged from the fused mesh, "
@@ -355,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "water.json")
     args = parser.parse_args(argv)
 
-    from pipeline.water import WaterStage  # the estimate's options and the stage's range maps' (range_agreement)
+    from pipeline.water import WaterStage  # the estimate's options, as the water stage takes them
 
     config = WaterStage() if args.bootstrap is None else \
         WaterStage(fit=replace(WaterStage().fit, bootstrap=args.bootstrap))

@@ -5,7 +5,7 @@
     watergan run SURVEY --workspace WS    every stage, resumable (see pipeline/cli_run.py); SURVEY may be a video
     watergan frames VIDEO... --out DIR    a survey folder of frames from video clips (see pipeline/video.py)
     watergan demo [--out DIR]             simulate the built-in default survey and run every stage on it
-    watergan survey / sfm / dense / water / gan / restorer / correct / evaluate / texture / mosaic / report
+    watergan survey / sfm / dense / range / water / gan / restorer / correct / evaluate / texture / mosaic / report
              --workspace WS               one stage of the workspace (pipeline/cli_stage.py), as `run` runs it
     watergan train-gan / generate         WaterGAN on folders (see pipeline/cli_gan.py)
     watergan train-restorer / correct-folder   the restorer on folders (see pipeline/cli_restorer.py)

@@ -1,10 +1,12 @@
 """The 3D subcommands of the `watergan` console script (wired in by pipeline.cli); options from
-:class:`pipeline.sfm.SfmConfig`, :class:`pipeline.dense.DenseConfig`, :class:`pipeline.mesh.MeshConfig`,
+:class:`pipeline.sfm.SfmConfig`, :class:`pipeline.dense.DenseConfig`, :class:`pipeline.range.RangeConfig`,
+:class:`pipeline.water.WaterStage`, :class:`pipeline.mesh.MeshConfig`,
 :class:`eval.colour.ColourEvalConfig` and :class:`eval.depth.DepthCompareConfig` (see ``--help``):
 
     watergan sfm --workspace WS [--survey DIR] [--matching auto|sequential|exhaustive]
                  [--scale auto|stereo|board|altitude|none] [--board-json FILE [--board-width-m W ...]]
     watergan dense --workspace WS [--method auto|sgbm|patch_match] [--pairs auto|rig|neighbours] [--no-fuse]
+    watergan range --workspace WS [--agreement 0.01] [--normal-smooth-px 24]
     watergan water --workspace WS [--effects A,B] [--board-json FILE] [--bootstrap N]
     watergan consistency --workspace WS --out DIR --folders NAME=DIR[,NAME=DIR] [--patch-px 5]
                          [--truth-dir SURVEY | --board-json FILE]
@@ -12,7 +14,7 @@
     watergan texture --workspace WS [--images-dir DIR] [--source auto|dense|sparse] [--mesh-kind auto|2.5d|tsdf]
     watergan mosaic --workspace WS [--images-dir DIR] [--texel-m M]
 
-sfm, dense, texture and mosaic are workspace stages (:func:`pipeline.cli_stage.add_stage_command`:
+sfm, dense, range, water, texture and mosaic are workspace stages (:func:`pipeline.cli_stage.add_stage_command`:
 skipped when done with the same options and upstream results, unless --force; ``--survey DIR``
 links a survey first); consistency and depth-compare measure any folders on a workspace's tracks
 and dense depth and write into ``--out`` (the workspace's own consistency and depth comparison are
@@ -41,15 +43,20 @@ def print_dense(ws, r) -> None:
         print(f"fused: {ws.path(r.points_ply)}, {ws.path(r.mesh_ply)}")
 
 
+def print_range(ws, r) -> None:
+    print(f"range: {r.n_frames} range maps, from the fused mesh for {100 * r.mesh_fraction:.1f} % of the pixels, "
+          f"none for {100 * r.range_missing:.1f} %; {r.seconds:.1f} s")
+    print(f"range:  {ws.path(r.range_dir)}")
+
+
 def print_water(ws, r) -> None:
     print(r.summary)
-    print(f"{'board' if r.board else 'no board (gain held)'}; range from the fused mesh for "
-          f"{100 * r.mesh_fraction:.1f} % of the pixels, none for {100 * r.range_missing:.1f} %; "
-          f"estimate {r.estimate_seconds:.1f} s, all {r.seconds:.1f} s")
+    print(f"{'board' if r.board else 'no board (gain held)'}; estimate {r.estimate_seconds:.1f} s, all "
+          f"{r.seconds:.1f} s")
     if r.at_bounds:
         print("at a bound (the stack does not fit there; see the residuals and the diagnosis): "
               + ", ".join(r.at_bounds))
-    print(f"water:  {ws.path(r.water_json)}\nrange:  {ws.path(r.range_dir)}")
+    print(f"water:  {ws.path(r.water_json)}")
 
 
 def cmd_consistency(args: argparse.Namespace) -> int:
@@ -124,6 +131,7 @@ def add_commands(sub, parents: list[argparse.ArgumentParser]) -> None:
 
     add_stage_command(sub, parents, "sfm", print_sfm)
     add_stage_command(sub, parents, "dense", print_dense)
+    add_stage_command(sub, parents, "range", print_range)
     add_stage_command(sub, parents, "water", print_water)
 
     p = sub.add_parser("consistency", parents=parents, help="colour consistency across views (+ board accuracy)")

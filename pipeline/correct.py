@@ -11,8 +11,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from watergan.correction_range import CorrectMode
 from watergan.data import DataError
-from watergan.restore_folder import CorrectMode, CorrectOptions, CorrectResult, correct_folder
+from watergan.restore_folder import CorrectOptions, CorrectResult, correct_folder
 
 if TYPE_CHECKING:
     from .correct_physics import PhysicsInputs
@@ -63,7 +64,7 @@ class CorrectStageResult:
     fps: float
     """The restorer's frames per second, file I/O and model loading included."""
     mode: str
-    """"rgb-d" (each pixel's range from the water stage), "monocular" (the image and, when the restorer takes
+    """"rgb-d" (each pixel's range from the range stage), "monocular" (the image and, when the restorer takes
     them, the altitude and a flat seafloor's range at it), or "" (no restorer)."""
     mesh_images: str
     """The corrected frames the mesh stage textures with: the physics correction's when every scene pixel of it had
@@ -83,24 +84,26 @@ class CorrectStageResult:
 
 
 def physics_inputs(ws: Workspace, images: Path) -> PhysicsInputs:
-    """What the physics correction of the frames ``images`` reads, found in the workspace: the water stage's estimate
-    and range maps, the dense stage's depth, the sfm stage's tracks and scene mask, and the restorer stage's folder
-    (its site depth net) when it ran. A stage that has not run is a clear error."""
+    """What the physics correction of the frames ``images`` reads, found in the workspace: the water stage's estimate,
+    the range stage's range maps and normals' smoothing, the dense stage's depth, the sfm stage's tracks and scene
+    mask, and the restorer stage's folder (its site depth net) when it ran. A stage that has not run is a clear
+    error."""
     from .correct_physics import PhysicsInputs
 
     water = ws.require("water", "the physics correction")
+    ranges = ws.require("range", "the physics correction")
     dense = ws.require("dense", "the physics correction")
     sfm = ws.require("sfm", "the physics correction")
-    return PhysicsInputs(images, ws.path(sfm.tracks), water.stack, water.normal_smooth_px, ws.path(water.range_dir),
+    return PhysicsInputs(images, ws.path(sfm.tracks), water.stack, ranges.normal_smooth_px, ws.path(ranges.range_dir),
                          ws.path(dense.depth_dir),
                          ws.path(sfm.scene_mask) if getattr(sfm, "scene_mask", "") else None,
                          ws.folder("restorer") if ws.result("restorer") is not None else None)
 
 
 def run_correct_stage(ws: Workspace, cfg: CorrectStage) -> CorrectStageResult:
-    """Correct the survey's frames into the stage's folder: ``physics/`` with the water stage's estimate and range
-    maps (:func:`pipeline.correct_physics.correct_physics_folder`) when the water stage ran, ``restorer/`` with the
-    restorer stage's model when it ran (a restorer in RGB-D mode takes the water stage's range maps, ``cfg.mode``); at
+    """Correct the survey's frames into the stage's folder: ``physics/`` with the water stage's estimate and the range
+    stage's maps (:func:`pipeline.correct_physics.correct_physics_folder`) when the water stage ran, ``restorer/`` with
+    the restorer stage's model when it ran (a restorer in RGB-D mode takes the range stage's maps, ``cfg.mode``); at
     least one of them. Names the set the mesh textures with (``mesh_images``)."""
     from .correct_physics import correct_physics_folder
 
@@ -126,7 +129,8 @@ def run_correct_stage(ws: Workspace, cfg: CorrectStage) -> CorrectStageResult:
         physics = ws.relative(folder / "physics")
     result = CorrectResult(folder / "restorer", 0, 0, mode="")
     if restorer is not None:
-        ranges = ws.path(water.range_dir) if water is not None else None
+        done_range = ws.result("range")
+        ranges = ws.path(done_range.range_dir) if done_range is not None else None
         result = correct_folder(restorer.out_dir, images, folder / "restorer", force=True, batch_size=cfg.batch_size,
                                 progress=cfg.progress, scheduler=cfg.scheduler or None, range_dir=ranges,
                                 mode=str(cfg.mode), image_format=str(cfg.image_format), scene_mask=scene_mask,

@@ -20,8 +20,10 @@ from watergan.correction_range import (
     FAR_MAX_GAIN,
     FAR_RANGE_PCT,
     FILL_PX,
+    CorrectMode,
     RangeFrom,
     cap_gain,
+    corrected_name,
     fill_range,
     monocular_range,
     survey_far_range_m,
@@ -42,10 +44,10 @@ from watergan.io import (
 )
 from watergan.nets.restorer import WaterFields
 from watergan.nets.site_depth import SiteDepthNet
-from watergan.restore_folder import CorrectMode, corrected_name, cpu_lanes, keep_freed_memory
+from watergan.parallel import cpu_lanes, keep_freed_memory
 from watergan.train_site_depth import load_site_depth
 
-from .water import correction_normals, water_frame
+from .range import correction_normals, water_frame
 
 
 @dataclass(frozen=True)
@@ -59,9 +61,9 @@ class PhysicsInputs:
     stack: list[dict]
     """The water's estimate: its stack's configuration (:meth:`watergan.formation.Stack.from_config`)."""
     normal_smooth_px: float
-    """The water's smoothing of the dense range's normals (:func:`pipeline.water.correction_normals`)."""
+    """The smoothing of the dense range's normals (the range stage's: :func:`pipeline.range.correction_normals`)."""
     range_dir: Path
-    """Each frame's range map ``<stem>.png`` (16-bit millimetres, 0 = none: the water stage's)."""
+    """Each frame's range map ``<stem>.png`` (16-bit millimetres, 0 = none: the range stage's)."""
     depth_dir: Path
     """Each frame's dense depth (the dense stage's), for the normals of a stack that reads them."""
     scene_mask: Path | None = None
@@ -83,14 +85,14 @@ class PhysicsResult:
     seconds: float
     """Wall time, files included."""
     range_source: str
-    """"range maps" (the water stage's), "flat seafloor" or "site depth net" (monocular: :func:`monocular_range`)."""
+    """"range maps" (the range stage's), "flat seafloor" or "site depth net" (monocular: :func:`monocular_range`)."""
 
 
 def correct_physics_folder(inputs: PhysicsInputs, out: Path, progress: bool = True, image_format: str = "input",
                            mode: str = CorrectMode.rgbd, fill_px: float = FILL_PX, far_range_pct: float = FAR_RANGE_PCT,
                            far_max_gain: float = FAR_MAX_GAIN) -> PhysicsResult:
     """Every frame the tracks list through the inverse of the water's estimate; writes ``out/images/<name>`` (sRGB,
-    the input's bit depth, in ``image_format``: :func:`watergan.restore_folder.corrected_name`; pixels outside the
+    the input's bit depth, in ``image_format``: :func:`watergan.correction_range.corrected_name`; pixels outside the
     scene mask: the raw levels), ``out/mask/<stem>.png`` (255: corrected at its measured range; 0: range filled, or
     not the scene) and ``out/range_from/<stem>.png`` (each pixel's :class:`RangeFrom`).
 
@@ -100,10 +102,10 @@ def correct_physics_folder(inputs: PhysicsInputs, out: Path, progress: bool = Tr
     :func:`cap_gain`); monocular, for frames without range, a flat seafloor's at the frame's navigation altitude and
     attitude (``survey.json`` beside ``inputs.images``), times the site depth net's factor where
     ``inputs.site_depth_dir`` holds one that beat the flat seafloor (:func:`monocular_range`). A stack that reads
-    surface normals takes :func:`pipeline.water.correction_normals` (in monocular mode those of the range used).
+    surface normals takes :func:`pipeline.range.correction_normals` (in monocular mode those of the range used).
     Pixels outside the scene count in no share.
 
-    The frames stream through :func:`watergan.restore_folder.cpu_lanes` threads, each reading, correcting and writing
+    The frames stream through :func:`watergan.parallel.cpu_lanes` threads, each reading, correcting and writing
     one frame at a time on one torch thread, so memory does not grow with the survey (:class:`FrameInverse`)."""
     from watergan.device import single_torch_thread
     from watergan.io import write_png
@@ -180,15 +182,15 @@ def frame_ranges(inputs: PhysicsInputs, names: list[str], K: np.ndarray, scene: 
     if not monocular:
         lacking = [n for n in names if not (range_dir / f"{Path(n).stem}.png").is_file()]
         if lacking:
-            raise DataError(f"the water stage wrote no range map for {len(lacking)} of the {len(names)} frames (e.g. "
-                            f"{lacking[0]} in {range_dir}): rerun it (`watergan water --workspace WS --force`)")
+            raise DataError(f"the range stage wrote no range map for {len(lacking)} of the {len(names)} frames (e.g. "
+                            f"{lacking[0]} in {range_dir}): rerun it (`watergan range --workspace WS --force`)")
         far_range_m = survey_far_range_m([range_dir / f"{Path(n).stem}.png" for n in names], far_range_pct, scene)
         return FrameRanges(range_dir, far_range_m, fill_px, scene, K, "range maps")
     nav = inputs.images.parent / "survey.json"
     if not nav.is_file():
         raise DataError(f"the physics correction in monocular mode takes each frame's range from a flat seafloor "
                         f"at its altitude, and there is no navigation file {nav} with nav_altitude_m per frame: "
-                        f"add one, or correct with the water stage's range maps (--mode rgb-d)")
+                        f"add one, or correct with the range stage's maps (--mode rgb-d)")
     altitudes, downs = read_nav_altitudes(nav, names), read_nav_down(nav, names)
     lacking = [n for n in names if n not in altitudes]
     if lacking:
@@ -214,7 +216,7 @@ class FrameInverse:
         base = [e for e in inputs.stack if not get_effect(e["name"]).varies_by_frame()]
         self.per_frame = Stack.from_config(base) if len(base) < len(inputs.stack) else None
         self.fields = None if self.with_normals else WaterFields(base)
-        # the dense range only feeds the normals (the correction's range is the water stage's map)
+        # the dense range only feeds the normals (the correction's range is the range stage's map)
         self.depth_dir = inputs.depth_dir if self.with_normals and not monocular else None
         self.affines: dict[tuple[int, int], list] = {}  # per image size, every frame's affine map (frame_affines)
         self.affines_lock = threading.Lock()

@@ -1,7 +1,7 @@
 """The diagnose stage: the discovery loop (:mod:`eval.diagnose`) on a workspace or a survey folder.
 
 In a workspace where the water stage ran, the diagnosis starts from the water stage's estimate and ranks
-its candidates on the water stage's own measurement table (``03_water/observations.npz``, with the survey's
+its candidates on the water stage's own measurement table (``04_water/observations.npz``, with the survey's
 annotations added by :func:`eval.diagnose_measure.with_survey`): one model and one set of measurements for the
 correction and the diagnosis, so ``--add EFFECT`` refits the water with the effect on the views the
 ranking judged it on. Without a water stage it samples and measures its own points on the SfM tracks

@@ -109,7 +109,7 @@ class RestorerStage:
     altitude: bool | None = None
     """The colour net takes each image's altitude; auto: when the survey's navigation gives it (nav_altitude_m)."""
     range_input: bool | None = None
-    """RGB-D mode (each pixel's range); auto: when the water stage wrote each frame's range maps."""
+    """RGB-D mode (each pixel's range); auto: when the range stage wrote each frame's range maps."""
     site_depth_steps: int = 2000
     """Steps of the site depth net (monocular depth learned from the survey's dense depth,
     taken by monocular correction where it beats the flat seafloor on held-out frames); 0: none."""
@@ -127,9 +127,9 @@ def restorer_config(ws: Workspace, cfg: RestorerStage) -> RestorerConfig:
     ``altitude`` and ``range_input`` resolved (:class:`RestorerStage`)."""
     pairs = ws.require("gan", "the restorer")
     survey = ws.result("survey")
-    water = ws.result("water")
+    ranges = ws.result("range")
     altitude = cfg.altitude if cfg.altitude is not None else survey is not None and survey.navigation
-    range_input = cfg.range_input if cfg.range_input is not None else water is not None and bool(water.range_dir)
+    range_input = cfg.range_input if cfg.range_input is not None else ranges is not None and bool(ranges.range_dir)
     return dataclasses.replace(cfg.train, data_dir=ws.path(pairs.generated), out_dir=ws.stage_dir("restorer"),
                                altitude=altitude, range_input=range_input)
 

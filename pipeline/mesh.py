@@ -34,7 +34,7 @@ the normal and the direction to the camera). Texels no view sees stay black; col
 texels into the empty atlas space so that bilinear lookups at chart edges do not pull in black.
 The orthophoto mosaic is still made from the 2.5D height field.
 
-Outputs (``08_mesh/``): ``mesh.glb`` (textured), ``obj/mesh.obj`` + ``mesh.mtl`` + texture PNG,
+Outputs (``09_mesh/``): ``mesh.glb`` (textured), ``obj/mesh.obj`` + ``mesh.mtl`` + texture PNG,
 ``mesh_colours.ply`` (vertex colours), ``mosaic.png`` + ``mosaic.pgw`` (world file: texel size,
 rotation terms, -texel size, x and y of the upper-left texel's centre), ``mosaic.tif`` (the mosaic as an RGBA
 GeoTIFF, alpha 0 where no image saw the texel) and ``dem.tif`` (the height field's z at each texel, float32

@@ -1,8 +1,8 @@
 """`watergan run`: every stage of the stage table (:mod:`pipeline.stages`) in order on a survey folder,
 resumable.
 
-    survey -> sfm -> dense -> water -> gan (train, generate) -> restorer -> correct -> eval -> mesh -> diagnose
-           -> report
+    survey -> sfm -> dense -> range -> water -> gan (train, generate) -> restorer -> correct -> eval -> mesh
+           -> diagnose -> report
 
 A loop over the table: each stage's configuration is built the same way (:func:`stage_config`) and
 run through :meth:`Workspace.run`; the stage finds its inputs in the workspace itself. A stage is

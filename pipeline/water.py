@@ -1,9 +1,9 @@
-"""The water stage: the site's water from the survey's own geometry, and each pixel's range.
+"""The water stage: the site's water from the survey's own geometry.
 
 It reads the raw frames (survey), their poses (sfm), their dense range (dense: camera z, turned into
-ray length) and the colour board when there is one (the simulator's, or ``board_json``), and estimates
-the formation stack with :func:`eval.water.estimate_water` (which constraint pins which parameter, and
-what stays degenerate: its module docstring). Writes into the stage's folder:
+ray length), the range stage's range maps (for the fine grid) and the colour board when there is one (the
+simulator's, or ``board_json``), and estimates the formation stack with :func:`eval.water.estimate_water` (which
+constraint pins which parameter, and what stays degenerate: its module docstring). Writes into the stage's folder:
 
     water.json              every parameter with its 95 % interval, the fitted stack, trade-offs, timings, the
                             plots it made (:class:`watergan.water_record.WaterRecord`: written and read there alone)
@@ -12,17 +12,10 @@ what stays degenerate: its module docstring). Writes into the stage's folder:
     summary.txt             one line: eta and B_inf with their intervals
     residuals.png           the fit's residuals against range and image position; fields.png, frames.png: the
                             fields over the image and the gains per frame, where the stack has them
-    range/<stem>.png        each pixel's range (:func:`correction_range`), 16-bit millimetres (0: none)
 
-The range maps are this stage's (the dense stage writes camera z, not these): the correct stage inverts
-the estimate with them (the physics correction) and the RGB-D restorer takes them.
-
-Range per pixel (:func:`correction_range`): the dense stage's depth map where it agrees with the dense
-stage's fused mesh rendered into the view (open3d ray casting from the SfM pose) within ``range_agreement``;
-the mesh's range where the depth map has none or disagrees (the mesh fuses every view, so a depth map's
-outliers at relief edges do not survive it); a pixel with neither has none (0 in the map). The water is fitted to
-a table measured on the dense range alone; the fine grid after it (which serves the corrections) to one measured with
-the mesh's range where the dense range has none (:class:`MeshFilledFrames`), so that its views reach the image's
+Each pixel's range is the range stage's (:mod:`pipeline.range`): the water is fitted to a table measured on the dense
+range alone; the fine grid after it (which serves the corrections) to one measured on the dense range filled with the
+range stage's maps where it has none (:class:`pipeline.range.MeshFilledFrames`), so that its views reach the image's
 edges, which the correction corrects.
 
 A light rig: when the survey's ``survey.json`` declares ``lights`` (an AUV's strobes: offset_m, tilt_deg,
@@ -30,14 +23,12 @@ beam_deg per light), the stack models them with ``artificial_light``, the rig he
 (degenerate with the gain), its light-path attenuation tied to the water's eta (:func:`eval.water.build_stack`;
 ``--no-light-rig`` leaves them out); without it the strobes' fall-off with distance is read as attenuation.
 The light needs each observation's point and surface normal in the camera frame: the points come from the dense
-range, the normals from the dense range smoothed by ``normal_smooth_px``
-(:func:`watergan.formation.inverse.normals_from_range`), for the estimate (at each sample's source pixel) as for
-the correction (:func:`correction_normals`: the range map only where the dense range has none).
+range, the normals from the dense range smoothed as the range stage records (its ``normal_smooth_px``), for the
+estimate (at each sample's source pixel) as for the correction (:func:`pipeline.range.correction_normals`).
 """
 
 from __future__ import annotations
 
-import functools
 import sys
 import time
 from collections.abc import Sequence
@@ -46,23 +37,18 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.fields import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT
-from eval.intervals import on_bound
 from eval.observations import WaterFrame
 from eval.tracks import Tracks
 from eval.water import WaterConfig, WaterEstimate, reads_normals
+from eval.water.estimate import stderr_line
+from eval.water.fields import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT
+from eval.water.intervals import on_bound
 from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
-from watergan.formation.inverse import clean_range
-from watergan.io import (
-    atomic_write_text,
-    depth_within,
-    read_depth,
-    write_depth_png,
-    z_to_range,
-)
+from watergan.io import atomic_write_text
 from watergan.water_record import WATER_PLOTS, write_water
 
+from .range import MeshFilledFrames, water_frames
 from .workspace import Workspace
 
 
@@ -76,9 +62,6 @@ class WaterStage(WaterConfig):
     board_json: str = ""
     """A colour-board file (per-image pixel corners of the board's patches). Empty: the simulated survey's board
     when there is one, else none (then the gain is held)."""
-    range_agreement: float = 0.01
-    """The range maps: a pixel keeps its dense range where the fused mesh agrees within this fraction.
-    Else it takes the mesh's (the estimate itself reads the dense range)."""
     progress: bool = field(default=True, metadata={"hash": False})
     """Progress bars."""
 
@@ -91,14 +74,6 @@ class WaterResult:
     """One line: eta and B_inf with their 95 % intervals."""
     stack: list[dict]
     """The estimated formation stack ({name, params} entries)."""
-    range_dir: str
-    """Workspace-relative folder of each frame's range map (<stem>.png, 16-bit millimetres, 0: none)."""
-    mesh_fraction: float
-    """Share of the pixels whose range came from the fused mesh."""
-    range_missing: float
-    """Share of the pixels with no range at all."""
-    normal_smooth_px: float
-    """The smoothing of the dense range's normals the estimate took (the correction takes the same)."""
     board: bool
     """Whether a colour board took part (it pins the gain)."""
     at_bounds: list[str]
@@ -107,7 +82,7 @@ class WaterResult:
     converged: bool
     """Whether the fit converged within ``max_iterations`` (if not, its estimate is where it stopped)."""
     seconds: float
-    """Wall time of the stage (estimate and range maps)."""
+    """Wall time of the stage (estimate, plots and files)."""
     estimate_seconds: float
     """Wall time of the estimate alone."""
     observations: str
@@ -120,122 +95,14 @@ class WaterResult:
     """Surface points in that table."""
 
 
-#: Frames :class:`LazyFrames` keeps once made (about 5 MB each at 640x480): a survey of up to this many frames is
-#: read once however many passes the measurement makes; a longer one is read again on each pass, in bounded memory.
-CACHED_FRAMES = 64
-
-
-class LazyFrames(Sequence[WaterFrame]):
-    """``n`` frames made by ``make(k)`` when indexed, the last :data:`CACHED_FRAMES` kept, so that the water stage's
-    memory does not grow with the survey's length."""
-
-    def __init__(self, n: int, make):
-        self._n = n
-        self._read = functools.lru_cache(maxsize=CACHED_FRAMES)(make)
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self[i] for i in range(*k.indices(self._n))]
-        if not -self._n <= k < self._n:
-            raise IndexError(k)
-        return self._read(k % self._n)
-
-
-class SurveyFrames(LazyFrames):
-    """The survey's frames as :func:`water_frame` reads them, read when indexed (:class:`LazyFrames`)."""
-
-    def __init__(self, tracks: Tracks, images: Path, depth_dir: Path | None):
-        super().__init__(len(tracks.image_names), lambda k: water_frame(tracks, k, images, depth_dir))
-
-
-def water_frames(tracks: Tracks, images: Path, depth_dir: Path | None) -> SurveyFrames:
-    """Raw linear frames, their dense range (ray length; NaN = none) and SfM pose (None: not registered), read on
-    demand (:class:`SurveyFrames`)."""
-    return SurveyFrames(tracks, images, depth_dir)
-
-
-def water_frame(tracks: Tracks, k: int, images: Path, depth_dir: Path | None) -> WaterFrame:
-    """The k-th frame of :func:`water_frames`."""
-    from watergan.data import read_image
-
-    K = np.asarray(tracks.K, float)
-    name = str(tracks.image_names[k])
-    image = read_image(images / name).astype(np.float32)
-    path = depth_dir / f"{Path(name).stem}.png" if depth_dir is not None else None
-    if path is not None and path.is_file():
-        range_m = z_to_range(read_depth(path), K).astype(np.float32)
-    else:
-        range_m = np.full(image.shape[:2], np.nan, np.float32)
-    return WaterFrame(name=name, image=image, range_m=range_m,
-                      world_from_cam=tracks.world_from_cam[k] if tracks.registered[k] else None)
-
-
-class MeshFilledFrames(LazyFrames):
-    """The frames the fine grid's table is measured on: each frame's dense range, and the fused mesh's range
-    (:func:`mesh_range`) where the dense range has none; with ``smooth_px``, normals as the correction takes them
-    (:func:`correction_normals`; None: none of their own, for a stack that reads none). A stereo pair's dense range
-    stops short of the image's edges (the left edge the right camera does not see, a margin on the right) where the
-    correction still corrects (from the mesh): without the mesh the table has no views there, and the grid is
-    extrapolated into them. Made when indexed (:class:`LazyFrames`); frames without a pose, or ``mesh_ply`` None,
-    as they are."""
-
-    def __init__(self, frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, smooth_px: float | None):
-        self._frames, self._K, self._mesh, self._smooth = frames, np.asarray(K, float), mesh_ply, smooth_px
-        self._scene = None
-        super().__init__(len(frames), self._fill)
-
-    @property
-    def scene(self):
-        """The mesh's ray-casting scene (:func:`mesh_range`) once a frame was filled; None before."""
-        return self._scene
-
-    def _fill(self, k: int) -> WaterFrame:
-        frame = self._frames[k]
-        missing = np.isnan(clean_range(frame.range_m))
-        if self._mesh is None or frame.world_from_cam is None or not missing.any():
-            return frame
-        meshed, self._scene = mesh_range(self._mesh, frame, self._K, self._scene, where=missing)
-        range_m = np.where(missing, meshed, frame.range_m).astype(np.float32)
-        if self._smooth is None:
-            return replace(frame, range_m=range_m)
-        return replace(frame, range_m=range_m, normals_cam=correction_normals(frame, range_m, self._K, self._smooth))
-
-
-def fine_grid_frames(frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, config: WaterConfig,
+def fine_grid_frames(frames: Sequence[WaterFrame], K: np.ndarray, range_dir: Path | None, config: WaterConfig,
                      lights: list[dict] | None = None) -> MeshFilledFrames:
-    """The frames the water stage measures the fine grid's table on (:class:`MeshFilledFrames`): the fused mesh's
-    range where ``mesh_ply`` is a file, their own normals only when the stack reads them
-    (:func:`eval.water.reads_normals`)."""
+    """The frames the water stage measures the fine grid's table on (:class:`pipeline.range.MeshFilledFrames`): the
+    range stage's maps (in ``range_dir``) where the dense range has none, their own normals only when the stack reads
+    them (:func:`eval.water.reads_normals`)."""
     smooth_px = config.measure.normal_smooth_px if reads_normals(config, len(frames), lights) else None
-    return MeshFilledFrames(frames, K, mesh_ply if mesh_ply is not None and Path(mesh_ply).is_file() else None,
+    return MeshFilledFrames(frames, K, range_dir if range_dir is not None and Path(range_dir).is_dir() else None,
                             smooth_px)
-
-
-def mesh_range(mesh_ply: Path, frame: WaterFrame, K: np.ndarray, scene=None, where: np.ndarray | None = None):
-    """(range (H,W) metres along each pixel's ray to the fused mesh, NaN where it misses and outside ``where`` (an
-    (H,W) mask of the pixels to cast; None: all); the ray-casting scene for the next frame)."""
-    import open3d as o3d
-
-    if scene is None:
-        mesh = o3d.io.read_triangle_mesh(str(mesh_ply))
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    h, w = frame.range_m.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64) if where is None else np.nonzero(where)
-    rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones(np.shape(xs))], -1)
-    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True) @ frame.world_from_cam[:3, :3].T
-    origin = np.broadcast_to(frame.world_from_cam[:3, 3], rays.shape)
-    hits = scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, rays], -1).astype(np.float32)))
-    t = hits["t_hit"].numpy().astype(np.float64)
-    t = np.where(np.isfinite(t), t, np.nan)
-    if where is None:
-        return t, scene
-    out = np.full((h, w), np.nan)
-    out[where] = t
-    return out, scene
 
 
 def survey_lights(survey: Path) -> list[dict]:
@@ -364,66 +231,23 @@ def _plot_frames(estimate: WaterEstimate, path: Path) -> bool:
     return True
 
 
-def correction_range(frame: WaterFrame, K: np.ndarray, mesh_ply: Path | None, agreement: float, scene=None):
-    """(range (H,W) metres, NaN = none; the mask of pixels that took the mesh's range; the ray-casting scene):
-    the frame's dense range where the fused mesh misses or agrees within ``agreement`` (relative), else the
-    mesh's range (frames without a pose keep their dense range)."""
-    r = np.asarray(frame.range_m, np.float64)
-    if mesh_ply is None or frame.world_from_cam is None:
-        return r, np.zeros(r.shape, bool), scene
-    meshed, scene = mesh_range(mesh_ply, frame, K, scene)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        keep = np.isfinite(r) & (~np.isfinite(meshed) | (np.abs(r / meshed - 1.0) <= agreement))
-    from_mesh = ~keep & np.isfinite(meshed)
-    return np.where(keep, r, meshed), from_mesh, scene
-
-
-def correction_normals(frame: WaterFrame, range_m: np.ndarray, K: np.ndarray, smooth_px: float) -> np.ndarray:
-    """(H,W,3) camera-frame surface normals for the correction, as the estimate takes them: the frame's own
-    (``frame.normals_cam``) when it has them, else those of its dense range smoothed by ``smooth_px``
-    (:func:`watergan.formation.inverse.normals_from_range`); and those of the correction's range ``range_m``
-    (:func:`correction_range`) where the dense range has none. Not the correction's range throughout: where it
-    switches between the dense range and the mesh's, a step of a percent or two tilts the smoothed normals along the
-    seam. On the auv preset (seed 0, 47 % of the pixels ranged from the mesh) the normals' error against the truth
-    went from a median of 5.3 to 2.3 degrees (p90 21.9 to 7.8) and the board's CIEDE2000 from 1.35 to 1.25 (1.22
-    with the true normals); on seed 1 (26 % from the mesh) the error stayed as it was (mean 3.2 degrees) and the
-    board went from 1.37 to 1.39 (1.37 with the true normals): ``benchmarks/RESULTS/3d.md``."""
-    from eval.observations import frame_normals
-    from watergan.formation.inverse import normals_from_range
-
-    normals = frame_normals(frame, K, smooth_px)
-    missing = ~np.isfinite(normals).all(axis=-1)
-    if missing.any():
-        normals[missing] = normals_from_range(range_m, K, smooth_px)[missing]
-    return normals
-
-
-def write_range_maps(out: Path, frames: Sequence[WaterFrame], K: np.ndarray, mesh_ply: Path | None, agreement: float,
-                     progress: bool, scene=None) -> tuple[float, float]:
-    """Each frame's :func:`correction_range` as ``out/<stem>.png`` (16-bit millimetres); returns (share of the
-    pixels ranged from the mesh, share with no range). ``scene``: the mesh's ray-casting scene when already made."""
-    from tqdm import tqdm
-
-    from_mesh, missing = [], []
-    for f in tqdm(frames, desc="range maps", unit="frame", disable=not progress):
-        r, meshed, scene = correction_range(f, K, mesh_ply, agreement, scene)
-        r, _ = depth_within(r)  # a long mesh ray or a corner's range beyond what the millimetre PNG holds: no range
-        from_mesh.append(float(np.mean(meshed)))
-        missing.append(float(np.mean(~(np.isfinite(r) & (r > 0)))))
-        write_depth_png(out / f"{Path(f.name).stem}.png", r)
-    return float(np.mean(from_mesh)), float(np.mean(missing))
-
-
 def at_bounds(estimate: WaterEstimate) -> list[str]:
-    """The fitted parameter components on a bound of their range (:func:`eval.intervals.on_bound`)."""
+    """The fitted parameter components on a bound of their range (:func:`eval.water.intervals.on_bound`)."""
     out = []
     for effect in estimate.stack.effects:
         for p in effect.params:
             key = f"{effect.name}.{p.name}"
-            if estimate.params.get(key, {}).get("fitted"):
+            if (entry := estimate.params.get(key)) is not None and entry.fitted:
                 near = on_bound(key, p, effect.param(p.name).detach().numpy())
                 out += [f"{key}[{i}]" if near.size > 1 else key for i in np.flatnonzero(near)]
     return out
+
+
+def range_settings(ws: Workspace, cfg: WaterStage) -> WaterStage:
+    """``cfg`` with the range stage's smoothing of the dense range's normals (the correction takes the same); a clear
+    error before the range stage ran."""
+    ranges = ws.require("range", "the water estimate")
+    return replace(cfg, measure=replace(cfg.measure, normal_smooth_px=ranges.normal_smooth_px))
 
 
 def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
@@ -436,6 +260,7 @@ def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
     if dense is None:
         raise UserInputError("the water estimate needs each pixel's range: run the dense stage first (`watergan "
                              "dense --workspace WS`), with stereo frames (right/) or enough overlap for MVS")
+    cfg = range_settings(ws, cfg)
     survey = ws.stage_dir("survey")
     tracks = Tracks.load(ws.path(sfm.tracks))
     K = np.asarray(tracks.K, float)
@@ -447,10 +272,9 @@ def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
         print("water: the SfM model has no metric scale: attenuation and backscatter coefficients are per SfM "
               "unit, not per metre (give a stereo rig, a board or nav_altitude_m)", file=sys.stderr)
     lights = survey_lights(survey)
-    mesh_ply = ws.path(dense.mesh_ply) if dense.mesh_ply else None
-    grid_frames = fine_grid_frames(frames, K, mesh_ply, cfg, lights)
+    grid_frames = fine_grid_frames(frames, K, ws.path(ws.result("range").range_dir), cfg, lights)
     estimate = estimate_water(frames, K, board=board, config=cfg, lights=lights, normals=True,
-                              grid_frames=grid_frames)
+                              grid_frames=grid_frames, say=stderr_line if cfg.progress else None)
     estimate_s = time.perf_counter() - began
     out = ws.stage_dir("water")
     estimate.observations.save(out / "observations.npz")
@@ -459,8 +283,6 @@ def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
                (("residuals.png", _plot_residuals), ("fields.png", _plot_fields), ("frames.png", _plot_frames))}
     write_water(out / "water.json", estimate.to_record({name: WATER_PLOTS[name] for name, made in plotted.items()
                                                         if made}))
-    mesh_share, missing = write_range_maps(out / "range", frames, K, mesh_ply, cfg.range_agreement, cfg.progress,
-                                           grid_frames.scene)
     print(estimate.summary(), flush=True)
     if not estimate.converged:
         print(f"water: the fit had not converged after {estimate.iterations} iterations (raise "
@@ -472,9 +294,8 @@ def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
               f"is missing or has another form); see {ws.relative(out / 'residuals.png')} and run the diagnosis",
               file=sys.stderr)
     return WaterResult(water_json=ws.relative(out / "water.json"), summary=estimate.summary(),
-                       stack=estimate.stack.to_config(), range_dir=ws.relative(out / "range"),
-                       mesh_fraction=mesh_share, range_missing=missing, normal_smooth_px=cfg.measure.normal_smooth_px,
-                       board=board is not None, at_bounds=bounds, converged=estimate.converged,
+                       stack=estimate.stack.to_config(), board=board is not None, at_bounds=bounds,
+                       converged=estimate.converged,
                        seconds=time.perf_counter() - began, estimate_seconds=estimate_s,
                        observations=ws.relative(out / "observations.npz"),
                        n_observations=int(len(estimate.observations.colour)),

@@ -3,7 +3,7 @@
 ```
 WORKSPACE/
   <stage folder>/        one per stage of the stage table (pipeline/stages.py), numbered in run order:
-                         00_survey/ 01_sfm/ 02_dense/ ... 10_report/
+                         00_survey/ 01_sfm/ 02_dense/ 03_range/ ... 11_report/
   <stage>/config.json    the stage's configuration (a frozen dataclass, as JSON), its upstream and hash
   <stage>/result.json    the stage's result: workspace-relative paths and summary numbers
 ```

@@ -166,7 +166,7 @@ def test_an_rgbd_restorer_corrects_with_each_pixel_s_range(tmp_path):
 
 
 def test_lanes_side_by_side_write_the_same_files_and_leave_torch_s_threads(tmp_path, monkeypatch):
-    """Batches corrected side by side on the CPU (watergan.restore_folder.cpu_lanes) give the bytes one lane gives, with
+    """Batches corrected side by side on the CPU (watergan.parallel.cpu_lanes) give the bytes one lane gives, with
     batches of every size (a short last batch), and torch's thread count is left as it was."""
     import watergan.restore_folder as correct
 
@@ -258,7 +258,7 @@ def test_the_allocator_keeps_freed_memory_on_glibc():
     is none the correction runs with the allocator's defaults."""
     import platform
 
-    from watergan.restore_folder import keep_freed_memory
+    from watergan.parallel import keep_freed_memory
 
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
@@ -285,12 +285,13 @@ def _underwater(j: np.ndarray, range_m: np.ndarray) -> np.ndarray:
 
 
 def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
-    """A workspace with the records the physics correction reads, as the sfm, dense and water stages would save
-    them, for a camera over a flat floor (truth: in-air colour J and range) whose frames see open water in their top
-    rows (pure backscatter) and a burned-in timestamp (the scene mask); the water stage's range maps have no range in
+    """A workspace with the records the physics correction reads, as the sfm, dense, range and water stages would
+    save them, for a camera over a flat floor (truth: in-air colour J and range) whose frames see open water in their
+    top rows (pure backscatter) and a burned-in timestamp (the scene mask); the range stage's maps have no range in
     the open water and a 3x3 hole on the floor. Returns (workspace, images folder, truth {name: (J, range)})."""
     from eval.tracks import Tracks
     from pipeline.dense import DenseConfig, DenseResult
+    from pipeline.range import RangeConfig, RangeResult
     from pipeline.sfm import SfmConfig, SfmResult
     from pipeline.water import WaterResult, WaterStage
     from pipeline.workspace import Workspace
@@ -300,7 +301,7 @@ def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
     ws = Workspace(tmp_path / "ws")
     images = ws.stage_dir("survey") / "images"
     images.mkdir()
-    ranges = ws.stage_dir("water") / "range"
+    ranges = ws.stage_dir("range") / "range"
     rng = np.random.default_rng(5)
     names, truth = [f"f{k}.png" for k in range(len(altitudes_m))], {}
     for name, altitude_m in zip(names, altitudes_m, strict=True):
@@ -328,10 +329,11 @@ def _simulated_workspace(tmp_path, altitudes_m=(1.5, 2.0, 2.5)):
         mean_track_length=0.0, mean_reprojection_error_px=0.0, matching="sequential", scale_method="altitude",
         scale_factor=1.0, scale_spread=0.0, seconds=0.0, scene_mask=f"{sfm}/scene_mask.png"))
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=f"{dense}/depth", pairs={}, coverage={}, mean_coverage=0.0))
+    ws.save("range", RangeConfig(), RangeResult(range_dir=ws.relative(ranges), mesh_fraction=0.0, range_missing=0.0,
+                                                normal_smooth_px=24.0, n_frames=n, seconds=0.0))
     ws.save("water", WaterStage(), WaterResult(
-        water_json=f"{water}/water.json", summary="", stack=STACK, range_dir=f"{water}/range", mesh_fraction=0.0,
-        range_missing=0.0, normal_smooth_px=24.0, board=False, at_bounds=[], converged=True, seconds=0.0,
-        estimate_seconds=0.0, observations="", n_observations=0, n_points=0))
+        water_json=f"{water}/water.json", summary="", stack=STACK, board=False, at_bounds=[], converged=True,
+        seconds=0.0, estimate_seconds=0.0, observations="", n_observations=0, n_points=0))
     return ws, images, truth
 
 

@@ -596,11 +596,12 @@ def test_bad_input_is_a_clear_error(tmp_path, clean):
 @pytest.fixture(scope="module")
 def water_ws(surveys, tmp_path_factory):
     """A workspace on the small survey hiding off-centre vignetting: the sfm stage's record holding the truth's
-    tracks (:func:`_tracks_from_truth`), the dense stage's the true depth maps, and the water stage run on them
-    (no bootstrap, 150 samples per frame)."""
+    tracks (:func:`_tracks_from_truth`), the dense stage's the true depth maps, and the range and water stages run
+    on them (the water with no bootstrap, 150 samples per frame)."""
     from test_water import water_config
 
     from pipeline.dense import DenseConfig, DenseResult
+    from pipeline.range import RangeConfig
     from watergan.io import write_depth_png
 
     root = tmp_path_factory.mktemp("water-ws") / "ws"
@@ -613,6 +614,7 @@ def water_ws(surveys, tmp_path_factory):
     for k, name in enumerate(truth.frames):
         write_depth_png(depth / f"{Path(name).stem}.png", truth.depth_m(k))
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=ws.relative(depth), pairs={}, coverage={}, mean_coverage=1.0))
+    ws.run("range", RangeConfig(progress=False))
     return ws, ws.run("water", water_config(bootstrap=0, samples_per_frame=150, progress=False))
 
 
@@ -652,7 +654,7 @@ def test_the_workspace_diagnosis_finds_the_hidden_effect_on_the_water_stages_obs
     ws, water = water_ws
     result = run_diagnose(ws.root, replace(FAST, measure=MeasureConfig(n_points=10 ** 6)), progress=False)
     assert result.geometry == "water stage (scale: stereo)" and result.n_obs == water.n_observations
-    assert result.measurements == (f"water stage (scale: stereo) (03_water/observations.npz): {water.n_observations} "
+    assert result.measurements == (f"water stage (scale: stereo) (04_water/observations.npz): {water.n_observations} "
                                    f"observations of {water.n_points} points; its {water_board_rows(ws)} board rows "
                                    f"not used (known albedo: the diagnosis fits one per point)")
     assert json.loads((ws.folder("diagnose") / "ranking.json").read_text())["measurements"] == result.measurements

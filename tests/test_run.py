@@ -43,8 +43,8 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     html = report.read_text()
     assert "<img" in html and "http://" not in html.replace("http://www.w3.org", "")
     summary = json.loads((out / "run_summary.json").read_text())
-    assert [s["stage"] for s in summary["stages"]] == ["survey", "sfm", "dense", "water", "gan", "restorer", "correct",
-                                                       "eval", "mesh", "diagnose", "report"]
+    assert [s["stage"] for s in summary["stages"]] == ["survey", "sfm", "dense", "range", "water", "gan", "restorer",
+                                                       "correct", "eval", "mesh", "diagnose", "report"]
     assert not any(s["skipped"] for s in summary["stages"])
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == [
         s.folder for s in STAGES.values()]  # numbered in run order, nothing loose but the run's summary
@@ -60,7 +60,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     gan = json.loads((stage_folder(out, "gan") / "result.json").read_text())["result"]["train"]
     assert gan["site_water"]["mode"] == "held"
     assert gan["site_water"]["water_json"].endswith(f"{STAGES['water'].folder}/water.json")
-    assert len(list((stage_folder(out, "water") / "range").glob("*.png"))) == 10
+    assert len(list((stage_folder(out, "range") / "range").glob("*.png"))) == 10
     diagnosis = json.loads((stage_folder(out, "diagnose") / "result.json").read_text())["result"]
     assert diagnosis["ledger"] == f"{STAGES['diagnose'].folder}/model_ledger.jsonl"
     ledger = [json.loads(line) for line in (out / diagnosis["ledger"]).read_text().splitlines()]
@@ -73,7 +73,7 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert second.returncode == 0, second.stderr[-3000:]
     assert time.perf_counter() - began < 30
     assert all(s["skipped"] for s in json.loads((out / "run_summary.json").read_text())["stages"])
-    assert second.stdout.count("finished earlier, skipped") == 11
+    assert second.stdout.count("finished earlier, skipped") == 12
 
     restorer_mtime = (stage_folder(out, "restorer") / "result.json").stat().st_mtime_ns
     sfm_mtime = (stage_folder(out, "sfm") / "result.json").stat().st_mtime_ns
@@ -92,8 +92,9 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     assert "registered 10 of 10" in capsys.readouterr().out
     assert (stage_folder(out, "sfm") / "result.json").stat().st_mtime_ns == sfm_mtime
     correct_mtime = (stage_folder(out, "correct") / "result.json").stat().st_mtime_ns
-    for command in (["gan", "--budget-min", "0.1"], ["restorer", "--budget-min", "0.1", "--site-depth-steps", "20",
-                                                        "--stage1-min-iterations", "0", "--stage2-min-iterations", "0"],
+    for command in (["range"], ["gan", "--budget-min", "0.1"],
+                    ["restorer", "--budget-min", "0.1", "--site-depth-steps", "20", "--stage1-min-iterations", "0",
+                     "--stage2-min-iterations", "0"],
                     ["correct"]):
         assert main([*command, "--workspace", str(out), "--no-progress"]) == 0, command  # as run did them: skipped
     assert (stage_folder(out, "correct") / "result.json").stat().st_mtime_ns == correct_mtime
@@ -106,8 +107,8 @@ def test_demo_end_to_end_resume_and_force(tmp_path, capsys):
     (stage_folder(moved, "report") / "report.html").unlink()
     assert main(["demo", "--preset", "small", "--out", str(moved), *FAST]) == 0
     captured = capsys.readouterr()
-    assert captured.out.count("finished earlier, skipped") == 10, captured.out  # all but the report
-    assert "report: 1 of its files are gone or cut short since it ran (e.g. 10_report/report.html)" in captured.err
+    assert captured.out.count("finished earlier, skipped") == 11, captured.out  # all but the report
+    assert "report: 1 of its files are gone or cut short since it ran (e.g. 11_report/report.html)" in captured.err
     assert (stage_folder(moved, "report") / "report.html").is_file()
 
 
@@ -385,7 +386,7 @@ def test_options_from_a_file_are_checked_as_the_command_line_checks_them(tmp_pat
 
 def test_the_restorer_finds_its_pairs_altitude_and_range_mode_in_the_workspace(tmp_path):
     """What `watergan run` used to pass the restorer, the stage reads itself: the gan stage's pairs, the survey's
-    navigation (altitude) and the water stage's range maps (RGB-D mode); options given win."""
+    navigation (altitude) and the range stage's maps (RGB-D mode); options given win."""
     from pipeline.gan import GanStage, GanStageResult, RestorerStage, restorer_config
     from pipeline.workspace import Workspace
 
@@ -398,7 +399,7 @@ def test_the_restorer_finds_its_pairs_altitude_and_range_mode_in_the_workspace(t
                                               generated_count=2, generate_seconds=0.0))
     cfg = restorer_config(ws, RestorerStage())
     assert cfg.data_dir == ws.folder("gan") / "generated" and cfg.out_dir == ws.folder("restorer")
-    assert not cfg.altitude and not cfg.range_input  # no navigation, no water stage
+    assert not cfg.altitude and not cfg.range_input  # no navigation, no range stage
     ws.save("survey", SurveyConfig("S"), dataclasses.replace(survey, navigation=True))
     assert restorer_config(ws, RestorerStage()).altitude
     assert not restorer_config(ws, RestorerStage(altitude=False)).altitude

@@ -132,7 +132,8 @@ FOUND_SOURCES = {
             "train.site_water": "water.water_json", "train.budget_min": "config.budget_min",
             "generate.model_dir": "gan/", "generate.rgbd_dir": "survey.rgbd_dir", "generate.out_dir": "gan/"},
     "restorer": {"train.data_dir": "gan.generated", "train.out_dir": "restorer/", "train.altitude": "survey.navigation",
-                 "train.range_input": "water.range_dir"},
+                 "train.range_input": "range.range_dir"},
+    "water": {"measure.normal_smooth_px": "range.normal_smooth_px"},
 }
 
 
@@ -189,15 +190,17 @@ def _marked_result(stage: str):
 def test_found_fields_are_filled_from_the_sources_named(tmp_path):
     """Each stage with ``found`` fields, resolved in a workspace whose upstream results carry marks
     (:func:`_marked_result`), fills each found field from the source :data:`FOUND_SOURCES` names: the mark of that
-    result's field (a path ending in it, or a flag other than the field's default that the mark sets), a path in
-    that stage's folder, or the value given to that configuration field."""
+    result's field (a path ending in it, or a flag or number other than the field's default that the mark sets), a
+    path in that stage's folder, or the value given to that configuration field."""
     import dataclasses
     import operator
 
     from pipeline.gan import gan_configs, restorer_config
+    from pipeline.water import range_settings
 
     resolve = {"gan": lambda ws, cfg: dict(zip(("train", "generate"), gan_configs(ws, cfg), strict=True)),
-               "restorer": lambda ws, cfg: {"train": restorer_config(ws, cfg)}}
+               "restorer": lambda ws, cfg: {"train": restorer_config(ws, cfg)},
+               "water": lambda ws, cfg: {"measure": range_settings(ws, cfg).measure}}
     assert set(resolve) == set(FOUND_SOURCES)
     ws = Workspace(tmp_path / "ws")
     for stage in {src.partition(".")[0] for sources in FOUND_SOURCES.values() for src in sources.values()
@@ -218,6 +221,9 @@ def test_found_fields_are_filled_from_the_sources_named(tmp_path):
             elif isinstance(value, bool):
                 mark = getattr(ws.result(source.partition(".")[0]), source.partition(".")[2])
                 assert value == bool(mark) != operator.attrgetter(path)(default), (name, path, value)
+            elif isinstance(value, float):  # the mark of a number: 1.0, not the field's default
+                mark = getattr(ws.result(source.partition(".")[0]), source.partition(".")[2])
+                assert value == mark != operator.attrgetter(path)(default), (name, path, value)
             else:
                 assert str(value).endswith(source), (name, path, value)
 

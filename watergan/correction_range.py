@@ -7,12 +7,14 @@ measured points (the floor nearer than where the range map ends, :func:`frame_pl
 wall stereo did not match) the survey's far range (:func:`survey_far_range_m`), where the water's gain is held at a
 ceiling (:func:`cap_gain`). A frame without a range map takes a flat seafloor's range at its altitude, times the site
 depth net's factor where one is given (:func:`monocular_range`). Each pixel's source of range is a :class:`RangeFrom`.
+Both corrections (the physics inverse and the restorer) take their mode from :class:`CorrectMode` and name their
+corrected frames by :func:`corrected_name`.
 """
 
 from __future__ import annotations
 
 import math
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +22,25 @@ import torch
 
 from watergan.data import DataError
 from watergan.formation.inverse import camera_unit_rays, flat_floor_depth, flat_floor_range
-from watergan.io import read_millimetres
+from watergan.io import is_jpeg, read_millimetres
 from watergan.nets.site_depth import SiteDepthNet
+
+
+class CorrectMode(StrEnum):
+    """How a correction gets each pixel's range: rgb-d, from the range maps; monocular, a flat seafloor's at the
+    frame's altitude (:func:`monocular_range`); auto, rgb-d where there are range maps."""
+
+    auto = "auto"
+    rgbd = "rgb-d"
+    monocular = "monocular"
+
+
+def corrected_name(name: str, image_format: str) -> str:
+    """The corrected frame's file name for input ``name``: the same name (a JPEG's stem with .png), or its stem with
+    the format's suffix ("png", "tiff" or "jpeg"; anything else: the input's)."""
+    own = ".png" if is_jpeg(name) else Path(name).suffix
+    suffix = {"png": ".png", "tiff": ".tif", "jpeg": ".jpg"}.get(str(image_format), own)
+    return f"{Path(name).stem}{suffix}"
 
 
 class RangeFrom(IntEnum):

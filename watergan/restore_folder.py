@@ -17,7 +17,7 @@ by default the ``survey.json`` beside the images folder); an image without one i
 work. A restorer trained in RGB-D mode (``range_input``) takes each pixel's range in metres, in one of two modes
 (``mode``; ``auto``: RGB-D when ``range_dir`` is given, else monocular):
 
-- ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the water stage writes them; a pixel
+- ``rgb-d``: from ``range_dir/<stem>.png`` (16-bit millimetres, 0 = none, as the range stage writes them; a pixel
   without range takes its neighbours' or the survey's far range, :func:`watergan.correction_range.fill_range`, and a
   water's gain at the far range is held at ``far_max_gain``, :func:`watergan.correction_range.cap_gain`); an image
   without a range map is an error before any work;
@@ -48,7 +48,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
 import sys
 import time
 from collections import deque
@@ -67,8 +66,10 @@ from watergan.correction_range import (
     FAR_MAX_GAIN,
     FAR_RANGE_PCT,
     FILL_PX,
+    CorrectMode,
     RangeFrom,
     cap_gain,
+    corrected_name,
     fill_range,
     monocular_range,
     survey_far_range_m,
@@ -90,7 +91,6 @@ from watergan.formation.inverse import needs_normals
 from watergan.io import (
     encode_grey16_png,
     encode_image,
-    is_jpeg,
     levels_bits,
     output_bits,
     read_millimetres,
@@ -100,18 +100,11 @@ from watergan.io import (
 )
 from watergan.nets.restorer import WaterFields, restore
 from watergan.nets.site_depth import SiteDepthNet
+from watergan.parallel import cpu_lanes, cuda_lanes, io_threads, keep_freed_memory, read_ahead
 from watergan.train_restorer import load_restorer
 from watergan.train_site_depth import load_site_depth
 
 SUMMARY = "summary.json"
-
-
-class CorrectMode(StrEnum):
-    """How a correction gets each pixel's range (see the module docstring)."""
-
-    auto = "auto"
-    rgbd = "rgb-d"
-    monocular = "monocular"
 
 
 class ImageFormat(StrEnum):
@@ -170,7 +163,7 @@ class CorrectConfig(CorrectOptions):
     """Survey file with nav_altitude_m per frame, for a restorer that takes altitude (default: survey.json
     beside the images folder)."""
     range_dir: Path | None = None
-    """Folder of each image's range map (<stem>.png, 16-bit millimetres; a workspace's water stage's range/), for a
+    """Folder of each image's range map (<stem>.png, 16-bit millimetres; a workspace's range stage's range/), for a
     restorer trained in RGB-D mode."""
     force: bool = False
     """Redo images already corrected."""
@@ -197,14 +190,6 @@ class CorrectResult:
     the net beside the restorer when it beat the flat seafloor on held-out frames); "" for a monocular restorer."""
     range_why: str = ""
     """Why monocular mode took the site depth net or kept the flat seafloor (the net's record), when one was trained."""
-
-
-def corrected_name(name: str, image_format: str) -> str:
-    """The corrected frame's file name for input ``name``: the same name (a JPEG's stem with .png), or its stem with
-    the format's suffix."""
-    own = ".png" if is_jpeg(name) else Path(name).suffix
-    suffix = {"png": ".png", "tiff": ".tif", "jpeg": ".jpg"}.get(str(image_format), own)
-    return f"{Path(name).stem}{suffix}"
 
 
 def _outputs(out: Path, name: str, image_format: str) -> tuple[Path, Path, Path]:
@@ -273,41 +258,6 @@ class ChunkResult:
     """"path: reason" for each unreadable image."""
 
 
-IO_THREADS = 2
-"""Threads that read the next images while the nets run on a CPU (OpenCV's PNG codecs and file I/O release the GIL,
-so they overlap the nets)."""
-
-
-def io_threads(dev: torch.device) -> int:
-    """Threads that read the next images: ``IO_THREADS`` on a CPU, where the lanes take the cores; on CUDA, where
-    the nets leave the cores to decoding and encoding, :func:`cuda_lanes` of them."""
-    return IO_THREADS if dev.type == "cpu" else cuda_lanes()
-
-
-def cpu_lanes() -> int:
-    """Batches the nets correct at once on a CPU: one per intra-op thread torch would use, each lane running its
-    batch on one thread. The restorer's convolutions are narrow (3-16 channels at full resolution) and split poorly
-    across threads; whole batches side by side keep every core busy, and a lane whose core is taken by another job
-    waits alone instead of stalling the other thread at every layer."""
-    return max(1, torch.get_num_threads())
-
-
-def keep_freed_memory() -> bool:
-    """glibc's allocator told to serve blocks of up to 32 MiB from its heap and to keep what is freed (mallopt
-    M_MMAP_THRESHOLD and M_TRIM_THRESHOLD), for the rest of the process. By default each frame's full-resolution
-    tensors are mapped afresh and unmapped when freed, and every page of every one is faulted in again, which costs
-    the correction's element-wise steps more than their arithmetic; the heap then holds what one batch needs
-    (benchmarks/RESULTS/restorer.md). False where the C library is not glibc."""
-    import ctypes
-
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3
-    return bool(mallopt(m_mmap_threshold, 32 * 2**20)) and bool(mallopt(m_trim_threshold, 2**30))
-
-
 CPU_BATCH = 1
 """Images per batch of the restorer on a CPU (``batch_size`` 0): each lane's full-resolution passes over one frame stay
 in the cache, where a batch of 4 streams through memory (measurements: benchmarks/RESULTS/speed-and-scale.md)."""
@@ -318,17 +268,6 @@ CUDA_BATCH = 4
 def batch_for(dev: torch.device) -> int:
     """The restorer's images per batch when none is given: ``CPU_BATCH`` on a CPU, ``CUDA_BATCH`` on CUDA."""
     return CPU_BATCH if dev.type == "cpu" else CUDA_BATCH
-
-
-CUDA_LANES = 4
-"""The fewest batches in flight on a GPU (:func:`cuda_lanes`)."""
-
-
-def cuda_lanes() -> int:
-    """Batches in flight on a GPU: one on the GPU while the others' outputs are encoded and written (PNG encoding,
-    not the nets, bounds a GPU's frames per second), half the machine's cores and at least ``CUDA_LANES``
-    (benchmarks/bench_gpu.py sweeps the lanes and readers)."""
-    return max(CUDA_LANES, (os.cpu_count() or 1) // 2)
 
 
 def _read_one(chunk: CorrectChunk, k: int, path: Path, site: SiteDepthNet | None = None, linear: bool = False,
@@ -422,8 +361,9 @@ class _BatchCorrector:
 
 def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.Module | None = None) -> ChunkResult:
     """Correct ``chunk.paths`` into ``chunk.out_dir`` (every file written atomically), consecutive images of one
-    size ``batch_size`` at a time; the model is loaded here unless given. On a CPU, :func:`cpu_lanes` batches run
-    side by side, each on one thread, and write their own outputs; on CUDA :func:`cuda_lanes`. :func:`io_threads`
+    size ``batch_size`` at a time; the model is loaded here unless given. On a CPU, :func:`watergan.parallel.cpu_lanes`
+    batches run side by side, each on one thread, and write their own outputs; on CUDA
+    :func:`watergan.parallel.cuda_lanes`. :func:`watergan.parallel.io_threads`
     threads read the next batches' images meanwhile. ``bar`` (local runs): advanced per image, and unreadable images are
     reported as they come."""
     dev = pick_device(chunk.device)
@@ -455,7 +395,8 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
         torch.set_num_threads(1)  # each lane runs its batch on one thread; on CUDA the readers' small work
     try:
         with ThreadPoolExecutor(io_threads(dev)) as reader, ThreadPoolExecutor(lanes) as nets:
-            reads = _read_ahead(reader, chunk, 2 * lanes * batch_size, site, linear, scene)
+            reads = read_ahead(reader, lambda k, path: _read_one(chunk, k, path, site, linear, scene), chunk.paths,
+                               2 * lanes * batch_size)
             for batch in _batches(chunk, reads, batch_size, result, bar):
                 collect(lanes)
                 running.append(nets.submit(correct_batch, batch))
@@ -467,8 +408,8 @@ def correct_chunk(chunk: CorrectChunk, bar: tqdm | None = None, model: torch.nn.
 
 def _batches(chunk: CorrectChunk, reads: Iterator[tuple[int, Path, Future]], batch_size: int, result: ChunkResult,
              bar: tqdm | None) -> Iterator[list[Item]]:
-    """The images of ``reads`` (:func:`_read_ahead`) in order, as batches of at most ``batch_size`` consecutive images
-    of one size; an unreadable image is added to ``result.failed`` (and reported on ``bar``)."""
+    """The images of ``reads`` (:func:`watergan.parallel.read_ahead`) in order, as batches of at most ``batch_size``
+    consecutive images of one size; an unreadable image is added to ``result.failed`` (and reported on ``bar``)."""
     batch: list[Item] = []
     for k, path, read in reads:
         try:
@@ -489,18 +430,6 @@ def _batches(chunk: CorrectChunk, reads: Iterator[tuple[int, Path, Future]], bat
             batch = []
     if batch:
         yield batch
-
-
-def _read_ahead(pool: ThreadPoolExecutor, chunk: CorrectChunk, ahead: int, site: SiteDepthNet | None = None,
-                linear: bool = False, scene: np.ndarray | None = None) -> Iterator[tuple[int, Path, Future]]:
-    """(index, path, the future of :func:`_read_one`) of each path in order, with up to ``ahead`` reads
-    submitted before the one yielded."""
-    reads: deque[tuple[int, Path, Future]] = deque()
-    for k, path in enumerate(chunk.paths):
-        reads.append((k, path, pool.submit(_read_one, chunk, k, path, site, linear, scene)))
-        if len(reads) > ahead:
-            yield reads.popleft()
-    yield from reads
 
 
 def correct_folder(model_dir: str | Path, images_dir: str | Path, out_dir: str | Path, force: bool = False,
@@ -637,7 +566,7 @@ def _check_range_maps(model_dir: str | Path, files: list[Path], ranges: Path) ->
     if lacking:
         raise DataError(f"the restorer in {model_dir} takes each pixel's range (RGB-D mode), and "
                         f"{len(lacking)} of the {len(files)} images have no range map (e.g. {lacking[0]} in "
-                        f"{ranges}): give the water stage's range/ of these frames, or correct every frame in "
+                        f"{ranges}): give the range stage's range/ of these frames, or correct every frame in "
                         f"monocular mode (--mode monocular: a flat seafloor at the navigation's altitude)")
 
 

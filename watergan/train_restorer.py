@@ -91,7 +91,7 @@ class RestorerConfig:
     Here the median of its depth map; when correcting, the navigation's altitude (nav_altitude_m)."""
     range_input: bool = False
     """RGB-D mode: the colour net takes each pixel's range in metres; False: the monocular restorer.
-    Here the paired set's range/; when correcting, the water stage's range maps (from the dense stage and the
+    Here the paired set's range/; when correcting, the range stage's maps (from the dense stage and the
     fused mesh). The monocular restorer takes the image, and the altitude with the altitude option."""
     water: bool = True
     """RGB-D mode: the colour net starts from the exact inverse of the water the pairs were rendered with.

@@ -39,7 +39,7 @@ def main() -> None:
     parser.add_argument("--mode", default="rgb-d", choices=["rgb-d", "monocular"])
     args = parser.parse_args()
     ws = args.workspace
-    images, ranges = stage_folder(ws, "survey") / "images", stage_folder(ws, "water") / "range"
+    images, ranges = stage_folder(ws, "survey") / "images", stage_folder(ws, "range") / "range"
     frames = len(list(images.iterdir()))
     cores = os.cpu_count() or 1
     with tempfile.TemporaryDirectory() as tmp:

@@ -36,7 +36,7 @@ def lanes(ws: Path, passes: int, out: Path) -> None:
     from pipeline.workspace import Workspace
 
     workspace = Workspace(ws)
-    images, ranges = stage_folder(ws, "survey") / "images", stage_folder(ws, "water") / "range"
+    images, ranges = stage_folder(ws, "survey") / "images", stage_folder(ws, "range") / "range"
     frames = len(list(images.glob("*.png")))
 
     def restorer() -> float:
@@ -91,7 +91,7 @@ def physics_steps(ws: Path, out: Path, frames: int = 12) -> None:
             t = time.perf_counter()
             image = read_image(stage_folder(ws, "survey") / "images" / name, dtype=np.float32)
             t = lap("read frame", t)
-            range_m = read_depth(stage_folder(ws, "water") / "range" / name)
+            range_m = read_depth(stage_folder(ws, "range") / "range" / name)
             t = lap("read range map", t)
             corrected, valid = invert_with_fields(image, range_m, fields, K)
             t = lap("inverse", t)

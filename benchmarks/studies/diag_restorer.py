@@ -2,8 +2,8 @@
 
     .venv/bin/python benchmarks/studies/diag_restorer.py --workspace WS [--out DIR] [--blur-px 8]
 
-WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``05_restorer``,
-``06_correct/restorer``, ``01_sfm``). Prints:
+WS: a finished ``watergan run`` workspace of a simulated survey (``00_survey/truth``, ``06_restorer``,
+``07_correct/restorer``, ``01_sfm``). Prints:
 
 - per frame, the linear mean of each channel of the corrected frame over that of the in-air truth:
   its mean and standard deviation over frames, and its correlation with the frame's median true range

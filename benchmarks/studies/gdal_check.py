@@ -2,7 +2,7 @@
 
     python benchmarks/studies/gdal_check.py OUT_DIR
 
-``OUT_DIR``: a mesh stage's output folder (``WS/08_mesh``, or ``run_mesh_folder``'s ``out_dir``) holding
+``OUT_DIR``: a mesh stage's output folder (``WS/09_mesh``, or ``run_mesh_folder``'s ``out_dir``) holding
 ``mosaic.tif``, ``dem.tif`` and ``mosaic.png`` with its world file. Needs rasterio (GDAL's Python binding, with
 GDAL inside its wheel), which watergan does not depend on: run it with a Python that has rasterio and tifffile
 (``python -m venv V && V/bin/pip install rasterio tifffile``). Prints, for each file, the CRS GDAL reads, its

@@ -4,9 +4,9 @@ lit survey (e.g. the auv preset):
     PYTHONPATH=. .venv/bin/python benchmarks/studies/normals.py --workspace WS [--every 4]
 
 Two ways to take the normals the strobes' irradiance reads:
-- ``combined``: of the correction's range (:func:`pipeline.water.correction_range`: the dense range, the fused
-  mesh's where the dense has none or disagrees), smoothed by the water stage's ``normal_smooth_px``;
-- ``dense``: :func:`pipeline.water.correction_normals` (the dense range's, the combined range's where the dense
+- ``combined``: of the correction's range (:func:`pipeline.range.correction_range`: the dense range, the fused
+  mesh's where the dense has none or disagrees), smoothed by the range stage's ``normal_smooth_px``;
+- ``dense``: :func:`pipeline.range.correction_normals` (the dense range's, the combined range's where the dense
   has none), what the water stage uses.
 For each it prints the normals' angle to the true ones (every pixel of every ``--every``-th frame, and the
 board's pixels), and inverts every frame with the water stage's stack to give the board's CIEDE2000 and the
@@ -27,8 +27,8 @@ import numpy as np
 from eval.baseline_runs import OracleGeometry
 from eval.colour import board_accuracy, consistency, truth_board
 from eval.tracks import Tracks
+from pipeline.range import correction_normals, correction_range, water_frames
 from pipeline.stages import stage_folder
-from pipeline.water import correction_normals, correction_range, water_frames
 from watergan.formation import Stack
 from watergan.formation.inverse import correct_physics, normals_from_range
 from watergan.io import write_srgb_png
@@ -50,8 +50,8 @@ def main() -> None:
     ws = args.workspace
     survey = stage_folder(ws, "survey")
     stack = Stack.from_config(json.loads((stage_folder(ws, "water") / "result.json").read_text())["result"]["stack"])
-    config = json.loads((stage_folder(ws, "water") / "config.json").read_text())["config"]
-    smooth_px, agreement = float(config["normal_smooth_px"]), float(config["range_agreement"])
+    config = json.loads((stage_folder(ws, "range") / "config.json").read_text())["config"]
+    smooth_px, agreement = float(config["normal_smooth_px"]), float(config["agreement"])
     tracks = Tracks.load(stage_folder(ws, "sfm") / "tracks.npz")
     K = np.asarray(tracks.K, float)
     frames = water_frames(tracks, survey / "images", stage_folder(ws, "dense") / "depth")

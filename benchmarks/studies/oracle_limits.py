@@ -3,8 +3,8 @@ its two inputs (the water, the range) replaced by what a real method has.
 
     .venv/bin/python benchmarks/studies/oracle_limits.py --workspace WS [--out DIR]
 
-WS: a workspace of a simulated survey (``00_survey/truth``, ``01_sfm``, ``02_dense``; ``04_gan/model/stack.json``
-and ``03_water`` when they ran). Every survey frame is inverted exactly, pixel by pixel, as the oracle of
+WS: a workspace of a simulated survey (``00_survey/truth``, ``01_sfm``, ``02_dense``; ``05_gan/model/stack.json``
+and ``04_water`` when they ran). Every survey frame is inverted exactly, pixel by pixel, as the oracle of
 :mod:`eval.baselines` does, with:
 
 - the true stack and the true range (the oracle itself);
@@ -14,7 +14,7 @@ and ``03_water`` when they ran). Every survey frame is inverted exactly, pixel b
 - the true range and the true stack with WaterGAN's learned attenuation (eta), then also its gain and
   vignetting (the water a restorer trained on WaterGAN's pairs learns; the GAN's backscatter is a
   learned convolution with no counterpart in the true stack, so the true one is kept);
-- the water stage's estimated stack (``03_water``) and the dense range: what the physics correction
+- the water stage's estimated stack (``04_water``) and the dense range: what the physics correction
   does, with the oracle's true geometry for everything but the range (rows left out when the workspace
   lacks the gan or the water stage).
 

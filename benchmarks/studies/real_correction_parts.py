@@ -88,7 +88,7 @@ def main() -> None:
             target = folder / f"{Path(name).stem}.png"
             if target.exists():
                 continue
-            r = read_millimetres(ws.path(water.range_dir) / f"{Path(name).stem}.png") / 1000.0
+            r = read_millimetres(ws.path(ws.result("range").range_dir) / f"{Path(name).stem}.png") / 1000.0
             corrected, _ = correct_physics(read_image(images / name), np.where(r > 0, r, np.nan), config, tracks.K,
                                            frame_index=k)
             srgb = linear_to_srgb(np.clip(np.nan_to_num(corrected, nan=0.0), 0.0, 1.0))

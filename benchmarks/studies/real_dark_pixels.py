@@ -75,7 +75,7 @@ def main() -> None:
     below, all_below, count = np.zeros(3), 0, 0
     ratios = [[] for _ in RANGE_BINS_M[1:]]
     for k in range(0, len(names), args.every):
-        r = read_millimetres(ws.path(water.range_dir) / f"{Path(names[k]).stem}.png") / 1000.0
+        r = read_millimetres(ws.path(ws.result("range").range_dir) / f"{Path(names[k]).stem}.png") / 1000.0
         image = read_image(images / names[k]).astype(np.float64)
         _, c, valid = inverse_fields(np.where(r > 0, r, np.nan), stack, tracks.K, k)
         c = c[0].permute(1, 2, 0).numpy()

@@ -11,7 +11,7 @@ frames and any further folders given (e.g. :mod:`real_correction_parts`'s), prin
 - Table II's per-point variance over the points in thirds by their SfM colour's brightness;
 - Table II with 5, 15 and 31-pixel patches.
 
-Ranges are the water stage's range maps at each view's pixel. Writes nothing.
+Ranges are the range stage's maps at each view's pixel. Writes nothing.
 """
 
 from __future__ import annotations
@@ -30,10 +30,10 @@ def view_ranges(ws, tracks) -> np.ndarray:
     """(M,) each observation's range (metres, NaN where the range map has none)."""
     from watergan.io import read_millimetres
 
-    water = ws.result("water")
+    ranges = ws.result("range")
     out = np.full(len(tracks.obs_point), np.nan)
     for k, name in enumerate(tracks.image_names):
-        r = read_millimetres(ws.path(water.range_dir) / f"{Path(str(name)).stem}.png") / 1000.0
+        r = read_millimetres(ws.path(ranges.range_dir) / f"{Path(str(name)).stem}.png") / 1000.0
         rows = np.flatnonzero(tracks.obs_image == k)
         xy = np.rint(tracks.obs_xy[rows]).astype(int)
         inside = (xy[:, 0] >= 0) & (xy[:, 0] < r.shape[1]) & (xy[:, 1] >= 0) & (xy[:, 1] < r.shape[0])

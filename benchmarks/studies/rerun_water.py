@@ -37,6 +37,7 @@ def main() -> None:
 
     from pipeline.correct import CorrectStage
     from pipeline.evaluate import EvaluateConfig
+    from pipeline.range import RangeConfig
     from pipeline.water import WaterStage
     from pipeline.workspace import Workspace
 
@@ -44,6 +45,7 @@ def main() -> None:
     config = WaterStage(progress=False)
     if args.field_degree is not None:
         config = replace(config, field_degree=args.field_degree)
+    ws.run("range", RangeConfig(progress=False))
     began = time.perf_counter()
     water = ws.run("water", config)
     print(f"water stage {time.perf_counter() - began:.1f} s: {water.summary}", flush=True)

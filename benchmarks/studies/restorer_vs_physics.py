@@ -2,13 +2,13 @@
 
     .venv/bin/python benchmarks/studies/restorer_vs_physics.py --workspace WS [--model DIR] [--out DIR]
 
-1. Corrects the survey's frames with the restorer in ``--model`` (default: the workspace's ``05_restorer``;
-   an RGB-D restorer takes the water stage's range maps) into ``--out`` and prints frames per second, then
+1. Corrects the survey's frames with the restorer in ``--model`` (default: the workspace's ``06_restorer``;
+   an RGB-D restorer takes the range stage's maps) into ``--out`` and prints frames per second, then
    the board CIEDE2000 and the consistency per channel (:func:`eval.colour.board_accuracy`,
    :func:`eval.colour.consistency`, as the eval stage measures them) of raw, the restorer and the physics
-   correction (``06_correct/physics/images``). Needs a simulated survey (the board's truth).
+   correction (``07_correct/physics/images``). Needs a simulated survey (the board's truth).
 2. Inverts the site water exactly (:func:`watergan.formation.inverse.correct_physics` with the gan stage's
-   ``stack.json``) on the first 20 of the gan stage's training pairs (``04_gan/generated``: underwater, range,
+   ``stack.json``) on the first 20 of the gan stage's training pairs (``05_gan/generated``: underwater, range,
    in-air) and prints
    the RMSE (stored sRGB) against the in-air images: what a restorer trained on those 8-bit pairs could reach.
 """
@@ -39,7 +39,7 @@ def main() -> int:
     model = Path(args.model) if args.model else stage_folder(ws, "restorer")
 
     r = correct_folder(model, stage_folder(ws, "survey") / "images", out, force=True, progress=False,
-                       range_dir=stage_folder(ws, "water") / "range")
+                       range_dir=stage_folder(ws, "range") / "range")
     print(f"corrected {r.corrected} frames in {r.seconds:.1f} s = {r.corrected / r.seconds:.1f} frames/s "
           f"({r.mode} mode)")
     board = truth_board(stage_folder(ws, "survey"))

@@ -33,8 +33,9 @@ from eval.colour import truth_board
 from eval.observations import DenseMeasureConfig
 from eval.tracks import Tracks
 from eval.water import WaterConfig, estimate_water
+from pipeline.range import water_frames
 from pipeline.stages import STAGES, stage_folder  # noqa: E402
-from pipeline.water import fine_grid_frames, survey_lights, water_frames
+from pipeline.water import fine_grid_frames, survey_lights
 
 
 def main() -> None:
@@ -42,6 +43,7 @@ def main() -> None:
     parser.add_argument("workspace", type=Path)
     parser.add_argument("--sfm", default=STAGES["sfm"].folder, help="the SfM stage's folder")
     parser.add_argument("--dense", default=STAGES["dense"].folder, help="the dense stage's folder")
+    parser.add_argument("--range", default=STAGES["range"].folder, help="the range stage's folder")
     parser.add_argument("--field-degree", type=int, default=WaterConfig().field_degree,
                         help="the fields' degree (0: none)")
     parser.add_argument("--max-points", type=int, default=DenseMeasureConfig().max_points,
@@ -59,7 +61,7 @@ def main() -> None:
     config = replace(WaterConfig(), range_scale_sd=float(sfm["scale_spread"]), field_degree=args.field_degree)
     config = replace(config, measure=replace(config.measure, max_points=args.max_points, seed=args.sample_seed))
     K, lights = np.asarray(tracks.K, float), survey_lights(survey)
-    grid_frames = fine_grid_frames(frames, K, ws / args.dense / "fused_mesh.ply", config, lights)
+    grid_frames = fine_grid_frames(frames, K, ws / args.range / "range", config, lights)
     estimate = estimate_water(frames, K, board=truth_board(survey), config=config, lights=lights, normals=True,
                               grid_frames=grid_frames)
     print(estimate.summary())
