@@ -79,7 +79,7 @@ class FitConfig:
     """L-BFGS iterations of a round over the parameters, the albedos projected out."""
     max_iterations: int = 0
     """L-BFGS iterations of a fit at most (0: one round).
-    Rounds run until one lowers the loss by less than ``convergence_rtol``."""
+    Rounds run until one lowers the loss by less than the convergence tolerance."""
     convergence_rtol: float = 1e-3
     """A fit has converged when a round lowers its loss by less than this fraction."""
     step_rtol: float = 1e-8
@@ -97,7 +97,7 @@ class FitConfig:
     board_weight: float = 10.0
     """Weight of the board term (mean over board rows) beside the views' (mean over views)."""
     holdout_fraction: float = 0.2
-    """Fraction of the points held out of the fit to measure the error (:func:`fit_stack`)."""
+    """Fraction of the points held out of the fit to measure the error."""
     fixed_effects: tuple[str, ...] = ("gain",)
     """Effects whose parameters are not fitted (gain: degenerate with the albedos' scale)."""
     bootstrap: int = 20
@@ -114,16 +114,15 @@ class FitConfig:
     """Fraction of the points a first fit runs on, to convergence, before the fit on all of them (0: none).
     Each of its evaluations costs that fraction of one on all views, and it starts the full fit near its optimum."""
     coarse_refine_evaluations: int = 0
-    """Residual evaluations of a trust-region least squares (as ``refine_evaluations``) on the coarse fit's points,
+    """Residual evaluations of a trust-region least squares (as the refinement's) on the coarse fit's points,
     in float64, after one round of L-BFGS there (0: none; the coarse fit then runs its rounds to convergence): it
     follows a flat direction (red B_inf against beta) to its floor, where L-BFGS crawls, at the coarse fraction of
     the cost on all points."""
     seed: int = 0
     """Seed of the held-out split and of the bootstrap."""
     threads: int = field(default=0, metadata={"hash": False})
-    """Torch threads of the water's fit (0: torch's own setting, a thread per core unless ``OMP_NUM_THREADS`` or
-    ``torch.set_num_threads`` says otherwise; not hashed: the estimate moves only by float rounding). The
-    diagnosis's fits run on one thread."""
+    """Torch threads of the water's fit (0: the run's setting, see --threads; not hashed: the estimate moves only by
+    float rounding). The diagnosis's fits run on one thread."""
 
 
 #: The water estimate's fit: the dense table's views and the board, albedos >= 0 (dark points pin the backscatter),

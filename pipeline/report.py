@@ -1,6 +1,6 @@
 """The run's report: one self-contained HTML page people read, and the same facts as JSON.
 
-``write_report(ws)`` writes ``WORKSPACE/10_report/report.html``, ``report.json`` and ``report.md`` (the
+``write_report(ws)`` writes ``WORKSPACE/11_report/report.html``, ``report.json`` and ``report.md`` (the
 text: verdict and tables). The page needs no network: every image is inlined as a base64 data URI
 (large images downscaled), there is no script; links point to local files in the workspace (the GLB
 mesh, the full-size mosaic). Sections:
@@ -28,7 +28,6 @@ import html
 import io
 import json
 import os
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,17 +36,14 @@ import numpy as np
 
 from watergan.errors import UserInputError
 from watergan.io import atomic_write_json, atomic_write_text, frame_file
-from watergan.water_record import alternative_key, read_water
+from watergan.water_record import WaterRecord, read_water
 
+from .report_found import NotRun, eval_tables, found_lines, load_json, stage_result
 from .workspace import Workspace
 
 #: Longest side of an inlined photograph / mosaic, pixels.
 THUMB_PX = 320
 MOSAIC_PX = 1000
-
-
-class NotRun(Exception):
-    """A section's stage has not run; the message says what to run."""
 
 
 # ----------------------------------------------------------------------------------------- helpers
@@ -118,26 +114,6 @@ def _plt():
     return plt
 
 
-def _load_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.is_file() else None
-
-
-def _stage_result(ws: Workspace, stage: str):
-    """The stage's typed result, or NotRun."""
-    result = ws.result(stage)
-    if result is None:
-        raise NotRun(f"not run: no {ws.stage(stage).folder}/result.json (run {ws.stage(stage).how_to_run()})")
-    return result
-
-
-def _tables(ws: Workspace) -> dict:
-    """The eval stage's tables.json (the file its result names)."""
-    data = _load_json(ws.path(_stage_result(ws, "eval").tables_json))
-    if data is None:
-        raise NotRun("not run: no tables.json (run `watergan evaluate --workspace WS`)")
-    return data
-
-
 def _link(ws, out: Path, path: str | Path, text: str) -> str:
     target = ws.path(path) if not Path(path).is_absolute() else Path(path)
     rel = os.path.relpath(target, out)
@@ -145,225 +121,6 @@ def _link(ws, out: Path, path: str | Path, text: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------- sections
-
-
-def intervals_at_bounds(params: dict) -> dict[str, list[int]]:
-    """{parameter: channels whose 95 % interval reaches one of its bounds} among the water's fitted per-channel
-    parameters (``water.json``'s ``params``)."""
-    from watergan.formation import get
-
-    out = {}
-    for key, entry in params.items():
-        name, param = key.split(".", 1)
-        if not entry.get("fitted") or "low" not in entry or not isinstance(entry["value"], list):
-            continue
-        try:
-            spec = next(p for p in get(name).params if p.name == param)
-        except (KeyError, StopIteration, ValueError):
-            continue
-        low, high = np.ravel(entry["low"]), np.ravel(entry["high"])
-        channels = [c for c in range(len(low)) if low[c] <= spec.lower or high[c] >= spec.upper]
-        if channels and len(low) == 3:
-            out[key] = channels
-    return out
-
-
-def unpinned_note(params: dict, veil: dict | None) -> str:
-    """What the survey cannot pin, said where an interval of the water's ``params`` reaches its parameter's bound
-    (B_inf's where the survey's ranges are short next to the veil's fall), and what it pins instead (the ``veil`` at
-    the median range; water.json's, :class:`watergan.water_record.WaterRecord`)."""
-    reached = intervals_at_bounds(params)
-    if not reached:
-        return ""
-    names = "; ".join(f"{key.split('.', 1)[1]} in {'/'.join('RGB'[c] for c in channels)}"
-                      for key, channels in reached.items())
-    pinned = (f" What it pins is the veil over its ranges: {' / '.join(f'{v:.3f}' for v in veil['value'])} at "
-              f"{veil['range_m']:.1f} m." if veil and any(k.startswith("backscatter.") for k in reached) else "")
-    return (f" Not pinned by this survey (intervals reaching a bound): {names}; its ranges are too short, next to "
-            f"the water's attenuation length, to separate them from what they trade with.{pinned}")
-
-
-#: A specification alternative moves eta "more than the noise" when its change exceeds this many times the
-#: bootstrap's 95 % half-width in some channel.
-STRUCTURE_OVER_NOISE = 2.0
-#: The specification alternatives in words, by the setting they change.
-ALTERNATIVE_WORDS = {
-    "frame_gain_off_range": "the gains per frame free to follow the frames' ranges (a camera's auto exposure or "
-                            "white balance)",
-    "field_grid": "fine fields over the image fitted with the water (a falloff or a veil of any smooth shape)",
-    "board_weight": "the board weighted less",
-    "loss_scale": "a wider robust loss",
-    "image_field.additive_level": "the light fixed in the image left in the veil",
-}
-#: What kind of survey pins eta between the default and each structure alternative, by the setting it changes.
-STRUCTURE_PINNED_BY = {
-    "frame_gain_off_range": "a survey with more range within each frame (relief, a tilted view)",
-    "field_grid": "a survey that sees the same points at more ranges from one image position (frames at several "
-                  "altitudes)",
-}
-
-
-def structure_note(params: dict, structure: list | None) -> str:
-    """How far to trust the water's attenuation where the survey prefers another structure: a structure alternative
-    whose held-out test says the survey predicts its views better with it (water.json's ``structure``,
-    ``preferred``) and whose change of eta (``specification_by``) exceeds ``STRUCTURE_OVER_NOISE`` times the
-    bootstrap's 95 % half-width in some channel; "" otherwise."""
-    entry = params.get("attenuation.eta_per_m", {})
-    by = entry.get("specification_by") or {}
-    preferred = [t for t in structure or [] if t.get("preferred") and alternative_key(t["alternative"]) in by]
-    if not preferred or "std" not in entry:
-        return ""
-    value = np.maximum(np.abs(np.asarray(entry["value"], float)), 1e-9)
-    noise = 1.96 * np.asarray(entry["std"], float)
-    test = min(preferred, key=lambda t: t["heldout_change_pct"])
-    change = np.asarray(by[alternative_key(test["alternative"])], float)
-    if not (change > STRUCTURE_OVER_NOISE * noise).any():
-        return ""
-    words = "; ".join(ALTERNATIVE_WORDS.get(key, f"{key} = {v}") for key, v in test["alternative"].items())
-    pins = " and ".join(STRUCTURE_PINNED_BY[key] for key in test["alternative"] if key in STRUCTURE_PINNED_BY)
-    return (f" This survey predicts its views {-test['heldout_change_pct']:.0f} % better with {words} (held-out "
-            f"points), and eta then moves by {' / '.join(f'{100 * c:.0f}' for c in change / value)} % (R / G / B), "
-            f"against +- {' / '.join(f'{100 * n:.0f}' for n in noise / value)} % from resampling: its intervals "
-            f"include that change" + (f"; {pins} pins it." if pins else "."))
-
-
-def profile_note(structure: list | None) -> str:
-    """Where the survey prefers gains per frame free of the frames' ranges: the eta its held-out views accept under
-    them (water.json's ``structure``, ``eta_profile``; :func:`eval.eta_profile.eta_profile`); "" otherwise."""
-    test = next((t for t in structure or [] if t.get("preferred") and "eta_profile" in t), None)
-    if test is None:
-        return ""
-    p = test["eta_profile"]
-    spans = [f"{'<=' if open_low else ''}{low:.3f}-{high:.3f}{'+' if open_high else ''}"
-             for low, high, open_low, open_high in zip(p["low"], p["high"], p["open_low"], p["open_high"], strict=True)]
-    return (f" With the gains per frame free, only the range differences within the points that frames share pin "
-            f"eta: the held-out views accept {' / '.join(spans)} 1/m (R / G / B; <= and +: accepted as far as the "
-            f"profile went), and its intervals include that.")
-
-
-def camera_and_scale_lines(survey, sfm) -> list[str]:
-    """The first screen's lines on a camera calibrated on the survey and on where the scale came from (or that there is
-    none: everything in SfM units)."""
-    lines = []
-    calibration = survey.self_calibration if survey is not None else {}
-    if calibration:
-        lines.append(f"Camera: calibrated on the survey ({calibration['model']}, {calibration['registered']} frames, "
-                     f"reprojection {calibration['reprojection_px']:.2f} px); the two halves' focal lengths differ by "
-                     f"{calibration['halves']['focal_diff_pct']:.1f} %.")
-    if sfm is not None:
-        if sfm.scale_method == "none":
-            lines.append("Scale: unscaled. No stereo rig, board, altitude, position track or camera height: lengths, "
-                         "ranges and the water's coefficients are in SfM units (1 = the median sparse depth).")
-        elif sfm.scale_method == "track":
-            detail = sfm.scale_detail
-            halves = detail.get("halves", {})
-            steps = (f"its straight steps: its errors accumulate, Durbin-Watson {detail['durbin_watson']:.2f}; "
-                     if detail.get("estimator") == "steps" else "")
-            lines.append(f"Scale: from the position track ({steps}{detail['kept']} of {detail['used']} frames, "
-                         f"residual {detail['residual_m']:.3f} m, spread "
-                         f"{100 * sfm.scale_spread:.1f} %"
-                         + (f"; the two halves' scales differ by {halves['heldout_pct']:.1f} %" if halves else "")
-                         + ").")
-        elif sfm.scale_method == "height":
-            halves = sfm.scale_detail.get("halves", {})
-            lines.append(f"Scale: from the camera's height over the floor (spread {100 * sfm.scale_spread:.1f} %"
-                         + (f"; the two halves' scales differ by {halves['heldout_pct']:.1f} %" if halves else "")
-                         + ").")
-    return lines
-
-
-def found_lines(ws: Workspace) -> tuple[list[str], str]:
-    """(what the run found, one line each: the water and how far to trust it, what the fields over the image
-    carry, the diagnosis's verdict, how the corrections compare; the command to run next, or "")."""
-    from eval.fields import field_size
-
-    lines, command = [], ""
-    sfm = ws.result("sfm")
-    if sfm is not None and sfm.looks_distorted:  # before the water: it carries the distortion's error
-        from .sfm import distortion_warning
-
-        lines.append("Lens: " + distortion_warning(sfm.lens_k1, sfm.lens_source).removeprefix("sfm: ") + ".")
-    if sfm is not None and sfm.still_features:
-        from .overlay import overlay_warning
-
-        lines.append("Overlay: " + overlay_warning(sfm.still_features).removeprefix("sfm: ") + ".")
-    lines += camera_and_scale_lines(ws.result("survey"), sfm)
-    water = ws.result("water")
-    if water is not None:
-        record = read_water(ws.path(water.water_json))
-        trust = ("its intervals are 95 %" if not water.at_bounds else
-                 f"not pinned: {', '.join(water.at_bounds)} on a bound (their intervals are the whole range)")
-        line = (f"Water: {water.summary.removeprefix('water: ')}; {trust}." + unpinned_note(record.params, record.veil)
-                + structure_note(record.params, record.structure) + profile_note(record.structure))
-        lines.append(in_sfm_units(line) if sfm is not None and sfm.scale_method == "none" else line)
-        fields = record.fields
-        if fields:
-            size = field_size(fields)
-            lines.append("Fields over the image: flat, nothing the stack lacks on image position (" + size + ")."
-                         if fields["form"] == "flat" else
-                         f"Fields over the image: the stack lacks a {fields['form']} structure on image position "
-                         f"({size}); the water and the corrections carry it in the fields (see the water section).")
-            if fields["form"] != "flat":
-                command = f"watergan diagnose {ws.root}"
-        grid = record.grid
-        if grid and grid["carried"]:
-            rows, cols = grid["nodes"]
-            lines.append(f"Finer structure on image position than the fields follow ({field_size(grid)}): the "
-                         f"corrections carry it on a {rows} x {cols} grid fitted with the water held.")
-            command = command or f"watergan diagnose {ws.root}"
-        frames = record.frames
-        if frames:
-            size = f"up to {max(frames['largest_pct']):.0f} %, sd " + " / ".join(f"{v:.1f}" for v in frames["sd_pct"])
-            carry = ("the water and the corrections carry it in the gains" if frames.get("carried", True) else
-                     "too little for the water to carry them")
-            lines.append(f"Gains per frame: flat, nothing the stack lacks from frame to frame ({size} %)."
-                         if frames["flat"] else
-                         f"Gains per frame: the frames differ by more than the water explains ({size} % per "
-                         f"channel: exposure, white balance or a water that changes along the survey); {carry} "
-                         f"(see the water section).")
-            if not frames["flat"]:
-                command = command or f"watergan diagnose {ws.root}"
-    diagnosed = ws.result("diagnose")
-    if diagnosed is not None:
-        verdict = Path(diagnosed.out_dir) / "verdict.txt"
-        if verdict.is_file():
-            lines.append("Diagnosis: " + verdict.read_text().strip().splitlines()[0])
-        command = after_diagnosis(command, diagnosed, ws.root)
-    try:
-        verdict_lines = _tables(ws).get("verdict", [])
-    except NotRun:
-        verdict_lines = []
-    if verdict_lines:
-        lose = [line for line in verdict_lines if " loses to " in line]
-        tie = [line for line in verdict_lines if " ties with " in line]
-        lines.append(f"Comparisons: {len(verdict_lines) - len(lose) - len(tie)} of {len(verdict_lines)} hold"
-                     + (f"; {len(tie)} tie (within the measurement's spread)" if tie else "")
-                     + (f"; {len(lose)} lose (listed under Verdict)." if lose else "."))
-    if sfm is not None and sfm.looks_distorted and not sfm.lens_source:  # the lens first: every stage after SfM
-        survey = ws.result("survey")  # carries its error; what already ran is not proposed again
-        folder = survey.survey_dir if survey else "SURVEY"
-        command = (f"watergan run {folder} --workspace {ws.root}  # with \"calibrated\": false in its camera.json, "
-                   f"so that SfM calibrates the camera")
-    return lines, command
-
-
-def after_diagnosis(command: str, diagnosed, root: Path) -> str:
-    """The next step once the diagnosis ran (``diagnosed``, its result), never the diagnosis again: add the effect
-    it found; else, where the water still carries structure (``command``, what the first screen would advise without
-    the diagnosis) or the diagnosis names axes no effect explains, write that effect and add it; else nothing."""
-    if diagnosed.best:
-        return f"watergan run --workspace {root} --add {diagnosed.best}"
-    if command or diagnosed.unexplained_axes:
-        return (f"watergan --plugin FILE.py run --workspace {root} --add NAME  # no library effect explains it: write "
-                f"the effect NAME in FILE.py (docs/discovery.md) and add it")
-    return ""
-
-
-def in_sfm_units(line: str) -> str:
-    """A first-screen line of a run without a metric scale in the units it is in: eta per SfM unit, lengths in SfM
-    units (1 = the median sparse depth), not per metre and metres."""
-    line = line.replace("eta_per_m", "eta per SfM unit").replace(" 1/m", " per SfM unit")
-    return re.sub(r"(\d) m\b", r"\1 SfM units", line)
 
 
 def section_found(ws, out: Path) -> tuple[str, dict]:
@@ -376,7 +133,7 @@ def section_found(ws, out: Path) -> tuple[str, dict]:
 
 
 def section_verdict(ws, out: Path) -> tuple[str, dict]:
-    data = _tables(ws)
+    data = eval_tables(ws)
     lines = data.get("verdict", [])
     items = "".join(f"<li class='{'lose' if ' loses to ' in line else ''}'>{_esc(line)}</li>" for line in lines)
     methods = ", ".join(data["labels"].get(m, m) for m in data["methods"])
@@ -388,7 +145,7 @@ def section_verdict(ws, out: Path) -> tuple[str, dict]:
 def section_frames(ws, out: Path) -> tuple[str, dict]:
     """Raw, every baseline, ours, oracle and in-air truth on the same frames."""
     try:
-        data = _tables(ws)
+        data = eval_tables(ws)
     except NotRun:
         data = None
     if data is not None:
@@ -458,12 +215,12 @@ def section_mask(ws, out: Path) -> tuple[str, dict]:
 def section_tables(ws, out: Path) -> tuple[str, dict]:
     from eval.tables import table_html
 
-    data = _tables(ws)
+    data = eval_tables(ws)
     return "".join(table_html(t) for t in data["tables"]), {"tables": [t["id"] for t in data["tables"]]}
 
 
 def section_board_chart(ws, out: Path) -> tuple[str, dict]:
-    data = _tables(ws)
+    data = eval_tables(ws)
     table = next(t for t in data["tables"] if t["id"] == "table1")
     if table["status"] != "ok":
         raise NotRun(table["status"])
@@ -486,11 +243,11 @@ def section_board_chart(ws, out: Path) -> tuple[str, dict]:
 
 
 def section_consistency(ws, out: Path) -> tuple[str, dict]:
-    points = _stage_result(ws, "eval").consistency_points
+    points = stage_result(ws, "eval").consistency_points
     path = ws.path(points) if points else None
     if path is None or not path.is_file():
         raise NotRun("not run: no consistency_points.npz (run `watergan evaluate --workspace WS`)")
-    data = _tables(ws)
+    data = eval_tables(ws)
     with np.load(path) as npz:
         variances = {k: npz[k] for k in npz.files}
     plt = _plt()
@@ -521,7 +278,7 @@ def section_depth(ws, out: Path) -> tuple[str, dict]:
     from eval.tables import depth_table, table_html
     from pipeline.site_depth import site_depth_metrics
 
-    r = _stage_result(ws, "eval")
+    r = stage_result(ws, "eval")
     if not r.depth:
         raise NotRun("not measured: no restorer depth or no dense depth (the eval stage's depth comparison)")
     folder = ws.path(r.depth)
@@ -613,7 +370,7 @@ def render_mesh_view(mosaic_rgb: np.ndarray, world: list[float], vertices: np.nd
 def section_mesh(ws, out: Path) -> tuple[str, dict]:
     import trimesh
 
-    r = _stage_result(ws, "mesh")
+    r = stage_result(ws, "mesh")
     mosaic = read_display(ws.path(r.mosaic_png))
     world = [float(v) for v in ws.path(r.world_file).read_text().split()]
     mesh = trimesh.load(ws.path(r.ply), process=False, force="mesh")
@@ -629,7 +386,7 @@ def section_mesh(ws, out: Path) -> tuple[str, dict]:
 
 
 def section_mosaic(ws, out: Path) -> tuple[str, dict]:
-    r = _stage_result(ws, "mesh")
+    r = stage_result(ws, "mesh")
     mosaic = read_display(ws.path(r.mosaic_png))
     body = (f"<p>{_link(ws, out, r.mosaic_png, 'full-size mosaic (PNG)')} · "
             f"{_link(ws, out, r.world_file, 'world file')}"
@@ -643,17 +400,35 @@ def section_mosaic(ws, out: Path) -> tuple[str, dict]:
     return body, {"mosaic_png": r.mosaic_png, "coverage": r.mosaic_coverage}
 
 
+def alternatives_table(record: WaterRecord) -> str:
+    """HTML: each alternative the intervals took in, in its own words, with its held-out test and the parameters
+    whose interval it widened."""
+    rows = []
+    for a in record.alternatives:
+        test = ("" if a.heldout_change_pct is None else
+                f"{a.heldout_change_pct:+.1f} % [{a.ci95_pct[0]:+.1f}, {a.ci95_pct[1]:+.1f}]"
+                + (" preferred" if a.preferred else ""))
+        moved = [key for key, p in record.params.items()
+                 if (w := p.widening(a.key)) is not None and any(np.ravel(w.widened))]
+        rows.append(f"<tr><th>{_esc(a.words)}</th><td>{_esc(test)}</td><td>{_esc(', '.join(moved) or '-')}</td>"
+                    f"<td>{a.seconds:.0f} s</td></tr>")
+    if not rows:
+        return ""
+    return ("<h3>Alternatives the intervals take in</h3><table><tr><th>alternative</th><th>held-out change (95 %)"
+            "</th><th>widened</th><th>time</th></tr>" + "".join(rows) + "</table>")
+
+
 def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
     """The site water the water stage estimated: its summary line, each parameter with its 95 % interval,
-    the plots water.json names."""
-    r = _stage_result(ws, "water")
+    the plots water.json names; and where each pixel's range came from (the range stage)."""
+    r = stage_result(ws, "water")
     water = read_water(ws.path(r.water_json))
     from watergan.formation import builtin_effects
 
     nuisance = {name for name, cls in builtin_effects().items() if cls.nuisance}
-    rows = "".join(f"<tr><th>{_esc(key)}</th><td>{_esc(p.get('value'))}</td>"
-                   f"<td>{_esc([p.get('low'), p.get('high')] if p.get('low') is not None else 'held')}</td>"
-                   f"<td>{_esc(p.get('units', ''))}</td></tr>" for key, p in water.params.items()
+    rows = "".join(f"<tr><th>{_esc(key)}</th><td>{_esc(p.value)}</td>"
+                   f"<td>{_esc([p.low, p.high] if p.low is not None else 'held')}</td>"
+                   f"<td>{_esc(p.units)}</td></tr>" for key, p in water.params.items()
                    if key.split(".")[0] not in nuisance)
     plots = ((ws.path(r.water_json).parent / name, alt) for name, alt in water.plots.items())
     figure = "".join(_img(data_uri(read_display(plot), "png", None), alt, "wide") for plot, alt in plots
@@ -661,16 +436,18 @@ def section_water(ws: Workspace, out: Path) -> tuple[str, dict]:
     warn = (f"<p class='error'>At a bound of their range: {_esc(', '.join(r.at_bounds))}. The stack does not fit "
             f"this survey there (an effect is missing or has another form): read the residuals and the "
             f"diagnosis.</p>" if r.at_bounds else "")
+    ranges = ws.result("range")
+    ranged = (f"Each pixel's range: from the dense stage, from the fused mesh for {100 * ranges.mesh_fraction:.1f} % "
+              f"of the pixels; {100 * ranges.range_missing:.1f} % had none (the physics correction ranges them from "
+              f"their neighbours or at the survey's far range)." if ranges is not None else "")
     body = (f"<p>{_esc(r.summary)}</p>{warn}<table><tr><th>parameter</th><th>estimate</th><th>95 % interval</th>"
-            f"<th>units</th></tr>{rows}</table><p class='note'>{'A colour board pinned the gain. ' if r.board else ''}"
-            f"Each pixel's range: from the dense stage, from the fused mesh for {100 * r.mesh_fraction:.1f} % of the "
-            f"pixels; {100 * r.range_missing:.1f} % had none (the physics correction ranges them from their neighbours "
-            f"or at the survey's far range).</p>{figure}")
+            f"<th>units</th></tr>{rows}</table>{alternatives_table(water)}<p class='note'>"
+            f"{'A colour board pinned the gain. ' if r.board else ''}{ranged}</p>{figure}")
     return body, {"summary": r.summary}
 
 
 def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
-    diagnosed = _stage_result(ws, "diagnose")
+    diagnosed = stage_result(ws, "diagnose")
     folder = Path(diagnosed.out_dir)
     ledger = ws.path(diagnosed.ledger)
     if not ledger.is_file() and not (folder / "ledger.png").is_file():
@@ -703,8 +480,8 @@ def section_config(ws, out: Path) -> tuple[str, dict]:
         folder = spec.folder
         if stage == "report":
             continue
-        config = _load_json(ws.root / folder / "config.json")
-        record = _load_json(ws.root / folder / "result.json")
+        config = load_json(ws.root / folder / "config.json")
+        record = load_json(ws.root / folder / "result.json")
         result = (record or {}).get("result", record) or {}
         seconds = result.get("seconds") if isinstance(result, dict) else None
         status = "done" if record is not None else "present" if (ws.root / folder).is_dir() else "not run"
@@ -799,7 +576,7 @@ def write_report(ws: Workspace | str | Path) -> Path:
     html_path = out / "report.html"
     atomic_write_text(html_path, page)
     try:
-        tables = _tables(ws)
+        tables = eval_tables(ws)
     except NotRun:
         tables = None
     atomic_write_json(out / "report.json", {"workspace": str(ws.root.resolve()), "generated": generated,

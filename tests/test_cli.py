@@ -9,12 +9,12 @@ def watergan(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
-def test_effects_lists_all_seventeen_with_parameters():
+def test_effects_lists_all_twenty_with_parameters():
     out = watergan("effects")
     assert out.returncode == 0
-    assert out.stdout.startswith("17 registered effects")
+    assert out.stdout.startswith("20 registered effects")
     for name in ("attenuation", "backscatter_conv", "vignetting_offcentre", "marine_snow", "image_field", "frame_gain",
-                 "image_grid"):
+                 "image_grid", "tone_curve", "black_level", "specular_gloss"):
         assert f"\n{name}: " in out.stdout
     assert "eta_per_m = (0.34, 0.24, 0.33) in [0, 5] 1/m" in out.stdout
 

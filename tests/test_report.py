@@ -37,6 +37,7 @@ from pipeline.stages import STAGES, stage_folder
 from pipeline.workspace import Workspace
 from watergan.errors import UserInputError
 from watergan.io import DataError, z_to_range
+from watergan.water_record import WaterRecord
 
 CHROMIUM = Path("/usr/bin/chromium")
 VALIDATION = {"val_count": 2, "units": "stored sRGB 0..1; relative depth 0..1",
@@ -64,6 +65,7 @@ def evaluated():
     from pipeline.diagnose import DiagnoseStageResult
     from pipeline.gan import RestorerStage
     from pipeline.mesh import MeshConfig
+    from pipeline.range import RangeConfig
     from watergan.io import read_depth, write_depth_png
     from watergan.train_restorer import RestorerResult
 
@@ -83,6 +85,7 @@ def evaluated():
                                                         loss=0.0, validation={}, train_count=0, val_count=2))
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=f"{STAGES['dense'].folder}/depth", pairs={}, coverage={},
                                                 mean_coverage=1.0))
+    ws.run("range", RangeConfig(progress=False))
     ws.run("water", water_config(bootstrap=4, progress=False))
     # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
     physics = correct_physics_folder(physics_inputs(ws, survey / "images"), ws.folder("correct") / "physics", False)
@@ -236,7 +239,7 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     from eval.tracks import Tracks
     from pipeline.correct import physics_inputs
     from pipeline.correct_physics import correct_physics_folder
-    from pipeline.water import correction_normals, water_frame
+    from pipeline.range import correction_normals, water_frame
     from watergan.formation import get
     from watergan.formation.inverse import SIGNAL_FLOOR, correct_physics
     from watergan.io import read_depth, read_image
@@ -252,9 +255,10 @@ def test_a_stack_with_lights_is_corrected_with_its_exact_fields(evaluated, tmp_p
     tracks = Tracks.load(lit.path(lit.result("sfm").tracks))
     K = np.asarray(tracks.K, float)
     frame = water_frame(tracks, 3, survey / "images", lit.path(lit.result("dense").depth_dir))
-    r = read_depth(lit.path(water.range_dir) / f"{Path(frame.name).stem}.png")
+    ranges = lit.result("range")
+    r = read_depth(lit.path(ranges.range_dir) / f"{Path(frame.name).stem}.png")
     exact, valid = correct_physics(frame.image, r, stack, K, frame_index=3,
-                                   normals_cam=correction_normals(frame, r, K, water.normal_smooth_px),
+                                   normals_cam=correction_normals(frame, r, K, ranges.normal_smooth_px),
                                    signal_floor=SIGNAL_FLOOR)
     written = read_image(tmp_path / "lit" / "images" / frame.name)
     expected = np.clip(np.nan_to_num(exact), 0.0, 1.0)
@@ -272,7 +276,7 @@ def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(e
     from eval.tracks import Tracks
     from pipeline.correct import physics_inputs
     from pipeline.correct_physics import correct_physics_folder
-    from pipeline.water import water_frame
+    from pipeline.range import water_frame
     from watergan.formation import RANK_WATER, Effect, Param, register
     from watergan.formation.inverse import SIGNAL_FLOOR, correct_physics
     from watergan.io import read_depth, read_image
@@ -302,7 +306,7 @@ def test_a_per_frame_effect_that_is_no_gain_is_corrected_with_its_exact_fields(e
     K = np.asarray(tracks.K, float)
     for k in (2, 3):
         frame = water_frame(tracks, k, survey / "images", None)
-        r = read_depth(drifting.path(water.range_dir) / f"{Path(frame.name).stem}.png")
+        r = read_depth(drifting.path(drifting.result("range").range_dir) / f"{Path(frame.name).stem}.png")
         exact, valid = correct_physics(frame.image, r, stack, K, frame_index=k, signal_floor=SIGNAL_FLOOR)
         written = read_image(tmp_path / "drift" / "images" / frame.name)
         assert np.abs(written - np.clip(np.nan_to_num(exact), 0.0, 1.0))[valid].max() < 3 / 255, k
@@ -508,23 +512,24 @@ def test_ssim_is_scikit_images(tmp_path):
 def test_the_first_screen_says_what_the_survey_cannot_pin():
     """An interval reaching its parameter's bound (B_inf in green and blue, as on the pool footage) is named on the
     report's first screen with what the survey pins instead (the veil); intervals inside the bounds add nothing."""
-    from pipeline.report import unpinned_note
+    from pipeline.report_found import unpinned_note
+    from watergan.water_record import ParamInterval
 
-    params = {"backscatter.b_inf": {"value": [0.06, 0.97, 0.99], "low": [0.02, 0.73, 0.82], "high": [0.3, 1.0, 1.0],
-                                    "fitted": True},
-              "attenuation.eta_per_m": {"value": [0.48, 0.16, 0.34], "low": [0.39, 0.1, 0.24],
-                                        "high": [0.57, 0.23, 0.43], "fitted": True}}
+    params = {"backscatter.b_inf": ParamInterval([0.06, 0.97, 0.99], fitted=True, low=[0.02, 0.73, 0.82],
+                                                 high=[0.3, 1.0, 1.0]),
+              "attenuation.eta_per_m": ParamInterval([0.48, 0.16, 0.34], fitted=True, low=[0.39, 0.1, 0.24],
+                                                     high=[0.57, 0.23, 0.43])}
     veil = {"value": [0.031, 0.033, 0.035], "range_m": 1.2}
     note = unpinned_note(params, veil)
     assert "b_inf in G/B" in note and "eta" not in note and "0.031 / 0.033 / 0.035 at 1.2 m" in note
-    params["backscatter.b_inf"]["high"] = [0.3, 0.99, 0.99]
+    params["backscatter.b_inf"].high = [0.3, 0.99, 0.99]
     assert unpinned_note(params, veil) == ""
 
 
 def test_the_first_screen_says_where_the_scale_came_from_and_how_its_halves_agree():
     from types import SimpleNamespace
 
-    from pipeline.report import camera_and_scale_lines
+    from pipeline.report_found import camera_and_scale_lines
 
     track = SimpleNamespace(scale_method="track", scale_spread=0.048, scale_detail={
         "kept": 76, "used": 80, "residual_m": 0.074, "estimator": "steps", "durbin_watson": 0.115,
@@ -536,39 +541,52 @@ def test_the_first_screen_says_where_the_scale_came_from_and_how_its_halves_agre
     assert "camera's height over the floor" in line and "differ by 3.1 %" in line
 
 
-def test_the_first_screen_says_when_the_survey_prefers_another_structure():
-    from pipeline.report import structure_note
+def _record(eta: dict, alternatives: list) -> WaterRecord:
+    """A water.json's record with eta's entry (``eta``: ParamInterval's fields; "changes": {alternative: change})
+    and the ``alternatives`` (AlternativeRecord's fields)."""
+    from watergan.water_record import AlternativeRecord, ParamInterval, Widening
 
-    free = '{"frame_gain_off_range": false}'
-    eta = {"value": [0.38, 0.068, 0.146], "std": [0.0087, 0.0089, 0.0103],
-           "specification_by": {'{"board_weight": 1.0}': [0.002, 0.001, 0.003], free: [0.0375, 0.108, 0.0836]}}
-    test = {"alternative": {"frame_gain_off_range": False}, "heldout_change_pct": -46.2, "ci95_pct": [-50.7, -41.9],
-            "preferred": True}
-    note = structure_note({"attenuation.eta_per_m": eta}, [test])
+    changes = eta.pop("changes", {})
+    rows = [Widening(key, "quadrature", change, [True] * 3) for key, change in changes.items()]
+    return WaterRecord(stack=[], params={"attenuation.eta_per_m": ParamInterval(**eta, widenings=rows)},
+                       alternatives=[AlternativeRecord(**a) for a in alternatives])
+
+
+FREE = {"key": "free_gains", "words": "the gains per frame free to follow the frames' ranges (a camera's auto exposure "
+        "or white balance)", "pinned_by": "a survey with more range within each frame (relief, a tilted view)",
+        "heldout_change_pct": -46.2, "ci95_pct": [-50.7, -41.9], "preferred": True}
+
+
+def test_the_first_screen_says_when_the_survey_prefers_another_structure():
+    """The note speaks of the preferred alternative in the alternative's own words (the report keeps no table of
+    the estimator's settings)."""
+    from pipeline.report_found import structure_note
+
+    eta = {"value": [0.38, 0.068, 0.146], "std": [0.0087, 0.0089, 0.0103]}
+    changes = {"board_weight": [0.002, 0.001, 0.003], "free_gains": [0.0375, 0.108, 0.0836]}
+    note = structure_note(_record(dict(eta, changes=changes), [FREE]))
     assert "46 % better" in note and "auto exposure or white balance" in note
-    assert "10 / 159 / 57 %" in note and "4 / 26 / 14 %" in note
-    rejected = dict(test, heldout_change_pct=6.4, ci95_pct=[5.1, 8.2], preferred=False)
-    assert structure_note({"attenuation.eta_per_m": eta}, [rejected]) == ""  # the survey predicts worse with it
-    small = dict(eta, specification_by={free: [0.002, 0.001, 0.003]})
-    assert structure_note({"attenuation.eta_per_m": small}, [test]) == ""  # within the bootstrap's spread
-    assert structure_note({"attenuation.eta_per_m": {"value": [0.4] * 3}}, None) == ""  # an older water.json
-    grid = '{"field_grid": [13, 17]}'  # the fine fields preferred by more: the note speaks of them
-    both = dict(eta, specification_by={**eta["specification_by"], grid: [0.05, 0.01, 0.02]})
-    finer = {"alternative": {"field_grid": [13, 17]}, "heldout_change_pct": -60.0, "ci95_pct": [-67.0, -52.0],
-             "preferred": True}
-    note = structure_note({"attenuation.eta_per_m": both}, [test, finer])
+    assert "10 / 159 / 57 %" in note and "4 / 26 / 14 %" in note and "tilted view) pins it" in note
+    rejected = dict(FREE, heldout_change_pct=6.4, ci95_pct=[5.1, 8.2], preferred=False)
+    assert structure_note(_record(dict(eta, changes=changes), [rejected])) == ""  # the survey predicts worse
+    small = {"free_gains": [0.002, 0.001, 0.003]}
+    assert structure_note(_record(dict(eta, changes=small), [FREE])) == ""  # within the bootstrap's spread
+    assert structure_note(_record({"value": [0.4] * 3}, [])) == ""  # an older water.json
+    finer = {"key": "fine_fields", "words": "fine fields over the image fitted with the water",
+             "pinned_by": "frames at several altitudes", "heldout_change_pct": -60.0, "ci95_pct": [-67.0, -52.0],
+             "preferred": True}  # the fine fields preferred by more: the note speaks of them
+    note = structure_note(_record(dict(eta, changes={**changes, "fine_fields": [0.05, 0.01, 0.02]}), [FREE, finer]))
     assert "60 % better with fine fields over the image" in note and "13 / 15 / 14 %" in note
     assert "several altitudes" in note and "auto exposure" not in note
 
 
 def test_the_first_screen_gives_the_eta_the_held_out_views_accept_under_free_gains():
-    from pipeline.report import profile_note
+    from pipeline.report_found import profile_note
 
     profile = {"low": [0.351, 0.1268, 0.1869], "high": [0.636, 0.2343, 0.3207], "open_low": [False, True, False],
                "open_high": [True, False, False]}
-    test = {"alternative": {"frame_gain_off_range": False}, "heldout_change_pct": -1.0, "preferred": True,
-            "eta_profile": profile}
-    note = profile_note([test])
-    assert "accept 0.351-0.636+ / <=0.127-0.234 / 0.187-0.321 1/m" in note
-    assert profile_note([dict(test, preferred=False)]) == "" and profile_note(None) == ""
-    assert profile_note([{k: v for k, v in test.items() if k != "eta_profile"}]) == ""
+    profiled = {"key": "eta_profile", "words": "eta as far as the held-out views accept it with the gains per frame "
+                "free", "profile": profile}
+    note = profile_note(_record({"value": [0.4] * 3}, [FREE, profiled]))
+    assert "accept 0.351-0.636+ / <=0.127-0.234 / 0.187-0.321 1/m" in note and "the gains per frame free" in note
+    assert profile_note(_record({"value": [0.4] * 3}, [FREE])) == ""

@@ -77,7 +77,7 @@ def test_a_lens_is_undistorted_once_and_a_withheld_one_is_named_or_estimated(tmp
 
     from eval.synth import make_config, simulate_survey
     from eval.synth.camera import CameraConfig
-    from pipeline.report import found_lines
+    from pipeline.report_found import found_lines
     from pipeline.survey import SurveyConfig
     from watergan.lens import LENS_KEYS, Lens
 

@@ -214,7 +214,7 @@ def test_a_workspace_inside_the_survey_folder_is_refused_and_nothing_is_written_
 def test_after_the_diagnosis_the_next_step_is_never_the_diagnosis_again(tmp_path):
     from types import SimpleNamespace
 
-    from pipeline.report import after_diagnosis
+    from pipeline.report_found import after_diagnosis
 
     found = SimpleNamespace(best="vignetting_x", unexplained_axes=[])
     assert after_diagnosis("watergan diagnose WS", found, tmp_path) == f"watergan run --workspace {tmp_path} " \
@@ -226,7 +226,7 @@ def test_after_the_diagnosis_the_next_step_is_never_the_diagnosis_again(tmp_path
 
 
 def test_an_unscaled_run_gives_eta_per_sfm_unit():
-    from pipeline.report import in_sfm_units
+    from pipeline.report_found import in_sfm_units
 
     line = in_sfm_units("Water: eta_per_m 0.100[0.050,0.200]; veil at 1.2 m 0.1; accepted 0.1-0.2 1/m (R / G / B).")
     assert line == ("Water: eta per SfM unit 0.100[0.050,0.200]; veil at 1.2 SfM units 0.1; accepted 0.1-0.2 per "

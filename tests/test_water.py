@@ -730,7 +730,8 @@ def test_fine_fields_fitted_with_the_water_hold_eta_under_a_falloff_clipped_into
 def test_a_light_fixed_in_the_image_keeps_its_level_out_of_the_veil(survey):
     """A broad light fixed in the image (a reflection in the port, a Gaussian glow off-centre) reads as additive
     fields; its level is set where the field is least over the views, 0 there, and taken from the veil
-    (:func:`eval.water.fields.set_light_level`), so the veil at the views' median range is the water's: within 10 % of the
+    (:func:`eval.water.fields.set_light_level`), so the veil at the views' median range is the water's: within 10 %
+    of the
     truth in every channel where the fit, which holds the light at 0 at the image's centre (the estimate's
     ``light_at_centre``), leaves its level in the veil (over 10 % too large in some channel). Every interval takes
     the change between the two, so the veil's covers the truth."""
@@ -838,7 +839,7 @@ def test_the_hessian_perturbs_the_three_channels_of_a_parameter_together(survey)
     the gains per frame together gives the Hessian that perturbing each entry gives (to the finite differences'
     accuracy) from a third of the gradients; a stack that mixes the channels is differentiated entry by entry."""
     from eval.fit import Problem
-    from eval.water.fields import decorrelate_frames, channels_separate, fitted_names, start_inside_bounds
+    from eval.water.fields import channels_separate, decorrelate_frames, fitted_names, start_inside_bounds
     from watergan.formation import RANK_SENSOR, Effect, register
 
     frames, board = survey

@@ -36,8 +36,8 @@ def test_a_record_reads_back_as_written_with_the_plots_it_names(tmp_path):
     on_disk = json.loads((tmp_path / "water.json").read_text())
     assert "fields" not in on_disk and on_disk["veil"] == record.veil  # the optional parts only when set
     assert set(on_disk) == {"stack", "params", "fixed", "held", "tradeoffs", "n_points", "n_observations", "n_board",
-                            "n_frames", "rmse", "seconds", "iterations", "converged", "veil", "alternatives", "interval",
-                            "plots"}
+                            "n_frames", "rmse", "seconds", "iterations", "converged", "veil", "alternatives",
+                            "interval", "plots"}
     back = read_water(tmp_path / "water.json")  # typed throughout: the widening rows and the alternatives' words
     assert back.params["attenuation.eta_per_m"].widening("free_gains").widened == [True, False, False]
     assert back.alternative("free_gains").preferred and back.alternative("other") is None

@@ -4,7 +4,8 @@
     python benchmarks/studies/field_smoothness.py WS [WS ...] [--smoothness 1e-4,1e-5,1e-6]
 
 WS: workspaces prepared by ``bench_forms.py`` or ``bench_water.py`` (survey with its truth, SfM, dense). Each one's
-water table is measured as ``forms_oracle_form.py`` measures it and fitted by :func:`eval.water.fit_observations` with
+water table is measured as ``forms_oracle_form.py`` measures it and fitted by
+:func:`eval.water.estimate_observations` with
 the water stage's defaults, the penalty at each weight, no structure alternative and no fine grid. Prints per
 workspace and weight the relative errors (per cent) and whether the 95 % intervals cover the truth.
 """
@@ -24,7 +25,7 @@ from forms_oracle_form import errors, measured_table  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    from eval.water import fit_observations
+    from eval.water import estimate_observations
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("workspaces", type=Path, nargs="+")
@@ -35,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
         obs, config, lights, truth = measured_table(ws)
         for weight in (float(w) for w in args.smoothness.split(",")):
             fields = ({"name": "image_field", "params": {"smoothness": weight}},)
-            found = errors(fit_observations(obs, replace(config, structure_alternatives=(), initial=fields), lights),
+            found = errors(estimate_observations(obs, replace(config, alternatives=(), initial=fields), lights),
                            truth)
             eta, veil = found["attenuation.eta_per_m"], found["veil"]
             print(f"{ws.name:14s} {weight:7.0e} eta {eta['error_pct']} covered {eta['covered']} "

@@ -4,7 +4,8 @@
     python benchmarks/studies/forms_fine_fields.py WS [WS ...] [--grid 13x17]
 
 WS: workspaces prepared by ``bench_forms.py`` or ``bench_water.py`` (survey with its truth, SfM, dense). Each one's
-water table is measured as ``forms_oracle_form.py`` measures it and fitted by :func:`eval.water.fit_observations` with
+water table is measured as ``forms_oracle_form.py`` measures it and fitted by
+:func:`eval.water.estimate_observations` with
 the water stage's defaults, no structure alternative, no bootstrap and no fine grid after the water: once with the
 degree-2 fields alone, once with the fine fields beside them. Prints per workspace and fit eta's relative errors
 (per cent, R / G / B) and the fit's seconds.
@@ -28,7 +29,7 @@ from forms_oracle_form import measured_table  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    from eval.water import fit_observations
+    from eval.water import estimate_observations
     from pipeline.cliargs import size_hw
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -38,11 +39,11 @@ def main(argv: list[str] | None = None) -> int:
     bench_forms.load_forms()
     for ws in args.workspaces:
         obs, config, lights, truth = measured_table(ws)
-        alone = replace(config, structure_alternatives=(), fit=replace(config.fit, bootstrap=0))
+        alone = replace(config, alternatives=(), fit=replace(config.fit, bootstrap=0))
         for label, grid in (("degree-2 fields", None), (f"fine fields {args.grid[0]}x{args.grid[1]}", args.grid)):
             began = time.perf_counter()
-            water = fit_observations(obs, replace(alone, field_grid=grid), lights)
-            error = 100 * (np.asarray(water.params["attenuation.eta_per_m"]["value"]) /
+            water = estimate_observations(obs, replace(alone, field_grid=grid), lights)
+            error = 100 * (np.asarray(water.params["attenuation.eta_per_m"].value) /
                            np.asarray(truth["attenuation.eta_per_m"]) - 1)
             print(f"{ws.name:14s} {label:22s} eta {' / '.join(f'{e:+.0f}' for e in error)} %  "
                   f"{time.perf_counter() - began:.0f} s", flush=True)

@@ -7,7 +7,7 @@
 For each draw of ``benchmarks/results/forms.json`` (its workspace under ``--out``, prepared by bench_forms.py) the
 water's table is measured as bench_forms measures it and fitted twice:
 
-- ``default``: :func:`eval.water.fit_observations` with the water stage's defaults;
+- ``default``: :func:`eval.water.estimate_observations` with the water stage's defaults;
 - ``exact_form``: the same stack with the drawn effect's own form added and started at the drawn truth (the effect
   of the plugin; for gains a camera sets from each frame's content, gains per frame free of the frames' ranges and
   carried, which is that form), every parameter fitted.
@@ -41,10 +41,10 @@ CONTENT_GAINS = bench_forms.CONTENT_GAINS
 def exact_form(config, effect: str, truth: dict):
     """``config`` with the drawn ``effect``'s exact form (see the module docstring)."""
     if effect in CONTENT_GAINS:
-        return replace(config, frame_gain_off_range=False, structure_alternatives=())
+        return replace(config, frame_gain_off_range=False, alternatives=())
     start = {k.split(".", 1)[1]: v for k, v in truth.items() if k.split(".", 1)[0] == effect}
     return replace(config, effects=(*config.effects, effect), initial=({"name": effect, "params": start},),
-                   structure_alternatives=())
+                   alternatives=())
 
 
 def errors(water, truth: dict) -> dict:
@@ -70,7 +70,7 @@ def measured_table(ws: Path):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from eval.water import fit_observations
+    from eval.water import estimate_observations
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="bench_forms.py's workspaces")
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         obs, config, lights, truth = measured_table(args.out / draw["workspace"])
         rows[str(i)] = {"effect": draw["effect"], "stereo": draw["stereo"], "terrain": draw["terrain"]}
         for label, cfg in (("default", config), ("exact_form", exact_form(config, draw["effect"], truth))):
-            rows[str(i)][label] = errors(fit_observations(obs, cfg, lights), truth)
+            rows[str(i)][label] = errors(estimate_observations(obs, cfg, lights), truth)
             e = rows[str(i)][label]["attenuation.eta_per_m"]
             print(f"{i:2d} {draw['effect']:20s} {label:10s} eta {e['error_pct']} covered {e['covered']} "
                   f"veil {rows[str(i)][label]['veil']['error_pct']}", flush=True)

@@ -51,7 +51,7 @@ def main() -> None:
         return bootstrap(problem, *rest, **kwargs)
 
     ew.bootstrap = keep_fit
-    estimate = ew.fit_observations(Observations.load(args.table), config,
+    estimate = ew.estimate_observations(Observations.load(args.table), config,
                                    lights=survey_lights(stage_folder(ws, "survey")))
     row = compare(estimate.params, truth_params(stage_folder(ws, "survey")))["backscatter.b_inf"]
     print("B_inf estimate", row["estimate"], "truth", row["truth"], "interval", row["low"], row["high"])

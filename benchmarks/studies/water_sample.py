@@ -4,10 +4,10 @@ is fitted to, on one workspace's measurement table (issue 31: the fit on a bound
     PYTHONPATH=. .venv/bin/python benchmarks/studies/water_sample.py WS [--points 5000,10000,20000,40000]
         [--seeds 0] [--out benchmarks/results/water_sample.json]
 
-Reads ``WS/03_water/observations.npz`` (the water stage's table, every frame's points with all their views, the
+Reads ``WS/04_water/observations.npz`` (the water stage's table, every frame's points with all their views, the
 board's rows), ``WS/00_survey/truth/effects.json`` and the SfM stage's scale spread. For each size it draws that many
 points at random (``Observations.take_points``: each point keeps all its views; the board's rows are all kept), fits
-them with the default :class:`eval.water.WaterConfig` (:func:`eval.water.fit_observations`: fit, bootstrap,
+them with the default :class:`eval.water.WaterConfig` (:func:`eval.water.estimate_observations`: fit, bootstrap,
 specification alternatives) and records per fitted parameter the estimate, the truth, the relative error, the 95 %
 interval's width and whether it covers the truth, and the fit's seconds. The full table's row is the water stage's
 own ``water.json`` (same code, same table), read rather than refitted. Writes every row to ``--out``.
@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_water import compare, truth_params  # noqa: E402
 
 from eval.observations import Observations  # noqa: E402
-from eval.water import WaterConfig, fit_observations  # noqa: E402
+from eval.water import WaterConfig, estimate_observations  # noqa: E402
 from pipeline.stages import stage_folder  # noqa: E402
 from watergan.water_record import read_water  # noqa: E402
 
@@ -68,7 +68,7 @@ def main() -> None:
             rng = np.random.default_rng([seed, n])
             part = obs.take_points(np.sort(rng.choice(obs.n_points, n, replace=False)))
             began = time.perf_counter()
-            estimate = fit_observations(part, config, obs.lights)
+            estimate = estimate_observations(part, config, obs.lights)
             seconds = round(time.perf_counter() - began, 1)
             rows.append({"points": n, "views": part.n_obs, "seed": seed, "seconds": seconds,
                          "params": rows_of(estimate.to_json()["params"], truth)})

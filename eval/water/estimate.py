@@ -75,8 +75,11 @@ class _Pass:
 
 
 def stderr_line(text: str) -> None:
-    """A progress line on standard error."""
+    """A progress line on standard error, and what the stage's heartbeat says it is doing."""
+    from watergan.progress import say
+
     print(text, file=sys.stderr, flush=True)
+    say(text.removeprefix("water: "))
 
 
 @dataclass
@@ -163,11 +166,11 @@ def bootstrap_pass(fit: Fit, config: WaterConfig) -> tuple[list[dict], torch.Ten
     return [{fit.key(k): v for k, v in s.items()} for s in samples], inv
 
 
-def estimate_observations(obs: Observations, config: WaterConfig = WaterConfig(), lights: list[dict] | None = None,
+def estimate_observations(obs: Observations, config: WaterConfig | None = None, lights: list[dict] | None = None,
                           grid_obs: Observations | None = None, passes: Passes | None = None) -> WaterEstimate:
     """The passes after the measurement (see the module docstring) on the table ``obs``; ``lights``: the light rig
     survey.json declares; ``grid_obs``: the table the fine grid is fitted to (None: ``obs``)."""
-    passes = passes or Passes()
+    passes, config = passes or Passes(), config or WaterConfig()
     with torch_threads(config.fit.threads):
         with passes("fit"):
             fit = fit_water(obs, config, lights)
@@ -201,7 +204,7 @@ def estimate_observations(obs: Observations, config: WaterConfig = WaterConfig()
 
 
 def estimate_water(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTracks | None = None, board=None,
-                   config: WaterConfig = WaterConfig(), lights: list[dict] | None = None,
+                   config: WaterConfig | None = None, lights: list[dict] | None = None,
                    normals: bool = False, grid_frames: Sequence[WaterFrame] | None = None,
                    say: Callable[[str], None] | None = None) -> WaterEstimate:
     """The site's water (see the module docstring).
@@ -218,7 +221,7 @@ def estimate_water(frames: Sequence[WaterFrame], K: np.ndarray, tracks: SparseTr
     The measurement table is kept in ``estimate.observations``. Raises :class:`eval.observations.WaterInputError`
     when the frames cannot pin the water (too few registered frames, too little range, too few points seen at
     different ranges)."""
-    t0 = time.perf_counter()
+    t0, config = time.perf_counter(), config or WaterConfig()
     passes = Passes(say)
     with passes("measure", f"{len(frames)} frames"):
         lit = reads_normals(config, len(frames), lights)

@@ -239,8 +239,8 @@ def frame_summary(stack: Stack, frames: np.ndarray, carried: bool | None = None)
     """JSON-ready: the stack's gains per frame g' (``frame_gain``) over the ``frames`` with views: per channel the
     largest |exp(g') - 1| and the standard deviation of g' in per cent, whether that is flat (under
     ``FIELD_FLAT_PCT``), whether the water carries them (``carried``; default: whether a frame's reaches
-    ``FRAME_CARRY_PCT``, the rule :func:`eval.water.fit_water.cold_start` carries them by), the frames and each one's gain
-    exp(g')."""
+    ``FRAME_CARRY_PCT``, the rule :func:`eval.water.fit_water.cold_start` carries them by), the frames and each
+    one's gain exp(g')."""
     with torch.no_grad():
         gains = stack[FRAME_EFFECT].gains().numpy()[frames]
     largest = 100 * np.abs(np.expm1(gains)).max(0)

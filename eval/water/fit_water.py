@@ -118,13 +118,13 @@ def cold_start(stack: Stack, obs: Observations, config: WaterConfig, names: list
     return problem, names, iterations, measured
 
 
-def fit_water(obs: Observations, config: WaterConfig = WaterConfig(), lights: list[dict] | None = None,
+def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list[dict] | None = None,
               start: Stack | None = None) -> Fit:
     """The stack of ``config`` (with the declared ``lights``) fitted to the table ``obs``: from its configured
     values (:func:`cold_start`), or warm from a fitted ``start`` (:func:`warm_from`: an alternative refitted from the
     estimate; its gains per frame are carried where ``start`` carried them or the configuration frees them), then
     rounds of L-BFGS to convergence and the trust-region refinement."""
-    t0 = time.perf_counter()
+    t0, config = time.perf_counter(), config or WaterConfig()
     with torch_threads(config.fit.threads):
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
         stack = build_stack(config, obs.n_frames or int(frames.max()) + 1, lights)

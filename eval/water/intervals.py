@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 
 from watergan.formation import Stack, get
-
 from watergan.water_record import ParamInterval, Widening
 
 from .fields import veil_at

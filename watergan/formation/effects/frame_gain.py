@@ -13,13 +13,14 @@ What pins what: a frame flown higher sees its points farther, so its mean range 
 exp(-eta_c dr), which is what a gain per frame is too; and the same point seen in two frames differs by
 g'_a - g'_b - eta (r_a - r_b), of which only the range differences that vary across the points the two frames share
 (relief, view angles) pin eta apart from the gains, and only weakly. So a fit sets Q's columns to the constant and
-to the frames' mean ranges (centred; :func:`eval.fields.decorrelate_frames`): the gains then have no mean (that is
+to the frames' mean ranges (centred; :func:`eval.water.fields.decorrelate_frames`): the gains then have no mean (that is
 the survey's gain ``gain.k``) and no covariance with the frames' ranges (that is the water's); they take what
 changes from frame to frame apart from range: exposure, white balance, a drifting water's change at the frame's
 ranges. An exposure that happens to follow altitude is taken by the water, as without this effect. A penalty
 ``smoothness`` sum_fc g_fc^2 (:meth:`FrameGain.penalty`) keeps the parameters' part along Q (which has no effect)
-at 0. The water measures the gains first and fits them only where a frame's exceeds ``eval.fields.FRAME_CARRY_PCT``
-(:func:`eval.fields.measure_frame_gains`); held at 0, they are not applied.
+at 0. The water measures the gains first and fits them only where a frame's exceeds
+``eval.water.fields.FRAME_CARRY_PCT``
+(:func:`eval.water.fields.measure_frame_gains`); held at 0, they are not applied.
 """
 
 from __future__ import annotations

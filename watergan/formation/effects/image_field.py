@@ -9,7 +9,7 @@ S the direct signal and B the backscatter reaching it; m_k the monomials x^i y^j
 x = 2u - 1, y = ASPECT (2v - 1) (u, v the pixel's image fractions), without a constant: a constant F is the gain
 (degenerate with the albedos' scale), a constant G a veil that the backscatter's asymptote already has, so G's
 level l_c (``additive_level``) is held, not fitted (0: G vanishes at the image's centre; a fit may set it from the
-fitted shape, :func:`eval.fields.set_light_level`). The degree d follows from the coefficients' shape (3, M),
+fitted shape, :func:`eval.water.fields.set_light_level`). The degree d follows from the coefficients' shape (3, M),
 M = (d + 1)(d + 2)/2 - 1 (5 for d = 2). F is what any falloff becomes (off-centre, colour-dependent, of another form
 than the vignetting polynomial); G is an additive veil fixed in the image (a light reflected in the port).
 

@@ -10,7 +10,8 @@ S the direct signal and B the backscatter reaching it, w_n the bilinear tent fun
 rows x cols grid laid corner to corner over the image (so f, g are (3, rows, cols) images of log F and G).
 
 What pins what: as for ``image_field``, the same surface point at different image positions; it is fitted only
-after the water, every other parameter held (:func:`eval.fields.fit_correction_grid`), so it cannot move eta or the
+after the water, every other parameter held (:func:`eval.water.fields.fit_correction_grid`), so it cannot move eta or
+the
 backscatter, and the correction inverts it with the stack. Smoothness: the penalty (:meth:`ImageGrid.penalty`)
 
     lambda sum_c [ C(f_c) + C(g_c / G_SCALE) ] + ridge sum_c [ |f_c|^2 + |g_c / G_SCALE|^2 ],
