@@ -70,6 +70,7 @@ from .diagnose_residuals import (
 )
 from .diagnose_verdict import (
     added_form_misfit,
+    fields_share_check,
     form_conflict,
     stand_in,
     unexplained_axes,
@@ -160,6 +161,9 @@ class CandidateResult:
     fields_explained: float | None = None
     """The share of the water's fields over the image it reproduces (:func:`fields_explained`); None: no fields,
     or not an image-position candidate."""
+    partial: bool = False
+    """Accepted (when significant) as a partial step: it reproduces part of the water's fields over the image, and
+    what remains is of another form (:func:`eval.diagnose_verdict.fields_share_check`)."""
 
 
 @dataclass(frozen=True)
@@ -469,9 +473,9 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
     """Refit with each candidate added; sorted by held-out change (best first), the image-position candidates among
     their places by how much of the water's fields they reproduce (:func:`order_by_fields`). ``fields``: the water's
     fields over the image; a candidate on image position, or one whose fit flattens that axis most (a light's
-    spot), of another form (:func:`form_conflict`), or an image-position one that reproduces less than
-    ``FIELDS_EXPLAINED_MIN`` of structured fields, is not accepted (a light's share of them is no measure: its
-    pattern moves with the range and the surface). ``fitted_fields``: the
+    spot), of another form (:func:`form_conflict`), or an image-position one that reproduces too little of structured
+    fields (:func:`eval.diagnose_verdict.fields_share_check`: under 80 % it is at most a partial step), is not accepted
+    (a light's share of them is no measure: its pattern moves with the range and the surface). ``fitted_fields``: the
     fields themselves (:func:`water_field`; ``stack`` is then the water's without them): each image-position
     candidate says how much of them its fit reproduces (:func:`fields_explained`)."""
     results = []
@@ -494,24 +498,15 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
         explained = (fields_explained(fit.stack, stack, fitted_fields, probe)
                      if fitted_fields is not None and get(name).axis == "image_position" else None)
-        if not implausible and structured and explained is not None and explained < FIELDS_EXPLAINED_MIN:
-            implausible = (f"it flattens too little of them (under {FIELDS_EXPLAINED_MIN:.0%}): the structure on "
-                           f"image position has another form than {name}'s")
+        share_reason, partial = fields_share_check(name, explained, change, structured)
+        implausible = implausible or share_reason
         results.append(CandidateResult(
             name=name, heldout_rmse=fit.heldout_rmse, change=change, ci95=ci, p=p,
             significant=p < config.alpha and change <= -config.min_improvement and not implausible,
             flattened=flattened, flattened_drop=round(drops[flattened], 3), params=fit.params[name],
             scores=cand_scores, structure=relative_amplitudes(cand_analysis, fit), seconds=fit.seconds,
-            implausible=implausible, fields_explained=explained))
+            implausible=implausible, fields_explained=explained, partial=partial and not implausible))
     return order_by_fields(sorted(results, key=lambda r: r.change))
-
-
-#: The least share of the water's fields over the image (when they carry structure) that an image-position
-#: candidate must reproduce to be accepted: its fit has to flatten them, not only lower the held-out error. A form
-#: of the library reproduces nearly all of what it left in the fields; a falloff of another shape (Gaussian,
-#: clipped into a ring) is partly taken by an off-centre vignetting, which then lowers the held-out error much while
-#: leaving a large share of the fields (measured: benchmarks/RESULTS/water.md, issue 52).
-FIELDS_EXPLAINED_MIN = 0.8
 
 
 def order_by_fields(ranked: list[CandidateResult]) -> list[CandidateResult]:
