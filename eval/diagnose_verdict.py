@@ -20,7 +20,7 @@ import numpy as np
 
 from watergan.formation import get
 
-from .fields import field_size
+from .water.fields import field_size
 
 if TYPE_CHECKING:
     from .diagnose import CandidateResult, DiagnoseConfig
@@ -90,7 +90,7 @@ def why_implausible(name: str, params: dict) -> str:
 
 def form_conflict(name: str, form: str, fields: dict | None) -> str:
     """Why candidate ``name`` of this ``form`` (:func:`effect_form`) does not fit the water's fields over the image
-    (``fields``: water.json's, :func:`eval.fields.field_summary`), "" when it does or there is nothing to compare:
+    (``fields``: water.json's, :func:`eval.water.fields.field_summary`), "" when it does or there is nothing to compare:
     a candidate that would explain them (one on image position, or one whose fit flattens that axis: the caller
     decides) must have the fields' form (multiplicative or additive)."""
     if not fields or fields.get("form") not in ("multiplicative", "additive"):
@@ -109,7 +109,7 @@ def fields_line(fields: dict | None) -> str:
     if fields["form"] == "flat":
         return f"fields: the water's fields over the image are flat ({size}): nothing missing on image position"
     return (f"fields: the water's fields over the image carry {fields['form']} structure ({size}): an effect of that "
-            f"form on image position is missing (03_water/fields.png)")
+            f"form on image position is missing (04_water/fields.png)")
 
 
 def frames_line(frames: dict | None) -> str:
@@ -121,7 +121,7 @@ def frames_line(frames: dict | None) -> str:
         return f"frames: the water's gains per frame are flat ({size}): nothing missing from frame to frame"
     kept = "" if frames.get("carried", True) else "; small enough that the water is fitted without them"
     return (f"frames: the water's gains per frame carry {size} beyond what the frames' ranges explain: something "
-            f"changes from frame to frame (exposure, white balance, the water along the survey; 03_water/frames.png)"
+            f"changes from frame to frame (exposure, white balance, the water along the survey; 04_water/frames.png)"
             + kept)
 
 
