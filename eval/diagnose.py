@@ -189,7 +189,7 @@ class DiagnoseResult:
     seconds: float
     measurements: str = ""
     """Which measurement table the fit and the ranking used, with its size (e.g. "water stage (scale: stereo)
-    (03_water/observations.npz): 25403 observations of 4560 points; its 214 board rows not used ...")."""
+    (04_water/observations.npz): 25403 observations of 4560 points; its 214 board rows not used ...")."""
     surfaces: dict = field(default_factory=dict)
     """The orientations of the surfaces the points lie on (:func:`eval.diagnose_residuals.surface_orientations`;
     {} when the table holds no normals)."""
