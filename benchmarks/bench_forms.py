@@ -28,15 +28,16 @@ water.json with bench_water's helpers: eta, B_inf and the veil at the views' med
 water (:func:`pipeline.diagnose.run_diagnose`: the water's stack as its model, its fields over the image and gains per
 frame read by the candidates' checks and the verdict; on the SfM tracks, the settings of tests/test_diagnose.py, in a
 process without the plugins so that only the effect library is offered): none of the forms is in the library, so any
-accepted candidate is a false acceptance.
+candidate accepted as the missing effect is a false acceptance; one accepted as a partial step (the verdict says the
+rest is of another form: the diagnosis's ``partial`` flag) is counted apart (:func:`acceptance`).
 
 Writes ``benchmarks/results/forms.json`` (after each draw): per draw the truth and the measurements, and a
 ``summary`` of fractions of the draws (eta within 10 % in every channel, eta covered in every channel, veil within
-15 % in every channel, physics PSNR within 1.5 dB of the oracle's, physics PSNR below raw's) and the count of false
-acceptances. Per draw also each structure alternative's held-out test and eta (``structure``), and in the summary
-how often eta would be within 10 % had the estimate followed the structure the survey prefers most
-(``eta_within_10pct_preferred_structure``: the alternative whose held-out interval lies below 0 with the largest
-gain, else the estimate). Workspaces go to ``--out`` and are reused when present.
+15 % in every channel, physics PSNR within 1.5 dB of the oracle's, physics PSNR below raw's), the count of false
+acceptances and that of partial steps. Per draw also each structure alternative's held-out test and eta
+(``structure``), and in the summary how often eta would be within 10 % had the estimate followed the structure the
+survey prefers most (``eta_within_10pct_preferred_structure``: the alternative whose held-out interval lies below 0
+with the largest gain, else the estimate). Workspaces go to ``--out`` and are reused when present.
 """
 
 from __future__ import annotations
@@ -290,8 +291,8 @@ def estimate(ws_root: Path):
 def diagnose(ws_root: Path) -> dict:
     """The diagnose stage after the water stage (:func:`water_stage`, run first where it has not), on the
     workspace's SfM tracks (the settings of tests/test_diagnose.py), in a process of its own where only the library's
-    effects are registered: {"accepted": the best accepted candidate or None, "verdict", "ranking": the first three
-    candidates}."""
+    effects are registered: {"accepted": the best accepted candidate or None, "partial": whether it is accepted as a
+    partial step, "verdict", "ranking": the first three candidates}."""
     from pipeline.workspace import release_workspaces
 
     water_stage(ws_root)  # a draw measured before the bench ran the water stage (--resume) gets it now
@@ -321,8 +322,11 @@ def diagnose_only(ws_root: Path) -> dict:
     config = DiagnoseConfig(geometry="sfm", measure=MeasureConfig(n_points=600), fit=FitConfig(iterations=60),
                             bootstrap=500, plots=False)
     result = run_diagnose(ws_root, config, progress=False)
-    return {"accepted": result.best, "verdict": result.verdict.splitlines()[0],
-            "ranking": [{k: r[k] for k in ("name", "change", "significant") if k in r} for r in result.ranking[:3]]}
+    accepted = next((r for r in result.ranking if r["name"] == result.best), {})
+    return {"accepted": result.best, "partial": bool(accepted.get("partial")),
+            "verdict": result.verdict.splitlines()[0],
+            "ranking": [{k: r[k] for k in ("name", "change", "significant", "partial") if k in r}
+                        for r in result.ranking[:3]]}
 
 
 def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
@@ -356,17 +360,28 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
                  for a in water.alternatives if (eta := "attenuation.eta_per_m") in a.values]
     record = {"truth": {**asdict(draw), "workspace": ws_root.name},
               "params": {k: params[k] for k in keep if k in params}, "structure": structure, "correction": correction,
-              "diagnosis": None, "false_acceptance": False, "seconds": {k: round(v, 1) for k, v in seconds.items()}}
+              "diagnosis": None, "false_acceptance": False, "partial_step": False,
+              "seconds": {k: round(v, 1) for k, v in seconds.items()}}
     return add_diagnosis(record, ws_root) if with_diagnosis else record
 
 
+def acceptance(diagnosis: dict | None) -> str:
+    """What the diagnosis of a draw (:func:`diagnose`'s record; None: not diagnosed) accepted: "full" (a library
+    effect as the missing one: a false acceptance, no drawn form is in the library), "partial" (a library effect as
+    a partial step, the rest of another form: a record without the flag counts as full) or "" (nothing)."""
+    if not diagnosis or not diagnosis.get("accepted"):
+        return ""
+    return "partial" if diagnosis.get("partial") else "full"
+
+
 def add_diagnosis(record: dict, ws_root: Path) -> dict:
-    """``record`` with the diagnosis of its workspace (:func:`diagnose`), whether it accepted a library effect
-    (a false acceptance: no drawn form is in the library) and its seconds."""
+    """``record`` with the diagnosis of its workspace (:func:`diagnose`), whether it accepted a library effect as
+    the missing one (a false acceptance) or as a partial step (:func:`acceptance`), and its seconds."""
     t = time.perf_counter()
     diagnosis = diagnose(ws_root)
     seconds = {**record["seconds"], "diagnose": round(time.perf_counter() - t, 1)}
-    return {**record, "diagnosis": diagnosis, "false_acceptance": bool(diagnosis.get("accepted")),
+    kind = acceptance(diagnosis)
+    return {**record, "diagnosis": diagnosis, "false_acceptance": kind == "full", "partial_step": kind == "partial",
             "seconds": seconds}
 
 
@@ -389,13 +404,16 @@ def draw_targets(record: dict) -> dict[str, bool]:
 
 
 def summarise(records: list[dict]) -> dict:
-    """Fractions of the draws meeting each of :func:`draw_targets`, and the count of false acceptances."""
+    """Fractions of the draws meeting each of :func:`draw_targets`, the count of false acceptances (a library effect
+    accepted as the missing one) and of partial steps (one accepted as a partial step; :func:`acceptance`)."""
     targets = [draw_targets(r) for r in records]
     out = {"draws": len(records)}
     for key in ("eta_within_10pct", "eta_covered", "veil_within_15pct", "psnr_within_1p5db_of_oracle",
                 "worse_than_raw", "eta_within_10pct_preferred_structure"):
         out[key] = round(float(np.mean([t[key] for t in targets])), 3) if targets else None
-    out["false_acceptances"] = sum(r["false_acceptance"] for r in records)
+    kinds = [acceptance(r["diagnosis"]) for r in records]
+    out["false_acceptances"] = kinds.count("full")
+    out["partial_steps"] = kinds.count("partial")
     out["diagnosed"] = sum(r["diagnosis"] is not None and "error" not in r["diagnosis"] for r in records)
     return out
 
@@ -412,6 +430,7 @@ def row(record: dict) -> str:
 
     diagnosis = record["diagnosis"]
     accepted = "-" if diagnosis is None else "error" if "error" in diagnosis else diagnosis["accepted"] or "none"
+    accepted += " (partial step)" if acceptance(diagnosis) == "partial" else ""
     return (f"| {t['index']:2d} | {t['family']:22s} | {'stereo' if t['stereo'] else 'mono'} {t['terrain']:5s} "
             f"| {pct('attenuation.eta_per_m'):18s} | {pct('veil'):18s} | {c['physics']['psnr_db']:5.1f} "
             f"| {c['oracle']['psnr_db']:5.1f} | {c['raw']['psnr_db']:5.1f} | {c['physics']['affine_rmse']:.4f} "

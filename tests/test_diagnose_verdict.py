@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from eval.diagnose import CandidateResult
-from eval.diagnose_verdict import fields_share_check, verdict_text
+from eval.diagnose_verdict import fields_share_check, veil_share, verdict_text
 
 #: The water's fields over the image on a survey whose falloff is of a form the library lacks.
 FIELDS = {"form": "multiplicative", "multiplicative_pct": [6.0, 5.0, 4.0], "additive_pct": [3.0, 2.0, 1.0]}
@@ -67,3 +67,20 @@ def test_the_headline_names_the_axis_that_holds_the_most_unexplained_error():
     head = verdict_text([accepted], ["frame"], scores, structure, fields=FIELDS).splitlines()[0]
     assert head.startswith("missing: vignetting_offcentre — held-out error -60%"), head
     assert verdict_text([], [], {}) == "no significant missing effect"
+
+
+def test_an_offset_of_the_veils_colour_cannot_be_told_from_the_veil():
+    """A black level with the colour of the backscatter's B_inf (the falloff of another shape's round 2: 3 degrees
+    apart) is a share of the veil left unvignetted and is not accepted; a pedestal of the sensor's colour (the
+    simulator's, 38 degrees from this veil) or a candidate that is no offset beside the veil is not concerned."""
+    def fitted(offset, b_inf=(0.023, 0.122, 0.146)):
+        return {"backscatter": {"b_inf": {"value": list(b_inf), "fitted": True}},
+                "black_level": {"offset": {"value": list(offset), "fitted": True}}}
+
+    reason = veil_share("black_level", fitted((0.003, 0.0155, 0.0168)))
+    assert reason.startswith("it cannot be told from the veil") and "3 degrees apart" in reason, reason
+    assert veil_share("black_level", fitted((-0.003, -0.0155, -0.0168))) != ""
+    assert veil_share("black_level", fitted((0.012, 0.01, 0.008))) == ""
+    assert veil_share("black_level", fitted((0.0, 0.0, 0.0))) == ""
+    assert veil_share("caustics", fitted((0.003, 0.0155, 0.0168))) == ""
+    assert veil_share("black_level", {"black_level": fitted((0.003, 0.0155, 0.0168))["black_level"]}) == ""

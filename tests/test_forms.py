@@ -175,3 +175,20 @@ def test_realised_white_balance_is_what_the_frames_received(tmp_path):
         inair = read_rgb(survey / "truth" / "inair_linear" / name, linear=False)
         restored = oracle(recorded.astype(np.float64), geometry.state(name), geometry.stack)
         assert np.median(np.abs(restored - inair)) < 0.01
+
+
+def test_the_summary_counts_partial_steps_apart_from_false_acceptances():
+    """A library effect accepted as the missing one is a false acceptance; one accepted as a partial step (the
+    diagnosis's partial flag) is counted apart; a record written before the flag existed counts as full."""
+    correction = {k: {"psnr_db": 20.0} for k in ("raw", "physics", "oracle")}
+
+    def record(diagnosis):
+        return {"params": {}, "correction": correction, "diagnosis": diagnosis}
+
+    records = [record({"accepted": "vignetting_offcentre", "partial": True}),
+               record({"accepted": "vignetting_offcentre", "partial": False}),
+               record({"accepted": "black_level"}),
+               record({"accepted": None, "partial": False}), record(None), record({"accepted": None, "error": ["x"]})]
+    summary = bench_forms.summarise(records)
+    assert (summary["false_acceptances"], summary["partial_steps"], summary["diagnosed"]) == (2, 1, 4), summary
+    assert [bench_forms.acceptance(r["diagnosis"]) for r in records] == ["partial", "full", "full", "", "", ""]
