@@ -18,6 +18,17 @@ Albedo projection (variable projection): each point's albedo is its weighted lea
 closed form when the stack is affine in J (J_p = sum_v w A (y - C) / sum_v w A^2, A = F(1) - F(0), C = F(0)), else
 by ``secant_steps`` secant steps; clamped to [``albedo_min``, ``albedo_max``]. L is then a function of theta alone.
 
+A stack ending in an output map (``Effect.output_map``, the camera's ``tone_curve``: y = T(F'(J)), F' the rest) is
+fitted in the linear domain: each evaluation linearises the observations and the board's, x = T^-1(y) with the
+curve's current parameters (gradients reach them through it), and fits x = A' J + C', A' and C' of F', which is
+affine again (closed-form albedos, the board's affine terms; the affine test is that of F'). The residual is the
+linear one scaled by the curve's slope at the observation, e = T'(x) (x - A' J - C'): the camera-domain residual to
+first order, so ``loss_scale`` keeps its units. The plain linear residual x - A' J - C' would weigh a pixel by
+1 / T'(x)^2 against the camera domain (the shadows a curve crushes heavily, the mid-tones it lifts lightly), and a
+curve that squeezes every observation into a few of its segments would shrink all residuals with it: its loss has
+a minimum at no camera. The albedos are then weighted by w T'^2. What a fit reports (predictions, the held-out
+error) stays in the camera domain.
+
 Minimisation: the fitted parameters start ``START_MARGIN`` of their span inside their bounds (a value on a bound has
 no gradient through the sigmoid); rounds of L-BFGS (``iterations`` each, strong-Wolfe line search) until a round
 lowers L by less than ``convergence_rtol`` or ``max_iterations`` are spent; then optionally a trust-region least
@@ -233,6 +244,27 @@ def _render(stack: Stack, state: FormationState, albedo: torch.Tensor) -> torch.
     return stack.render(state.replace(direct=albedo.reshape(-1, 3, 1, 1).to(state.direct.dtype)))[:, :, 0, 0]
 
 
+def fit_domain(curve: Effect | None, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(the observations ``y`` in the fit's domain, the slopes T' that scale its residuals) (module docstring):
+    (T^-1(y), T'(T^-1(y))) for an output map ``curve``, (y, None) without one."""
+    return (y, None) if curve is None else curve.linearised(y)
+
+
+class _Residual(torch.nn.Module):
+    """The fit's residual of views of known albedo (the state's ``direct``), as a module for functional_call: t (x -
+    F'(J)) with an output map (:func:`fit_domain`), y - F(J) without."""
+
+    def __init__(self, stack: Stack) -> None:
+        super().__init__()
+        self.stack = stack
+
+    def forward(self, state: FormationState, y: torch.Tensor) -> torch.Tensor:
+        rest, curve = self.stack.output_map()
+        x, t = fit_domain(curve, y)
+        e = x - rest.render(state)[:, :, 0, 0]
+        return e if t is None else t * e
+
+
 class Problem:
     """The loss of a stack's fitted parameters on rows of a table (and its board rows), the albedos projected out.
 
@@ -263,7 +295,8 @@ class Problem:
         by_name = dict(stack.named_parameters(remove_duplicate=False))  # a tied parameter under each name
         self.theta = [by_name[n] for n in names]
         self.take_gradients()
-        self.affine = is_affine_in_albedo(stack, observation_state(obs, self.rows[:1024]))
+        self.rest, self.curve = stack.output_map()  # F' and T of the module docstring (F and None without a map)
+        self.affine = is_affine_in_albedo(self.rest, observation_state(obs, self.rows[:1024]))
         self.doubled = affine_state(self.state) if self.affine else None
         self.board_doubled = affine_state(self.board_state) if self.has_board else None
         self.separate: bool | None = None
@@ -275,6 +308,7 @@ class Problem:
         the weights shared, read only): a refit on another thread leaves this one's parameters alone."""
         twin = copy.copy(self)
         twin.stack = copy.deepcopy(self.stack)
+        twin.rest, twin.curve = twin.stack.output_map()
         by_name = dict(twin.stack.named_parameters(remove_duplicate=False))
         twin.theta = [by_name[n] for n in self.names]
         twin.take_gradients()
@@ -298,26 +332,39 @@ class Problem:
         return w
 
     def albedo(self, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(albedo (P_rows,3) of the points in :attr:`points` order, predicted colour (N,3)) with each albedo its
-        weighted least-squares value given the parameters (see the module docstring)."""
+        """(albedo (P_rows,3) of the points in :attr:`points` order, predicted colour (N,3), camera domain) with each
+        albedo its weighted least-squares value given the parameters (see the module docstring)."""
+        j, predicted, _ = self.project(w)
+        if self.curve is not None:
+            predicted = self.curve(self.state.replace(direct=predicted[:, :, None, None], backscatter=None)).image
+            predicted = predicted[:, :, 0, 0]
+        return j, predicted
+
+    def project(self, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(albedos (P_rows,3), prediction (N,3), residual (N,3)), prediction and residual in the fit's domain (the
+        module docstring: linear, the residual scaled by the curve's slope, with an output map)."""
         w = self.view_weight() if w is None else w
+        y, slope = fit_domain(self.curve, self.y)
+        wc = w[:, None] if slope is None else w[:, None] * slope * slope
         n, lo, hi = len(self.points), self.config.albedo_min, self.config.albedo_max
         if self.affine:
-            a, c = affine_images(self.stack, self.state, self.doubled)
+            a, c = affine_images(self.rest, self.state, self.doubled)
             a, c = a[:, :, 0, 0], c[:, :, 0, 0]
-            num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * (self.y - c))
-            den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, w[:, None] * a * a)
+            num = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, wc * a * (y - c))
+            den = torch.zeros(n, 3, dtype=a.dtype).index_add(0, self.local, wc * a * a)
             j = (num / den.clamp_min(1e-12)).clamp(lo, hi)
-            return j, a * j[self.local] + c
-        zero = _render(self.stack, self.state, torch.zeros_like(self.y))
-        j = self.start
-        for _ in range(self.config.secant_steps):
-            a_obs = j[self.local]
-            t = (_render(self.stack, self.state, a_obs) - zero) / a_obs
-            num = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * (self.y - zero))
-            den = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, w[:, None] * t * t)
-            j = (num / den.clamp_min(1e-12)).clamp(max(lo, 1e-6), hi)
-        return j, _render(self.stack, self.state, j[self.local])
+            predicted = a * j[self.local] + c
+        else:
+            zero = _render(self.rest, self.state, torch.zeros_like(y))
+            j = self.start
+            for _ in range(self.config.secant_steps):
+                a_obs = j[self.local]
+                t = (_render(self.rest, self.state, a_obs) - zero) / a_obs
+                num = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, wc * t * (y - zero))
+                den = torch.zeros(n, 3, dtype=t.dtype).index_add(0, self.local, wc * t * t)
+                j = (num / den.clamp_min(1e-12)).clamp(max(lo, 1e-6), hi)
+            predicted = _render(self.rest, self.state, j[self.local])
+        return j, predicted, (y - predicted) if slope is None else slope * (y - predicted)
 
     def penalty(self) -> torch.Tensor:
         """The effects' penalty residuals (``Effect.penalty``), float64 (empty when none has one)."""
@@ -331,14 +378,15 @@ class Problem:
             wb = wb * self.frame_weight.to(wb.dtype)[self.board_frame]
         if self.patch_weight is not None:
             wb = wb * self.patch_weight.to(wb.dtype)[self.board_patch]
-        ab, cb = affine_images(self.stack, self.board_state, self.board_doubled)
-        ab, cb = ab[:, :, 0, 0], cb[:, :, 0, 0]
-        return wb, self.board_y - (ab * self.board_j + cb)
+        ab, cb = affine_images(self.rest, self.board_state, self.board_doubled)
+        yb, slope = fit_domain(self.curve, self.board_y)
+        eb = yb - (ab[:, :, 0, 0] * self.board_j + cb[:, :, 0, 0])
+        return wb, eb if slope is None else slope * eb
 
     def loss(self) -> torch.Tensor:
         """L(theta) of the module docstring (float64)."""
         w = self.view_weight()
-        e = self.y - self.albedo(w)[1]
+        e = self.project(w)[2]
         scale = self.config.loss_scale
         total = ((w[:, None] * soft_l1(e, scale)).sum() / w.sum().clamp_min(1e-12)).double()
         if self.has_board and self.config.board_weight > 0:
@@ -351,7 +399,7 @@ class Problem:
         """The residual vector whose sum of squares is :meth:`loss` (for the trust-region least squares)."""
         w = self.view_weight()
         scale = self.config.loss_scale
-        parts = [(torch.sqrt(w / w.sum())[:, None] * robust_residual(self.y - self.albedo(w)[1], scale)).reshape(-1)]
+        parts = [(torch.sqrt(w / w.sum())[:, None] * robust_residual(self.project(w)[2], scale)).reshape(-1)]
         if self.has_board and self.config.board_weight > 0:
             wb, eb = self._board_terms()
             parts.append((torch.sqrt(self.config.board_weight * wb / wb.sum())[:, None]
@@ -584,7 +632,8 @@ def fit_albedos(problem: Problem, init: np.ndarray | None) -> torch.Tensor:
         return start
     log_a = torch.nn.Parameter(torch.log(start.clamp_min(1e-12)))
     lbfgs([log_a, *problem.theta],
-          lambda: soft_l1(_render(problem.stack, problem.state, torch.exp(log_a)[problem.local]) - problem.y,
+          lambda: soft_l1(_Residual(problem.stack)(problem.state.replace(direct=torch.exp(log_a)[problem.local]
+                                                                          .view(-1, 3, 1, 1)), problem.y),
                           config.loss_scale).sum(1).mean(), config.polish_iterations, config.step_rtol)
     return torch.exp(log_a.detach())
 
@@ -593,9 +642,11 @@ def laplace_std(stack: Stack, state: FormationState, y: torch.Tensor, direct: to
                 scale: float) -> dict[str, np.ndarray]:
     """Standard deviations of the physical values of the raw parameters ``names``, conditional on the albedos
     (``direct``): Cov = J H^-1 J^T, H the Hessian of sum rho(e) / (2 s^2) over the raw values (s^2 = sum rho /
-    (n - k)), J = d value / d raw. Views are treated as independent, so these are lower bounds."""
+    (n - k)), J = d value / d raw, e the fit's residual (module docstring). Views are treated as independent, so these
+    are lower bounds."""
     if not names:
         return {}
+    residual = _Residual(stack)
     by_name = dict(stack.named_parameters())
     shapes = [by_name[n].shape for n in names]
     sizes = [int(np.prod(s)) for s in shapes]
@@ -605,8 +656,8 @@ def laplace_std(stack: Stack, state: FormationState, y: torch.Tensor, direct: to
         return {n: t.view(s) for n, t, s in zip(names, torch.split(flat, sizes), shapes, strict=True)}
 
     def total_loss(flat):
-        pred = functional_call(stack, unflatten(flat), (state.replace(direct=direct),)).image[:, :, 0, 0]
-        return soft_l1(pred - y, scale).sum()
+        values = {f"stack.{n}": t for n, t in unflatten(flat).items()}
+        return soft_l1(functional_call(residual, values, (state.replace(direct=direct), y)), scale).sum()
 
     with torch.no_grad():
         s2 = float(total_loss(flat0)) / max(y.numel() - flat0.numel(), 1)

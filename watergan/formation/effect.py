@@ -51,6 +51,10 @@ class Effect(nn.Module):
     channel_axis: {param: axis} of parameters whose entries along that axis (of length 3: R, G, B) each act on
                  their own colour channel only; a fit differentiates the three together (the loss is a sum over
                  channels, so they do not interact).
+    output_map:  True for an invertible map of the recorded image, y = T(x) with x the image before it (a camera's
+                 tone curve), acting pixel by pixel and channel by channel: it implements :meth:`linearise`, T^-1,
+                 exactly, and is taken so as the stack's last effect (:meth:`Stack.output_map`). The fitter and the
+                 corrections then work on T^-1(y), where the rest of the stack is affine in the in-air colour again.
     """
 
     AXES: ClassVar[tuple[str, ...]] = (
@@ -71,6 +75,7 @@ class Effect(nn.Module):
     rig_params: ClassVar[tuple[str, ...]] = ()
     nuisance: ClassVar[bool] = False
     channel_axis: ClassVar[dict[str, int]] = {}
+    output_map: ClassVar[bool] = False
 
     def __init__(self, counts: Counts | None = None, **values) -> None:
         """Physical ``values`` by parameter name (the rest start from their ``init``); ``counts``: the survey's
@@ -133,6 +138,20 @@ class Effect(nn.Module):
     def make_neutral(self) -> None:
         """Set the effect to the identity (its ``neutral`` values; learned layers override this)."""
         self.set_values(**self.neutral)
+
+    def linearise(self, y: torch.Tensor) -> torch.Tensor:
+        """x = T^-1(y) of an output map (:attr:`output_map`), elementwise, differentiable in y and the parameters."""
+        raise NotImplementedError(f"effect '{self.name}' is not an output map")
+
+    def linearised(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x, t): x = T^-1(y) (:meth:`linearise`) and t = T'(x) = 1 / (dx/dy), elementwise (by autograd), both
+        differentiable in the parameters where gradients are enabled (detached where they are not)."""
+        grad = torch.is_grad_enabled()
+        with torch.enable_grad():
+            y = y.detach().requires_grad_(True)
+            x = self.linearise(y)
+            (dx,) = torch.autograd.grad(x.sum(), y, create_graph=grad)
+        return (x, 1.0 / dx) if grad else (x.detach(), 1.0 / dx.detach())
 
     def penalty(self) -> torch.Tensor | None:
         """Residuals whose sum of squares a fit adds to its loss (a prior on the parameters); None: no penalty."""

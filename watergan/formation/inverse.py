@@ -6,6 +6,11 @@ sensor's effects) and A = render(J = 1) - C (the direct signal's gain: gain, vig
 The inverse J = (y - C) / A is what the physics correction (:func:`correct_physics`)
 applies, and what the RGB-D restorer starts from (:mod:`watergan.nets.restorer`): both take the fields from
 :func:`inverse_fields`, so the two corrections invert the same water the same way.
+
+A stack that ends in an invertible output map (``Effect.output_map``: the camera's ``tone_curve``, y = T(F'(J)))
+is affine once the image is linearised: T^-1(y) = A J + C, with A and C those of F', the stack before the map. The
+fields here are then F''s (:meth:`Stack.output_map`), and :func:`linearise_image` gives T^-1(y): the correction is
+J = (T^-1(y) - C) / A, exact.
 """
 
 from __future__ import annotations
@@ -149,7 +154,8 @@ def affine_state(state: FormationState) -> FormationState:
 def affine_images(stack: Stack, state: FormationState,
                   doubled: FormationState | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(A, C) of y = A J + C, (B,3,H,W): the stack rendered at J = 1 and J = 0, in one render of
-    :func:`affine_state` (``doubled``: that state, made once by a caller that renders the same views again)."""
+    :func:`affine_state` (``doubled``: that state, made once by a caller that renders the same views again). The
+    whole stack, its output map included (callers that linearise take :meth:`Stack.output_map`'s rest first)."""
     both = stack.render(affine_state(state) if doubled is None else doubled)
     b = both.shape[0] // 2
     return both[b:] - both[:b], both[:b]
@@ -159,7 +165,8 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
                    frame_index: int | Sequence[int] = 0, normals_cam: np.ndarray | None = None,
                    normal_smooth_px: float = 24.0,
                    dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
-    """(A, C, valid): the fields of y = A J + C at every pixel of a range map, A and C (1,3,H,W) tensors of ``dtype``
+    """(A, C, valid): the fields of y = A J + C at every pixel of a range map (with an output map, of T^-1(y) = A J + C:
+    the module docstring), A and C (1,3,H,W) tensors of ``dtype``
     (float32 is twice as fast, for the restorer; float64 for the physics correction), ``valid``
     (H,W) where the map holds range (elsewhere A and C are those of a 1 m range: mark those pixels, never use them).
 
@@ -174,6 +181,7 @@ def inverse_fields(range_m: np.ndarray, stack: Stack | list[dict], K: np.ndarray
              fields of the same pixels in each of those frames, a batch of them (B,3,H,W)."""
     if not isinstance(stack, Stack):
         stack = Stack.from_config(stack)
+    stack = stack.output_map()[0]
     r = clean_range(range_m)
     h, w = r.shape
     valid = np.isfinite(r)
@@ -311,8 +319,8 @@ class FieldTable:
         state = FormationState(direct=torch.zeros(1, 3, len(rs) * rows, cols, dtype=torch.float64),
                                range_m=r_grid.reshape(shape), pixel_uv=uv, image_wh=(w, h),
                                frame_index=torch.tensor([0]), **fields)
-        with torch.no_grad():
-            a, c = affine_images(stack.to(torch.float64), state)
+        with torch.no_grad():  # with an output map, the fields of T^-1(y) (the module docstring)
+            a, c = affine_images(stack.output_map()[0].to(torch.float64), state)
         a = a.clamp_min(1e-12)
         table = torch.cat([-torch.log(a), -c / a], dim=1).reshape(1, 6, len(rs), rows, cols)
         return cls(table.float(), w, h, float(rs[0]), float(rs[-1]), _intrinsics(K), *factorised(table[0], rs))
@@ -415,6 +423,17 @@ def range_span(range_m: torch.Tensor, margin_m: float = LUT_RANGE_MARGIN_M,
     return max(0.0, np.floor(lo / round_m) * round_m), np.ceil(hi / round_m) * round_m
 
 
+def linearise_image(image: np.ndarray, stack: Stack | list[dict]) -> np.ndarray:
+    """T^-1(image) (float64, the image's shape) of the stack's output map (the module docstring); the image itself
+    (as float64) when the stack has none."""
+    curve = (stack if isinstance(stack, Stack) else Stack.from_config(stack)).output_map()[1]
+    image = np.asarray(image, np.float64)
+    if curve is None:
+        return image
+    with torch.no_grad():
+        return curve.to(torch.float64).linearise(torch.from_numpy(image)).numpy()
+
+
 SIGNAL_FLOOR = 0.01
 """Share s of a pixel's own signal a correction keeps where the veil it removes reaches the pixel's value:
 J = max(I - C, s I) / A (with the log gain g = -ln A and offset o = -C / A: max(exp(g) I + o, s exp(g) I)). A pixel
@@ -427,7 +446,8 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
                     normal_smooth_px: float = 24.0, signal_floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Invert a stack that is affine in the in-air colour, pixel by pixel with each pixel's range:
     J = (I - C) / A, A = render(J = 1) - render(J = 0), C = render(J = 0); for the default stack
-    J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r).
+    J = (I / k * V - B_inf (1 - exp(-beta r))) * exp(eta r). A stack ending in an output map T (a tone curve) has
+    I replaced by T^-1(I) (:func:`linearise_image`) and A, C those of the rest: exact again.
 
     image:   (H,W,3) raw linear RGB.
     range_m: (H,W) metres along the ray; NaN or <= 0 = no range.
@@ -444,7 +464,7 @@ def correct_physics(image: np.ndarray, range_m: np.ndarray, stack: Stack | list[
     without range are marked, never guessed: fill their range first (e.g. from a fused mesh) to correct them."""
     a, c, valid = inverse_fields(range_m, stack, K, frame_index, normals_cam, normal_smooth_px)
     a, c = a[0].permute(1, 2, 0).numpy(), c[0].permute(1, 2, 0).numpy()
-    image = np.asarray(image, np.float64)
+    image = linearise_image(image, stack)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.maximum(image - c, signal_floor * image) / a if signal_floor > 0 else (image - c) / a
     out[~valid] = np.nan

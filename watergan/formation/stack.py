@@ -93,6 +93,15 @@ class Stack(nn.Module):
                 return e
         raise KeyError(f"stack has no effect '{name}'; it has {self.names}")
 
+    def output_map(self) -> tuple[Stack, Effect | None]:
+        """(the stack before its output map, the map) when the last effect is an invertible output map
+        (:attr:`Effect.output_map`: y = T(F'(J)), F' the rest), the rest sharing these effects' modules and
+        parameters; (this stack, None) otherwise (an output map elsewhere is an ordinary effect, not affine in J).
+        :meth:`ordered` puts an output map last."""
+        if len(self.effects) and self.effects[-1].output_map:
+            return type(self)(list(self.effects)[:-1]), self.effects[-1]
+        return self, None
+
     def forward(self, state: FormationState) -> FormationState:
         for effect in self.effects:
             state = effect(state)

@@ -22,7 +22,10 @@ input is that scale). softmax(l) is unchanged by a constant added to every l_k: 
 l_k^2 (:meth:`ToneCurve.penalty`) holds that direction at 0.
 
 In the stack the curve acts last (after the gains, the black level and the clipping curve of ``sensor_response``),
-on the sum S + B: the output is no longer y = A J + C in the albedo J.
+on the sum S + B: the output is no longer y = A J + C in the albedo J. It is an output map (``Effect.output_map``):
+its exact inverse x = E^-1(M^-1(D^-1(y))) (:func:`tone_curve_inverse`) gives back S + B = A J + C, affine again,
+which the fitter fits and the corrections invert. Below T(0) (an S-Log3 camera's black, 95 / 1023 encoded) the
+inverse continues the curves' linear toes, so a dark pixel's noise maps to x < 0 instead of being clipped.
 """
 
 from __future__ import annotations
@@ -66,6 +69,65 @@ def remap(v: torch.Tensor, log_slope: torch.Tensor) -> torch.Tensor:
     return knots[i] + slope[i] * (v - i.to(v.dtype) / k)
 
 
+def slog3_decode(v: torch.Tensor) -> torch.Tensor:
+    """x of :func:`slog3_encode`: 0.19 10^((1023 v - 420) / 261.5) - 0.01 above its toe (code value 171.21), else
+    (1023 v - 95) 0.01125 / (171.2102946929 - 95) (negative below code value 95)."""
+    code = 1023.0 * v
+    log = 0.19 * torch.pow(10.0, (code.clamp_min(171.2102946929) - 420.0) / 261.5) - 0.01
+    return torch.where(code >= 171.2102946929, log, (code - 95.0) * 0.01125 / (171.2102946929 - 95.0))
+
+
+def remap_inverse(u: torch.Tensor, log_slope: torch.Tensor) -> torch.Tensor:
+    """v of :func:`remap` with M(v) = u: the segment i whose knots hold u (the first below 0, the last past 1), then
+    v = i / K + (u - c_i) / s_i."""
+    k = log_slope.shape[-1]
+    slope = k * torch.softmax(log_slope, -1)
+    knots = torch.cat([slope.new_zeros(1), torch.cumsum(slope, -1) / k])
+    i = torch.clamp(torch.searchsorted(knots[1:-1].detach().contiguous(), u.detach().contiguous(), right=True),
+                    0, k - 1)
+    return i.to(u.dtype) / k + (u - knots[i]) / slope[i]
+
+
+#: Newton steps of :func:`encode_inverse` for a profile between sRGB and S-Log3 (the mixture has no closed form).
+NEWTON_STEPS = 60
+
+
+def encode_inverse(v: torch.Tensor, log_profile: torch.Tensor) -> torch.Tensor:
+    """x of E(x) = (1 - m) sRGB(x) + m SLog3(x) = v, E continued along its linear toes below 0: closed form at
+    m = 0 and m = 1; between them Newton's method on E, which is increasing and concave (from any start its steps
+    rise to the root after the first), run on detached values, then one step with gradients: x = x* - (E(x*) - v)
+    / E'(x*), whose derivatives are the implicit function's."""
+    m = float(log_profile)
+    if m == 0.0:
+        return srgb_decode(v)
+    if m == 1.0:
+        return slog3_decode(v)
+
+    def encode(x):  # both encodings continue linearly below 0
+        return (1 - log_profile) * srgb_encode(x) + log_profile * slog3_encode(x)
+
+    with torch.enable_grad():
+        x = ((1 - m) * srgb_decode(v) + m * slog3_decode(v)).detach()
+        for _ in range(NEWTON_STEPS):
+            x = x.detach().requires_grad_(True)
+            e = encode(x)
+            (slope,) = torch.autograd.grad(e.sum(), x)
+            x = (x - (e.detach() - v.detach()) / slope).detach()
+            if bool(((e.detach() - v.detach()).abs() < 1e-15).all()):
+                break
+        x = x.requires_grad_(True)
+        e = encode(x)
+        (slope,) = torch.autograd.grad(e.sum(), x)
+    x = x.detach()
+    return x - (encode(x) - v) / slope
+
+
+def tone_curve_inverse(y: torch.Tensor, log_slope: torch.Tensor, log_profile: torch.Tensor) -> torch.Tensor:
+    """x = E^-1(M^-1(D^-1(y))): the exact inverse of :func:`tone_curve` (where y >= T(0); below, the toes
+    continued), D^-1 = :func:`srgb_encode` (linear below 0), E^-1 of :func:`encode_inverse`."""
+    return encode_inverse(remap_inverse(srgb_encode(y), log_slope), log_profile)
+
+
 def tone_curve(signal: torch.Tensor, log_slope: torch.Tensor, log_profile: torch.Tensor) -> torch.Tensor:
     """y = D(M(E(max(signal, 0)))) of the module docstring: ``signal`` linear (any shape), ``log_slope`` (K,),
     ``log_profile`` m in [0, 1] (0: sRGB, 1: S-Log3). Returns the decoded linear value, the signal's shape."""
@@ -90,12 +152,17 @@ class ToneCurve(Effect):
         Param("smoothness", 1e-5, 0.0, 1.0, "", "penalty weight lambda of the fit", learnable=False),
     )
     neutral = {"log_slope": (0.0,) * SEGMENTS, "log_profile": 0.0}
+    output_map = True
 
     def forward(self, state):
         like = state.direct
         out = tone_curve(state.image, self.param("log_slope", like), self.param("log_profile", like))
         # the curve acts on the sum: the result is no longer separable into direct + backscatter
         return state.replace(direct=out, backscatter=torch.zeros_like(out))
+
+    def linearise(self, y: torch.Tensor) -> torch.Tensor:
+        """S + B = T^-1(y) (:func:`tone_curve_inverse`), exact."""
+        return tone_curve_inverse(y, self.param("log_slope", y), self.param("log_profile", y))
 
     def penalty(self) -> torch.Tensor:
         """Residuals whose sum of squares is the penalty of the module docstring."""
