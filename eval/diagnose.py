@@ -74,7 +74,7 @@ from .diagnose_verdict import (
     form_conflict,
     stand_in,
     unexplained_axes,
-    veil_share,
+    same_colour,
     verdict_text,
     why_implausible,
 )
@@ -493,7 +493,7 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         cand_scores = scores(cand_analysis)
         drops = {a: base_scores[a] - cand_scores.get(a, 0.0) for a in base_scores}
         flattened = max(drops, key=drops.get)
-        implausible = why_implausible(name, fit.params[name]) or veil_share(name, fit.params)
+        implausible = why_implausible(name, fit.params[name]) or same_colour(name, fit.params)
         on_image = get(name).axis == "image_position" or flattened == "image_position"
         if not implausible and fields and on_image:
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)

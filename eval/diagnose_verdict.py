@@ -1,7 +1,7 @@
 """The diagnosis's verdict in words, and the checks that decide whether a candidate is accepted.
 
 A candidate whose fitted values are not physical (:func:`why_implausible`), that cannot be told from the veil
-(:func:`veil_share`) or whose form on image position is not the
+(:func:`same_colour`) or whose form on image position is not the
 water's fields' (:func:`form_conflict`) is not accepted; an image-position candidate that reproduces part of the
 fields is accepted as a partial step, or not accepted, by :func:`fields_share_check`; a candidate that flattens the
 axis of an added effect whose form does not fit (:func:`added_form_misfit`) stands in for it (:func:`stand_in`).
@@ -89,35 +89,32 @@ def why_implausible(name: str, params: dict) -> str:
     return "; ".join(reasons)
 
 
-#: Candidates that add an offset per channel beside the veil, by the parameter holding it. Only the vignetting (which
-#: scales the veil, not the offset) tells such an offset from the backscatter's B_inf over a survey's ranges.
-VEIL_OFFSETS = {"black_level": "offset"}
-#: An offset within this angle (degrees, in RGB) of the veil's colour B_inf has the veil's colour.
-VEIL_COLOUR_DEG = 10.0
+#: Two values per channel within this angle (degrees, in RGB) share one colour.
+SAME_COLOUR_DEG = 10.0
 
 
-def veil_share(name: str, params: dict) -> str:
-    """Why candidate ``name``, an offset per channel beside the veil (``VEIL_OFFSETS``), cannot be told from the
-    veil, "" when it can or is no such candidate: its fitted offset b (``params``: ``FitResult.params``, all the
-    fit's effects) has the colour of the refitted backscatter's B_inf (b within ``VEIL_COLOUR_DEG`` of the line
-    through B_inf, either sign). Such an offset is a share of the veil taken out from under the vignetting: what it
-    cuts is the form of the model on image position (the one thing that sets the two apart), not a camera's pedestal,
-    whose colour is the sensor's and not the water's."""
-    key = VEIL_OFFSETS.get(name)
-    veil = params.get("backscatter", {}).get("b_inf")
-    entry = params.get(name, {}).get(key) if key else None
-    if entry is None or veil is None or not entry["fitted"]:
-        return ""
-    b, v = np.ravel(entry["value"]).astype(float), np.ravel(veil["value"]).astype(float)
-    norm = float(np.linalg.norm(b) * np.linalg.norm(v))
-    if b.shape != v.shape or norm <= 0:
-        return ""
-    angle = float(np.degrees(np.arccos(min(1.0, abs(float(b @ v)) / norm))))
-    if angle > VEIL_COLOUR_DEG:
-        return ""
-    return (f"it cannot be told from the veil: its {key} ({', '.join(f'{x:.3f}' for x in b)}) has the colour of the "
-            f"backscatter's b_inf ({', '.join(f'{x:.3f}' for x in v)}; {angle:.0f} degrees apart), a share of the veil "
-            f"left unvignetted, which stands in for the model's form on image position")
+def same_colour(name: str, params: dict) -> str:
+    """Why candidate ``name`` cannot be told from another effect, "" when it can: a parameter its effect declares in
+    ``same_colour_as`` fitted to the colour of the other effect's parameter there (``params``: ``FitResult.params``,
+    all the fit's effects; within ``SAME_COLOUR_DEG``, either sign). A black level of the veil's colour is a share of
+    the veil taken out from under the vignetting: what it cuts is the model's form on image position (the one thing
+    that sets the two apart), not a camera's pedestal, whose colour is the sensor's and not the water's."""
+    from watergan.formation import get
+
+    for key, other in get(name).same_colour_as.items():
+        effect, param = other.split(".", 1)
+        entry, ref = params.get(name, {}).get(key), params.get(effect, {}).get(param)
+        if entry is None or ref is None or not entry["fitted"]:
+            continue
+        b, v = np.ravel(entry["value"]).astype(float), np.ravel(ref["value"]).astype(float)
+        norm = float(np.linalg.norm(b) * np.linalg.norm(v))
+        if b.shape != v.shape or norm <= 0:
+            continue
+        angle = float(np.degrees(np.arccos(min(1.0, abs(float(b @ v)) / norm))))
+        if angle <= SAME_COLOUR_DEG:
+            return (f"it cannot be told from {effect}: its {key} ({', '.join(f'{x:.3f}' for x in b)}) has the colour "
+                    f"of {other} ({', '.join(f'{x:.3f}' for x in v)}; {angle:.0f} degrees apart)")
+    return ""
 
 
 def form_conflict(name: str, form: str, fields: dict | None) -> str:

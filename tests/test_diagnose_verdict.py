@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from eval.diagnose import CandidateResult
-from eval.diagnose_verdict import fields_share_check, veil_share, verdict_text
+from eval.diagnose_verdict import fields_share_check, same_colour, verdict_text
 
 #: The water's fields over the image on a survey whose falloff is of a form the library lacks.
 FIELDS = {"form": "multiplicative", "multiplicative_pct": [6.0, 5.0, 4.0], "additive_pct": [3.0, 2.0, 1.0]}
@@ -77,10 +77,10 @@ def test_an_offset_of_the_veils_colour_cannot_be_told_from_the_veil():
         return {"backscatter": {"b_inf": {"value": list(b_inf), "fitted": True}},
                 "black_level": {"offset": {"value": list(offset), "fitted": True}}}
 
-    reason = veil_share("black_level", fitted((0.003, 0.0155, 0.0168)))
-    assert reason.startswith("it cannot be told from the veil") and "3 degrees apart" in reason, reason
-    assert veil_share("black_level", fitted((-0.003, -0.0155, -0.0168))) != ""
-    assert veil_share("black_level", fitted((0.012, 0.01, 0.008))) == ""
-    assert veil_share("black_level", fitted((0.0, 0.0, 0.0))) == ""
-    assert veil_share("caustics", fitted((0.003, 0.0155, 0.0168))) == ""
-    assert veil_share("black_level", {"black_level": fitted((0.003, 0.0155, 0.0168))["black_level"]}) == ""
+    reason = same_colour("black_level", fitted((0.003, 0.0155, 0.0168)))
+    assert reason.startswith("it cannot be told from backscatter") and "3 degrees apart" in reason, reason
+    assert same_colour("black_level", fitted((-0.003, -0.0155, -0.0168))) != ""
+    assert same_colour("black_level", fitted((0.012, 0.01, 0.008))) == ""
+    assert same_colour("black_level", fitted((0.0, 0.0, 0.0))) == ""
+    assert same_colour("caustics", fitted((0.003, 0.0155, 0.0168))) == ""
+    assert same_colour("black_level", {"black_level": fitted((0.003, 0.0155, 0.0168))["black_level"]}) == ""

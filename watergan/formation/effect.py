@@ -51,6 +51,9 @@ class Effect(nn.Module):
     channel_axis: {param: axis} of parameters whose entries along that axis (of length 3: R, G, B) each act on
                  their own colour channel only; a fit differentiates the three together (the loss is a sum over
                  channels, so they do not interact).
+    same_colour_as: {param: "effect.param"} of a parameter per channel that cannot be told from another effect's where
+                 their fitted values share one colour (a black level of the veil's colour is a share of the veil):
+                 the diagnosis then refuses the candidate.
     output_map:  True for an invertible map of the recorded image, y = T(x) with x the image before it (a camera's
                  tone curve), acting pixel by pixel and channel by channel: it implements :meth:`linearise`, T^-1,
                  exactly, and is taken so as the stack's last effect (:meth:`Stack.output_map`). The fitter and the
@@ -75,6 +78,7 @@ class Effect(nn.Module):
     rig_params: ClassVar[tuple[str, ...]] = ()
     nuisance: ClassVar[bool] = False
     channel_axis: ClassVar[dict[str, int]] = {}
+    same_colour_as: ClassVar[dict[str, str]] = {}
     output_map: ClassVar[bool] = False
 
     def __init__(self, counts: Counts | None = None, **values) -> None:

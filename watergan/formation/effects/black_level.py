@@ -23,6 +23,8 @@ class BlackLevel(Effect):
     axis = "intensity"
     rank = RANK_SENSOR + 2  # after the gains, before the tone curve
     channel_axis = {"offset": 0}
+    # only the vignetting, which scales the veil and not the offset, tells an offset of the veil's colour from it
+    same_colour_as = {"offset": "backscatter.b_inf"}
     simulation_params = {"offset": (0.012, 0.01, 0.008)}
     params = (Param("offset", (0.005, 0.005, 0.005), -0.05, 0.05, "linear radiance",
                     "black level per channel (R, G, B)"),)
