@@ -31,7 +31,7 @@ from watergan.correction_range import (
 from watergan.data import DataError, atomic_write_bytes, read_nav_altitudes, read_nav_down
 from watergan.formation import Stack
 from watergan.formation import get as get_effect
-from watergan.formation.inverse import SIGNAL_FLOOR, frame_affines, needs_normals
+from watergan.formation.inverse import SIGNAL_FLOOR, frame_affines, linearise_image, needs_normals
 from watergan.io import (
     encode_image,
     levels_bits,
@@ -207,14 +207,16 @@ class FrameInverse:
     of its effects without a value per frame, each frame's image first freed of the others by the affine map they
     apply to it (:func:`watergan.formation.inverse.frame_affines`: a gain or exposure per frame, measured on a probe
     once per image size); otherwise (or for a frame whose effects are no such map) with each frame's exact fields
-    (:func:`invert_exact`, float64). Called from several threads."""
+    (:func:`invert_exact`, float64). A stack ending in an output map (a camera's tone curve) has each image
+    linearised by its inverse first (:func:`watergan.formation.inverse.linearise_image`). Called from several
+    threads."""
 
     def __init__(self, inputs: PhysicsInputs, tracks: Tracks, K: np.ndarray, monocular: bool, max_gain: float):
         self.inputs, self.tracks, self.K, self.max_gain = inputs, tracks, K, max_gain
         self.stack = Stack.from_config(inputs.stack)
         self.with_normals = needs_normals(self.stack)
         base = [e for e in inputs.stack if not get_effect(e["name"]).varies_by_frame()]
-        self.per_frame = Stack.from_config(base) if len(base) < len(inputs.stack) else None
+        self.per_frame = Stack.from_config(base).output_map()[0] if len(base) < len(inputs.stack) else None
         self.fields = None if self.with_normals else WaterFields(base)
         # the dense range only feeds the normals (the correction's range is the range stage's map)
         self.depth_dir = inputs.depth_dir if self.with_normals and not monocular else None
@@ -226,7 +228,8 @@ class FrameInverse:
         with self.affines_lock:
             if size_hw not in self.affines:
                 frames = range(len(self.tracks.image_names))
-                self.affines[size_hw] = frame_affines(self.stack, self.per_frame, frames, self.K, *size_hw)
+                self.affines[size_hw] = frame_affines(self.stack.output_map()[0], self.per_frame, frames, self.K,
+                                                      *size_hw)
         return self.affines[size_hw][k]
 
     def __call__(self, k: int, levels: np.ndarray, range_m: np.ndarray, far: np.ndarray) -> np.ndarray:
@@ -234,7 +237,7 @@ class FrameInverse:
         ``far``: (H,W,3) float32 linear, unclipped."""
         corrected = None
         if self.fields is not None:
-            image = stored_as(levels, "srgb", np.float32)
+            image = linearise_image(stored_as(levels, "srgb", np.float32), self.stack).astype(np.float32)
             affine = None if self.per_frame is None else self.frame_map(k, image.shape[:2])
             if affine is not None:  # the frame's own gain or exposure taken off first
                 s, t = affine
@@ -304,7 +307,7 @@ def invert_exact(image: np.ndarray, range_m: np.ndarray, stack: Stack, K: np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         gain = 1.0 / a
     gain[capped] = np.minimum(gain[capped], max_gain)
-    image = np.asarray(image, np.float64)
+    image = linearise_image(image, stack)
     out = np.maximum(image - c, SIGNAL_FLOOR * image) * gain
     out[~valid] = np.nan
     return out.astype(np.float32)

@@ -266,6 +266,21 @@ def test_the_correction_inverts_a_stack_ending_in_a_tone_curve_exactly(profile):
     assert np.abs((image - c[0].permute(1, 2, 0).numpy()) / a[0].permute(1, 2, 0).numpy() - truth).max() > 1e-2
 
 
+def test_the_correct_stages_exact_inverse_linearises_a_tone_curve_first():
+    """The correct stage's exact inverse (pipeline.correct_physics.invert_exact) takes the curve off the image before
+    the affine rest, as correct_physics does: the in-air colour back to 1e-5."""
+    from pipeline.correct_physics import invert_exact
+
+    state = make_state(batch=1, height=6, width=8)
+    stack = Stack.ordered(["attenuation", "backscatter", "gain",
+                           {"name": "tone_curve", "params": {"log_slope": S_CURVE}}]).double()
+    with torch.no_grad():
+        image = stack.render(state)[0].permute(1, 2, 0).numpy()
+    range_m = state.range_m[0, 0].numpy()
+    corrected = invert_exact(image, range_m, stack, None, 0, None, np.zeros(range_m.shape, bool))
+    assert np.abs(corrected - state.direct[0].permute(1, 2, 0).numpy()).max() < 1e-5
+
+
 def one_column(x: torch.Tensor) -> FormationState:
     """A state whose image is the values ``x`` (n,) in every channel (n 1x1 images)."""
     direct = x.view(-1, 1, 1, 1).expand(-1, 3, 1, 1)
