@@ -72,23 +72,21 @@ from .diagnose_verdict import (
     added_form_misfit,
     fields_share_check,
     form_conflict,
+    same_colour,
     stand_in,
     unexplained_axes,
-    same_colour,
     verdict_text,
     why_implausible,
 )
 from .fit import (
     DEFAULT_EFFECTS,
     FitConfig,
-    FitResult,
     copy_stack,
-    fit_stack,
     insert_by_rank,
-    make_split,
     observation_state,
     soft_l1,
 )
+from .heldout import FitResult, fit_stack, make_split
 from .ledger import LEDGER_NAME, append_ledger, plot_ledger, read_ledger
 from .observations import Observations
 

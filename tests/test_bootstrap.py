@@ -15,7 +15,8 @@ import torch
 from eval.bootstrap import HESSIAN_FLOOR, Refit, bootstrap, inverse_hessian, normal_interval, replicate_weights
 from eval.diagnose import DEFAULT_EFFECTS, small_survey_config
 from eval.diagnose_measure import MeasureConfig, measure_survey
-from eval.fit import FitConfig, Problem, fit_stack, fitted_names, make_split
+from eval.fit import FitConfig, Problem, fitted_names
+from eval.heldout import fit_stack, make_split
 from eval.solvers import side_by_side
 from eval.synth import simulate_survey
 from watergan.formation import Stack

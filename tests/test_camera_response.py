@@ -21,12 +21,12 @@ from eval.diagnose_residuals import (
 from eval.fit import (
     FitConfig,
     Problem,
-    _render,
     board_state,
     copy_stack,
     fitted_names,
     is_affine_in_albedo,
     observation_state,
+    render_albedo,
     start_inside_bounds,
 )
 from eval.observations import Observations
@@ -309,8 +309,8 @@ def curved_table() -> tuple[Observations, Stack]:
                        board_patch=np.arange(n_board))
     albedo = torch.from_numpy(rng.uniform(0.05, 0.9, (n_points, 3))[point])
     with torch.no_grad():
-        obs.colour[:] = _render(truth, observation_state(obs, np.arange(len(r))), albedo).numpy()
-        obs.board_colour[:] = _render(truth, board_state(obs), torch.from_numpy(obs.board_albedo)).numpy()
+        obs.colour[:] = render_albedo(truth, observation_state(obs, np.arange(len(r))), albedo).numpy()
+        obs.board_colour[:] = render_albedo(truth, board_state(obs), torch.from_numpy(obs.board_albedo)).numpy()
     return obs, truth
 
 
@@ -334,7 +334,7 @@ def test_the_fitter_fits_a_tone_curve_in_the_linear_domain():
     with torch.no_grad():  # away from the truth, the board's residual is the slope-scaled linear one of a render
         rest, curve = stack.output_map()
         x, slope = curve.linearised(problem.board_y)
-        direct = slope * (x - _render(rest, problem.board_state, problem.board_j))
+        direct = slope * (x - render_albedo(rest, problem.board_state, problem.board_j))
         assert torch.allclose(problem._board_terms()[1], direct, atol=1e-12) and float(direct.abs().max()) > 1e-3
     start = problem.minimise(0)
     problem.converge()

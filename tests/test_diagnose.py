@@ -32,7 +32,8 @@ from eval.diagnose import (
 )
 from eval.diagnose_measure import MeasureConfig, geometry_from_truth, measure_survey
 from eval.diagnose_verdict import form_conflict, verdict_text, why_implausible
-from eval.fit import FitConfig, fit_stack, make_split
+from eval.fit import FitConfig
+from eval.heldout import fit_stack, make_split
 from eval.ledger import find_ledger, ledger_table, read_ledger
 from eval.synth import load_truth, simulate_survey
 from eval.synth.config import default_visible_stack

@@ -434,7 +434,7 @@ def test_held_out_sums_per_channel_add_up_to_the_sums_over_the_channels():
     summed version counts the three components)."""
     from types import SimpleNamespace
 
-    from eval.fit import Split, point_sums
+    from eval.heldout import Split, point_sums
 
     rng = np.random.default_rng(0)
     obs = SimpleNamespace(point=np.array([0, 0, 1, 2, 2, 2, 5]))  # point_sums reads the views' points alone

@@ -31,7 +31,8 @@ import numpy as np
 from watergan.water_record import AlternativeRecord
 
 from ..bootstrap import newton_refit, paired_rmse_change
-from ..fit import copy_stack, heldout_sums, make_split
+from ..fit import copy_stack
+from ..heldout import heldout_sums, make_split
 from .fields import FRAME_EFFECT, split_light
 
 if TYPE_CHECKING:

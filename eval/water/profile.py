@@ -11,7 +11,7 @@ asks the survey directly:
 2. eta is held at f eta_0 for each factor f of ``PROFILE_STEPS`` (nearest first, below and above), everything else
    refitted on the training points from the previous step;
 3. each channel's held-out views (the points the training left out, their albedos fitted to half their views, the
-   other half predicted: :func:`eval.fit.heldout_sums`) give the paired change d = RMSE_f / RMSE_0 - 1 and its
+   other half predicted: :func:`eval.heldout.heldout_sums`) give the paired change d = RMSE_f / RMSE_0 - 1 and its
    bootstrap 95 % interval [lo, hi] (:func:`eval.bootstrap.paired_rmse_change`). The channels' fits are independent
    (each has its own albedos, gains, fields and water), so one fit per factor serves the three;
 4. a channel whose lo > 0 rejects f: near eta_0 the change grows as a (f - 1)^2 and the interval's half-width as
@@ -33,7 +33,8 @@ import torch
 from watergan.formation import Stack
 
 from ..bootstrap import paired_rmse_change
-from ..fit import FitConfig, Problem, Split, heldout_sums
+from ..fit import FitConfig, Problem
+from ..heldout import Split, heldout_sums
 from ..observations import Observations
 
 #: Factors on eta_0 of the profile's steps below and above it, nearest first.
