@@ -475,9 +475,10 @@ def test_a_parameter_at_a_bound_is_reported(survey):
     from pipeline.water import at_bounds
 
     frames, board = survey
-    wrong = estimate_water(frames, K, board=board, config=water_config(effects=("backscatter", "vignetting", "gain"),
-                                                                      bootstrap=3, field_degree=0,
-                                                                      frame_gain=False))
+    wrong = estimate_water(frames, K, board=board,  # no alternatives: a component on its bound gets the bounds
+                           config=water_config(effects=("backscatter", "vignetting", "gain"), bootstrap=3,
+                                               field_degree=0, frame_gain=False,
+                                               alternatives=ALTERNATIVE_PRESETS["none"]))
     assert "backscatter.beta_per_m[1]" in at_bounds(wrong)
     beta = wrong.params["backscatter.beta_per_m"]
     assert beta.on_bound[1] and (beta.low[1], beta.high[1]) == (0.0, 5.0)
@@ -621,8 +622,9 @@ def test_a_declared_strobe_rig_is_modelled_and_the_water_recovered(lit_survey):
     # the rig's power is held at the truth's (the effect's initial value, 4): the gain is then the truth's too
     np.testing.assert_allclose(_value(est, "gain.k"), [1.5] * 3, rtol=0.05)
 
-    blind = estimate_water(frames, K, board=board, lights=LIGHTS,  # a gross error: fewer samples show it
-                           config=water_config(config, light_rig=False, bootstrap=0, samples_per_frame=80))
+    blind = estimate_water(frames, K, board=board, lights=LIGHTS,  # a gross error: fewer samples and no intervals
+                           config=water_config(config, light_rig=False, bootstrap=0, samples_per_frame=80,
+                                               alternatives=ALTERNATIVE_PRESETS["none"]))
     assert "artificial_light" not in blind.stack.names
     assert (_value(blind, "attenuation.eta_per_m") > 1.5 * np.array(LIT_ETA)).all()
 
@@ -840,8 +842,8 @@ def test_the_hessian_perturbs_the_three_channels_of_a_parameter_together(survey)
     """The loss is a sum over the colour channels, so perturbing the three channels of eta, B_inf, the fields and
     the gains per frame together gives the Hessian that perturbing each entry gives (to the finite differences'
     accuracy) from a third of the gradients; a stack that mixes the channels is differentiated entry by entry."""
-    from eval.fit import Problem
-    from eval.water.fields import channels_separate, decorrelate_frames, fitted_names, start_inside_bounds
+    from eval.fit import Problem, channels_separate, fitted_names, start_inside_bounds
+    from eval.water.fields import decorrelate_frames
     from watergan.formation import RANK_SENSOR, Effect, register
 
     frames, board = survey
