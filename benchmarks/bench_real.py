@@ -40,6 +40,14 @@ What it measures, with the keys of ``benchmarks/results/real.json``:
   the slope of c against ln range (:mod:`eval.objects`); ``methods.<method>.objects_median_spread``, the median
   over objects; ``objects``: the labels, their counts and each method's median spread over raw's; the figure
   ``real_objects.png`` beside the JSON (each object's chromaticity against range, raw beside each correction);
+- ``dark_object_veil``: per dark object (kind "dark") and raw frame, its mean linear radiance and range beside the
+  water's additive term at that range, C(r) = k B_inf (1 - exp(-beta r)) at the image centre, with the interval
+  of the box of k's, B_inf's and beta's intervals and whether the radiance lies inside (:func:`eval.objects.
+  dark_object_veil`); ``record_veil``: water.json's veil at the views' median range with its joint interval;
+- ``depth_relief_ratio``: the site depth net's RMSE against the dense range on relief pixels of held-out frames over
+  the flat seafloor's (``depth_relief``: both RMSEs, over all pixels too, and the best plane's); from the restorer
+  stage's comparison, or, where the survey has no altimeter (the pool), the net trained here with the model's floor
+  at each camera's height as its flat seafloor (:func:`depth_relief`);
 - seconds per stage and the run's peak memory (``ru_maxrss`` of the children).
 
 The data's notice (its README: source, licence, attribution) is copied beside everything written from it.
@@ -54,7 +62,6 @@ import resource
 import shutil
 import subprocess
 import sys
-from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -156,64 +163,26 @@ def method_folders(ws) -> dict[str, Path]:
     return {m: f for m, f in folders.items() if f.is_dir()}
 
 
-class _Frames(Mapping):
-    """Frame name -> array, read on access (:func:`eval.objects.object_colours` visits each frame once)."""
-
-    def __init__(self, names: list[str], read):
-        self.names, self.read = list(names), read
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        if name not in self.names:
-            raise KeyError(name)
-        return self.read(name)
-
-    def __contains__(self, name) -> bool:
-        return name in self.names
-
-    def __iter__(self):
-        return iter(self.names)
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-
 def label_warp(ws):
-    """The labels' masks (drawn on the original frames) into the workspace's undistorted frames: the survey stage's
-    undistortion (:func:`watergan.lens.undistort_image`) applied to the mask, as to the scene mask; None without a
-    lens."""
-    from watergan.lens import camera_matrix, distortion_of, undistort_image
+    """The labels' masks into the workspace's undistorted frames (:func:`eval.objects.undistortion_warp` of the
+    survey stage's camera.json); None without a lens."""
+    from eval.objects import undistortion_warp
 
-    camera = json.loads((ws.folder("survey") / "camera.json").read_text())
-    lens = distortion_of(camera.get("undistorted", {})) if camera.get("undistorted") else None
-    if lens is None:
-        return None
-    K = camera_matrix(camera)
-    return lambda mask: undistort_image(mask.astype(np.uint8) * 255, K, lens) > 127
+    return undistortion_warp(json.loads((ws.folder("survey") / "camera.json").read_text()))
 
 
-def range_maps(ws, names: list[str]) -> _Frames | None:
+def range_maps(ws, names: list[str]):
     """Each frame's range (metres, NaN: none) from the range stage's maps; None without the range stage."""
-    from watergan.io import read_millimetres
+    from eval.objects import range_frames
 
     ranges = ws.result("range")
-    if ranges is None:
-        return None
-    folder = ws.path(ranges.range_dir)
-
-    def read(name: str) -> np.ndarray | None:
-        path = folder / f"{Path(name).stem}.png"
-        if not path.is_file():
-            return None
-        r = read_millimetres(path) / 1000.0
-        return np.where(r > 0, r, np.nan)
-
-    return _Frames(names, read)
+    return None if ranges is None else range_frames(ws.path(ranges.range_dir), names)
 
 
 def object_constancy(ws, folders: dict[str, Path], names: list[str], labels_path: Path = OBJECT_LABELS) -> dict:
     """Per method of ``folders``, :func:`eval.objects.measure_objects` of the labelled objects in its frames, with the
     water stage's ranges: ``{method: {"objects": {...}, "objects_median_spread": S}}``."""
-    from eval.objects import load_object_labels, measure_objects, object_pixels
+    from eval.objects import LazyFrames, load_object_labels, measure_objects, object_pixels
     from watergan.io import frame_file, read_image
 
     data_frames = sorted(p.name for p in (DATA / "images").iterdir()) if (DATA / "images").is_dir() else None
@@ -223,7 +192,7 @@ def object_constancy(ws, folders: dict[str, Path], names: list[str], labels_path
     pixels: dict[tuple, dict] = {}
     out = {}
     for method, folder in folders.items():
-        images = _Frames(names, lambda name, folder=folder: read_image(frame_file(folder, name)))
+        images = LazyFrames(names, lambda name, folder=folder: read_image(frame_file(folder, name)))
         first = next((f for f in labels.frames() if f in images), None)
         if first is None:
             continue
@@ -279,6 +248,114 @@ def objects_summary(per_method: dict, labels_path: Path = OBJECT_LABELS) -> dict
     return summary
 
 
+def _interval(p) -> dict:
+    """{"value", "low", "high"} of a :class:`watergan.water_record.ParamInterval`; a parameter the water held (not
+    fitted) has its value as both ends."""
+    held = not p.fitted
+    return {"value": p.value, "low": p.value if held and p.low is None else p.low,
+            "high": p.value if held and p.high is None else p.high}
+
+
+def dark_veil(ws, raw_objects: dict) -> dict | None:
+    """``dark_object_veil``: the dark objects' raw radiance per frame beside the water's additive term at their
+    ranges (:func:`eval.objects.dark_object_veil`, from water.json's B_inf, beta and gain k), and beside it the
+    record's own veil at the views' median range with its joint interval (``record_veil``, without k); None without
+    the water's backscatter."""
+    from eval.objects import dark_object_veil
+    from watergan.water_record import read_water
+
+    water = ws.result("water")
+    if water is None or not raw_objects:
+        return None
+    record = read_water(ws.path(water.water_json))
+    params = record.params
+    if "backscatter.b_inf" not in params or "backscatter.beta_per_m" not in params:
+        return None
+    gain = _interval(params["gain.k"]) if "gain.k" in params else None
+    out = dark_object_veil(raw_objects, _interval(params["backscatter.b_inf"]),
+                           _interval(params["backscatter.beta_per_m"]), gain)
+    out.update(gain_k=gain, record_veil=record.veil)
+    return out
+
+
+def floor_navigation(points: np.ndarray, world_from_cam: np.ndarray, names: list[str]
+                     ) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Each camera's altitude over the model's floor plane (:func:`pipeline.scale.floor_plane` of the sparse
+    ``points``; model units, metres in a scaled model) and the floor's down direction in its camera frame,
+    g = R^T (-n) (``world_from_cam`` (N,4,4): x_world = R x_cam + t; n the floor's normal towards the cameras), by
+    the stems of ``names``: the navigation a survey without an altimeter leaves to the model."""
+    from pipeline.scale import floor_plane
+
+    centres = world_from_cam[:, :3, 3]
+    n, d = floor_plane(points, centres)
+    altitude = centres @ n - d
+    down = np.einsum("kji,j->ki", world_from_cam[:, :3, :3], -n)
+    stems = [Path(name).stem for name in names]
+    return ({s: float(a) for s, a in zip(stems, altitude, strict=True)},
+            {s: g for s, g in zip(stems, down, strict=True)})
+
+
+def relief_summary(metrics: dict) -> dict:
+    """The site depth net against the dense range from a held-out comparison's ``metrics.json``
+    (:func:`eval.depth.compare_depth_folders`): ``depth_relief_ratio`` = the net's RMSE on relief pixels over the
+    plane's (``plane``: the one the comparison divides by), the same over all pixels, each RMSE, the best plane's
+    (a lower bound for any plane) and how many frames and what share of pixels are relief."""
+    sources = metrics.get("sources", {})
+    plane = metrics.get("ratio_to", "")
+
+    def rmse(name: str, part: str):
+        entry = (sources.get(name) or {}).get(part)
+        return None if not entry else entry["rmse_m"]
+
+    def ratio(a, b):
+        return None if a is None or not b else round(a / b, 4)
+
+    net_relief, plane_relief = rmse("depth net", "relief"), rmse(plane, "relief")
+    net_all, plane_all = rmse("depth net", "all"), rmse(plane, "all")
+    return {"depth_relief_ratio": ratio(net_relief, plane_relief), "all_rmse_ratio": ratio(net_all, plane_all),
+            "plane": plane, "net_relief_rmse_m": net_relief, "plane_relief_rmse_m": plane_relief,
+            "net_all_rmse_m": net_all, "plane_all_rmse_m": plane_all,
+            "best_plane_relief_rmse_m": rmse("best plane", "relief"),
+            "relief_fraction": metrics.get("relief_fraction"), "held_out_frames": len(metrics.get("per_image", {}))}
+
+
+def depth_relief(ws, out: Path) -> dict:
+    """``depth_relief``: the site depth net on held-out frames against the dense range, beside the plane
+    (:func:`relief_summary`). From the restorer stage's own comparison where it made one; else (a survey without an
+    altimeter, as the pool's) the net trained here as the stage trains it (:func:`pipeline.site_depth.fit_site_depth`,
+    the stage's default steps, into ``out/site_depth``), its flat seafloor the model's floor at each camera's height
+    and attitude (:func:`floor_navigation`)."""
+    from eval.depth import Navigation
+    from eval.tracks import Tracks
+    from pipeline.gan import RestorerStage
+    from pipeline.site_depth import fit_site_depth
+    from watergan.train_site_depth import SiteDepthConfig
+
+    restorer = ws.result("restorer")
+    site = getattr(restorer, "site_depth", {}) if restorer is not None else {}
+    if site.get("metrics"):
+        metrics, source = ws.folder("restorer") / site["metrics"], "the restorer stage's held-out comparison"
+        record = site
+    else:
+        survey = ws.stage_dir("survey")
+        nav = Navigation.from_survey(survey / "survey.json")
+        if nav is None or not (survey / "survey.json").is_file() or ws.result("dense") is None:
+            return {"depth_relief_ratio": None, "stage_why": site.get("why"),
+                    "why": "no camera.json, survey.json or dense depth in the workspace"}
+        tracks = Tracks.load(ws.path(ws.result("sfm").tracks))
+        names = [str(n) for n, r in zip(tracks.image_names, tracks.registered, strict=True) if r]
+        altitude, down = floor_navigation(tracks.xyz, tracks.world_from_cam[tracks.registered], names)
+        folder = out / "site_depth"
+        record = fit_site_depth(ws, SiteDepthConfig(steps=RestorerStage().site_depth_steps), folder, False,
+                                Navigation(nav.camera, altitude, down))
+        if not record.get("metrics"):
+            return {"depth_relief_ratio": None, "stage_why": site.get("why"), "why": record.get("why")}
+        metrics = folder / record["metrics"]
+        source = f"trained by bench_real into {folder}, the flat seafloor the model's floor at each camera's height"
+    return {**relief_summary(json.loads(metrics.read_text())), "source": source, "why": record.get("why"),
+            "stage_why": site.get("why")}
+
+
 def model_height_halves(ws) -> dict:
     """The crawler's camera rides at a constant height over the floor: :func:`pipeline.scale.height_halves` of the
     model's camera heights over its floor plane, the model's own scale drift between the halves, read without the
@@ -290,8 +367,9 @@ def model_height_halves(ws) -> dict:
     return height_halves(camera_heights(tracks.xyz, tracks.world_from_cam[tracks.registered, :3, 3]))
 
 
-def collect(ws, run_summary: dict) -> dict:
-    """Everything real.json holds (see the module docstring) from a finished workspace."""
+def collect(ws, run_summary: dict, out: Path) -> dict:
+    """Everything real.json holds (see the module docstring) from a finished workspace; ``out``: the working folder
+    (the site depth net trained here goes into it)."""
     from watergan.io import read_scene_mask
     from watergan.survey_files import image_files
     from watergan.water_record import read_water
@@ -336,6 +414,9 @@ def collect(ws, run_summary: dict) -> dict:
         methods[method].update(entry)
     figures["methods"] = methods
     figures["objects"] = objects_summary(per_object)
+    figures["dark_object_veil"] = dark_veil(ws, per_object.get("raw", {}).get("objects", {}))
+    figures["depth_relief"] = depth_relief(ws, out)
+    figures["depth_relief_ratio"] = figures["depth_relief"]["depth_relief_ratio"]
     figures["seconds"] = {t["stage"]: t["seconds"] for t in run_summary.get("stages", [])}
     figures["seconds"]["total"] = run_summary.get("seconds")
     return figures
@@ -395,7 +476,7 @@ def main() -> None:
     peak_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
     ws = Workspace(ws_dir)
     shutil.copy(survey / "NOTICE.md", ws_dir / "NOTICE.md")
-    figures = collect(ws, json.loads((ws_dir / "run_summary.json").read_text()))
+    figures = collect(ws, json.loads((ws_dir / "run_summary.json").read_text()), out)
     figures["peak_memory_gib"] = None if args.measure_only else round(peak_gib, 2)
     figures["targets"] = targets(figures)
     figures["command"] = "benchmarks/bench_real.py " + " ".join(sys.argv[1:])
@@ -414,6 +495,10 @@ def main() -> None:
         print(f"{method:10} tile distance {entry['tile_chromaticity_distance']:.4f}  far/near "
               f"{entry['tile_luminance_ratio']:.3f}  consistency {entry.get('consistency')}  "
               f"black {entry['black_pixels']}  objects' median spread {entry.get('objects_median_spread')}")
+    veil = figures["dark_object_veil"] or {}
+    print(f"dark objects inside the additive term's interval: {veil.get('inside_fraction')} of channel-frames; "
+          f"site depth net over the plane on relief pixels: {figures['depth_relief_ratio']} "
+          f"({figures['depth_relief'].get('why')})")
 
 
 if __name__ == "__main__":

@@ -375,3 +375,137 @@ def chromaticity_figure(per_method: Mapping[str, Mapping[str, dict]], path: str 
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
     atomic_write_bytes(path, buffer.getvalue())
+
+
+def additive_term(range_m, b_inf: Mapping, beta_per_m: Mapping, gain: Mapping | None = None) -> dict:
+    """The water's additive term at each range of ``range_m`` (F,), per channel, at the image centre:
+
+        C(r) = k B_inf (1 - exp(-beta r))
+
+    (the veil of the ``backscatter`` effect through the sensor gain ``k``; at the centre the vignetting is 1). Left
+    out: the gains per frame (taken as 1), the fitted additive field over the image and any black level or tone curve
+    of the stack, so C is the stack's own veil, not all that the fit adds to a dark pixel. ``b_inf``, ``beta_per_m``,
+    ``gain``: {"value", "low", "high"} (per channel or one value; low/high None: no interval; ``gain`` None: k = 1).
+    C rises with each of k, B_inf and beta, so over the box of their intervals its least value is at the three
+    lows and its greatest at the three highs: ``low``/``high`` (F,3), None when a parameter has no interval. The box
+    ignores the correlation the bootstrap finds between B_inf and beta (the valley), so it is wider than the joint
+    interval of the veil at one range. Returns {"value", "low", "high"} as (F,3) arrays (or None)."""
+    r = np.asarray(range_m, np.float64).reshape(-1, 1)
+    gain = gain or {"value": 1.0, "low": 1.0, "high": 1.0}
+
+    def at(which: str):
+        parts = [p.get(which) for p in (gain, b_inf, beta_per_m)]
+        if any(v is None for v in parts):
+            return None
+        k, b, beta = (np.broadcast_to(np.asarray(v, np.float64).reshape(-1), (3,)) for v in parts)
+        return k * b * -np.expm1(-beta * r)
+
+    return {"value": at("value"), "low": at("low"), "high": at("high")}
+
+
+def dark_object_veil(per_object: Mapping[str, dict], b_inf: Mapping, beta_per_m: Mapping,
+                     gain: Mapping | None = None) -> dict:
+    """The dark objects (kind "dark") of :func:`measure_objects`' ``objects`` (raw frames: each frame's mean linear
+    colour m_f and its region's median range r_f) beside the water's additive term C(r_f) of :func:`additive_term`:
+    a near-black object holds little but the veil, so m_f should lie within [C_low, C_high] (or a little above it,
+    by the object's own small reflectance). Per object and frame: range, radiance, C's value, low and high,
+    ``inside`` per channel (None without an interval or a range) and ``excess`` m_f - C(r_f); per object its median
+    range and the share of its channel-frames inside; over all, ``inside_fraction``. Frames without a range are
+    listed with C None."""
+    out, inside_all = {}, []
+    for name, entry in per_object.items():
+        if entry.get("kind") != "dark":
+            continue
+        r = np.array([np.nan if v is None else v for v in entry["range_m"]], float)
+        rgb = np.asarray(entry["mean_linear_rgb"], float).reshape(-1, 3)
+        term = additive_term(np.where(np.isfinite(r), r, 0.0), b_inf, beta_per_m, gain)
+        rows, inside_object = [], []
+        for f, frame in enumerate(entry["frames"]):
+            row = {"frame": frame, "range_m": None if not np.isfinite(r[f]) else round(float(r[f]), 4),
+                   "radiance": np.round(rgb[f], 6).tolist(), "veil": None, "veil_low": None, "veil_high": None,
+                   "inside": None, "excess": None}
+            if np.isfinite(r[f]) and term["value"] is not None:
+                row["veil"] = np.round(term["value"][f], 6).tolist()
+                row["excess"] = np.round(rgb[f] - term["value"][f], 6).tolist()
+                if term["low"] is not None and term["high"] is not None:
+                    row["veil_low"] = np.round(term["low"][f], 6).tolist()
+                    row["veil_high"] = np.round(term["high"][f], 6).tolist()
+                    inside = (rgb[f] >= term["low"][f]) & (rgb[f] <= term["high"][f])
+                    row["inside"] = [bool(v) for v in inside]
+                    inside_object += row["inside"]
+            rows.append(row)
+        inside_all += inside_object
+        out[name] = {"median_range_m": entry.get("median_range_m"), "frames": rows,
+                     "inside_fraction": round(float(np.mean(inside_object)), 4) if inside_object else None}
+    return {"objects": out, "inside_fraction": round(float(np.mean(inside_all)), 4) if inside_all else None,
+            "form": "C(r) = k B_inf (1 - exp(-beta r)) at the image centre; gains per frame 1, the additive field, "
+                    "black level and tone curve left out; interval: the box of k, B_inf and beta's intervals"}
+
+
+class LazyFrames(Mapping):
+    """Frame name -> array, read on access by ``read(name)`` (:func:`object_colours` visits each frame once)."""
+
+    def __init__(self, names: Iterable[str], read: Callable[[str], np.ndarray | None]):
+        self.names, self.read = list(names), read
+
+    def __getitem__(self, name: str):
+        if name not in self.names:
+            raise KeyError(name)
+        return self.read(name)
+
+    def __contains__(self, name) -> bool:
+        return name in self.names
+
+    def __iter__(self):
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def undistortion_warp(camera: Mapping) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The labels' masks (drawn on the original frames) into a workspace's undistorted frames: the lens its
+    ``camera.json`` (``camera``) records as removed (``undistorted``) applied to the mask as to the frames
+    (:func:`watergan.lens.undistort_image`); None without one."""
+    from watergan.lens import camera_matrix, distortion_of, undistort_image
+
+    lens = distortion_of(camera.get("undistorted", {})) if camera.get("undistorted") else None
+    if lens is None:
+        return None
+    K = camera_matrix(dict(camera))
+    return lambda mask: undistort_image(mask.astype(np.uint8) * 255, K, lens) > 127
+
+
+def range_frames(folder: Path, names: Iterable[str]) -> LazyFrames:
+    """Each frame's range (metres, NaN: none) from a folder of range maps (``<stem>.png``, 16-bit millimetres, 0:
+    none, as the range stage writes them); None for a frame without a map."""
+    from watergan.io import read_millimetres
+
+    def read(name: str) -> np.ndarray | None:
+        path = Path(folder) / f"{Path(name).stem}.png"
+        if not path.is_file():
+            return None
+        r = read_millimetres(path) / 1000.0
+        return np.where(r > 0, r, np.nan)
+
+    return LazyFrames(names, read)
+
+
+def spread_table(per_method: Mapping[str, Mapping[str, dict]]) -> dict:
+    """Per object, its kind, frames, range span and each method's chromaticity spread with its ratio to raw's
+    (``per_method``: method -> :func:`measure_objects`' ``objects``, raw among them for the ratios), and the median
+    over objects: {"methods": [...], "rows": [{"name", "kind", "frames", "range_m": [min, max] or None,
+    "spread": {method: S}, "over_raw": {method: S / S_raw}}], "median": {method: S}}."""
+    methods = list(per_method)
+    names = sorted({n for objects in per_method.values() for n in objects})
+    rows = []
+    for name in names:
+        entries = {m: per_method[m][name] for m in methods if name in per_method[m]}
+        first = next(iter(entries.values()))
+        ranges = [r for r in first["range_m"] if r is not None]
+        spread = {m: e.get("object_chromaticity_spread") for m, e in entries.items()}
+        raw = spread.get("raw")
+        rows.append({"name": name, "kind": first.get("kind", ""), "frames": len(first["frames"]),
+                     "range_m": [min(ranges), max(ranges)] if ranges else None, "spread": spread,
+                     "over_raw": {m: round(v / raw, 4) for m, v in spread.items() if v is not None and raw}})
+    return {"methods": methods, "rows": rows, "median": {m: objects_median_spread(per_method[m]) for m in methods}}

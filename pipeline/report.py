@@ -474,6 +474,83 @@ def section_diagnosis(ws, out: Path) -> tuple[str, dict]:
     return "".join(parts), info
 
 
+def objects_html(table: dict) -> str:
+    """The HTML table of :func:`eval.objects.spread_table`: per object, each method's chromaticity spread and (in
+    brackets) its ratio to raw's, and the median over objects."""
+    methods = table["methods"]
+    head = "".join(f"<th>{_esc(m)}</th>" for m in methods)
+
+    def cell(row: dict, m: str) -> str:
+        value = row["spread"].get(m)
+        ratio = row["over_raw"].get(m)
+        return "<td>–</td>" if value is None else \
+            f"<td>{value:.4f}" + ("" if m == "raw" or ratio is None else f" ({ratio:.2f}x)") + "</td>"
+
+    body = ""
+    for row in table["rows"]:
+        span = "–" if row["range_m"] is None else f"{row['range_m'][0]:.2f}–{row['range_m'][1]:.2f}"
+        body += (f"<tr><th>{_esc(row['name'])}</th><td>{_esc(row['kind'])}</td><td>{row['frames']}</td>"
+                 f"<td>{span}</td>{''.join(cell(row, m) for m in methods)}</tr>")
+    median = "".join("<td>–</td>" if table["median"][m] is None else f"<td>{table['median'][m]:.4f}</td>"
+                     for m in methods)
+    return (f"<table><tr><th>object</th><th>kind</th><th>frames</th><th>range (m)</th>{head}</tr>{body}"
+            f"<tr><th>median over objects</th><td></td><td></td><td></td>{median}</tr></table>")
+
+
+def section_objects(ws, out: Path) -> tuple[str, dict]:
+    """The survey folder's labelled objects (``objects.json``, :mod:`eval.objects`): per object the chromaticity
+    spread across its frames in the raw, physics and restorer frames, and their chromaticity against range."""
+    from eval.objects import (
+        LazyFrames,
+        chromaticity_figure,
+        load_object_labels,
+        measure_objects,
+        object_pixels,
+        range_frames,
+        spread_table,
+        undistortion_warp,
+    )
+    from watergan.io import read_image
+    from watergan.survey_files import image_files
+
+    survey = stage_result(ws, "survey")
+    labels_path = Path(survey.survey_dir) / "objects.json"
+    if not labels_path.is_file():
+        raise NotRun("not run: the survey folder holds no objects.json (objects of one colour labelled in its "
+                     "frames, docs/evaluation.md)")
+    images = ws.stage_dir("survey") / "images"
+    names = image_files(images)
+    labels = load_object_labels(labels_path, names)
+    folders = {"raw": images}
+    correct = ws.result("correct")
+    if correct is not None:
+        folders.update({m: ws.path(f) for m, f in (("physics", correct.physics_images), ("restorer", correct.images))
+                        if f})
+    folders = {m: f for m, f in folders.items() if f.is_dir()}
+    ranges = ws.result("range")
+    range_maps = range_frames(ws.path(ranges.range_dir), names) if ranges is not None else None
+    camera = ws.folder("survey") / "camera.json"
+    warp = undistortion_warp(json.loads(camera.read_text())) if camera.is_file() else None
+    per_method: dict[str, dict] = {}
+    pixels: dict[tuple, dict] = {}
+    for method, folder in folders.items():
+        frames = LazyFrames(names, lambda name, folder=folder: read_image(frame_file(folder, name)))
+        shape = frames[names[0]].shape[:2]  # a folder's frames share one size
+        if shape not in pixels:
+            pixels[shape] = object_pixels(labels, shape, names, warp)
+        per_method[method] = measure_objects(frames, labels, pixels[shape], range_maps)["objects"]
+    table = spread_table(per_method)
+    figure = out / "objects.png"
+    chromaticity_figure(per_method, figure, note=labels.notice)
+    note = ("<p class='note'>Each labelled object's chromaticity c = RGB / (R + G + B) of its mean linear colour per "
+            "frame; spread: the sum over channels of max - min across its frames (0: its colour kept at every "
+            "range; a method that greys every image also scores 0, so read it beside the board and the tables). "
+            "Range: the range stage's maps. In brackets: over raw's.</p>")
+    body = objects_html(table) + note + _img(data_uri(read_display(figure), "png", None), "objects' chromaticity "
+                                                                                          "against range", "wide")
+    return body, {"objects": len(table["rows"]), "median_spread": table["median"]}
+
+
 def section_config(ws, out: Path) -> tuple[str, dict]:
     rows, details, stages = [], [], {}
     for stage, spec in ws.stages.items():
@@ -507,6 +584,7 @@ SECTIONS = (
     ("board", "Colour-board error per patch", section_board_chart),
     ("consistency", "Consistency across views", section_consistency),
     ("depth", "Depth: monocular vs stereo", section_depth),
+    ("objects", "Objects of one colour", section_objects),
     ("water", "The site's water", section_water),
     ("mesh", "Textured mesh", section_mesh),
     ("mosaic", "Mosaic", section_mosaic),

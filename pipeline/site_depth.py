@@ -31,11 +31,13 @@ HELD_OUT = "site_depth_heldout"
 
 
 def site_frames(survey: Path, dense_dir: Path, navigation) -> list[SiteFrame]:
-    """The survey's frames (``survey.json``'s order) with their flat seafloor's depth and, where the dense stage
-    wrote one, their reference depth."""
+    """The survey's frames (``survey.json``'s order) that have the navigation's altitude, with their flat seafloor's
+    depth and, where the dense stage wrote one, their reference depth."""
     frames = []
     for name in json.loads((survey / "survey.json").read_text())["frames"]:
         stem = Path(name).stem
+        if stem not in navigation.altitude_m:
+            continue
         image = read_image(frame_file(survey / "images", name), "linear").astype(np.float32)
         h, w = image.shape[:2]
         floor = flat_floor_depth(navigation.altitude_m[stem], navigation.K_for(h, w), h, w,
@@ -45,12 +47,14 @@ def site_frames(survey: Path, dense_dir: Path, navigation) -> list[SiteFrame]:
     return frames
 
 
-def fit_site_depth(ws, config: SiteDepthConfig, model_dir: Path, progress: bool = True) -> dict:
+def fit_site_depth(ws, config: SiteDepthConfig, model_dir: Path, progress: bool = True,
+                   navigation: Navigation | None = None) -> dict:
     """Train, compare on the held-out frames and save into ``model_dir`` (see the module docstring); returns the
-    record, or {"use": False, "why": ...} without training when the survey lacks what the net needs."""
+    record, or {"use": False, "why": ...} without training when the survey lacks what the net needs. ``navigation``:
+    the altitudes (and attitudes) of the flat seafloor; None: the survey's navigation."""
     dense = ws.result("dense")
     survey = ws.stage_dir("survey")
-    navigation = Navigation.from_survey(survey / "survey.json")
+    navigation = navigation if navigation is not None else Navigation.from_survey(survey / "survey.json")
     if dense is None or navigation is None or not navigation.altitude_m:
         return {"use": False, "why": "no dense depth, camera.json or navigation altitude: nothing to learn from"}
     dense_dir = ws.path(dense.depth_dir)
