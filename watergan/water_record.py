@@ -92,7 +92,7 @@ class AlternativeRecord:
     values:     its estimate of the fitted parameters of up to nine components ({"effect.param": value}).
     heldout_change_pct, ci95_pct, preferred: its held-out test, where it has one: the change of the held-out
                 views' RMSE against the estimate's structure, its 95 % interval, and whether the whole interval
-                is below -1 % (the survey predicts its unseen views better with it).
+                is below -0.1 % (the survey predicts its unseen views better with it).
     profile:    a profile's accepted span ({"param", "eta_per_m", "low", "high", "open_low", "open_high", "steps"}).
     seconds:    its wall time.
     """
