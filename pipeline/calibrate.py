@@ -11,10 +11,11 @@ RADIAL: f, k1, k2) starting from OPENCV's values, and the simplest model whose m
 survey). How well it is pinned: each half of the registered frames is bundle-adjusted on its own, its focal length
 started a tenth away from the whole survey's (:func:`_halves`), and the two halves' focal lengths are recorded beside
 the whole survey's; halves more than ``HALVES_WARN_PCT`` apart are a warning (the survey does not pin the focal
-length). The same frames give the same calibration run to run: every RANSAC is seeded (the matches' two-view
-geometry included, which otherwise draws from whichever worker thread's generator verifies the pair) and the
-mapper and every bundle adjustment run on one thread (a multi-threaded solve sums in a varying order, and the
-incremental mapper amplifies those last bits into another model).
+length). The same frames give the same calibration run to run: the frames enter COLMAP's database in name order
+(:func:`pipeline.colmap.extract_in_order`: numbered as extraction's threads finish, the mapper, which breaks ties by
+id, took another path from run to run), every RANSAC is seeded (the matches' two-view geometry included, which
+otherwise draws from whichever worker thread's generator verifies the pair), and the mapper and every bundle
+adjustment run on one thread (a multi-threaded solve sums in a varying order).
 
 A lens the survey cannot hold is refused (:func:`check_plausible`): a tangential coefficient beyond
 ``MAX_TANGENTIAL``, a horizontal field of view outside ``HFOV_RANGE_DEG``, fx and fy differing by more than
@@ -264,7 +265,7 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
     focal length, and their difference in per cent), warning (:func:`halves_warning`), focal_guess_px, seconds."""
     import pycolmap
 
-    from .colmap import colmap_errors_only, seeded_verification
+    from .colmap import colmap_errors_only, extract_in_order, seeded_verification
 
     started = time.perf_counter()
     w, h = int(camera["width"]), int(camera["height"])
@@ -285,9 +286,7 @@ def self_calibrate(images_dir: Path, names: list[str], camera: dict, work_dir: P
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.sift.max_num_features = 4096
             pycolmap.set_random_seed(seed)
-            pycolmap.extract_features(database, images_dir, image_names=subset,
-                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+            extract_in_order(database, images_dir, subset, reader, extraction)
             pairing = pycolmap.SequentialPairingOptions(overlap=10, quadratic_overlap=True)
             pycolmap.match_sequential(database, pairing_options=pairing, verification_options=seeded_verification(seed),
                                       device=pycolmap.Device.cpu)

@@ -58,6 +58,20 @@ def seeded_verification(seed: int):
     return options
 
 
+def extract_in_order(database, images_dir, names: list[str], reader, extraction) -> None:
+    """SIFT features of the images ``names`` (one camera, ``reader``'s; on the CPU) into a new ``database``, the images
+    entered first (COLMAP's import, one thread) so that their ids follow their sorted names. COLMAP's extraction
+    alone numbers them as its threads finish, so the mapper, which breaks ties by id, would take another path run to
+    run."""
+    import pycolmap
+
+    pycolmap.Database.open(str(database)).close()  # a new database: import_images takes an existing one
+    pycolmap.import_images(database, images_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names,
+                           options=reader)
+    pycolmap.extract_features(database, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+
+
 def camera_matrix(rec) -> tuple[np.ndarray, int, int]:
     """The model's (first) camera as an OpenCV pinhole K (pixel centres at integers) and its width, height."""
     cam_model = rec.cameras[next(iter(rec.cameras))]

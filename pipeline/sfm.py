@@ -56,7 +56,14 @@ from watergan.lens import OPENCV, Lens
 from watergan.progress import say
 from watergan.survey_files import image_files, read_camera_json, read_survey_json
 
-from .colmap import build_tracks, camera_matrix, colmap_errors_only, refined_k1, seeded_verification
+from .colmap import (
+    build_tracks,
+    camera_matrix,
+    colmap_errors_only,
+    extract_in_order,
+    refined_k1,
+    seeded_verification,
+)
 from .overlay import overlay_warning, still_features
 from .scale import (
     altitude_scale,
@@ -379,8 +386,7 @@ def _extract_features(database: Path, images_dir: Path, names: list[str], cam: d
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = cfg.max_features
     pycolmap.set_random_seed(cfg.seed)
-    pycolmap.extract_features(database, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    extract_in_order(database, images_dir, names, reader, extraction)
 
 
 def _match_features(database: Path, names: list[str], cfg: SfmConfig) -> str:
