@@ -12,10 +12,12 @@ training points. Adding one is a class here and a test. The built-ins:
 - :class:`LightLevel`: where the fields over the image are additive alone (a light fixed in the image), the veil is
   split between the water and the light (:func:`eval.water.fields.set_light_level`); the fit before the split is
   the alternative, and the split applies to the replicates and the alternatives made before it.
-- :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges, from
-  the configured start; fine fields over the image fitted with the water, warm from the estimate) fitted on the
-  training points; that one fit gives its values and its held-out test against the estimate's structure (fitted
-  warm on the same points).
+- :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges; fine
+  fields over the image fitted with the water) fitted on the training points from the configured start, as the
+  estimate was (warm from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
+  where the other model lands); that one fit gives its values and its held-out test against the estimate's structure
+  fitted the same way on the same points. The structures' fits and that one run side by side
+  (:meth:`Context.prefit`).
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
 """
@@ -111,13 +113,35 @@ class Context:
     def train(self) -> Observations:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
-    @cached_property
-    def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
-        """The held-out sums of the estimate's structure fitted warm to the training points."""
+    trained: dict[str, Fit] = field(default_factory=dict)
+
+    def prefit(self, structures: list[Structure]) -> None:
+        """The estimate's structure and each of ``structures`` fitted to the training points from the configured
+        start, side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch thread poorly),
+        into ``trained`` ("" for the estimate's)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        import torch
+
         from .fit_water import fit_water
 
-        base = fit_water(self.train, self.config, self.lights, start=self.start)
-        return heldout_sums(base.stack, self.obs, self.split, self.config.fit)
+        jobs = {"": self.config, **{a.key: a.changed(self.config) for a in structures if a.key not in self.trained}}
+        threads = torch.get_num_threads()
+        workers = max(1, min(threads, len(jobs)))
+        torch.set_num_threads(max(1, threads // workers))  # the threads the pool starts take this count
+        try:
+            with ThreadPoolExecutor(workers) as pool:
+                fits = pool.map(lambda config: fit_water(self.train, config, self.lights), jobs.values())
+                self.trained.update(zip(jobs, fits, strict=True))
+        finally:
+            torch.set_num_threads(threads)
+
+    @cached_property
+    def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """The held-out sums of the estimate's structure fitted to the training points."""
+        if "" not in self.trained:
+            self.prefit([])
+        return heldout_sums(self.trained[""].stack, self.obs, self.split, self.config.fit)
 
     def heldout_change(self, fit: Fit) -> tuple[float, tuple[float, float]]:
         """(d, 95 % interval) of ``fit``'s held-out error against the estimate's structure's, on the same points."""
@@ -212,21 +236,20 @@ class LightLevel(Alternative):
 
 @dataclass(frozen=True)
 class Structure(Alternative):
-    """Another structure of the model (``changed(config)``), fitted on the training points, warm from the estimate
-    (``warm``) or from the configured start: its values (with its own light split) and its held-out test against the
-    estimate's structure. Its values widen the intervals both ways: in quadrature, and covered with the bootstrap's
-    spread around them."""
+    """Another structure of the model (``changed(config)``), fitted on the training points from the configured start
+    (:meth:`Context.prefit`): its values (with its own light split) and its held-out test against the estimate's
+    structure. Its values widen the intervals both ways: in quadrature, and covered with the bootstrap's spread around
+    them."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
-    warm: ClassVar[bool] = True
 
     def changed(self, config: WaterConfig) -> WaterConfig:
         raise NotImplementedError
 
     def refit(self, ctx: Context) -> AlternativeFit:
-        from .fit_water import fit_water
-
-        trained = fit_water(ctx.train, self.changed(ctx.config), ctx.lights, start=ctx.start if self.warm else None)
+        if self.key not in ctx.trained:
+            ctx.prefit([self])
+        trained = ctx.trained[self.key]
         change, ci = ctx.heldout_change(trained)
         values = trained.values()
         factor = split_light(copy_stack(trained.stack), ctx.train, trained.range_r2) \
@@ -242,9 +265,6 @@ class FreeGains(Structure):
     words: ClassVar[str] = ("the gains per frame free to follow the frames' ranges (a camera's auto exposure or white "
                             "balance)")
     pinned_by: ClassVar[str] = "a survey with more range within each frame (relief, a tilted view)"
-    # along eta the free gains' loss is nearly flat: warm from the estimate the fit stays where the estimate is, and
-    # the alternative would say nothing of where another start of the same model lands
-    warm: ClassVar[bool] = False
 
     def applies(self, ctx: Context) -> bool:
         return FRAME_EFFECT in ctx.fit.stack.names and ctx.config.frame_gain_off_range
@@ -292,18 +312,27 @@ class Profile(Alternative):
         return AlternativeFit(self, {}, profile={"param": ETA, **profile})
 
 
-def run_alternatives(ctx: Context, announce=None) -> list[AlternativeFit]:
-    """Each of ``ctx.config.alternatives`` that applies, in order, refitted (``announce(i, n, alternative)`` before
-    each, for the progress line). Returns their fits (the ones that found something), also in ``ctx.results``."""
+def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:
+    """Each of ``ctx.config.alternatives`` that applies, in order, refitted (``announce(line)`` before each, for the
+    progress line), the structures' fits first, side by side (:meth:`Context.prefit`). Returns (their fits, the ones
+    that found something, also in ``ctx.results``; the seconds of the structures' fits side by side)."""
     todo = list(ctx.config.alternatives)
+    structures = [a for a in todo if isinstance(a, Structure) and a.applies(ctx)]
+    began = time.perf_counter()
+    if structures:
+        if announce is not None:
+            announce("the estimate's structure and " + ", ".join(a.key for a in structures)
+                     + " fitted side by side on four fifths of the points")
+        ctx.prefit(structures)
+    prefit_s = time.perf_counter() - began
     for i, alternative in enumerate(todo):
         if not alternative.applies(ctx):
             continue
         if announce is not None:
-            announce(i, len(todo), alternative)
+            announce(f"alternative {i + 1}/{len(todo)}: {alternative.words}")
         began = time.perf_counter()
         result = alternative.refit(ctx)
         if result is not None:
             result.seconds = time.perf_counter() - began
             ctx.results[alternative.key] = result
-    return list(ctx.results.values())
+    return list(ctx.results.values()), prefit_s

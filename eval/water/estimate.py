@@ -180,7 +180,7 @@ def estimate_observations(obs: Observations, config: WaterConfig | None = None, 
             residual = (fit.problem.y - fit.problem.albedo()[1]).numpy()
         ctx = Context(fit, obs, config, lights, samples, inv)
         with passes("alternatives"):
-            results = run_alternatives(ctx, lambda i, n, a: passes.note(f"water: alternative {i + 1}/{n}: {a.words}"))
+            results, prefit_s = run_alternatives(ctx, lambda line: passes.note(f"water: {line}"))
         for p in fit.stack.parameters():
             p.requires_grad_(False)
         with passes("fine grid"):
@@ -190,8 +190,8 @@ def estimate_observations(obs: Observations, config: WaterConfig | None = None, 
             best = fit.values()
             params, tradeoffs, veil = combine(fit.stack, best, samples, results, config.range_scale_sd,
                                               float(np.median(obs.range_m)))
-    seconds = {**passes.seconds, **{f"alternative {r.alternative.key}": round(r.seconds, 2)
-                                                         for r in results}}
+    seconds = {**passes.seconds, "structures side by side": round(prefit_s, 2),
+               **{f"alternative {r.alternative.key}": round(r.seconds, 2) for r in results}}
     return WaterEstimate(
         stack=corrected, params=params, fixed=fit.fixed, held=fit.held, tradeoffs=tradeoffs, n_points=obs.n_points,
         n_observations=len(obs.colour), n_board=len(obs.board_colour), n_frames=len(fit.frames),
