@@ -14,7 +14,7 @@ training points. Adding one is a class here and a test. The built-ins:
   the alternative, and the split applies to the replicates and the alternatives made before it.
 - :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges; fine
   fields over the image fitted with the water) fitted on the training points from the configured start, as the
-  estimate was (warm from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
+  estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
   where the other model lands); that one fit gives its values and its held-out test against the estimate's structure
   fitted the same way on the same points. The structures' fits and that one run side by side
   (:meth:`Context.prefit`).
@@ -103,7 +103,6 @@ class Context:
 
     def __post_init__(self) -> None:
         self.x_best = self.fit.problem.flat()
-        self.start = copy_stack(self.fit.stack)  # the estimate before anything moves it (the light's split)
 
     @cached_property
     def split(self):

@@ -28,10 +28,6 @@ from .fields import (
 )
 from .stack import build_stack, water_names
 
-#: Parameters that define a nuisance's structure (what it is kept off), set from the table and never copied from a
-#: warm start.
-STRUCTURE_PARAMS = ("orthogonal_to", "additive_level")
-
 
 @dataclass
 class Fit:
@@ -77,20 +73,6 @@ def torch_threads(threads: int):
         torch.set_num_threads(before)
 
 
-def warm_from(stack: Stack, start: Stack) -> bool:
-    """Copy into ``stack`` (in place) the raw values of ``start``'s effects of the same name, parameter and shape,
-    but those of ``STRUCTURE_PARAMS``. Returns whether ``start`` carried gains per frame (not all 0)."""
-    with torch.no_grad():
-        for effect in stack.effects:
-            if effect.name not in start.names:
-                continue
-            source = start[effect.name]
-            for name, raw in effect.raw.items():
-                if name not in STRUCTURE_PARAMS and name in source.raw and source.raw[name].shape == raw.shape:
-                    raw.copy_(source.raw[name].to(raw.dtype))
-    return FRAME_EFFECT in start.names and bool(start[FRAME_EFFECT].gains().abs().max() > 0)
-
-
 def cold_start(stack: Stack, obs: Observations, config: WaterConfig, names: list[str], gain_names: list[str],
                frames: np.ndarray, fixed: dict) -> tuple[Problem, list[str], int, dict | None]:
     """The fit's start from the configured values: the stack first where an effect on image position was added,
@@ -118,12 +100,9 @@ def cold_start(stack: Stack, obs: Observations, config: WaterConfig, names: list
     return problem, names, iterations, measured
 
 
-def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list[dict] | None = None,
-              start: Stack | None = None) -> Fit:
-    """The stack of ``config`` (with the declared ``lights``) fitted to the table ``obs``: from its configured
-    values (:func:`cold_start`), or warm from a fitted ``start`` (:func:`warm_from`: an alternative refitted from the
-    estimate; its gains per frame are carried where ``start`` carried them or the configuration frees them), then
-    rounds of L-BFGS to convergence and the trust-region refinement."""
+def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list[dict] | None = None) -> Fit:
+    """The stack of ``config`` (with the declared ``lights``) fitted to the table ``obs`` from its configured values
+    (:func:`cold_start`), then rounds of L-BFGS to convergence and the trust-region refinement."""
     t0, config = time.perf_counter(), config or WaterConfig()
     with torch_threads(config.fit.threads):
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
@@ -133,16 +112,7 @@ def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list
         names = [n for n in names if n not in gain_names]
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
         decorrelate_frames(stack, obs, config.frame_gain_off_range)
-        if start is None:
-            problem, names, iterations, measured = cold_start(stack, obs, config, names, gain_names, frames, fixed)
-        else:
-            carried = warm_from(stack, start)
-            if gain_names and (carried or not config.frame_gain_off_range):
-                names += gain_names
-            elif gain_names:
-                fixed[FRAME_EFFECT] = "held at 1, as in the estimate this fit starts from"
-            start_inside_bounds(stack, names)
-            problem, iterations, measured = Problem(stack, obs, config.fit, names), 0, None
+        problem, names, iterations, measured = cold_start(stack, obs, config, names, gain_names, frames, fixed)
         done, converged = problem.converge()
         if gain_names and gain_names[0] in names:
             measured = frame_summary(stack, frames, carried=True)
