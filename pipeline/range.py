@@ -223,14 +223,20 @@ def write_range_maps(out: Path, frames: Sequence[WaterFrame], K: np.ndarray, mes
     return (float(np.mean(from_mesh)), float(np.mean(missing))) if frames else (0.0, 1.0)
 
 
+def require_dense(ws: Workspace, what: str):
+    """The dense stage's result, which ``what`` needs; else an error saying how to make it."""
+    dense = ws.result("dense")
+    if dense is None:
+        raise UserInputError(f"{what} need each pixel's dense range: run the dense stage first (`watergan dense "
+                             "--workspace WS`), with stereo frames (right/) or enough overlap for MVS")
+    return dense
+
+
 def run_range(ws: Workspace, cfg: RangeConfig) -> RangeResult:
     """Workspace stage (see the module docstring): a range map per frame of the sfm stage's image list."""
     began = time.perf_counter()
     sfm = ws.require("sfm", "the range maps")
-    dense = ws.result("dense")
-    if dense is None:
-        raise UserInputError("the range maps need each pixel's dense range: run the dense stage first (`watergan "
-                             "dense --workspace WS`), with stereo frames (right/) or enough overlap for MVS")
+    dense = require_dense(ws, "the range maps")
     tracks = Tracks.load(ws.path(sfm.tracks))
     K = np.asarray(tracks.K, float)
     frames = water_frames(tracks, ws.stage_dir("survey") / "images", ws.path(dense.depth_dir))

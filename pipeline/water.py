@@ -43,12 +43,11 @@ from eval.water import WaterConfig, WaterEstimate, reads_normals
 from eval.water.estimate import stderr_line
 from eval.water.fields import FIELD_EFFECT, FRAME_CARRY_PCT, GRID_EFFECT
 from eval.water.intervals import on_bound
-from watergan.errors import UserInputError
 from watergan.formation.effects.image_field import ASPECT
 from watergan.io import atomic_write_text
 from watergan.water_record import WATER_PLOTS, write_water
 
-from .range import MeshFilledFrames, water_frames
+from .range import MeshFilledFrames, require_dense, water_frames
 from .workspace import Workspace
 
 
@@ -256,10 +255,7 @@ def run_water(ws: Workspace, cfg: WaterStage) -> WaterResult:
 
     began = time.perf_counter()
     sfm = ws.require("sfm", "the water estimate")
-    dense = ws.result("dense")
-    if dense is None:
-        raise UserInputError("the water estimate needs each pixel's range: run the dense stage first (`watergan "
-                             "dense --workspace WS`), with stereo frames (right/) or enough overlap for MVS")
+    dense = require_dense(ws, "the water estimate and its range maps")
     cfg = range_settings(ws, cfg)
     survey = ws.stage_dir("survey")
     tracks = Tracks.load(ws.path(sfm.tracks))

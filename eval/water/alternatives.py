@@ -168,20 +168,21 @@ class Alternative:
 
 @dataclass(frozen=True)
 class Reweight(Alternative):
-    """The estimate refitted with the fit's configuration changed by ``change()``: a Newton step from the estimate
-    with its inverse Hessian, then ``iterations`` L-BFGS iterations; the estimate is restored after."""
+    """The estimate refitted with the fit's setting ``setting`` multiplied by ``factor`` (where the survey has a
+    board, or has none: ``needs_board``): a Newton step from the estimate with its inverse Hessian, then
+    ``iterations`` L-BFGS iterations; the estimate is restored after."""
 
+    setting: ClassVar[str] = ""
+    needs_board: ClassVar[bool] = True
+    factor: float = 1.0
     iterations: int = 30
 
-    def change(self, ctx: Context) -> dict:
-        raise NotImplementedError
-
     def applies(self, ctx: Context) -> bool:
-        return ctx.inv is not None
+        return ctx.inv is not None and ctx.fit.problem.has_board == self.needs_board
 
     def refit(self, ctx: Context) -> AlternativeFit:
         problem = ctx.fit.problem
-        problem.config = replace(ctx.config.fit, **self.change(ctx))
+        problem.config = replace(ctx.config.fit, **{self.setting: getattr(ctx.config.fit, self.setting) * self.factor})
         try:
             newton_refit(problem, ctx.x_best, ctx.inv, self.iterations)
             return AlternativeFit(self, ctx.fit.values())
@@ -194,26 +195,17 @@ class Reweight(Alternative):
 class BoardWeight(Reweight):
     key: ClassVar[str] = "board_weight"
     words: ClassVar[str] = "the board weighted 10x less"
+    setting: ClassVar[str] = "board_weight"
     factor: float = 0.1
-
-    def applies(self, ctx: Context) -> bool:
-        return super().applies(ctx) and ctx.fit.problem.has_board
-
-    def change(self, ctx: Context) -> dict:
-        return {"board_weight": ctx.config.fit.board_weight * self.factor}
 
 
 @dataclass(frozen=True)
 class LossScale(Reweight):
     key: ClassVar[str] = "loss_scale"
     words: ClassVar[str] = "a robust loss 3x wider"
+    setting: ClassVar[str] = "loss_scale"
+    needs_board: ClassVar[bool] = False
     factor: float = 3.0
-
-    def applies(self, ctx: Context) -> bool:
-        return super().applies(ctx) and not ctx.fit.problem.has_board
-
-    def change(self, ctx: Context) -> dict:
-        return {"loss_scale": ctx.config.fit.loss_scale * self.factor}
 
 
 @dataclass(frozen=True)
