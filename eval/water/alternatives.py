@@ -15,8 +15,8 @@ training points. Adding one is a class here and a test. The built-ins:
 - :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges; fine
   fields over the image fitted with the water) fitted on the training points from the configured start, as the
   estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
-  where the other model lands); that one fit gives its values and its held-out test against the estimate's structure
-  fitted the same way on the same points. The structures' fits and that one run side by side
+  where the other model lands); that fit gives its held-out test against the estimate's structure fitted the same
+  way on the same points, and continued on all the points its values. The fits run side by side
   (:meth:`Context.prefit`).
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
@@ -113,27 +113,19 @@ class Context:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
     trained: dict[str, Fit] = field(default_factory=dict)
+    continued: dict[str, Fit] = field(default_factory=dict)
 
     def prefit(self, structures: list[Structure]) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points from the configured
-        start, side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch thread poorly),
-        into ``trained`` ("" for the estimate's)."""
-        from concurrent.futures import ThreadPoolExecutor
-
-        import torch
-
-        from .fit_water import fit_water
+        start (into ``trained``, "" for the estimate's), then each structure's fit continued on all the points (into
+        ``continued``), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch thread
+        poorly)."""
+        from .fit_water import continue_fit, fit_water
 
         jobs = {"": self.config, **{a.key: a.changed(self.config) for a in structures if a.key not in self.trained}}
-        threads = torch.get_num_threads()
-        workers = max(1, min(threads, len(jobs)))
-        torch.set_num_threads(max(1, threads // workers))  # the threads the pool starts take this count
-        try:
-            with ThreadPoolExecutor(workers) as pool:
-                fits = pool.map(lambda config: fit_water(self.train, config, self.lights), jobs.values())
-                self.trained.update(zip(jobs, fits, strict=True))
-        finally:
-            torch.set_num_threads(threads)
+        self.trained.update(side_by_side(lambda config: fit_water(self.train, config, self.lights), jobs))
+        self.continued.update(side_by_side(lambda fit: continue_fit(fit, self.obs),
+                                           {key: self.trained[key] for key in jobs if key}))
 
     @cached_property
     def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
@@ -228,8 +220,8 @@ class LightLevel(Alternative):
 @dataclass(frozen=True)
 class Structure(Alternative):
     """Another structure of the model (``changed(config)``), fitted on the training points from the configured start
-    (:meth:`Context.prefit`): its values (with its own light split) and its held-out test against the estimate's
-    structure. Its values widen the intervals both ways: in quadrature, and covered with the bootstrap's spread around
+    (:meth:`Context.prefit`): its held-out test against the estimate's structure, and from that fit continued on all
+    the points its values (with its own light split). Its values widen the intervals both ways: in quadrature, and covered with the bootstrap's spread around
     them."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
@@ -238,12 +230,12 @@ class Structure(Alternative):
         raise NotImplementedError
 
     def refit(self, ctx: Context) -> AlternativeFit:
-        if self.key not in ctx.trained:
+        if self.key not in ctx.continued:
             ctx.prefit([self])
-        trained = ctx.trained[self.key]
+        trained, full = ctx.trained[self.key], ctx.continued[self.key]
         change, ci = ctx.heldout_change(trained)
-        values = trained.values()
-        factor = split_light(copy_stack(trained.stack), ctx.train, trained.range_r2) \
+        values = full.values()
+        factor = split_light(copy_stack(full.stack), ctx.obs, full.range_r2) \
             if "backscatter.b_inf" in values else None
         if factor is not None:
             values["backscatter.b_inf"] = values["backscatter.b_inf"] * factor
@@ -301,6 +293,23 @@ class Profile(Alternative):
         profile = eta_profile(trained.stack, ctx.train, ctx.obs, ctx.split, trained.config.fit, trained.names,
                               TEST_RESAMPLES)
         return AlternativeFit(self, {}, profile={"param": ETA, **profile})
+
+
+def side_by_side(work, jobs: dict) -> dict:
+    """{key: work(job)} of ``jobs``, up to torch's threads of them at once, each job's torch work on an equal share of
+    those threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import torch
+
+    threads = torch.get_num_threads()
+    workers = max(1, min(threads, len(jobs)))
+    torch.set_num_threads(max(1, threads // workers))  # the threads the pool starts take this count
+    try:
+        with ThreadPoolExecutor(workers) as pool:
+            return dict(zip(jobs, pool.map(work, jobs.values()), strict=True))
+    finally:
+        torch.set_num_threads(threads)
 
 
 def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:

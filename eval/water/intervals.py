@@ -137,7 +137,7 @@ def combine(stack: Stack, best: dict, samples: list[dict], results: list, range_
     for key, entry in params.items():
         if entry.low is None:
             continue
-        value = np.asarray(entry.value, float)
+        value = np.asarray(best[key], float)
         for r in quadrature:
             if shape_ok(r, key):
                 change = np.abs(r.values[key] - value)
