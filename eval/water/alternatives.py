@@ -16,8 +16,9 @@ training points. Adding one is a class here and a test. The built-ins:
   fields over the image fitted with the water) fitted on the training points from the configured start, as the
   estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
   where the other model lands); that fit gives its held-out test against the estimate's structure fitted the same
-  way on the same points, and continued on all the points its values. The fits run side by side
-  (:meth:`Context.prefit`).
+  way on the same points, and its fit on all the points from the same start its values (from the training fit, or
+  continued from it, a flat direction keeps the training points' sampling: measured in benchmarks/RESULTS/water.md).
+  The fits run side by side (:meth:`Context.prefit`).
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
 """
@@ -113,19 +114,23 @@ class Context:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
     trained: dict[str, Fit] = field(default_factory=dict)
-    continued: dict[str, Fit] = field(default_factory=dict)
+    full: dict[str, Fit] = field(default_factory=dict)
 
     def prefit(self, structures: list[Structure]) -> None:
-        """The estimate's structure and each of ``structures`` fitted to the training points from the configured
-        start (into ``trained``, "" for the estimate's), then each structure's fit continued on all the points (into
-        ``continued``), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch thread
-        poorly)."""
-        from .fit_water import continue_fit, fit_water
+        """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
+        for the estimate's), and each structure to all the points (into ``full``), every fit from the configured
+        start, side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch thread poorly)."""
+        from .fit_water import fit_water
 
-        jobs = {"": self.config, **{a.key: a.changed(self.config) for a in structures if a.key not in self.trained}}
-        self.trained.update(side_by_side(lambda config: fit_water(self.train, config, self.lights), jobs))
-        self.continued.update(side_by_side(lambda fit: continue_fit(fit, self.obs),
-                                           {key: self.trained[key] for key in jobs if key}))
+        changed = {a.key: a.changed(self.config) for a in structures if a.key not in self.full}
+        jobs = {("train", key): config for key, config in {"": self.config, **changed}.items()
+                if key not in self.trained}
+        jobs.update({("all", key): config for key, config in changed.items()})
+        tables = {"train": self.train, "all": self.obs}
+        fits = side_by_side(lambda job: fit_water(tables[job[0]], job[1], self.lights),
+                            {part: (part[0], config) for part, config in jobs.items()})
+        for (table, key), fit in fits.items():
+            (self.trained if table == "train" else self.full)[key] = fit
 
     @cached_property
     def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
@@ -220,9 +225,9 @@ class LightLevel(Alternative):
 @dataclass(frozen=True)
 class Structure(Alternative):
     """Another structure of the model (``changed(config)``), fitted on the training points from the configured start
-    (:meth:`Context.prefit`): its held-out test against the estimate's structure, and from that fit continued on all
-    the points its values (with its own light split). Its values widen the intervals both ways: in quadrature, and covered with the bootstrap's spread around
-    them."""
+    (:meth:`Context.prefit`): its held-out test against the estimate's structure; fitted on all the points from the
+    same start, its values (with its own light split). Its values widen the intervals both ways: in quadrature, and
+    covered with the bootstrap's spread around them."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
 
@@ -230,9 +235,9 @@ class Structure(Alternative):
         raise NotImplementedError
 
     def refit(self, ctx: Context) -> AlternativeFit:
-        if self.key not in ctx.continued:
+        if self.key not in ctx.full:
             ctx.prefit([self])
-        trained, full = ctx.trained[self.key], ctx.continued[self.key]
+        trained, full = ctx.trained[self.key], ctx.full[self.key]
         change, ci = ctx.heldout_change(trained)
         values = full.values()
         factor = split_light(copy_stack(full.stack), ctx.obs, full.range_r2) \

@@ -5,7 +5,6 @@ start, the gains per frame, rounds to convergence, a refinement). No bootstrap, 
 from __future__ import annotations
 
 import contextlib
-import copy
 import time
 from dataclasses import dataclass
 
@@ -121,17 +120,3 @@ def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list
     return Fit(stack=stack, problem=problem, names=names, config=config, fixed=fixed, held=held, frames=frames,
                frame_gains=measured, range_r2=range_r2, iterations=iterations + done, converged=converged,
                seconds=round(time.perf_counter() - t0, 2))
-
-
-def continue_fit(fit: Fit, obs: Observations) -> Fit:
-    """``fit``'s model continued on the table ``obs`` (all the points, after a fit on the training points): a copy of
-    its stack, the same parameters, from where it stopped, rounds of L-BFGS to convergence and the refinement."""
-    t0 = time.perf_counter()
-    stack = copy.deepcopy(fit.stack)  # ties kept: one tensor for a follower and its leader
-    with torch_threads(fit.config.fit.threads):
-        problem = Problem(stack, obs, fit.config.fit, fit.names)
-        done, converged = problem.converge()
-        problem.refine(fit.config.fit.refine_evaluations)
-    return Fit(stack=stack, problem=problem, names=fit.names, config=fit.config, fixed=fit.fixed, held=fit.held,
-               frames=fit.frames, frame_gains=fit.frame_gains, range_r2=fit.range_r2,
-               iterations=fit.iterations + done, converged=converged, seconds=round(time.perf_counter() - t0, 2))
