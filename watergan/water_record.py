@@ -156,6 +156,13 @@ class WaterRecord:
     interval: str = ""
     plots: dict[str, str] | None = None
 
+    def __post_init__(self) -> None:
+        """Parameters and alternatives given as JSON (a file, a test's literal) become their typed records."""
+        self.params = {key: p if isinstance(p, ParamInterval) else ParamInterval.from_json(p)
+                       for key, p in self.params.items() if isinstance(p, dict | ParamInterval)}
+        self.alternatives = [a if isinstance(a, AlternativeRecord) else AlternativeRecord.from_json(a)
+                             for a in self.alternatives if isinstance(a, dict | AlternativeRecord)]
+
     def alternative(self, key: str) -> AlternativeRecord | None:
         """The alternative keyed ``key`` (None: not taken in)."""
         return next((a for a in self.alternatives if a.key == key), None)
@@ -187,9 +194,6 @@ def read_water(path: str | Path) -> WaterRecord:
         raise UserInputError(f"water file {path} has no stack: is it the water stage's water.json?")
     known = {f.name for f in dataclasses.fields(WaterRecord)}
     record = WaterRecord(**{key: value for key, value in data.items() if key in known})
-    record.params = {key: p if isinstance(p, ParamInterval) else ParamInterval.from_json(p)
-                     for key, p in record.params.items() if isinstance(p, dict | ParamInterval)}
-    record.alternatives = [AlternativeRecord.from_json(a) for a in record.alternatives if isinstance(a, dict)]
     if record.plots is None:
         record.plots = dict(WATER_PLOTS)
     return record
