@@ -393,7 +393,8 @@ def test_report_is_self_contained_and_every_image_decodes(evaluated, tmp_path):
     assert "<script" not in page and not re.search(r"""(src|href)=['"]?(https?:)?//""", page)
     report = json.loads((ws.folder("report") / "report.json").read_text())
     status = {s["id"]: s["status"] for s in report["sections"]}
-    assert status.pop("objects") == "not run"  # the simulated survey has no objects.json
+    # the simulated survey has no objects.json, no mask and no overlay: those two sections say so
+    assert (status.pop("objects"), status.pop("mask")) == ("not run", "not run")
     assert set(status.values()) == {"ok"}, report["sections"]
     assert report["verdict"] and any("ours loses to oracle" in line for line in report["verdict"])
     found = next(s for s in report["sections"] if s["id"] == "found")  # the first screen: what the run found
