@@ -21,7 +21,8 @@ from test_water import (
     water_config,
 )
 
-from eval.water import ALTERNATIVE_PRESETS, DEFAULT_ALTERNATIVES, build_stack, estimate_water
+from eval.water import ALTERNATIVE_PRESETS, build_stack, estimate_water
+from eval.water.alternatives import BoardWeight, FineFields, FreeGains, Profile
 from eval.water.fields import fit_correction_grid
 from watergan.formation import Stack
 from watergan.formation.inverse import correct_physics
@@ -171,8 +172,8 @@ def test_fine_fields_fitted_with_the_water_hold_eta_under_a_falloff_clipped_into
     radius = np.hypot(xs / W - 0.55, ys / H - 0.45) / 0.5
     ring = 1 - np.clip((radius - 0.45) / 0.35, 0, 1)[..., None] * np.array([0.6, 0.45, 0.3])
     fallen = [replace(f, image=np.clip(f.image * ring, 0, 1).astype(np.float32)) for f in frames]
-    config = water_config(samples_per_frame=80, bootstrap=4, margin_px=4, min_points=100,
-                          alternatives=DEFAULT_ALTERNATIVES)
+    config = water_config(samples_per_frame=80, bootstrap=4, margin_px=4, min_points=100,  # the fine fields alone
+                          alternatives=(BoardWeight(), FineFields()))
     estimate = estimate_water(fallen, K, board=board, config=config)
     test = next(a for a in estimate.alternatives if a.key == "fine_fields")
     assert test.preferred and test.heldout_change_pct < -20
@@ -267,8 +268,8 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     log_gain = 0.1 * (altitude - altitude.mean())
     exposed = [replace(f, image=np.clip(f.image * np.exp(g), 0, 1).astype(np.float32))
                for f, g in zip(frames, log_gain, strict=True)]
-    config = water_config(samples_per_frame=80, bootstrap=8, margin_px=4, min_points=100,
-                          alternatives=DEFAULT_ALTERNATIVES)
+    config = water_config(samples_per_frame=80, bootstrap=8, margin_px=4, min_points=100,  # the free gains, the profile
+                          alternatives=(BoardWeight(), FreeGains(), Profile()))
     alone = estimate_water(exposed, K, board=board, config=water_config(config,
                                                                         alternatives=ALTERNATIVE_PRESETS["none"]))
     widened = estimate_water(exposed, K, board=board, config=config)
