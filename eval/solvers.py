@@ -116,21 +116,31 @@ def grouped_jacobian(fun, x: np.ndarray, f0: np.ndarray, groups: list[tuple[np.n
     return jacobian
 
 
+def in_threads(work, jobs: dict, limit: int = SIDE_BY_SIDE_THREADS) -> dict:
+    """{key: work(job)} of ``jobs``, up to ``limit`` of them at once (and no more than torch's threads), each on an
+    equal share of torch's threads (the threads a pool starts take the count set before it: one each on two cores, a
+    render of some 10^5 views uses a second torch thread poorly)."""
+    threads = torch.get_num_threads()
+    workers = min(threads, limit, len(jobs))
+    if workers <= 1:
+        return {key: work(job) for key, job in jobs.items()}
+    torch.set_num_threads(threads // workers)
+    try:
+        with ThreadPoolExecutor(workers) as pool:
+            return dict(zip(jobs, pool.map(work, jobs.values()), strict=True))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def side_by_side(problem, work, items: list) -> list:
     """[work(fit, item) for item in items], the items shared out over up to ``SIDE_BY_SIDE_THREADS`` threads (as
     many as torch's), each with its own copy of ``problem`` (:meth:`eval.fit.Problem.on_copy`, ``problem`` itself
-    the first) and an equal share of torch's threads (one each on two cores: a render of some 10^5 views uses a
-    second torch thread poorly). ``work`` sets the parameters it needs; the copies are discarded."""
-    threads = torch.get_num_threads()
-    workers = min(threads, SIDE_BY_SIDE_THREADS, len(items))
+    the first) and an equal share of torch's threads (:func:`in_threads`). ``work`` sets the parameters it needs; the
+    copies are discarded."""
+    workers = min(torch.get_num_threads(), SIDE_BY_SIDE_THREADS, len(items))
     if workers <= 1:
         return [work(problem, item) for item in items]
-    torch.set_num_threads(threads // workers)  # the threads the pool starts take this count
-    try:
-        fits = [problem] + [problem.on_copy() for _ in range(workers - 1)]
-        with ThreadPoolExecutor(workers) as pool:
-            parts = list(pool.map(lambda fit, share: [work(fit, item) for item in share], fits,
-                                  [items[i::workers] for i in range(workers)]))
-    finally:
-        torch.set_num_threads(threads)
+    fits = [problem] + [problem.on_copy() for _ in range(workers - 1)]
+    parts = in_threads(lambda job: [work(job[0], item) for item in job[1]],
+                       {w: (fits[w], items[w::workers]) for w in range(workers)})
     return [parts[i % workers][i // workers] for i in range(len(items))]

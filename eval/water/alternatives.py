@@ -37,6 +37,7 @@ from watergan.water_record import AlternativeRecord
 from ..bootstrap import newton_refit, paired_rmse_change
 from ..fit import copy_stack
 from ..heldout import heldout_sums, make_split
+from ..solvers import in_threads
 from .fields import FRAME_EFFECT, split_light
 
 if TYPE_CHECKING:
@@ -101,6 +102,8 @@ class Context:
     samples: list[dict]
     inv: torch.Tensor | None
     results: dict[str, AlternativeFit] = field(default_factory=dict)
+    trained: dict[str, Fit] = field(default_factory=dict)
+    full: dict[str, Fit] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.x_best = self.fit.problem.flat()
@@ -113,9 +116,6 @@ class Context:
     def train(self) -> Observations:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
-    trained: dict[str, Fit] = field(default_factory=dict)
-    full: dict[str, Fit] = field(default_factory=dict)
-
     def prefit(self, structures: list[Structure]) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
         for the estimate's), and each structure to all the points (into ``full``), every fit from the configured
@@ -123,13 +123,10 @@ class Context:
         from .fit_water import fit_water
 
         changed = {a.key: a.changed(self.config) for a in structures if a.key not in self.full}
-        jobs = {("train", key): config for key, config in {"": self.config, **changed}.items()
+        jobs = {("train", key): (self.train, config) for key, config in {"": self.config, **changed}.items()
                 if key not in self.trained}
-        jobs.update({("all", key): config for key, config in changed.items()})
-        tables = {"train": self.train, "all": self.obs}
-        fits = side_by_side(lambda job: fit_water(tables[job[0]], job[1], self.lights),
-                            {part: (part[0], config) for part, config in jobs.items()})
-        for (table, key), fit in fits.items():
+        jobs.update({("all", key): (self.obs, config) for key, config in changed.items()})
+        for (table, key), fit in in_threads(lambda job: fit_water(*job, self.lights), jobs).items():
             (self.trained if table == "train" else self.full)[key] = fit
 
     @cached_property
@@ -298,23 +295,6 @@ class Profile(Alternative):
         profile = eta_profile(trained.stack, ctx.train, ctx.obs, ctx.split, trained.config.fit, trained.names,
                               TEST_RESAMPLES)
         return AlternativeFit(self, {}, profile={"param": ETA, **profile})
-
-
-def side_by_side(work, jobs: dict) -> dict:
-    """{key: work(job)} of ``jobs``, up to torch's threads of them at once, each job's torch work on an equal share of
-    those threads."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    import torch
-
-    threads = torch.get_num_threads()
-    workers = max(1, min(threads, len(jobs)))
-    torch.set_num_threads(max(1, threads // workers))  # the threads the pool starts take this count
-    try:
-        with ThreadPoolExecutor(workers) as pool:
-            return dict(zip(jobs, pool.map(work, jobs.values()), strict=True))
-    finally:
-        torch.set_num_threads(threads)
 
 
 def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:
