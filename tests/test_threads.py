@@ -5,13 +5,28 @@ import os
 import pytest
 
 
-def test_free_cores_are_the_cores_less_the_load_and_at_least_one():
-    from watergan.threads import free_cores
+def test_free_cores_count_a_job_running_now_and_not_one_that_just_ended(monkeypatch):
+    from watergan import threads
 
     cores = len(os.sched_getaffinity(0))
-    expected = max(1, min(cores, os.cpu_count() - round(os.getloadavg()[0] + 1e-9)))
-    assert 1 <= free_cores() <= cores
-    assert abs(free_cores() - expected) <= 1  # the load average moves between the two readings
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.0, 1.0, 1.0))
+    monkeypatch.setattr(threads, "runnable_now", lambda: 1)  # this process alone: the minute's job has ended
+    assert threads.free_cores() == cores
+    monkeypatch.setattr(threads, "runnable_now", lambda: 2)  # another job running now
+    assert threads.free_cores() == max(1, cores - 1)
+    monkeypatch.setattr(threads, "runnable_now", lambda: None)  # no /proc: the minute's load alone
+    assert threads.free_cores() == max(1, cores - 1)
+    monkeypatch.setattr(os, "getloadavg", lambda: (10.0 * cores, 0.0, 0.0))
+    monkeypatch.setattr(threads, "runnable_now", lambda: 10 * cores)
+    assert threads.free_cores() == 1
+
+
+def test_runnable_now_counts_this_process():
+    from watergan.threads import runnable_now
+
+    running = runnable_now()
+    assert running is None or running >= 1
 
 
 def test_use_threads_sets_torch_and_opencv_and_puts_them_back():

@@ -17,14 +17,27 @@ from watergan.errors import UserInputError
 
 
 def free_cores() -> int:
-    """The cores this process may use that no other job keeps busy: its cores (its CPU affinity) less the
-    machine's load over the last minute (os.getloadavg, rounded to the nearest whole job), at least 1."""
+    """The cores this process may use that no other job keeps busy: its cores (its CPU affinity) less the jobs
+    running now, at least 1. A job is counted when both the load over the last minute (os.getloadavg, rounded to
+    the nearest whole job) and the runnable tasks at this instant (/proc/loadavg's fourth field, less this
+    process) show it: the minute's average alone still counts a job that ended seconds ago."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     try:
         busy = math.floor(os.getloadavg()[0] + 0.5)
     except OSError:  # no load average on this system
         busy = 0
+    running = runnable_now()
+    if running is not None:
+        busy = min(busy, max(0, running - 1))
     return max(1, min(cores, (os.cpu_count() or cores) - busy))
+
+
+def runnable_now() -> int | None:
+    """Tasks runnable at this instant, this process included (/proc/loadavg's "R/T"); None where unreadable."""
+    try:
+        return int(open("/proc/loadavg").read().split()[3].split("/")[0])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 @contextlib.contextmanager
