@@ -407,7 +407,7 @@ def alternatives_table(record: WaterRecord) -> str:
     for a in record.alternatives:
         test = ("" if a.heldout_change_pct is None else
                 f"{a.heldout_change_pct:+.1f} % [{a.ci95_pct[0]:+.1f}, {a.ci95_pct[1]:+.1f}]"
-                + (" preferred" if a.preferred else ""))
+                + (" preferred" if a.preferred else " rejected" if a.rejected else ""))
         moved = [key for key, p in record.params.items()
                  if (w := p.widening(a.key)) is not None and any(np.ravel(w.widened))]
         rows.append(f"<tr><th>{_esc(a.words)}</th><td>{_esc(test)}</td><td>{_esc(', '.join(moved) or '-')}</td>"

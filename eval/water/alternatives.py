@@ -15,10 +15,11 @@ training points. Adding one is a class here and a test. The built-ins:
 - :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges; fine
   fields over the image fitted with the water) fitted on the training points from the configured start, as the
   estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
-  where the other model lands); that fit gives its held-out test against the estimate's structure fitted the same
-  way on the same points, and its fit on all the points from the same start its values (from the training fit, or
-  continued from it, a flat direction keeps the training points' sampling: measured in benchmarks/RESULTS/water.md).
-  The fits run side by side (:meth:`Context.prefit`).
+  where the other model lands); that fit gives its held-out test against the estimate's structure fitted on the
+  same points from the estimate (whose optimum is that structure's basin). Unless that test rejects it, its fit
+  on all the points from the same start gives its values (from the training fit, or continued from it, a flat
+  direction keeps the training points' sampling: measured in benchmarks/RESULTS/water.md); a reading the held-out
+  views rule out widens no interval. The fits run side by side (:meth:`Context.prefit`, :meth:`Context.fit_all`).
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
 """
@@ -63,7 +64,8 @@ RECORD_COMPONENTS = 9
 class AlternativeFit:
     """What an alternative found: its ``values`` ({"effect.param": value} of the fitted parameters), its held-out
     test (``change``: d = RMSE_alternative / RMSE_estimate - 1 on the held-out points, ``ci``: its 95 % interval),
-    a profile's span, its wall time; ``fit``: its own fit where a later alternative reads it."""
+    a profile's span, its wall time (a structure's: its own fits' too, made side by side with the others');
+    ``fit``: its own fit where a later alternative reads it."""
 
     alternative: Alternative
     values: dict[str, np.ndarray]
@@ -79,6 +81,12 @@ class AlternativeFit:
         -``PREFERRED_CHANGE``)."""
         return self.ci is not None and self.ci[1] < -PREFERRED_CHANGE
 
+    @property
+    def rejected(self) -> bool:
+        """The survey predicts its held-out views worse with it (the whole interval of the change above
+        ``PREFERRED_CHANGE``): a reading the survey rules out, which widens no interval."""
+        return self.ci is not None and self.ci[0] > PREFERRED_CHANGE
+
     def record(self) -> AlternativeRecord:
         a = self.alternative
         return AlternativeRecord(
@@ -86,7 +94,8 @@ class AlternativeFit:
             values={k: np.round(v, 6).tolist() for k, v in self.values.items() if np.size(v) <= RECORD_COMPONENTS},
             heldout_change_pct=None if self.change is None else round(100 * self.change, 2),
             ci95_pct=None if self.ci is None else [round(100 * self.ci[0], 2), round(100 * self.ci[1], 2)],
-            preferred=None if self.ci is None else self.preferred)
+            preferred=None if self.ci is None else self.preferred,
+            rejected=None if self.ci is None else self.rejected)
 
 
 @dataclass
@@ -104,6 +113,7 @@ class Context:
     results: dict[str, AlternativeFit] = field(default_factory=dict)
     trained: dict[str, Fit] = field(default_factory=dict)
     full: dict[str, Fit] = field(default_factory=dict)
+    tests: dict[str, AlternativeFit] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.x_best = self.fit.problem.flat()
@@ -118,16 +128,25 @@ class Context:
 
     def prefit(self, structures: list[Structure]) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
-        for the estimate's), and each structure to all the points (into ``full``), every fit from the configured
-        start, side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch thread poorly)."""
+        for the estimate's), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch
+        thread poorly): the estimate's from its own values (:func:`eval.water.fit_water.fit_from`), each structure
+        from the configured start."""
+        from .fit_water import fit_from
+
+        jobs = {} if "" in self.trained else {"": lambda: fit_from(self.fit, self.train)}  # short: first
+        jobs.update({a.key: self._cold(self.train, a.changed(self.config)) for a in structures
+                     if a.key not in self.trained})
+        self.trained.update(in_threads(lambda job: job(), jobs))
+
+    def fit_all(self, structures: list[Structure]) -> None:
+        """Each of ``structures`` fitted to all the points from the configured start (into ``full``), side by side."""
+        jobs = {a.key: self._cold(self.obs, a.changed(self.config)) for a in structures if a.key not in self.full}
+        self.full.update(in_threads(lambda job: job(), jobs))
+
+    def _cold(self, obs: Observations, config: WaterConfig):
         from .fit_water import fit_water
 
-        changed = {a.key: a.changed(self.config) for a in structures if a.key not in self.full}
-        jobs = {("train", key): (self.train, config) for key, config in {"": self.config, **changed}.items()
-                if key not in self.trained}
-        jobs.update({("all", key): (self.obs, config) for key, config in changed.items()})
-        for (table, key), fit in in_threads(lambda job: fit_water(*job, self.lights), jobs).items():
-            (self.trained if table == "train" else self.full)[key] = fit
+        return lambda: fit_water(obs, config, self.lights)
 
     @cached_property
     def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
@@ -215,33 +234,48 @@ class LightLevel(Alternative):
         if factor is None:
             return None
         for values in (*ctx.samples, *(r.values for r in ctx.results.values())):  # made from the unsplit estimate
-            values["backscatter.b_inf"] = values["backscatter.b_inf"] * factor
+            if "backscatter.b_inf" in values:
+                values["backscatter.b_inf"] = values["backscatter.b_inf"] * factor
         return AlternativeFit(self, before)
 
 
 @dataclass(frozen=True)
 class Structure(Alternative):
     """Another structure of the model (``changed(config)``), fitted on the training points from the configured start
-    (:meth:`Context.prefit`): its held-out test against the estimate's structure; fitted on all the points from the
-    same start, its values (with its own light split). Its values widen the intervals both ways: in quadrature, and
-    covered with the bootstrap's spread around them."""
+    (:meth:`Context.prefit`): its held-out test against the estimate's structure. Unless the test rejects it
+    (:attr:`AlternativeFit.rejected`), fitted on all the points from the same start (:meth:`Context.fit_all`): its
+    values (with its own light split), which widen the intervals both ways: in quadrature, and covered with the
+    bootstrap's spread around them. A rejected structure has no values and widens nothing."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
 
     def changed(self, config: WaterConfig) -> WaterConfig:
         raise NotImplementedError
 
+    def test(self, ctx: Context) -> AlternativeFit:
+        """Its held-out test alone (no values yet), made once per context (``ctx.tests``)."""
+        if self.key not in ctx.tests:
+            if self.key not in ctx.trained:
+                ctx.prefit([self])
+            trained = ctx.trained[self.key]
+            change, ci = ctx.heldout_change(trained)
+            ctx.tests[self.key] = AlternativeFit(self, {}, change=change, ci=ci, seconds=trained.seconds,
+                                                 fit=trained)
+        return ctx.tests[self.key]
+
     def refit(self, ctx: Context) -> AlternativeFit:
+        result = self.test(ctx)
+        if result.rejected:
+            return result
         if self.key not in ctx.full:
-            ctx.prefit([self])
-        trained, full = ctx.trained[self.key], ctx.full[self.key]
-        change, ci = ctx.heldout_change(trained)
-        values = full.values()
+            ctx.fit_all([self])
+        full = ctx.full[self.key]
+        result.values, result.seconds = full.values(), result.seconds + full.seconds
         factor = split_light(copy_stack(full.stack), ctx.obs, full.range_r2) \
-            if "backscatter.b_inf" in values else None
+            if "backscatter.b_inf" in result.values else None
         if factor is not None:
-            values["backscatter.b_inf"] = values["backscatter.b_inf"] * factor
-        return AlternativeFit(self, values, change=change, ci=ci, fit=trained)
+            result.values["backscatter.b_inf"] = result.values["backscatter.b_inf"] * factor
+        return result
 
 
 @dataclass(frozen=True)
@@ -299,8 +333,9 @@ class Profile(Alternative):
 
 def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:
     """Each of ``ctx.config.alternatives`` that applies, in order, refitted (``announce(line)`` before each, for the
-    progress line), the structures' fits first, side by side (:meth:`Context.prefit`). Returns (their fits, the ones
-    that found something, also in ``ctx.results``; the seconds of the structures' fits side by side)."""
+    progress line), the structures' fits first, side by side: on the training points (:meth:`Context.prefit`), then
+    those their held-out tests do not reject on all the points (:meth:`Context.fit_all`). Returns (their fits, the
+    ones that found something, also in ``ctx.results``; the seconds of the structures' fits side by side)."""
     todo = list(ctx.config.alternatives)
     structures = [a for a in todo if isinstance(a, Structure) and a.applies(ctx)]
     began = time.perf_counter()
@@ -309,6 +344,10 @@ def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit],
             announce("the estimate's structure and " + ", ".join(a.key for a in structures)
                      + " fitted side by side on four fifths of the points")
         ctx.prefit(structures)
+        kept = [a for a in structures if not a.test(ctx).rejected]
+        if kept and announce is not None:
+            announce(", ".join(a.key for a in kept) + " (not rejected by the held-out views) fitted on all the points")
+        ctx.fit_all(kept)
     prefit_s = time.perf_counter() - began
     for i, alternative in enumerate(todo):
         if not alternative.applies(ctx):
@@ -317,7 +356,7 @@ def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit],
             announce(f"alternative {i + 1}/{len(todo)}: {alternative.words}")
         began = time.perf_counter()
         result = alternative.refit(ctx)
-        if result is not None:
-            result.seconds = time.perf_counter() - began
+        if result is not None:  # a structure's own fits, made side by side before, are in its seconds already
+            result.seconds += time.perf_counter() - began
             ctx.results[alternative.key] = result
     return list(ctx.results.values()), prefit_s

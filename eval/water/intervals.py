@@ -128,7 +128,7 @@ def combine(stack: Stack, best: dict, samples: list[dict], results: list, range_
         return [r for r in results if rule in r.alternative.rules]
 
     def shape_ok(r, key):
-        return np.shape(r.values.get(key)) == np.shape(best[key])
+        return key in r.values and np.shape(r.values[key]) == np.shape(best[key])
 
     quadrature = by_rule("quadrature")
     spec = {key: np.max([np.abs(r.values[key] - v) for r in quadrature if shape_ok(r, key)], 0, initial=0.0)
