@@ -62,8 +62,6 @@ from .diagnose_residuals import (
     ResidualConfig,
     amplitudes,
     analyse,
-    axis_values,
-    image_position_share,
     orientations_line,
     plot_residuals,
     scores,
@@ -71,13 +69,11 @@ from .diagnose_residuals import (
     write_residual_ply,
 )
 from .diagnose_verdict import (
-    TIED_TO_IMAGE_MIN,
     added_form_misfit,
     fields_share_check,
     form_conflict,
     same_colour,
     stand_in,
-    tied_conflict,
     unexplained_axes,
     verdict_text,
     why_implausible,
@@ -477,16 +473,13 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
     their places by how much of the water's fields they reproduce (:func:`order_by_fields`). ``fields``: the water's
     fields over the image; a candidate on image position, or one whose fit flattens that axis most (a light's
     spot), of another form (:func:`form_conflict`), or an image-position one that reproduces too little of structured
-    fields (:func:`eval.diagnose_verdict.fields_share_check`: under 80 % it is at most a partial step), or one on an
-    axis this survey ties to image position (``TIED_TO_IMAGE_MIN``) of another form than the fields', is not accepted
+    fields (:func:`eval.diagnose_verdict.fields_share_check`: under 80 % it is at most a partial step), is not accepted
     (a light's share of them is no measure: its pattern moves with the range and the surface). ``fitted_fields``: the
     fields themselves (:func:`water_field`; ``stack`` is then the water's without them): each image-position
     candidate says how much of them its fit reproduces (:func:`fields_explained`)."""
     results = []
     structured = bool(fields) and fields.get("form") in ("multiplicative", "additive", "both")
     probe = observation_state(meas, np.arange(min(meas.n_obs, 2000)))
-    tied = {axis: share for axis, values in axis_values(meas, base.predicted).items()
-            if (share := image_position_share(meas, values, config.residuals.grid_uv)) >= TIED_TO_IMAGE_MIN}
     for name in tqdm(names, desc="candidates", unit="fit", disable=None if progress is None else not progress):
         trial = insert_by_rank(stack, make_effect(name, meas))
         grid_start(trial, name, base, meas, split, config)
@@ -499,12 +492,9 @@ def rank_candidates(stack: Stack, meas: Observations, base: FitResult, base_scor
         drops = {a: base_scores[a] - cand_scores.get(a, 0.0) for a in base_scores}
         flattened = max(drops, key=drops.get)
         implausible = why_implausible(name, fit.params[name]) or same_colour(name, fit.params)
-        axis = get(name).axis
-        on_image = axis == "image_position" or flattened == "image_position"
-        if not implausible and fields and (on_image or axis in tied):
+        on_image = get(name).axis == "image_position" or flattened == "image_position"
+        if not implausible and fields and on_image:
             implausible = form_conflict(name, effect_form(fit.stack, name, probe), fields)
-            if not on_image:
-                implausible = tied_conflict(axis, tied[axis], implausible)
         explained = (fields_explained(fit.stack, stack, fitted_fields, probe)
                      if fitted_fields is not None and get(name).axis == "image_position" else None)
         share_reason, partial = fields_share_check(name, explained, change, structured)

@@ -128,34 +128,14 @@ def structure_amplitude(stats: dict, min_count: int) -> float:
     return 0.0 if dev is None else float(np.sqrt(np.mean(dev[0] ** 2)))
 
 
-def image_position_bins(meas: Observations, grid_uv: tuple[int, int]) -> np.ndarray:
-    """(N,) each view's bin of the image-position grid (``grid_uv`` bins across and down), row-major."""
-    nu, nv = grid_uv
-    iu = np.clip((meas.pixel_uv[:, 0] * nu).astype(int), 0, nu - 1)
-    iv = np.clip((meas.pixel_uv[:, 1] * nv).astype(int), 0, nv - 1)
-    return iv * nu + iu
-
-
-def image_position_share(meas: Observations, values: np.ndarray, grid_uv: tuple[int, int]) -> float:
-    """The share of the variance of ``values`` (one per view) that the image-position bins explain (the correlation
-    ratio: the variance of the bins' means, weighted by their counts, over the total): near 1 where the survey
-    ties the axis to image position (the incidence angle on a flat floor seen from above), near 0 where not."""
-    values = np.asarray(values, float)
-    total = values.var()
-    if not len(values) or total <= 0:
-        return 0.0
-    index = image_position_bins(meas, grid_uv)
-    count = np.bincount(index, minlength=grid_uv[0] * grid_uv[1])
-    mean = np.bincount(index, values, minlength=len(count)) / np.maximum(count, 1)
-    return float((count * (mean - values.mean()) ** 2).sum() / count.sum() / total)
-
-
 def analyse(meas: Observations, predicted: np.ndarray, residual: np.ndarray,
             config: ResidualConfig = ResidualConfig()) -> dict:
     """{axis: {"edges" or "grid", "count", "mean", "se", "score", "amplitude"}} (JSON-ready lists)."""
     out = {}
     nu, nv = config.grid_uv
-    stats = _bin_stats(image_position_bins(meas, config.grid_uv), nu * nv, residual)
+    iu = np.clip((meas.pixel_uv[:, 0] * nu).astype(int), 0, nu - 1)
+    iv = np.clip((meas.pixel_uv[:, 1] * nv).astype(int), 0, nv - 1)
+    stats = _bin_stats(iv * nu + iu, nu * nv, residual)
     out["image_position"] = {"grid_uv": [nu, nv], **_jsonable(stats), "score": structure_score(stats, config.min_count),
                              "amplitude": structure_amplitude(stats, config.min_count)}
     for axis, values in axis_values(meas, predicted).items():

@@ -89,10 +89,6 @@ def why_implausible(name: str, params: dict) -> str:
     return "; ".join(reasons)
 
 
-#: A candidate's axis is tied to image position on a survey when the image-position bins explain at least this share
-#: of its variance (:func:`eval.diagnose_residuals.image_position_share`): on a flat floor seen from above the
-#: incidence angle is nearly a function of the pixel, and a candidate on it is then judged as one on image position.
-TIED_TO_IMAGE_MIN = 0.8
 #: Two values per channel within this angle (degrees, in RGB) share one colour.
 SAME_COLOUR_DEG = 10.0
 
@@ -132,15 +128,6 @@ def form_conflict(name: str, form: str, fields: dict | None) -> str:
         return ""
     return (f"its form is {form} while the water's fields over the image carry {fields['form']} structure "
             f"({field_size(fields)})")
-
-
-def tied_conflict(axis: str, share: float, conflict: str) -> str:
-    """:func:`form_conflict`'s reason for a candidate on ``axis``, which the survey ties to image position (``share``
-    of its variance in the image-position bins, at least ``TIED_TO_IMAGE_MIN``), saying so ("" without a conflict)."""
-    if not conflict:
-        return ""
-    return (f"on this survey its axis ({axis}) is tied to image position ({share:.0%} of its variance lies between "
-            f"the image-position bins), so it is judged as an effect on image position: {conflict}")
 
 
 def fields_line(fields: dict | None) -> str:

@@ -84,30 +84,3 @@ def test_an_offset_of_the_veils_colour_cannot_be_told_from_the_veil():
     assert same_colour("black_level", fitted((0.0, 0.0, 0.0))) == ""
     assert same_colour("caustics", fitted((0.003, 0.0155, 0.0168))) == ""
     assert same_colour("black_level", {"black_level": fitted((0.003, 0.0155, 0.0168))["black_level"]}) == ""
-
-
-def test_an_axis_the_survey_ties_to_image_position_is_judged_as_image_position():
-    """The incidence angle on a flat floor seen straight down is a function of the pixel: the image-position bins
-    explain nearly all its variance, and a gloss fitted there must have the form of the water's fields; an axis
-    that varies within every bin (range over a rocky floor) is not tied."""
-    from types import SimpleNamespace
-
-    import numpy as np
-
-    from eval.diagnose_residuals import image_position_share
-    from eval.diagnose_verdict import TIED_TO_IMAGE_MIN, form_conflict, tied_conflict
-
-    rng = np.random.default_rng(0)
-    uv = rng.uniform(size=(20000, 2))
-    meas = SimpleNamespace(pixel_uv=uv)
-    ray = np.hypot(uv[:, 0] - 0.5, uv[:, 1] - 0.5) * np.tan(np.radians(30)) * 2  # tan of the ray's angle
-    angle = np.degrees(np.arctan(ray)) + rng.normal(0, 0.3, len(uv))  # floor from above: the ray's own angle
-    assert image_position_share(meas, angle, (8, 6)) >= TIED_TO_IMAGE_MIN
-    assert image_position_share(meas, rng.normal(2.5, 0.4, len(uv)), (8, 6)) < 0.05
-    assert image_position_share(meas, np.ones(len(uv)), (8, 6)) == 0.0
-
-    conflict = form_conflict("specular_gloss", "additive", FIELDS)
-    reason = tied_conflict("incidence_angle", 0.93, conflict)
-    assert conflict and reason.startswith("on this survey its axis (incidence_angle) is tied to image position (93%")
-    assert reason.endswith(conflict)
-    assert tied_conflict("incidence_angle", 0.93, "") == ""
