@@ -599,6 +599,7 @@ def water_ws(surveys, tmp_path_factory):
     """A workspace on the small survey hiding off-centre vignetting: the sfm stage's record holding the truth's
     tracks (:func:`_tracks_from_truth`), the dense stage's the true depth maps, and the range and water stages run
     on them (the water with no bootstrap, 150 samples per frame)."""
+    from eval.water import ALTERNATIVE_PRESETS
     from test_water import water_config
 
     from pipeline.dense import DenseConfig, DenseResult
@@ -616,7 +617,9 @@ def water_ws(surveys, tmp_path_factory):
         write_depth_png(depth / f"{Path(name).stem}.png", truth.depth_m(k))
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=ws.relative(depth), pairs={}, coverage={}, mean_coverage=1.0))
     ws.run("range", RangeConfig(progress=False))
-    return ws, ws.run("water", water_config(bootstrap=0, samples_per_frame=150, progress=False))
+    # the diagnosis reads the water's stack, fields, gains and table, not its intervals: no alternatives
+    return ws, ws.run("water", water_config(bootstrap=0, samples_per_frame=150, progress=False,
+                                            alternatives=ALTERNATIVE_PRESETS["none"]))
 
 
 def water_board_rows(ws: Workspace) -> int:
@@ -670,6 +673,7 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     effect on the same table, and the diagnosis starts from that water, on the same rows."""
     import shutil
 
+    from eval.water import ALTERNATIVE_PRESETS
     from test_water import water_config
 
     from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
@@ -681,7 +685,8 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     every = replace(FAST, measure=MeasureConfig(n_points=10 ** 6))  # all of the water's table
     before = run_diagnose(ws.root, every, progress=False)
     added = ws.run("water", water_config(effects=(*DEFAULT_WATER_EFFECTS, "vignetting_offcentre"), bootstrap=0,
-                                        samples_per_frame=150, progress=False))
+                                        samples_per_frame=150, progress=False,
+                                        alternatives=ALTERNATIVE_PRESETS["none"]))  # as the workspace's water
     assert added.n_observations == water.n_observations  # the same table, refitted
     after = run_diagnose(ws.root, replace(every, add=("vignetting_offcentre",)), progress=False)
     assert "vignetting_offcentre" in after.stack and after.n_obs == before.n_obs == water.n_observations
