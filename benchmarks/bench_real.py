@@ -391,7 +391,7 @@ def collect(ws, run_summary: dict, out: Path) -> dict:
     water = ws.result("water")
     if water is not None:
         data = read_water(ws.path(water.water_json))
-        figures["water"] = {k: {f: v.get(f) for f in ("value", "low", "high", "on_bound", "units")}
+        figures["water"] = {k: {f: getattr(v, f) for f in ("value", "low", "high", "on_bound", "units")}
                             for k, v in data.params.items() if k.split(".")[0] in ("attenuation", "backscatter")}
         figures["water"]["veil"] = data.veil
     mask = read_scene_mask(ws.path(survey.scene_mask)) if survey.scene_mask else None
