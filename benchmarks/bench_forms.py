@@ -356,10 +356,8 @@ def run_draw(root: Path, draw: Draw, with_diagnosis: bool) -> dict:
     seconds["correct"] = time.perf_counter() - t
     keep = ("attenuation.eta_per_m", "backscatter.b_inf", "veil")
     eta_truth = np.asarray(truth["attenuation.eta_per_m"], float)
-    eta = "attenuation.eta_per_m"
-    structure = [{**a.to_json(), "eta_rel_error": _round(np.asarray(a.values[eta], float) / eta_truth - 1)
-                  if eta in a.values else None}  # a structure its held-out test rejects has no values
-                 for a in water.alternatives if eta in a.values or a.heldout_change_pct is not None]
+    structure = [{**a.to_json(), "eta_rel_error": _round(np.asarray(a.values[eta], float) / eta_truth - 1)}
+                 for a in water.alternatives if (eta := "attenuation.eta_per_m") in a.values]
     record = {"truth": {**asdict(draw), "workspace": ws_root.name},
               "params": {k: params[k] for k in keep if k in params}, "structure": structure, "correction": correction,
               "diagnosis": None, "false_acceptance": False, "partial_step": False,

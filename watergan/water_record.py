@@ -89,12 +89,11 @@ class AlternativeRecord:
     key:        its name (the :class:`Widening` rows refer to it).
     words:      what it is, for the report ("the gains per frame free to follow the frames' ranges").
     pinned_by:  what kind of survey would tell it from the estimate ("" where that is not a question of the survey).
-    values:     its estimate of the fitted parameters of up to nine components ({"effect.param": value}); empty
-                for a structure its held-out test rejects (it widens no interval).
+    values:     its estimate of the fitted parameters of up to nine components ({"effect.param": value}).
     heldout_change_pct, ci95_pct, preferred: its held-out test, where it has one: the change of the held-out
                 views' RMSE against the estimate's structure, its 95 % interval, and whether the whole interval
                 is below -0.1 % (the survey predicts its unseen views better with it); ``rejected``: the whole
-                interval above +0.1 % (it predicts them worse: no values, no widening).
+                interval above +0.1 % (it predicts them worse: its values are its fit's on the training points).
     profile:    a profile's accepted span ({"param", "eta_per_m", "low", "high", "open_low", "open_high", "steps"}).
     seconds:    its wall time.
     """

@@ -18,8 +18,8 @@ training points. Adding one is a class here and a test. The built-ins:
   where the other model lands); that fit gives its held-out test against the estimate's structure fitted on the
   same points from the estimate (whose optimum is that structure's basin). Unless that test rejects it, its fit
   on all the points from the same start gives its values (from the training fit, or continued from it, a flat
-  direction keeps the training points' sampling: measured in benchmarks/RESULTS/water.md); a reading the held-out
-  views rule out widens no interval. The fits run side by side (:meth:`Context.prefit`, :meth:`Context.fit_all`).
+  direction keeps the training points' sampling: measured in benchmarks/RESULTS/water.md); a rejected one's values
+  are its training fit's. The fits run side by side (:meth:`Context.prefit`, :meth:`Context.fit_all`).
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
 """
@@ -84,7 +84,7 @@ class AlternativeFit:
     @property
     def rejected(self) -> bool:
         """The survey predicts its held-out views worse with it (the whole interval of the change above
-        ``PREFERRED_CHANGE``): a reading the survey rules out, which widens no interval."""
+        ``PREFERRED_CHANGE``): a structure then gets no fit on all the points."""
         return self.ci is not None and self.ci[0] > PREFERRED_CHANGE
 
     def record(self) -> AlternativeRecord:
@@ -243,9 +243,11 @@ class LightLevel(Alternative):
 class Structure(Alternative):
     """Another structure of the model (``changed(config)``), fitted on the training points from the configured start
     (:meth:`Context.prefit`): its held-out test against the estimate's structure. Unless the test rejects it
-    (:attr:`AlternativeFit.rejected`), fitted on all the points from the same start (:meth:`Context.fit_all`): its
-    values (with its own light split), which widen the intervals both ways: in quadrature, and covered with the
-    bootstrap's spread around them. A rejected structure has no values and widens nothing."""
+    (:attr:`AlternativeFit.rejected`), fitted on all the points from the same start (:meth:`Context.fit_all`) for its
+    values; a rejected one keeps its training fit's values, since under a missing effect the estimate's structure is
+    wrong too and the held-out views' preference between two wrong models does not say which lands nearer the water
+    (measured in benchmarks/RESULTS/water.md). The values (with the fit's own light split) widen the intervals both
+    ways: in quadrature, and covered with the bootstrap's spread around them."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
 
@@ -266,12 +268,14 @@ class Structure(Alternative):
     def refit(self, ctx: Context) -> AlternativeFit:
         result = self.test(ctx)
         if result.rejected:
-            return result
-        if self.key not in ctx.full:
-            ctx.fit_all([self])
-        full = ctx.full[self.key]
-        result.values, result.seconds = full.values(), result.seconds + full.seconds
-        factor = split_light(copy_stack(full.stack), ctx.obs, full.range_r2) \
+            source = result.fit
+        else:
+            if self.key not in ctx.full:
+                ctx.fit_all([self])
+            source = ctx.full[self.key]
+            result.seconds += source.seconds
+        result.values = source.values()
+        factor = split_light(copy_stack(source.stack), ctx.obs, source.range_r2) \
             if "backscatter.b_inf" in result.values else None
         if factor is not None:
             result.values["backscatter.b_inf"] = result.values["backscatter.b_inf"] * factor
