@@ -599,9 +599,9 @@ def water_ws(surveys, tmp_path_factory):
     """A workspace on the small survey hiding off-centre vignetting: the sfm stage's record holding the truth's
     tracks (:func:`_tracks_from_truth`), the dense stage's the true depth maps, and the range and water stages run
     on them (the water with no bootstrap, 150 samples per frame)."""
-    from eval.water import ALTERNATIVE_PRESETS
     from test_water import water_config
 
+    from eval.water import ALTERNATIVE_PRESETS
     from pipeline.dense import DenseConfig, DenseResult
     from pipeline.range import RangeConfig
     from watergan.io import write_depth_png
@@ -673,10 +673,10 @@ def test_add_refits_the_water_and_the_diagnosis_ranks_on_the_refit(water_ws, tmp
     effect on the same table, and the diagnosis starts from that water, on the same rows."""
     import shutil
 
-    from eval.water import ALTERNATIVE_PRESETS
     from test_water import water_config
 
     from eval.fit import DEFAULT_EFFECTS as DEFAULT_WATER_EFFECTS
+    from eval.water import ALTERNATIVE_PRESETS
 
     ws, water = water_ws
     copy = tmp_path / "ws"
