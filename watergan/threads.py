@@ -12,6 +12,7 @@ import contextlib
 import math
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 from watergan.errors import UserInputError
 
@@ -35,7 +36,7 @@ def free_cores() -> int:
 def runnable_now() -> int | None:
     """Tasks runnable at this instant, this process included (/proc/loadavg's "R/T"); None where unreadable."""
     try:
-        return int(open("/proc/loadavg").read().split()[3].split("/")[0])
+        return int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
     except (OSError, IndexError, ValueError):
         return None
 
