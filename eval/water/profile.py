@@ -6,10 +6,11 @@ share pin eta. The loss is then nearly flat along eta: the fit stops wherever L-
 which resamples points around that stop, sees a spread far narrower than the distance eta may travel. The profile
 asks the survey directly:
 
-1. the fit on the training points is polished (``PROFILE_FIT``: rounds until the loss falls by less than its
-   ``convergence_rtol`` per round), giving eta_0;
+1. the fit on the training points is polished (:func:`settle`: a round of L-BFGS, the trust-region refinement,
+   which follows a flat direction to its floor where L-BFGS crawls, then rounds until the loss falls by less than
+   ``PROFILE_FIT``'s ``convergence_rtol`` per round), giving eta_0;
 2. eta is held at f eta_0 for each factor f of ``PROFILE_STEPS`` (nearest first, below and above), everything else
-   refitted on the training points from the previous step;
+   refitted on the training points from the previous step, settled the same way;
 3. each channel's held-out views (the points the training left out, their albedos fitted to half their views, the
    other half predicted: :func:`eval.heldout.heldout_sums`) give the paired change d = RMSE_f / RMSE_0 - 1 and its
    bootstrap 95 % interval [lo, hi] (:func:`eval.bootstrap.paired_rmse_change`). The channels' fits are independent
@@ -39,8 +40,8 @@ from ..observations import Observations
 
 #: Factors on eta_0 of the profile's steps below and above it, nearest first.
 PROFILE_STEPS = ((0.8, 0.6), (1.25, 1.6))
-#: The polish and each step's fit: L-BFGS rounds until the loss falls by less than this per round, at most this many
-#: iterations (the water fit's own rounds stop where the flat direction still moves eta).
+#: The polish and each step's fit: after the refinement, L-BFGS rounds until the loss falls by less than this per
+#: round, at most this many iterations (the water fit's own rounds stop where the flat direction still moves eta).
 PROFILE_FIT = {"convergence_rtol": 1e-5, "max_iterations": 3000}
 #: The attenuation's effect and parameter.
 ATTENUATION, ETA = "attenuation", "eta_per_m"
@@ -76,7 +77,7 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
     Returns (JSON-ready) {"eta_per_m": eta_0, "low" / "high": eta at the bounds, "open_low" / "open_high": per
     channel, where the last step was accepted, "steps": [{"factor", "change_pct": per channel d, lo, hi}]}."""
     config = replace(fit, **PROFILE_FIT)
-    Problem(stack, train, config, names).converge()
+    settle(Problem(stack, train, config, names))
     polished = [p.detach().clone() for p in stack.parameters()]
     eta0 = stack[ATTENUATION].param(ETA).detach().numpy().copy()
     raw = f"effects.{stack.names.index(ATTENUATION)}.raw.{ETA}"
@@ -90,7 +91,7 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
             if not accepted.any():
                 break
             set_eta(stack, eta0 * factor)
-            Problem(stack, train, config, held_names).converge()
+            settle(Problem(stack, train, config, held_names))
             change = channel_changes(base_sq, heldout_sums(stack, obs, split, fit, per_channel=True)[0], count,
                                      resamples, fit.seed)
             out["steps"].append({"factor": factor, "change_pct": np.round(100 * change, 3).tolist()})
@@ -103,6 +104,14 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
         out[side], out[f"open_{side}"] = np.round(eta0 * factors, 6).tolist(), accepted.tolist()
     restore(stack, polished)
     return out
+
+
+def settle(problem: Problem) -> None:
+    """``problem`` fitted from where its stack is: a round of L-BFGS, the trust-region refinement
+    (``coarse_refine_evaluations`` residual evaluations: the water fit's coarse start's), then rounds to convergence."""
+    problem.minimise(problem.config.iterations)
+    problem.refine(problem.config.coarse_refine_evaluations)
+    problem.converge()
 
 
 def restore(stack: Stack, values: list[torch.Tensor]) -> None:
