@@ -108,7 +108,8 @@ def _common(p: argparse.ArgumentParser, exclude: tuple[str, ...] = ()) -> None:
 
 def print_survey(ws, r) -> None:
     print(f"survey: {r.n_images} frames of {r.width}x{r.height}{', stereo' if r.stereo else ''}"
-          f"{', simulated' if r.simulated else ''}; in-air RGB-D set {r.rgbd_dir}")
+          f"{', simulated' if r.simulated else ''}; in-air RGB-D set "
+          f"{r.rgbd_dir or 'none (the gan stage renders a generic seafloor set)'}")
     if r.undistorted:
         lens = ", ".join(f"{k} {v:+.4f}" for k, v in r.undistorted.items() if k != "lens_model" and v)
         source = ", estimated by SfM" if r.lens_estimate else ""

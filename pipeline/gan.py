@@ -11,6 +11,8 @@ stage wrote each frame's range maps (RGB-D mode). Their configurations nest the 
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,6 +22,8 @@ from watergan.train_restorer import RestorerConfig, RestorerResult
 
 from .workspace import Workspace
 
+#: The folder of the stage's generic in-air RGB-D set, where the survey gives none.
+GENERIC_RGBD = "generic_rgbd"
 #: Minutes of WaterGAN training in a workspace when neither a budget nor a count of iterations or epochs is given.
 GAN_BUDGET_MIN = 4.0
 
@@ -61,8 +65,9 @@ class GanStageResult:
 
 def gan_configs(ws: Workspace, cfg: GanStage) -> tuple[GanConfig, GenerateConfig]:
     """The training's and the rendering's configurations in the workspace: the survey's frames and in-air RGB-D
-    set, the water stage's estimate as the site water (unless ``site_water_mode`` is learned), ``add`` joined to the
-    effects, the budget (:attr:`GanStage.budget_min`), the model and pairs in the stage's folder."""
+    set (none given: the generic one in the stage's folder, :func:`generic_rgbd`), the water stage's estimate as the
+    site water (unless ``site_water_mode`` is learned), ``add`` joined to the effects, the budget
+    (:attr:`GanStage.budget_min`), the model and pairs in the stage's folder."""
     from watergan.site_water import SiteWater
 
     survey = ws.require("survey", "WaterGAN")
@@ -70,14 +75,27 @@ def gan_configs(ws: Workspace, cfg: GanStage) -> tuple[GanConfig, GenerateConfig
     train = cfg.train
     limits = train.iterations is not None or train.epochs is not None
     budget = cfg.budget_min if cfg.budget_min is not None else None if limits else GAN_BUDGET_MIN
-    train = dataclasses.replace(train, rgbd_dir=ws.path(survey.rgbd_dir), underwater_dir=ws.folder("survey") / "images",
+    rgbd = ws.path(survey.rgbd_dir) if survey.rgbd_dir else folder / GENERIC_RGBD
+    train = dataclasses.replace(train, rgbd_dir=rgbd, underwater_dir=ws.folder("survey") / "images",
                                 out_dir=folder / "model", effects=tuple(dict.fromkeys(train.effects + cfg.add)),
                                 budget_min=budget)
     if train.site_water_mode != SiteWater.learned:  # the water stage's estimate, held or under its prior
         train = dataclasses.replace(train, site_water=ws.path(ws.require("water", "WaterGAN").water_json))
-    generate = dataclasses.replace(cfg.generate, model_dir=folder / "model", rgbd_dir=ws.path(survey.rgbd_dir),
+    generate = dataclasses.replace(cfg.generate, model_dir=folder / "model", rgbd_dir=rgbd,
                                    out_dir=folder / "generated")
     return train, generate
+
+
+def generic_rgbd(out: Path, seed: int) -> None:
+    """A generic seafloor in-air RGB-D set (the demo preset's, :func:`eval.synth.rgbd.write_rgbd_set`, seeded by
+    ``seed``) rendered into ``out`` (replaced), for a survey that gives none."""
+    from eval.synth.presets import PRESETS
+    from eval.synth.rgbd import write_rgbd_set
+
+    if out.exists():
+        shutil.rmtree(out)
+    print(f"gan: the survey gives no in-air RGB-D set: rendering a generic seafloor set into {out}", file=sys.stderr)
+    write_rgbd_set(out, PRESETS["demo"].rgbd, seed)
 
 
 def run_gan_stage(ws: Workspace, cfg: GanStage) -> GanStageResult:
@@ -87,6 +105,8 @@ def run_gan_stage(ws: Workspace, cfg: GanStage) -> GanStageResult:
     from watergan.train import train_gan
 
     train, pairs = gan_configs(ws, cfg)
+    if not ws.require("survey", "WaterGAN").rgbd_dir:
+        generic_rgbd(train.rgbd_dir, train.seed)
     result = train_gan(train)
     gen = generate(pairs)
     return GanStageResult(train=result.to_json(), model=ws.relative(train.out_dir),

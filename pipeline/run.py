@@ -60,7 +60,7 @@ class RunOptions:
     """The run folder (created); stages write only here."""
     rgbd_dir: str = ""
     """In-air RGB-D set for WaterGAN (rgb/ + depth/); empty: the survey's rgbd/ folder, else a generic seafloor set
-    rendered by the simulator into the workspace."""
+    rendered by the simulator into the gan stage's folder."""
     add: tuple[str, ...] = ()
     """Effects added to the water's stack, to WaterGAN's generator and to the diagnosed model (e.g. what
     `diagnose` found)."""

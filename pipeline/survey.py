@@ -8,7 +8,6 @@ rig's right frames, same names), ``camera.json`` (intrinsics, optional ``baselin
 
 from __future__ import annotations
 
-import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -186,7 +185,8 @@ class SurveyResult:
     simulated: bool
     """Whether it is a simulated survey with truth/."""
     rgbd_dir: str
-    """The in-air RGB-D set WaterGAN uses (workspace-relative when it is in the workspace, else absolute)."""
+    """The in-air RGB-D set WaterGAN uses (workspace-relative when it is in the workspace, else absolute); empty:
+    none given, the gan stage renders a generic seafloor set."""
     survey_dir: str
     """The survey folder (absolute); the workspace's survey folder links to it."""
     navigation: bool = False
@@ -255,23 +255,15 @@ def link_survey(survey: Path, target: Path, written: set[str]) -> None:
             dst.symlink_to(src)
 
 
-def rgbd_set(ws: Workspace, cfg: SurveyConfig, survey: Path) -> Path:
-    """The in-air RGB-D set (rgb/ + depth/): ``cfg.rgbd_dir``, else the survey's ``rgbd/``, else a generic seafloor set
-    rendered into the stage's folder (``generic_rgbd``, seeded by ``cfg.seed``)."""
+def rgbd_set(cfg: SurveyConfig, survey: Path) -> Path | None:
+    """The in-air RGB-D set (rgb/ + depth/): ``cfg.rgbd_dir``, else the survey's ``rgbd/``, else None (the gan
+    stage renders a generic seafloor set, :func:`pipeline.gan.generic_rgbd`)."""
     rgbd = Path(cfg.rgbd_dir) if cfg.rgbd_dir else survey / "rgbd"
     if (rgbd / "rgb").is_dir():
         return rgbd
     if cfg.rgbd_dir:
         raise UserInputError(f"in-air RGB-D folder {rgbd} has no rgb/ folder (rgb/ + depth/, paired by name)")
-    from eval.synth.presets import PRESETS
-    from eval.synth.rgbd import write_rgbd_set
-
-    rgbd = ws.stage_dir("survey") / "generic_rgbd"
-    if rgbd.exists():
-        shutil.rmtree(rgbd)
-    print(f"run: no in-air RGB-D set in {survey}: rendering a generic seafloor set into {rgbd}", file=sys.stderr)
-    write_rgbd_set(rgbd, PRESETS["demo"].rgbd, cfg.seed)
-    return rgbd
+    return None
 
 
 def calibrated_camera(survey: Path, names: list[str], camera: dict, target: Path, seed: int,
@@ -333,7 +325,7 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
         written = ({"survey.json"} if logged else set()) | ({"camera.json"} if own_camera else set()) | \
             ({"images", "right"} if lens is not None or cfg.estimate_lens or calibrate else set())
         link_survey(survey, target, written)
-    rgbd = rgbd_set(ws, cfg, survey)
+    rgbd = rgbd_set(cfg, survey)
     names = [p.name for p in list_files(survey / "images", IMAGE_SUFFIXES)]
     estimate, calibration = {}, {}
     if calibrate:
@@ -361,7 +353,8 @@ def run_survey(ws: Workspace, cfg: SurveyConfig) -> SurveyResult:
                                  f"{ws.stage('survey').folder}")
         atomic_write_json(target / "survey.json", declared, finite=True)
     navigation = "nav_altitude_m" in declared
-    inside = rgbd.resolve().is_relative_to(ws.root.resolve())
-    return SurveyResult(**summary, rgbd_dir=ws.relative(rgbd) if inside else str(rgbd), survey_dir=str(survey),
+    inside = rgbd is not None and rgbd.resolve().is_relative_to(ws.root.resolve())
+    return SurveyResult(**summary, rgbd_dir="" if rgbd is None else ws.relative(rgbd) if inside else str(rgbd),
+                        survey_dir=str(survey),
                         navigation=navigation, undistorted=lens.to_json() if lens is not None else {},
                         lens_estimate=estimate, self_calibration=calibration, scene_mask=mask_path)

@@ -49,6 +49,7 @@ def test_the_pool_subset_runs_from_the_image_size_alone(tmp_path):
     camera = json.loads((ws.folder("survey") / "camera.json").read_text())
     focal_full_size = 1236.0 * WIDTH / 1280  # the whole survey's calibration at 1280 px (benchmarks/results/real.json)
     assert calibrated.self_calibration["registered"] == COUNT
+    assert calibrated.rgbd_dir == "" and not list(ws.folder("survey").glob("*rgbd*"))  # WaterGAN's set: its own stage's
     assert camera["fx"] == pytest.approx(focal_full_size, rel=0.1)
     assert -0.45 < calibrated.undistorted["k1"] < -0.2  # a wide lens's barrel distortion
     mask = read_scene_mask(ws.path(calibrated.scene_mask))

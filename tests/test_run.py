@@ -222,7 +222,6 @@ def test_a_survey_file_spoilt_after_the_survey_stage_is_refused_on_the_next_run(
 
     survey = tmp_path / "survey"
     _survey(survey)
-    (survey / "rgbd" / "rgb").mkdir(parents=True)  # an in-air set (not read here): no generic one rendered
     opts = RunOptions(survey_dir=str(survey), workspace=str(tmp_path / "ws"), progress=False)
     Workspace(opts.workspace).run("survey", stage_config("survey", opts))
     (survey / "survey.json").write_text('{"frames": ["f0.png", "f1.png"], "nav_altitude_m": [2.0, ')
@@ -359,6 +358,10 @@ def test_run_sets_any_stage_option_from_the_command_line_or_a_file(tmp_path):
     gan, pairs = gan_configs(ws, stage_config("gan", learned))
     assert gan.budget_min == 2.0 and gan.effects[-1] == "gain" and gan.site_water is None
     assert gan.rgbd_dir == pairs.rgbd_dir == tmp_path and gan.out_dir == pairs.model_dir == ws.folder("gan") / "model"
+    ws.save("survey", SurveyConfig("S"), SurveyResult(n_images=3, width=8, height=6, stereo=False, simulated=False,
+                                                      rgbd_dir="", survey_dir="S"))  # none given: the stage's own
+    gan, pairs = gan_configs(ws, stage_config("gan", learned))
+    assert gan.rgbd_dir == pairs.rgbd_dir == ws.folder("gan") / "generic_rgbd"
     by_count = _options(build_parser().parse_args(["run", "S", "--workspace", "W", "--gan-iterations", "5",
                                                    "--gan-site-water-mode", "learned"]), "S", "W")
     assert gan_configs(ws, stage_config("gan", by_count))[0].budget_min is None  # the count alone stops it
@@ -415,7 +418,6 @@ def test_a_navigation_log_gives_the_survey_its_navigation(tmp_path):
     survey = tmp_path / "survey"
     _survey(survey)
     frames = [f"f{k}.png" for k in range(4)]
-    (survey / "rgbd" / "rgb").mkdir(parents=True)  # an in-air set (not read here): no generic one rendered
     (survey / "survey.json").write_text(json.dumps({"frames": frames, "frame_time_s": [0.5, 1.5, 2.5, 3.0]}))
     (survey / "navigation.csv").write_text("time_s,depth_m,altitude_m,roll_deg,pitch_deg,heading_deg\n"
                                            "0,10,2.0,0,0,90\n1,10.5,2.2,10,0,90\n2,11,2.4,0,-10,90\n"

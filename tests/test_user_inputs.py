@@ -62,7 +62,6 @@ def test_nan_in_a_log_never_reaches_the_workspace(tmp_path):
 
     survey = tmp_path / "survey"
     _survey(survey)
-    (survey / "rgbd" / "rgb").mkdir(parents=True)
     (survey / "navigation.csv").write_text("frame,altitude_m,depth_m\nf0.png,2,10\nf1.png,2,nan\nf2.png,2,10\n"
                                            "f3.png,2,10\n")
     with pytest.raises(UserInputError, match=r"navigation.csv: depth_m holds 'nan'.* line 3 \(frame f1.png\)"):
