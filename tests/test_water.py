@@ -169,7 +169,8 @@ def test_estimate_recovers_the_rendered_water(survey):
 def test_without_a_board_the_gain_is_held_and_said(survey):
     frames, _ = survey
     config = water_config(samples_per_frame=150, bootstrap=0, margin_px=4, iterations=80, footprint_m=FOOTPRINT_M,
-                         initial=({"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}},))
+                         initial=({"name": "gain", "params": {"k": [1.5, 1.5, 1.5]}},),
+                         alternatives=ALTERNATIVE_PRESETS["none"])  # the gain held and eta's value: no intervals
     est = estimate_water(frames, K, config=config)
     assert "gain" in est.fixed and not est.params["gain.k"].fitted
     np.testing.assert_allclose(_value(est, "attenuation.eta_per_m"), [0.45, 0.14, 0.2], rtol=0.05)

@@ -107,7 +107,9 @@ def test_image_fields_keep_the_water_when_a_falloff_is_missing(survey):
     hidden = TRUE + [{"name": "vignetting_offcentre", "params": {"centre_uv": [0.7, 0.4], "a_margin": 0.5, "b": 0.0,
                                                                  "c": 0.1, "strength": [1.0, 0.85, 0.7]}}]
     frames, board = make_survey(hidden)
-    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100, correction_grid=(13, 17))
+    # eta's value, the fields and the grid: no replicates, so no intervals for the alternatives to widen
+    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100, correction_grid=(13, 17),
+                          alternatives=ALTERNATIVE_PRESETS["none"])
     bent = estimate_water(frames, K, board=board, config=water_config(config, field_degree=0))
     carried = estimate_water(frames, K, board=board, config=config)
     assert np.abs(_value(bent, "attenuation.eta_per_m") / truth - 1).max() > 0.1
@@ -145,7 +147,9 @@ def test_a_fine_grid_after_the_water_takes_a_veil_the_fields_cannot_follow(surve
     spot = np.exp(-((xs - 0.7 * W) ** 2 + (ys - 0.35 * H) ** 2) / (2 * (0.1 * W) ** 2))
     veil = spot[..., None] * np.array([0.03, 0.05, 0.06])
     veiled = [replace(f, image=np.clip(f.image + veil, 0, 1).astype(np.float32)) for f in frames]
-    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100, correction_grid=(13, 17))
+    # the grid after the water and the correction: no replicates, so no intervals for the alternatives to widen
+    config = water_config(samples_per_frame=80, bootstrap=0, margin_px=4, min_points=100, correction_grid=(13, 17),
+                          alternatives=ALTERNATIVE_PRESETS["none"])
     estimate = estimate_water(veiled, K, board=board, config=config)
     assert estimate.grid["carried"] and estimate.grid["form"] in ("additive", "both")
     assert estimate.grid["points_fraction"] == 1.0  # over 3 % on a quarter of the points: fitted on all of them
