@@ -59,6 +59,7 @@ def evaluated():
     from test_water import water_config
 
     from eval.diagnose import DiagnoseConfig
+    from eval.water import ALTERNATIVE_PRESETS
     from pipeline.correct import CorrectStage, CorrectStageResult, physics_inputs
     from pipeline.correct_physics import correct_physics_folder
     from pipeline.dense import DenseConfig, DenseResult
@@ -86,7 +87,9 @@ def evaluated():
     ws.save("dense", DenseConfig(), DenseResult(depth_dir=f"{STAGES['dense'].folder}/depth", pairs={}, coverage={},
                                                 mean_coverage=1.0))
     ws.run("range", RangeConfig(progress=False))
-    ws.run("water", water_config(bootstrap=4, progress=False))
+    # the water for the physics correction and the report's first screen; the alternatives' notes are tested on
+    # records (_record below), so this water takes none
+    ws.run("water", water_config(bootstrap=4, progress=False, alternatives=ALTERNATIVE_PRESETS["none"]))
     # the physics correction: one more method (the correct stage's own, beside the stand-in restorer's)
     physics = correct_physics_folder(physics_inputs(ws, survey / "images"), ws.folder("correct") / "physics", False)
     filled, far, physics_s = physics.filled_fraction, physics.far_fraction, physics.seconds
