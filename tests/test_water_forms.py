@@ -288,7 +288,7 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     profile = widened.to_record().alternative("eta_profile").profile  # red: the free fit short, the profile past it
     assert np.abs(test.values["attenuation.eta_per_m"][0] / truth[0] - 1) > 0.1
     assert profile["low"][0] <= truth[0] <= profile["high"][0]
-    # the polish follows the flat direction to its floor (a round of L-BFGS alone stopped at red 0.404, 10 % short)
+    # the polish follows the flat direction to its floor (L-BFGS rounds alone stopped at red 0.404, 10 % short)
     np.testing.assert_allclose(profile["eta_per_m"], truth, rtol=0.05)
     assert wide.widening("eta_profile").widened[0] and wide_high[0] == pytest.approx(profile["high"][0])
     rows = [w for w in wide.widenings if w.rule == "quadrature"]  # each alternative's change; the largest counts
