@@ -17,12 +17,17 @@ import torch
 SIDE_BY_SIDE_THREADS = 4
 
 
+#: Curvature pairs L-BFGS keeps. A fit of the water's few dozen parameters ends its rounds within them; one of fine
+#: fields over the image (about 1,300 node values) needs a longer memory to follow their coupling.
+LBFGS_HISTORY = 100
+
+
 def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> None:
-    """At most ``iterations`` L-BFGS iterations (strong-Wolfe line search, history 20), stopping when a step changes
-    the loss by less than ``rtol`` of its starting value."""
+    """At most ``iterations`` L-BFGS iterations (strong-Wolfe line search, ``LBFGS_HISTORY`` pairs), stopping when a
+    step changes the loss by less than ``rtol`` of its starting value."""
     with torch.no_grad():
         scale = abs(float(loss_fn())) + 1e-30
-    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=LBFGS_HISTORY, line_search_fn="strong_wolfe",
                             tolerance_grad=1e-12, tolerance_change=rtol * scale)
 
     def closure():

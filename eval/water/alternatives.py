@@ -130,7 +130,7 @@ class Context:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
         for the estimate's), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch
         thread poorly): the estimate's from its own values (:func:`eval.water.fit_water.fit_from`), each structure
-        from the configured start."""
+        from the configured start, in float32 (:meth:`_cold`)."""
         from .fit_water import fit_from
 
         jobs = {} if "" in self.trained else {"": lambda: fit_from(self.fit, self.train)}  # short: first
@@ -146,7 +146,7 @@ class Context:
     def _cold(self, obs: Observations, config: WaterConfig):
         from .fit_water import fit_water
 
-        return lambda: fit_water(obs, config, self.lights)
+        return lambda: fit_water(obs, config, self.lights, float32=True)
 
     @cached_property
     def base_sums(self) -> tuple[np.ndarray, np.ndarray]:

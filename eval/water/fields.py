@@ -82,16 +82,18 @@ def veil_at(b_inf, beta_per_m, range_m: float) -> np.ndarray:
     """The veil B_inf (1 - exp(-beta r)) at range ``range_m`` (per channel, numpy)."""
     return np.asarray(b_inf) * -np.expm1(-np.asarray(beta_per_m) * range_m)
 
-def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str]) -> int:
-    """When the stack holds an effect on image position besides the centred ``vignetting`` and the fields (one added
-    after the diagnosis named it), fit the stack first with the fields held flat (in place; coarse start, then on
-    all points), so that the named effect takes what its form explains and the fields, freed afterwards, only the
-    rest: ``--add`` of the right effect flattens them. Returns the iterations spent (0: nothing to do)."""
+def stack_first(stack: Stack, obs: Observations, fit: FitConfig, names: list[str], float32: bool = False) -> int:
+    """When the stack holds an effect on image position besides the centred ``vignetting`` and the fields over the
+    image (smooth and fine: one added after the diagnosis named it), fit the stack first with the fields held flat
+    (in place; coarse start, then on all points), so that the named effect takes what its form explains and the
+    fields, freed afterwards, only the rest: ``--add`` of the right effect flattens them. ``float32``: as
+    :func:`eval.water.fit_water.fit_water`'s. Returns the iterations spent (0: nothing to do)."""
+    fields = (FIELD_EFFECT, GRID_EFFECT)
     if FIELD_EFFECT not in stack.names or not any(
-            e.axis == "image_position" and e.name not in ("vignetting", FIELD_EFFECT) for e in stack.effects):
+            e.axis == "image_position" and e.name not in ("vignetting", *fields) for e in stack.effects):
         return 0
-    field_index = str(stack.names.index(FIELD_EFFECT))
-    first = Problem(stack, obs, fit, [n for n in names if n.split(".")[1] != field_index])
+    first = Problem(stack, obs, fit, [n for n in names if stack.effects[int(n.split(".")[1])].name not in fields],
+                    float32=float32)
     return first.coarse_start(trust_region_names(stack, first.names)) + first.converge()[0]
 
 

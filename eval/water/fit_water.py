@@ -75,15 +75,16 @@ def torch_threads(threads: int):
 
 
 def cold_start(stack: Stack, obs: Observations, config: WaterConfig, names: list[str], gain_names: list[str],
-               frames: np.ndarray, fixed: dict) -> tuple[Problem, list[str], int, dict | None]:
+               frames: np.ndarray, fixed: dict, float32: bool = False) -> tuple[Problem, list[str], int, dict | None]:
     """The fit's start from the configured values: the stack first where an effect on image position was added,
     a coarse start on part of the points, the gains per frame measured and carried where some frame's exceeds
-    ``FRAME_CARRY_PCT`` (or always, kept free of the ranges), then the start again beside them. Returns (the
-    problem to converge, the names it fits, iterations, the gains per frame measured)."""
+    ``FRAME_CARRY_PCT`` (or always, kept free of the ranges), then the start again beside them; the problems evaluate
+    the model in ``float32`` or float64. Returns (the problem to converge, the names it fits, iterations, the gains per
+    frame measured)."""
     start_inside_bounds(stack, names + gain_names)
-    problem = Problem(stack, obs, config.fit, names)
+    problem = Problem(stack, obs, config.fit, names, float32=float32)
     x_start = problem.flat()
-    iterations = stack_first(stack, obs, config.fit, names)
+    iterations = stack_first(stack, obs, config.fit, names, float32)
     problem.take_gradients()
     iterations += problem.coarse_start(trust_region_names(stack, names)) if not iterations else 0
     measured = None
@@ -92,8 +93,8 @@ def cold_start(stack: Stack, obs: Observations, config: WaterConfig, names: list
         if measured["carried"] or not config.frame_gain_off_range:  # the start again, beside the gains
             problem.set_flat(x_start)
             names = names + gain_names
-            first = stack_first(stack, obs, config.fit, names)
-            problem = Problem(stack, obs, config.fit, names)
+            first = stack_first(stack, obs, config.fit, names, float32)
+            problem = Problem(stack, obs, config.fit, names, float32=float32)
             iterations += first or problem.coarse_start(trust_region_names(stack, names))
         else:
             fixed[FRAME_EFFECT] = (f"the frames' gains are small (up to {max(measured['largest_pct']):.1f} %, "
@@ -101,9 +102,12 @@ def cold_start(stack: Stack, obs: Observations, config: WaterConfig, names: list
     return problem, names, iterations, measured
 
 
-def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list[dict] | None = None) -> Fit:
+def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list[dict] | None = None,
+              float32: bool = False) -> Fit:
     """The stack of ``config`` (with the declared ``lights``) fitted to the table ``obs`` from its configured values
-    (:func:`cold_start`), then rounds of L-BFGS to convergence and the trust-region refinement."""
+    (:func:`cold_start`), then rounds of L-BFGS to convergence and the trust-region refinement. ``float32``: the
+    model evaluated in float32, as the coarse start's and the bootstrap's are, for an alternative's fit, whose
+    held-out test and values move by far more than float32's rounding; the estimate's own fit is float64."""
     t0, config = time.perf_counter(), config or WaterConfig()
     with torch_threads(config.fit.threads):
         frames = np.unique(np.concatenate([obs.frame, obs.board_frame]))
@@ -113,7 +117,8 @@ def fit_water(obs: Observations, config: WaterConfig | None = None, lights: list
         names = [n for n in names if n not in gain_names]
         range_r2 = decorrelate_fields(stack, obs, config.field_max_range_r2)
         decorrelate_frames(stack, obs, config.frame_gain_off_range)
-        problem, names, iterations, measured = cold_start(stack, obs, config, names, gain_names, frames, fixed)
+        problem, names, iterations, measured = cold_start(stack, obs, config, names, gain_names, frames, fixed,
+                                                          float32)
         done, converged = problem.converge()
         if gain_names and gain_names[0] in names:
             measured = frame_summary(stack, frames, carried=True)
