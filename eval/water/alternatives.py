@@ -13,13 +13,11 @@ training points. Adding one is a class here and a test. The built-ins:
   split between the water and the light (:func:`eval.water.fields.set_light_level`); the fit before the split is
   the alternative, and the split applies to the replicates and the alternatives made before it.
 - :class:`FreeGains`, :class:`FineFields`: another structure (the gains per frame free of the frames' ranges; fine
-  fields over the image fitted with the water) fitted on the training points from the configured start, as the
-  estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says nothing of
-  where the other model lands); that fit gives its held-out test against the estimate's structure fitted on the
-  same points from the estimate (whose optimum is that structure's basin). Unless that test rejects it, its fit
-  on all the points from the same start gives its values (from the training fit, or continued from it, a flat
-  direction keeps the training points' sampling: measured in benchmarks/RESULTS/water.md); a rejected one's values
-  are its training fit's. The fits run side by side (:meth:`Context.prefit`, :meth:`Context.fit_all`).
+  fields over the image fitted with the water) fitted to convergence on the training points from the configured
+  start, as the estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says
+  nothing of where the other model lands); that one fit gives its held-out test against the estimate's structure
+  fitted on the same points from the estimate (whose optimum is that structure's basin), and its values. The fits
+  run side by side (:meth:`Context.prefit`).
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
 """
@@ -84,7 +82,7 @@ class AlternativeFit:
     @property
     def rejected(self) -> bool:
         """The survey predicts its held-out views worse with it (the whole interval of the change above
-        ``PREFERRED_CHANGE``): a structure then gets no fit on all the points."""
+        ``PREFERRED_CHANGE``)."""
         return self.ci is not None and self.ci[0] > PREFERRED_CHANGE
 
     def record(self) -> AlternativeRecord:
@@ -112,7 +110,6 @@ class Context:
     inv: torch.Tensor | None
     results: dict[str, AlternativeFit] = field(default_factory=dict)
     trained: dict[str, Fit] = field(default_factory=dict)
-    full: dict[str, Fit] = field(default_factory=dict)
     tests: dict[str, AlternativeFit] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -137,11 +134,6 @@ class Context:
         jobs.update({a.key: self._cold(self.train, a.changed(self.config)) for a in structures
                      if a.key not in self.trained})
         self.trained.update(in_threads(lambda job: job(), jobs))
-
-    def fit_all(self, structures: list[Structure]) -> None:
-        """Each of ``structures`` fitted to all the points from the configured start (into ``full``), side by side."""
-        jobs = {a.key: self._cold(self.obs, a.changed(self.config)) for a in structures if a.key not in self.full}
-        self.full.update(in_threads(lambda job: job(), jobs))
 
     def _cold(self, obs: Observations, config: WaterConfig):
         from .fit_water import fit_water
@@ -242,12 +234,11 @@ class LightLevel(Alternative):
 @dataclass(frozen=True)
 class Structure(Alternative):
     """Another structure of the model (``changed(config)``), fitted on the training points from the configured start
-    (:meth:`Context.prefit`): its held-out test against the estimate's structure. Unless the test rejects it
-    (:attr:`AlternativeFit.rejected`), fitted on all the points from the same start (:meth:`Context.fit_all`) for its
-    values; a rejected one keeps its training fit's values, since under a missing effect the estimate's structure is
-    wrong too and the held-out views' preference between two wrong models does not say which lands nearer the water
-    (measured in benchmarks/RESULTS/water.md). The values (with the fit's own light split) widen the intervals both
-    ways: in quadrature, and covered with the bootstrap's spread around them."""
+    (:meth:`Context.prefit`): that fit gives its held-out test against the estimate's structure and its values,
+    whatever the test says (under a missing effect the estimate's structure is wrong too, and the held-out views'
+    preference between two wrong models does not say which lands nearer the water: measured in
+    benchmarks/RESULTS/water.md). The values (with the fit's own light split) widen the intervals both ways: in
+    quadrature, and covered with the bootstrap's spread around them."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
 
@@ -267,13 +258,7 @@ class Structure(Alternative):
 
     def refit(self, ctx: Context) -> AlternativeFit:
         result = self.test(ctx)
-        if result.rejected:
-            source = result.fit
-        else:
-            if self.key not in ctx.full:
-                ctx.fit_all([self])
-            source = ctx.full[self.key]
-            result.seconds += source.seconds
+        source = result.fit
         result.values = source.values()
         factor = split_light(copy_stack(source.stack), ctx.obs, source.range_r2) \
             if "backscatter.b_inf" in result.values else None
@@ -337,9 +322,9 @@ class Profile(Alternative):
 
 def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:
     """Each of ``ctx.config.alternatives`` that applies, in order, refitted (``announce(line)`` before each, for the
-    progress line), the structures' fits first, side by side: on the training points (:meth:`Context.prefit`), then
-    those their held-out tests do not reject on all the points (:meth:`Context.fit_all`). Returns (their fits, the
-    ones that found something, also in ``ctx.results``; the seconds of the structures' fits side by side)."""
+    progress line), the structures' fits on the training points first, side by side (:meth:`Context.prefit`).
+    Returns (their fits, the ones that found something, also in ``ctx.results``; the seconds of the structures' fits
+    side by side)."""
     todo = list(ctx.config.alternatives)
     structures = [a for a in todo if isinstance(a, Structure) and a.applies(ctx)]
     began = time.perf_counter()
@@ -348,10 +333,6 @@ def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit],
             announce("the estimate's structure and " + ", ".join(a.key for a in structures)
                      + " fitted side by side on four fifths of the points")
         ctx.prefit(structures)
-        kept = [a for a in structures if not a.test(ctx).rejected]
-        if kept and announce is not None:
-            announce(", ".join(a.key for a in kept) + " (not rejected by the held-out views) fitted on all the points")
-        ctx.fit_all(kept)
     prefit_s = time.perf_counter() - began
     for i, alternative in enumerate(todo):
         if not alternative.applies(ctx):
