@@ -126,13 +126,15 @@ class Context:
     def prefit(self, structures: list[Structure]) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
         for the estimate's), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch
-        thread poorly): the estimate's from its own values (:func:`eval.water.fit_water.fit_from`), each structure
-        from the configured start, in float32 (:meth:`_cold`)."""
+        thread poorly): each structure from the configured start, in float32 (:meth:`_cold`), the costliest first
+        (:attr:`Structure.cost`), then the estimate's from its own values (:func:`eval.water.fit_water.fit_from`),
+        so that the threads finish together."""
         from .fit_water import fit_from
 
-        jobs = {} if "" in self.trained else {"": lambda: fit_from(self.fit, self.train)}  # short: first
-        jobs.update({a.key: self._cold(self.train, a.changed(self.config)) for a in structures
-                     if a.key not in self.trained})
+        jobs = {a.key: self._cold(self.train, a.changed(self.config))
+                for a in sorted(structures, key=lambda a: -a.cost) if a.key not in self.trained}
+        if "" not in self.trained:
+            jobs[""] = lambda: fit_from(self.fit, self.train)
         self.trained.update(in_threads(lambda job: job(), jobs))
 
     def _cold(self, obs: Observations, config: WaterConfig):
@@ -241,6 +243,8 @@ class Structure(Alternative):
     quadrature, and covered with the bootstrap's spread around them."""
 
     rules: ClassVar[tuple[str, ...]] = ("quadrature", "cover")
+    #: Its fit's cost beside the other structures' (the order they start in, :meth:`Context.prefit`).
+    cost: ClassVar[float] = 1.0
 
     def changed(self, config: WaterConfig) -> WaterConfig:
         raise NotImplementedError
@@ -287,6 +291,7 @@ class FineFields(Structure):
     words: ClassVar[str] = "fine fields over the image fitted with the water (a falloff or a veil of any smooth shape)"
     pinned_by: ClassVar[str] = ("a survey that sees the same points at more ranges from one image position (frames at "
                                 "several altitudes)")
+    cost: ClassVar[float] = 2.0  # some 1,300 node values over the image: the longest fit
     nodes: tuple[int, int] = (13, 17)
 
     def applies(self, ctx: Context) -> bool:
