@@ -54,6 +54,11 @@ HOLDOUT_FRACTION, TEST_RESAMPLES = 0.2, 500
 #: held-out RMSE over the whole 95 % interval. Two fits that stop where a round lowers the loss by less than 1e-3 of
 #: it differ by up to about 0.05 % in RMSE for their stops alone: a difference inside twice that is no preference.
 PREFERRED_CHANGE = 0.001
+#: A structure holds the estimate's (its own terms at zero give the estimate's model), so its fit to the training
+#: points must reach the estimate's structure's loss there; a fit from the configured start that stops above it by
+#: more than this share of it has stopped in another basin, and the structure is fitted again from the estimate's
+#: structure's training fit (:meth:`Context.prefit`).
+NESTED_LOSS_TOLERANCE = 1e-3
 #: An alternative's record keeps the values of the parameters of at most this many components.
 RECORD_COMPONENTS = 9
 
@@ -136,11 +141,26 @@ class Context:
         if "" not in self.trained:
             jobs[""] = lambda: fit_from(self.fit, self.train)
         self.trained.update(in_threads(lambda job: job(), jobs))
+        floor = training_loss(self.trained[""]) * (1 + NESTED_LOSS_TOLERANCE)
+        for a in structures:
+            cold = self.trained[a.key]
+            if training_loss(cold) > floor:
+                warm = self._warm(a)
+                best = min(cold, warm, key=training_loss)
+                self.trained[a.key] = replace(best, seconds=round(cold.seconds + warm.seconds, 2))
 
     def _cold(self, obs: Observations, config: WaterConfig):
         from .fit_water import fit_water
 
         return lambda: fit_water(obs, config, self.lights, float32=True)
+
+    def _warm(self, structure: Structure) -> Fit:
+        """``structure`` fitted to the training points from the estimate's structure's training fit (its own terms
+        at their configured values)."""
+        from .fit_water import fit_water
+
+        config = replace(structure.changed(self.config), initial=tuple(self.trained[""].stack.to_config()))
+        return fit_water(self.train, config, self.lights, float32=True)
 
     @cached_property
     def base_sums(self) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +175,14 @@ class Context:
         cand_sq, _ = heldout_sums(fit.stack, self.obs, self.split, self.config.fit)
         d, ci, _ = paired_rmse_change(base_sq, cand_sq, count, TEST_RESAMPLES, self.config.fit.seed)
         return d, ci
+
+
+def training_loss(fit: Fit) -> float:
+    """The loss ``fit`` reached on the table it was fitted to."""
+    import torch
+
+    with torch.no_grad():
+        return float(fit.problem.loss())
 
 
 @dataclass(frozen=True)
