@@ -418,6 +418,32 @@ def test_one_rule_widens_the_interval_by_each_alternatives_rule_and_names_it():
     assert profiled.high[2] == 0.3 and profiled.widening("eta_profile").widened == [True, False, True]
 
 
+def test_a_structure_fit_stopped_above_the_estimates_training_loss_is_fitted_again_from_it(survey):
+    """A structure holds the estimate's, so its fit to the training points must reach that structure's training
+    loss: one stopped above it (here cut short at 3 iterations) is fitted again from the estimate's structure's
+    training fit, the lower of the two kept, its seconds both fits'."""
+    from dataclasses import replace
+
+    from eval.water.alternatives import NESTED_LOSS_TOLERANCE, Context, FineFields, training_loss
+    from eval.water.fields import GRID_EFFECT
+    from eval.water.fit_water import fit_water
+
+    frames, board = survey
+    obs = measure_frames(frames, K, board=board)
+    config = water_config(alternatives=(FineFields(),))
+    ctx = Context(fit_water(obs, config), obs, config, None, [], None)
+    ctx.prefit([])
+    floor = training_loss(ctx.trained[""]) * (1 + NESTED_LOSS_TOLERANCE)
+    short = replace(config.fit, iterations=3, max_iterations=3, coarse_refine_evaluations=0, refine_evaluations=0)
+    cut = fit_water(ctx.train, replace(FineFields().changed(config), fit=short), None, float32=True)
+    assert training_loss(cut) > floor  # the case the rule is for
+    ctx.trained[FineFields.key] = cut
+    ctx.prefit([FineFields()])
+    again = ctx.trained[FineFields.key]
+    assert again is not cut and training_loss(again) <= floor
+    assert again.seconds > cut.seconds and GRID_EFFECT in again.stack.names
+
+
 def test_a_structures_values_are_its_training_fits_whatever_its_held_out_test_says(survey):
     """A structure's one fit on the training points gives its held-out test and its values: rejected (the whole
     interval above +0.1 %), tied or preferred, the values are that fit's and the record says which it was."""

@@ -17,7 +17,8 @@ training points. Adding one is a class here and a test. The built-ins:
   start, as the estimate was (from the estimate, a fit along a flat direction stays where the estimate is and says
   nothing of where the other model lands); that one fit gives its held-out test against the estimate's structure
   fitted on the same points from the estimate (whose optimum is that structure's basin), and its values. The fits
-  run side by side (:meth:`Context.prefit`).
+  run side by side (:meth:`Context.prefit`). A structure holds the estimate's, so a fit of it that stops above the
+  estimate's structure's training loss has stopped in another basin: it is fitted again from that fit.
 - :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
   (:func:`eval.water.profile.eta_profile`).
 """
