@@ -144,7 +144,7 @@ def _value(estimate, key):
 
 def test_estimate_recovers_the_rendered_water(survey):
     frames, board = survey
-    config = water_config(samples_per_frame=250, bootstrap=8, margin_px=4, footprint_m=FOOTPRINT_M)
+    config = water_config(samples_per_frame=250, margin_px=4, footprint_m=FOOTPRINT_M)
     est = estimate_water(frames, K, board=board, config=config)
     assert est.stack.names == ["attenuation", "backscatter", "vignetting", "image_field", "gain", "frame_gain"]
     assert est.n_board > 20 and est.n_frames == 12
