@@ -11,25 +11,48 @@ def test_free_cores_count_a_job_running_now_and_not_one_that_just_ended(monkeypa
     cores = len(os.sched_getaffinity(0))
     monkeypatch.setattr(os, "cpu_count", lambda: cores)
     monkeypatch.setattr(os, "getloadavg", lambda: (1.0, 1.0, 1.0))
-    monkeypatch.setattr(threads, "runnable_now", lambda: 1)  # this process alone: the minute's job has ended
+    monkeypatch.setattr(threads, "runnable_elsewhere", lambda: 0)  # this process alone: the minute's job has ended
     assert threads.free_cores() == cores
-    monkeypatch.setattr(threads, "runnable_now", lambda: 2)  # another job running now
+    monkeypatch.setattr(threads, "runnable_elsewhere", lambda: 1)  # another job running now
     assert threads.free_cores() == max(1, cores - 1)
-    monkeypatch.setattr(threads, "runnable_now", lambda: None)  # no /proc: the minute's load alone
+    monkeypatch.setattr(threads, "runnable_elsewhere", lambda: None)  # no /proc: the minute's load alone
     assert threads.free_cores() == max(1, cores - 1)
     monkeypatch.setattr(os, "getloadavg", lambda: (10.0 * cores, 0.0, 0.0))
-    monkeypatch.setattr(threads, "runnable_now", lambda: 10 * cores)
+    monkeypatch.setattr(threads, "runnable_elsewhere", lambda: 10 * cores)
     assert threads.free_cores() == 1
 
 
-def test_runnable_now_counts_this_process():
-    from watergan.threads import runnable_now
+@pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="Linux's /proc")
+def test_this_processs_own_busy_threads_are_not_another_job():
+    """Two threads of this process kept busy (numpy's matrix products release the GIL) are counted as this
+    process's runnable threads, which runnable_elsewhere leaves out."""
+    import threading
+    import time
 
-    running = runnable_now()
-    if os.path.exists("/proc/loadavg"):  # Linux: read, and this process is running while it reads
-        assert running is not None and running >= 1
-    else:
-        assert running is None
+    import numpy as np
+
+    from watergan.threads import runnable_elsewhere, runnable_here
+
+    stop = threading.Event()
+    a = np.random.default_rng(0).random((300, 300))
+
+    def spin():
+        while not stop.is_set():
+            a @ a
+
+    workers = [threading.Thread(target=spin) for _ in range(2)]
+    for w in workers:
+        w.start()
+    try:
+        seen, deadline = 1, time.monotonic() + 5.0
+        while seen < 2 and time.monotonic() < deadline:
+            seen = max(seen, runnable_here())
+        assert seen >= 2
+        assert runnable_elsewhere() is not None and runnable_elsewhere() >= 0
+    finally:
+        stop.set()
+        for w in workers:
+            w.join()
 
 
 def test_use_threads_sets_torch_and_opencv_and_puts_them_back():

@@ -20,25 +20,40 @@ from watergan.errors import UserInputError
 def free_cores() -> int:
     """The cores this process may use that no other job keeps busy: its cores (its CPU affinity) less the jobs
     running now, at least 1. A job is counted when both the load over the last minute (os.getloadavg, rounded to
-    the nearest whole job) and the runnable tasks at this instant (/proc/loadavg's fourth field, less this
-    process) show it: the minute's average alone still counts a job that ended seconds ago."""
+    the nearest whole job) and the tasks of other processes runnable at this instant (:func:`runnable_elsewhere`)
+    show it: the minute's average alone still counts a job that ended seconds ago."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     try:
         busy = math.floor(os.getloadavg()[0] + 0.5)
     except OSError:  # no load average on this system
         busy = 0
-    running = runnable_now()
+    running = runnable_elsewhere()
     if running is not None:
-        busy = min(busy, max(0, running - 1))
+        busy = min(busy, running)
     return max(1, min(cores, (os.cpu_count() or cores) - busy))
 
 
-def runnable_now() -> int | None:
-    """Tasks runnable at this instant, this process included (/proc/loadavg's "R/T"); None where unreadable."""
+def runnable_elsewhere() -> int | None:
+    """Tasks runnable at this instant outside this process: /proc/loadavg's runnable count less this process's own
+    runnable threads (:func:`runnable_here`; a pool's workers still spinning after a parallel step are this
+    process's, not another job); None where unreadable."""
     try:
-        return int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
+        total = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
     except (OSError, IndexError, ValueError):
         return None
+    return max(0, total - runnable_here())
+
+
+def runnable_here() -> int:
+    """This process's threads runnable at this instant (state R in /proc/self/task/*/stat), at least 1: the one
+    reading."""
+    count = 0
+    for task in Path("/proc/self/task").glob("*/stat"):
+        try:
+            count += task.read_text().rsplit(")", 1)[1].split()[0] == "R"
+        except (OSError, IndexError):  # a thread that ended while being read
+            continue
+    return max(1, count)
 
 
 @contextlib.contextmanager
