@@ -27,8 +27,8 @@ def lbfgs(params: list[torch.Tensor], loss_fn, iterations: int, rtol: float) -> 
     step changes the loss by less than ``rtol`` of its starting value."""
     with torch.no_grad():
         scale = abs(float(loss_fn())) + 1e-30
-    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=LBFGS_HISTORY, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-12, tolerance_change=rtol * scale)
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=LBFGS_HISTORY,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=rtol * scale)
 
     def closure():
         opt.zero_grad(set_to_none=True)

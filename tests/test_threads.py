@@ -25,13 +25,13 @@ def test_free_cores_count_a_job_running_now_and_not_one_that_just_ended(monkeypa
 @pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="Linux's /proc")
 def test_this_processs_own_busy_threads_are_not_another_job():
     """Two threads of this process kept busy (numpy's matrix products release the GIL) are counted as this
-    process's runnable threads, which runnable_elsewhere leaves out."""
+    process's runnable threads (runnable_here), which runnable_elsewhere takes off /proc/loadavg's count."""
     import threading
     import time
 
     import numpy as np
 
-    from watergan.threads import runnable_elsewhere, runnable_here
+    from watergan.threads import runnable_here
 
     stop = threading.Event()
     a = np.random.default_rng(0).random((300, 300))
@@ -48,7 +48,6 @@ def test_this_processs_own_busy_threads_are_not_another_job():
         while seen < 2 and time.monotonic() < deadline:
             seen = max(seen, runnable_here())
         assert seen >= 2
-        assert runnable_elsewhere() is not None and runnable_elsewhere() >= 0
     finally:
         stop.set()
         for w in workers:
