@@ -11,7 +11,8 @@ RADIAL: f, k1, k2) starting from OPENCV's values, and the simplest model whose m
 survey). How well it is pinned: each half of the registered frames is bundle-adjusted on its own, its focal length
 started a tenth away from the whole survey's (:func:`_halves`), and the two halves' focal lengths are recorded beside
 the whole survey's; halves more than ``HALVES_WARN_PCT`` apart are a warning (the survey does not pin the focal
-length). The same frames give the same calibration run to run: the frames enter COLMAP's database in name order
+length). The same frames give the same calibration run to run (within a fraction of a per cent: COLMAP's CPU
+matcher is not bit-reproducible on every machine, docs/cameras.md): the frames enter COLMAP's database in name order
 (:func:`pipeline.colmap.extract_in_order`: numbered as extraction's threads finish, the mapper, which breaks ties by
 id, took another path from run to run), every RANSAC is seeded (the matches' two-view geometry included, which
 otherwise draws from whichever worker thread's generator verifies the pair), and the mapper and every bundle
