@@ -102,18 +102,18 @@ def structure_note(record: WaterRecord) -> str:
 
 
 def profile_note(record: WaterRecord) -> str:
-    """Where alternatives profiled eta: per profile, the eta the held-out views accept, under the structure it names
-    (its words); "" without one."""
-    notes = []
-    for profiled in (a for a in record.alternatives if a.profile):
-        p = profiled.profile
-        spans = [f"{'<=' if open_low else ''}{low:.3f}-{high:.3f}{'+' if open_high else ''}"
-                 for low, high, open_low, open_high in zip(p["low"], p["high"], p["open_low"], p["open_high"],
-                                                           strict=True)]
-        notes.append(f" Under {profiled.words.removeprefix('eta as far as the held-out views accept it under ')}, "
-                     f"the held-out views accept eta of {' / '.join(spans)} 1/m (R / G / B; <= and +: accepted as "
-                     f"far as the profile went), and its intervals include that.")
-    return "".join(notes)
+    """Where an alternative profiled eta: the eta the held-out views accept, in the alternative's words; ""
+    otherwise."""
+    profiled = next((a for a in record.alternatives if a.profile), None)
+    if profiled is None:
+        return ""
+    p = profiled.profile
+    spans = [f"{'<=' if open_low else ''}{low:.3f}-{high:.3f}{'+' if open_high else ''}"
+             for low, high, open_low, open_high in zip(p["low"], p["high"], p["open_low"], p["open_high"], strict=True)]
+    return (f" Under {profiled.words.removeprefix('eta as far as the held-out views accept it with ')}, only the "
+            f"range differences within the points that frames share pin eta: the held-out views accept "
+            f"{' / '.join(spans)} 1/m (R / G / B; <= and +: accepted as far as the profile went), and its intervals "
+            f"include that.")
 
 
 def camera_and_scale_lines(survey, sfm) -> list[str]:

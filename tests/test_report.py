@@ -585,17 +585,13 @@ def test_the_first_screen_says_when_the_survey_prefers_another_structure():
     assert "several altitudes" in note and "auto exposure" not in note
 
 
-def test_the_first_screen_gives_the_eta_the_held_out_views_accept_under_each_profiled_structure():
+def test_the_first_screen_gives_the_eta_the_held_out_views_accept_under_free_gains():
     from pipeline.report_found import profile_note
 
     profile = {"low": [0.351, 0.1268, 0.1869], "high": [0.636, 0.2343, 0.3207], "open_low": [False, True, False],
                "open_high": [True, False, False]}
-    profiled = {"key": "eta_profile", "words": "eta as far as the held-out views accept it under the gains per frame "
+    profiled = {"key": "eta_profile", "words": "eta as far as the held-out views accept it with the gains per frame "
                 "free", "profile": profile}
-    fine = {"key": "eta_profile_fine_fields", "words": "eta as far as the held-out views accept it under fine fields "
-            "over the image", "profile": {**profile, "low": [0.3, 0.12, 0.18], "open_high": [False] * 3}}
-    note = profile_note(_record({"value": [0.4] * 3}, [FREE, profiled, fine]))
-    assert "Under the gains per frame free, the held-out views accept eta of 0.351-0.636+ / <=0.127-0.234 / " \
-           "0.187-0.321 1/m" in note
-    assert "Under fine fields over the image, the held-out views accept eta of 0.300-0.636 / <=0.120-0.234" in note
+    note = profile_note(_record({"value": [0.4] * 3}, [FREE, profiled]))
+    assert "accept 0.351-0.636+ / <=0.127-0.234 / 0.187-0.321 1/m" in note and "the gains per frame free" in note
     assert profile_note(_record({"value": [0.4] * 3}, [FREE])) == ""

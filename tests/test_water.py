@@ -418,24 +418,6 @@ def test_one_rule_widens_the_interval_by_each_alternatives_rule_and_names_it():
     assert profiled.high[2] == 0.3 and profiled.widening("eta_profile").widened == [True, False, True]
 
 
-def test_eta_is_profiled_under_each_structure_the_survey_does_not_reject():
-    """A profile runs under its structure where that structure's held-out test is a tie or a preference, not where
-    the survey rejects it or the structure did not run; each profile has its own key."""
-    from types import SimpleNamespace
-
-    from eval.water.alternatives import AlternativeFit, FineFields, FreeGains, Profile
-
-    def ctx(ci):
-        result = AlternativeFit(FineFields(), {"attenuation.eta_per_m": np.ones(3)}, change=0.0, ci=ci)
-        return SimpleNamespace(results={} if ci is None else {"fine_fields": result})
-
-    fine = Profile(FineFields.key)
-    assert [fine.applies(ctx(ci)) for ci in ((-0.02, -0.01), (-0.004, 0.004), (0.01, 0.02), None)] == \
-        [True, True, False, False]
-    assert (Profile().key, fine.key) == ("eta_profile", "eta_profile_fine_fields")
-    assert not Profile(FreeGains.key).applies(ctx((-0.02, -0.01)))  # the free gains did not run
-
-
 def test_a_structure_fit_stopped_above_the_estimates_training_loss_is_fitted_again_from_it(survey):
     """A structure holds the estimate's, so its fit to the training points must reach that structure's training
     loss: one stopped above it (here cut short at 3 iterations) is fitted again from the estimate's structure's
@@ -456,10 +438,8 @@ def test_a_structure_fit_stopped_above_the_estimates_training_loss_is_fitted_aga
     cut = fit_water(ctx.train, replace(FineFields().changed(config), fit=short), None, float32=True)
     assert training_loss(cut) > floor  # the case the rule is for
     ctx.trained[FineFields.key] = cut
-    lines = []
-    ctx.prefit([FineFields()], lines.append)
+    ctx.prefit([FineFields()])
     again = ctx.trained[FineFields.key]
-    assert len(lines) == 1 and lines[0].startswith("fine_fields: its fit stopped") and "fitted again" in lines[0]
     assert again is not cut and training_loss(again) <= floor
     assert again.seconds > cut.seconds and GRID_EFFECT in again.stack.names
 

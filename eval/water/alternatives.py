@@ -19,8 +19,8 @@ training points. Adding one is a class here and a test. The built-ins:
   fitted on the same points from the estimate (whose optimum is that structure's basin), and its values. The fits
   run side by side (:meth:`Context.prefit`). A structure holds the estimate's, so a fit of it that stops above the
   estimate's structure's training loss has stopped in another basin: it is fitted again from that fit.
-- :class:`Profile`: where the survey does not reject a structure (the free gains, the fine fields), eta as far as the
-  held-out views accept it under it (:func:`eval.water.profile.eta_profile`).
+- :class:`Profile`: where the survey prefers the free gains, eta as far as the held-out views accept it under them
+  (:func:`eval.water.profile.eta_profile`).
 """
 
 from __future__ import annotations
@@ -129,12 +129,12 @@ class Context:
     def train(self) -> Observations:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
-    def prefit(self, structures: list[Structure], announce=None) -> None:
+    def prefit(self, structures: list[Structure]) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
         for the estimate's), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch
         thread poorly): each structure from the configured start, in float32 (:meth:`_cold`), the costliest first
         (:attr:`Structure.cost`), then the estimate's from its own values (:func:`eval.water.fit_water.fit_from`),
-        so that the threads finish together; ``announce(line)`` before a structure is fitted again."""
+        so that the threads finish together."""
         from .fit_water import fit_from
 
         jobs = {a.key: self._cold(self.train, a.changed(self.config))
@@ -142,13 +142,10 @@ class Context:
         if "" not in self.trained:
             jobs[""] = lambda: fit_from(self.fit, self.train)
         self.trained.update(in_threads(lambda job: job(), jobs))
-        base = training_loss(self.trained[""])
+        floor = training_loss(self.trained[""]) * (1 + NESTED_LOSS_TOLERANCE)
         for a in structures:
             cold = self.trained[a.key]
-            if training_loss(cold) > base * (1 + NESTED_LOSS_TOLERANCE):
-                if announce is not None:
-                    announce(f"{a.key}: its fit stopped {training_loss(cold) / base - 1:.1%} above the estimate's "
-                             f"structure's training loss, fitted again from that fit")
+            if training_loss(cold) > floor:
                 warm = self._warm(a)
                 best = min(cold, warm, key=training_loss)
                 self.trained[a.key] = replace(best, seconds=round(cold.seconds + warm.seconds, 2))
@@ -335,25 +332,18 @@ class FineFields(Structure):
 
 @dataclass(frozen=True)
 class Profile(Alternative):
-    """Where the survey does not reject the structure ``under`` (its held-out test a tie or a preference), eta's
-    held-out profile under it: the interval covers what its held-out views accept. A tie is a model the survey
-    cannot tell from the estimate's, so what it accepts is as much the survey's answer as a preferred one's."""
+    """Where the survey prefers the structure ``under`` (the free gains), eta's held-out profile under it: the
+    interval covers what its held-out views accept."""
 
-    pinned_by: ClassVar[str] = "a survey that pins the structure it is profiled under (see that structure)"
+    key: ClassVar[str] = "eta_profile"
+    words: ClassVar[str] = "eta as far as the held-out views accept it with the gains per frame free"
+    pinned_by: ClassVar[str] = "a survey with more range within each frame (relief, a tilted view)"
     rules: ClassVar[tuple[str, ...]] = ("bounds",)
     under: str = FreeGains.key
 
-    @property
-    def key(self) -> str:  # "eta_profile" under the free gains, as records before this had it
-        return "eta_profile" if self.under == FreeGains.key else f"eta_profile_{self.under}"
-
-    @property
-    def words(self) -> str:
-        return f"eta as far as the held-out views accept it under {STRUCTURE_WORDS[self.under]}"
-
     def applies(self, ctx: Context) -> bool:
         result = ctx.results.get(self.under)
-        return result is not None and result.ci is not None and not result.rejected and ETA in result.values
+        return result is not None and result.preferred and ETA in result.values
 
     def refit(self, ctx: Context) -> AlternativeFit:
         from .profile import eta_profile
@@ -362,10 +352,6 @@ class Profile(Alternative):
         profile = eta_profile(trained.stack, ctx.train, ctx.obs, ctx.split, trained.config.fit, trained.names,
                               TEST_RESAMPLES)
         return AlternativeFit(self, {}, profile={"param": ETA, **profile})
-
-
-#: What a profile names the structure it runs under by.
-STRUCTURE_WORDS = {FreeGains.key: "the gains per frame free", FineFields.key: "fine fields over the image"}
 
 
 def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:
@@ -380,7 +366,7 @@ def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit],
         if announce is not None:
             announce("the estimate's structure and " + ", ".join(a.key for a in structures)
                      + " fitted side by side on four fifths of the points")
-        ctx.prefit(structures, announce)
+        ctx.prefit(structures)
     prefit_s = time.perf_counter() - began
     for i, alternative in enumerate(todo):
         if not alternative.applies(ctx):

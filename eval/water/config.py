@@ -9,9 +9,9 @@ from ..observations import DenseMeasureConfig
 from .alternatives import Alternative, BoardWeight, FineFields, FreeGains, LightLevel, LossScale, Profile
 
 #: The alternatives the intervals take in by default, in the order they run: the weighting's perturbations, the
-#: light-level split, the two structures (each with its held-out test) and eta's profile under each.
+#: light-level split, the two structures (each with its held-out test) and eta's profile under the free gains.
 DEFAULT_ALTERNATIVES: tuple[Alternative, ...] = (BoardWeight(), LossScale(), LightLevel(), FreeGains(), FineFields(),
-                                                 Profile(), Profile(FineFields.key))
+                                                 Profile())
 #: Named sets of alternatives. "fast": without the fine fields over the image fitted with the water (the most
 #: expensive structure: a grid of hundreds of parameters) and without eta's profile; for tests and studies whose
 #: survey has nothing on image position to hide and whose question is not the width of eta's interval. "none": the
