@@ -438,8 +438,10 @@ def test_a_structure_fit_stopped_above_the_estimates_training_loss_is_fitted_aga
     cut = fit_water(ctx.train, replace(FineFields().changed(config), fit=short), None, float32=True)
     assert training_loss(cut) > floor  # the case the rule is for
     ctx.trained[FineFields.key] = cut
-    ctx.prefit([FineFields()])
+    lines = []
+    ctx.prefit([FineFields()], lines.append)
     again = ctx.trained[FineFields.key]
+    assert len(lines) == 1 and lines[0].startswith("fine_fields: its fit stopped") and "fitted again" in lines[0]
     assert again is not cut and training_loss(again) <= floor
     assert again.seconds > cut.seconds and GRID_EFFECT in again.stack.names
 

@@ -129,12 +129,12 @@ class Context:
     def train(self) -> Observations:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
-    def prefit(self, structures: list[Structure]) -> None:
+    def prefit(self, structures: list[Structure], announce=None) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
         for the estimate's), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch
         thread poorly): each structure from the configured start, in float32 (:meth:`_cold`), the costliest first
         (:attr:`Structure.cost`), then the estimate's from its own values (:func:`eval.water.fit_water.fit_from`),
-        so that the threads finish together."""
+        so that the threads finish together; ``announce(line)`` before a structure is fitted again."""
         from .fit_water import fit_from
 
         jobs = {a.key: self._cold(self.train, a.changed(self.config))
@@ -142,10 +142,13 @@ class Context:
         if "" not in self.trained:
             jobs[""] = lambda: fit_from(self.fit, self.train)
         self.trained.update(in_threads(lambda job: job(), jobs))
-        floor = training_loss(self.trained[""]) * (1 + NESTED_LOSS_TOLERANCE)
+        base = training_loss(self.trained[""])
         for a in structures:
             cold = self.trained[a.key]
-            if training_loss(cold) > floor:
+            if training_loss(cold) > base * (1 + NESTED_LOSS_TOLERANCE):
+                if announce is not None:
+                    announce(f"{a.key}: its fit stopped {training_loss(cold) / base - 1:.1%} above the estimate's "
+                             f"structure's training loss, fitted again from that fit")
                 warm = self._warm(a)
                 best = min(cold, warm, key=training_loss)
                 self.trained[a.key] = replace(best, seconds=round(cold.seconds + warm.seconds, 2))
@@ -366,7 +369,7 @@ def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit],
         if announce is not None:
             announce("the estimate's structure and " + ", ".join(a.key for a in structures)
                      + " fitted side by side on four fifths of the points")
-        ctx.prefit(structures)
+        ctx.prefit(structures, announce)
     prefit_s = time.perf_counter() - began
     for i, alternative in enumerate(todo):
         if not alternative.applies(ctx):
