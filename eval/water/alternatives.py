@@ -145,12 +145,13 @@ class Context:
         base = training_loss(self.trained[""])
         for a in structures:
             cold = self.trained[a.key]
-            if training_loss(cold) > base * (1 + NESTED_LOSS_TOLERANCE):
+            cold_loss = training_loss(cold)
+            if cold_loss > base * (1 + NESTED_LOSS_TOLERANCE):
                 if announce is not None:
-                    announce(f"{a.key}: its fit stopped {training_loss(cold) / base - 1:.1%} above the estimate's "
+                    announce(f"{a.key}: its fit stopped {cold_loss / base - 1:.1%} above the estimate's "
                              f"structure's training loss, fitted again from that fit")
                 warm = self._warm(a)
-                best = min(cold, warm, key=training_loss)
+                best = cold if cold_loss <= training_loss(warm) else warm
                 self.trained[a.key] = replace(best, seconds=round(cold.seconds + warm.seconds, 2))
 
     def _cold(self, obs: Observations, config: WaterConfig):
