@@ -439,7 +439,8 @@ def test_a_structure_fit_stopped_above_the_estimates_training_loss_is_fitted_aga
     assert training_loss(cut) > floor  # the case the rule is for
     ctx.trained[FineFields.key] = cut
     lines = []
-    ctx.prefit([FineFields()], lines.append)
+    ctx.announce = lines.append
+    ctx.prefit([FineFields()])
     again = ctx.trained[FineFields.key]
     assert len(lines) == 1 and lines[0].startswith("fine_fields: its fit stopped") and "fitted again" in lines[0]
     assert again is not cut and training_loss(again) <= floor

@@ -276,7 +276,8 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
                           alternatives=(BoardWeight(), FreeGains(), Profile()))
     alone = estimate_water(exposed, K, board=board, config=water_config(config,
                                                                         alternatives=ALTERNATIVE_PRESETS["none"]))
-    widened = estimate_water(exposed, K, board=board, config=config)
+    lines = []
+    widened = estimate_water(exposed, K, board=board, config=config, say=lines.append)
     eta, low, high = (np.asarray(getattr(alone.params["attenuation.eta_per_m"], k)) for k in ("value", "low", "high"))
     assert np.abs(eta / truth - 1).max() > 0.1 and not ((low <= truth) & (truth <= high)).all()
     wide = widened.params["attenuation.eta_per_m"]
@@ -288,6 +289,8 @@ def test_an_exposure_that_follows_altitude_widens_etas_interval_to_the_truth(sur
     profile = widened.to_record().alternative("eta_profile").profile  # red: the free fit short, the profile past it
     assert np.abs(test.values["attenuation.eta_per_m"][0] / truth[0] - 1) > 0.1
     assert profile["low"][0] <= truth[0] <= profile["high"][0]
+    steps = [line for line in lines if "eta's profile" in line]  # each of its fits said on the progress line
+    assert len(steps) == 1 + len(profile["steps"]) and "the polish" in steps[0] and "held at 0.8x" in steps[1]
     # the polish follows the flat direction to its floor (L-BFGS rounds alone stopped at red 0.404, 10 % short)
     np.testing.assert_allclose(profile["eta_per_m"], truth, rtol=0.05)
     assert wide.widening("eta_profile").widened[0] and wide_high[0] == pytest.approx(profile["high"][0])

@@ -26,6 +26,7 @@ training points. Adding one is a class here and a test. The built-ins:
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import TYPE_CHECKING, ClassVar
@@ -106,7 +107,8 @@ class AlternativeFit:
 class Context:
     """What the alternatives share (see the module docstring). ``fit``: the estimate; ``samples``: the bootstrap's
     replicates ({"effect.param": value}); ``inv``: the inverse Hessian of the Newton steps (None: no replicates);
-    ``results``: the alternatives' fits so far, by key."""
+    ``results``: the alternatives' fits so far, by key; ``announce(line)``: where a pass says what it is doing, for
+    the progress line (None: silent)."""
 
     fit: Fit
     obs: Observations
@@ -117,6 +119,7 @@ class Context:
     results: dict[str, AlternativeFit] = field(default_factory=dict)
     trained: dict[str, Fit] = field(default_factory=dict)
     tests: dict[str, AlternativeFit] = field(default_factory=dict)
+    announce: Callable[[str], None] | None = None
 
     def __post_init__(self) -> None:
         self.x_best = self.fit.problem.flat()
@@ -129,12 +132,16 @@ class Context:
     def train(self) -> Observations:
         return self.obs.take_points(np.setdiff1d(np.arange(self.obs.n_points), self.split.holdout_points))
 
-    def prefit(self, structures: list[Structure], announce=None) -> None:
+    def say(self, line: str) -> None:
+        if self.announce is not None:
+            self.announce(line)
+
+    def prefit(self, structures: list[Structure]) -> None:
         """The estimate's structure and each of ``structures`` fitted to the training points (into ``trained``, ""
         for the estimate's), side by side (threads sharing torch's: a fit of some 10^5 views uses a second torch
         thread poorly): each structure from the configured start, in float32 (:meth:`_cold`), the costliest first
         (:attr:`Structure.cost`), then the estimate's from its own values (:func:`eval.water.fit_water.fit_from`),
-        so that the threads finish together; ``announce(line)`` before a structure is fitted again."""
+        so that the threads finish together; announced before a structure is fitted again."""
         from .fit_water import fit_from
 
         jobs = {a.key: self._cold(self.train, a.changed(self.config))
@@ -147,9 +154,8 @@ class Context:
             cold = self.trained[a.key]
             cold_loss = training_loss(cold)
             if cold_loss > base * (1 + NESTED_LOSS_TOLERANCE):
-                if announce is not None:
-                    announce(f"{a.key}: its fit stopped {cold_loss / base - 1:.1%} above the estimate's "
-                             f"structure's training loss, fitted again from that fit")
+                self.say(f"{a.key}: its fit stopped {cold_loss / base - 1:.1%} above the estimate's structure's "
+                         f"training loss, fitted again from that fit")
                 warm = self._warm(a)
                 best = cold if cold_loss <= training_loss(warm) else warm
                 self.trained[a.key] = replace(best, seconds=round(cold.seconds + warm.seconds, 2))
@@ -354,29 +360,27 @@ class Profile(Alternative):
 
         trained = ctx.results[self.under].fit
         profile = eta_profile(trained.stack, ctx.train, ctx.obs, ctx.split, trained.config.fit, trained.names,
-                              TEST_RESAMPLES)
+                              TEST_RESAMPLES, say=ctx.say)
         return AlternativeFit(self, {}, profile={"param": ETA, **profile})
 
 
-def run_alternatives(ctx: Context, announce=None) -> tuple[list[AlternativeFit], float]:
-    """Each of ``ctx.config.alternatives`` that applies, in order, refitted (``announce(line)`` before each, for the
-    progress line), the structures' fits on the training points first, side by side (:meth:`Context.prefit`).
-    Returns (their fits, the ones that found something, also in ``ctx.results``; the seconds of the structures' fits
-    side by side)."""
+def run_alternatives(ctx: Context) -> tuple[list[AlternativeFit], float]:
+    """Each of ``ctx.config.alternatives`` that applies, in order, refitted (announced before each:
+    :attr:`Context.announce`), the structures' fits on the training points first, side by side
+    (:meth:`Context.prefit`). Returns (their fits, the ones that found something, also in ``ctx.results``; the seconds
+    of the structures' fits side by side)."""
     todo = list(ctx.config.alternatives)
     structures = [a for a in todo if isinstance(a, Structure) and a.applies(ctx)]
     began = time.perf_counter()
     if structures:
-        if announce is not None:
-            announce("the estimate's structure and " + ", ".join(a.key for a in structures)
-                     + " fitted side by side on four fifths of the points")
-        ctx.prefit(structures, announce)
+        ctx.say("the estimate's structure and " + ", ".join(a.key for a in structures)
+                + " fitted side by side on four fifths of the points")
+        ctx.prefit(structures)
     prefit_s = time.perf_counter() - began
     for i, alternative in enumerate(todo):
         if not alternative.applies(ctx):
             continue
-        if announce is not None:
-            announce(f"alternative {i + 1}/{len(todo)}: {alternative.words}")
+        ctx.say(f"alternative {i + 1}/{len(todo)}: {alternative.words}")
         began = time.perf_counter()
         result = alternative.refit(ctx)
         if result is not None:  # a structure's own fits, made side by side before, are in its seconds already

@@ -178,9 +178,9 @@ def estimate_observations(obs: Observations, config: WaterConfig | None = None, 
             samples, inv = bootstrap_pass(fit, config)
         with torch.no_grad():
             residual = (fit.problem.y - fit.problem.albedo()[1]).numpy()
-        ctx = Context(fit, obs, config, lights, samples, inv)
+        ctx = Context(fit, obs, config, lights, samples, inv, announce=lambda line: passes.note(f"water: {line}"))
         with passes("alternatives"):
-            results, prefit_s = run_alternatives(ctx, lambda line: passes.note(f"water: {line}"))
+            results, prefit_s = run_alternatives(ctx)
         for p in fit.stack.parameters():
             p.requires_grad_(False)
         with passes("fine grid"):

@@ -26,6 +26,7 @@ The bounds [f_low eta_0, f_high eta_0] then widen eta's interval (:func:`eval.wa
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -71,12 +72,15 @@ def set_eta(stack: Stack, eta_per_m: np.ndarray) -> None:
 
 
 def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Split, fit: FitConfig,
-                names: list[str], resamples: int) -> dict:
+                names: list[str], resamples: int, say: Callable[[str], None] | None = None) -> dict:
     """The held-out profile of eta (see the module docstring) of ``stack`` fitted on ``train`` (the points of
     ``obs`` less ``split``'s held-out ones) with the raw parameters ``names``; ``stack`` is left polished (in place).
+    ``say(line)`` before the polish and before each step, for the progress line (None: silent).
     Returns (JSON-ready) {"eta_per_m": eta_0, "low" / "high": eta at the bounds, "open_low" / "open_high": per
     channel, where the last step was accepted, "steps": [{"factor", "change_pct": per channel d, lo, hi}]}."""
+    say = say or (lambda line: None)
     config = replace(fit, **PROFILE_FIT)
+    say(f"eta's profile: the polish (step 1 of at most {1 + sum(map(len, PROFILE_STEPS))})")
     settle(Problem(stack, train, config, names))
     polished = [p.detach().clone() for p in stack.parameters()]
     eta0 = stack[ATTENUATION].param(ETA).detach().numpy().copy()
@@ -90,6 +94,9 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
         for factor in steps:
             if not accepted.any():
                 break
+            say(f"eta's profile: eta held at {factor:g}x the polished "
+                f"{' / '.join(f'{v:.3f}' for v in eta0)} per m, the rest refitted "
+                f"(step {len(out['steps']) + 2} of at most {1 + sum(map(len, PROFILE_STEPS))})")
             set_eta(stack, eta0 * factor)
             settle(Problem(stack, train, config, held_names))
             change = channel_changes(base_sq, heldout_sums(stack, obs, split, fit, per_channel=True)[0], count,
