@@ -12,9 +12,10 @@ parts of it switched off, at the measured range only (pixels without range writt
 - ``full``: and the veil B_inf (1 - exp(-beta r)).
 
 Prints Table II's consistency (variance of normalised colour across each SfM point's views, every view, x1e-4) for
-raw and each part, and the tile test of ``bench_real.py`` (its chromaticity distance of the bands' mean colours:
-the unranged pixels written 0 add nothing to a band's mean colour, where they would count as chromaticity 0 in the
-per-pixel form). Writes nothing under the workspace.
+raw and each part, the labelled objects' median chromaticity spread over raw's (``bench_real.object_constancy``,
+the objects of ``benchmarks/data/subvo_objects.json``) with each object's, and the tile test of ``bench_real.py``
+(its chromaticity distance of the bands' mean colours: the unranged pixels written 0 add nothing to a band's mean
+colour, where they would count as chromaticity 0 in the per-pixel form). Writes nothing under the workspace.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ def water_inputs(ws) -> tuple[Path, object, list[dict], object, list[str]]:
 
 
 def main() -> None:
-    from bench_real import tile_test
+    from bench_real import object_constancy, objects_summary, tile_test
 
     from eval.colour import consistency
     from pipeline.workspace import Workspace
@@ -95,10 +96,13 @@ def main() -> None:
             cv2.imwrite(str(target), np.rint(srgb[..., ::-1] * 255).astype(np.uint8))
     scores = consistency(tracks, folders, 5, 3).scores
     mask = read_scene_mask(ws.stage_dir("survey") / "scene_mask.png")
+    objects = objects_summary(object_constancy(ws, folders, names))
     for part, folder in folders.items():
         tiles = tile_test(folder, names, mask)
         print(f"{part:18s} consistency x1e-4 " + " ".join(f"{v * 1e4:.2f}" for v in scores[part].variance) +
-              f"   tile distance of the mean colours {tiles['tile_chromaticity_distance_of_mean']:.4f}")
+              f"   tile distance of the mean colours {tiles['tile_chromaticity_distance_of_mean']:.4f}"
+              f"   objects' median spread / raw {objects['median_spread_over_raw'][part]:.3f}")
+        print("    " + " ".join(f"{o}={v:.2f}" for o, v in objects["spread_over_raw_per_object"][part].items()))
 
 
 if __name__ == "__main__":
