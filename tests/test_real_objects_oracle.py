@@ -33,8 +33,7 @@ def test_the_objects_fit_undoes_its_own_form_and_a_wrong_water_does_not():
     rows = study.ObjectRows(rendered_objects(np.random.default_rng(0)))
     raw = rows.spreads(rows.rgb)
     everything = np.ones(len(rows.obj), bool)
-    fits = [study.fit_channel(rows, c, everything, gains=False) for c in range(3)]
-    water = np.stack([f[0] for f in fits])
+    water, _ = study.fit_form(rows, everything, gains=False)
     np.testing.assert_allclose(water[:, 0], [0.4, 0.1, 0.05], atol=0.02)
     J = np.zeros_like(rows.rgb)
     study.correct(rows, water, np.zeros((len(rows.frames), 3)), everything, J)

@@ -88,6 +88,12 @@ def fit_channel(rows: ObjectRows, c: int, use: np.ndarray, gains: bool) -> tuple
     return p[:3], (p[3 + n_obj:] if gains else np.zeros(len(rows.frames)))
 
 
+def fit_form(rows: ObjectRows, use: np.ndarray, gains: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The water (3, 3) of (eta, B, beta) per channel and the gains (frames, 3) fitted on the rows ``use``."""
+    fits = [fit_channel(rows, c, use, gains) for c in range(3)]
+    return np.stack([f[0] for f in fits]), np.stack([f[1] for f in fits], 1)
+
+
 def correct(rows: ObjectRows, water: np.ndarray, gains: np.ndarray, which: np.ndarray, out: np.ndarray) -> None:
     """``out[which]`` = J of the module docstring for the rows ``which``; ``water`` (3, 3) of (eta, B, beta) per
     channel, ``gains`` (frames, 3)."""
@@ -117,15 +123,13 @@ def variants(rows: ObjectRows, water: dict) -> dict[str, tuple[np.ndarray, np.nd
     out["water_as_estimated"] = (J, w)
     for gains in (False, True):
         suffix = "_gains" if gains else ""
-        fits = [fit_channel(rows, c, everything, gains) for c in range(3)]
-        w, g = np.stack([f[0] for f in fits]), np.stack([f[1] for f in fits], 1)
+        w, g = fit_form(rows, everything, gains)
         J = np.zeros_like(rows.rgb)
         correct(rows, w, g, everything, J)
         out["objects_fit" + suffix] = (J, w)
         J = np.zeros_like(rows.rgb)
         for i in range(len(rows.names)):
-            fits = [fit_channel(rows, c, rows.obj != i, gains) for c in range(3)]
-            correct(rows, np.stack([f[0] for f in fits]), np.stack([f[1] for f in fits], 1), rows.obj == i, J)
+            correct(rows, *fit_form(rows, rows.obj != i, gains), rows.obj == i, J)
         out["leave_one_object_out" + suffix] = (J, None)
     return out
 

@@ -80,7 +80,8 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
     channel, where the last step was accepted, "steps": [{"factor", "change_pct": per channel d, lo, hi}]}."""
     say = say or (lambda line: None)
     config = replace(fit, **PROFILE_FIT)
-    say(f"eta's profile: the polish (step 1 of at most {1 + sum(map(len, PROFILE_STEPS))})")
+    fits = 1 + sum(map(len, PROFILE_STEPS))
+    say(f"eta's profile: the polish (step 1 of at most {fits})")
     settle(Problem(stack, train, config, names))
     polished = [p.detach().clone() for p in stack.parameters()]
     eta0 = stack[ATTENUATION].param(ETA).detach().numpy().copy()
@@ -96,7 +97,7 @@ def eta_profile(stack: Stack, train: Observations, obs: Observations, split: Spl
                 break
             say(f"eta's profile: eta held at {factor:g}x the polished "
                 f"{' / '.join(f'{v:.3f}' for v in eta0)} per m, the rest refitted "
-                f"(step {len(out['steps']) + 2} of at most {1 + sum(map(len, PROFILE_STEPS))})")
+                f"(step {len(out['steps']) + 2} of at most {fits})")
             set_eta(stack, eta0 * factor)
             settle(Problem(stack, train, config, held_names))
             change = channel_changes(base_sq, heldout_sums(stack, obs, split, fit, per_channel=True)[0], count,
